@@ -1,0 +1,107 @@
+"""Pinhole camera with optional radial-tangential distortion, depth scale, back-projection."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int = 640
+    height: int = 480
+    # OpenCV order k1, k2, p1, p2, k3; empty = no distortion.
+    distortion: tuple[float, ...] = field(default_factory=tuple)
+    # Raw depth value per metre (TUM 5000, 7-Scenes 1000).
+    depth_scale: float = 5000.0
+    # Raw depth values that mean "no measurement" besides 0 (7-Scenes uses 65535).
+    invalid_depth: tuple[int, ...] = (0,)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        return np.asarray(self.distortion, dtype=np.float64)
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.distortion)
+
+    def depth_to_metres(self, raw: np.ndarray) -> np.ndarray:
+        """Raw 16-bit depth image to float32 metres, invalid values as 0."""
+        depth = raw.astype(np.float32) / np.float32(self.depth_scale)
+        for bad in self.invalid_depth:
+            depth[raw == bad] = 0.0
+        return depth
+
+    def undistort_points(self, uv: np.ndarray) -> np.ndarray:
+        """Distorted pixel coordinates (N, 2) to ideal pinhole pixel coordinates."""
+        if not self.has_distortion or len(uv) == 0:
+            return np.asarray(uv, dtype=np.float64)
+        pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        out = cv2.undistortPoints(pts, self.K, self.dist_coeffs, P=self.K)
+        return out.reshape(-1, 2)
+
+    def backproject(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Ideal pixel coordinates (N, 2) and depths (N,) to camera-frame points (N, 3)."""
+        x = (uv[:, 0] - self.cx) / self.fx * z
+        y = (uv[:, 1] - self.cy) / self.fy * z
+        return np.stack([x, y, z], axis=1)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) to ideal pixel coordinates (N, 2)."""
+        z = points[:, 2]
+        return np.stack(
+            [self.fx * points[:, 0] / z + self.cx, self.fy * points[:, 1] / z + self.cy], axis=1
+        )
+
+    def backproject_image(
+        self, depth_m: np.ndarray, stride: int = 1, max_depth_m: float = np.inf
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Depth image to camera-frame points; returns (points (N, 3), pixel indices (N, 2) as v, u)."""
+        v, u = np.mgrid[0 : depth_m.shape[0] : stride, 0 : depth_m.shape[1] : stride]
+        z = depth_m[v, u]
+        ok = (z > 0) & (z <= max_depth_m)
+        u, v, z = u[ok], v[ok], z[ok].astype(np.float64)
+        uv = np.stack([u, v], axis=1).astype(np.float64)
+        uv = self.undistort_points(uv)
+        return self.backproject(uv, z), np.stack([v, u], axis=1)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2)
+
+    @staticmethod
+    def from_json(path: Path) -> "Camera":
+        try:
+            values = json.loads(Path(path).read_text())
+            values["distortion"] = tuple(values.get("distortion", ()))
+            values["invalid_depth"] = tuple(values.get("invalid_depth", (0,)))
+            return Camera(**values)
+        except (OSError, ValueError, TypeError) as exc:
+            raise ValueError(f"{path}: not a valid camera file: {exc}") from exc
+
+
+# TUM RGB-D colour cameras (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats).
+TUM_CAMERAS: dict[str, Camera] = {
+    "freiburg1": Camera(
+        517.306408, 516.469215, 318.643040, 255.313989,
+        distortion=(0.262383, -0.953104, -0.005358, 0.002628, 1.163314),
+    ),
+    "freiburg2": Camera(
+        520.908620, 521.007327, 325.141442, 249.701764,
+        distortion=(0.231222, -0.784899, -0.003257, -0.000105, 0.917205),
+    ),
+    "freiburg3": Camera(535.4, 539.2, 320.1, 247.6),
+    # ROS default, used when the folder names no freiburg camera.
+    "default": Camera(525.0, 525.0, 319.5, 239.5),
+}

@@ -1,0 +1,167 @@
+"""The one configuration object of fleetslam. Every default is named here, once.
+
+Load from TOML with :func:`load_config`; unknown keys are an error so typos do not pass
+silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+@dataclass
+class OrbConfig:
+    """ORB extraction (paper: OpenCV ORB, as in ORB-SLAM)."""
+
+    n_features: int = 1000
+    n_levels: int = 8
+    scale_factor: float = 1.2
+    fast_threshold: int = 20
+    # Cells of the grid the features are spread over, so texture-rich corners do not
+    # take the whole budget (ORB-SLAM does the same with its quadtree).
+    grid_cols: int = 8
+    grid_rows: int = 6
+
+
+@dataclass
+class TrackingConfig:
+    """Matching, PnP and keyframe decision."""
+
+    min_depth_m: float = 0.1
+    max_depth_m: float = 7.0
+    # Hamming distance (bits of 256) above which a descriptor match is not trusted.
+    max_hamming: int = 64
+    # Lowe ratio between best and second-best match.
+    match_ratio: float = 0.85
+    # Reprojection error (pixels) for PnP RANSAC inliers and for refinement.
+    ransac_reproj_px: float = 3.0
+    ransac_iterations: int = 200
+    ransac_confidence: float = 0.999
+    # Fewer PnP inliers than this is a tracking loss.
+    min_inliers: int = 20
+    # Keyframe when inliers drop below this fraction of the reference keyframe's points ...
+    keyframe_inlier_ratio: float = 0.55
+    # ... or when the camera moved this far from the reference keyframe.
+    keyframe_translation_m: float = 0.15
+    keyframe_rotation_deg: float = 12.0
+    # Landmarks from this many recent keyframes form the local map matched against.
+    local_map_keyframes: int = 6
+    # A repeated image (byte-identical, as 7-Scenes fills dropped frames) is detected by
+    # this fraction of keypoints at the same place with the same descriptor.
+    repeated_frame_fraction: float = 0.98
+
+
+@dataclass
+class MapConfig:
+    """Per-robot dense map from keyframes."""
+
+    voxel_m: float = 0.02
+    max_depth_m: float = 4.0
+    # Back-project every n-th pixel: a keyframe at full density is ~300k points.
+    pixel_stride: int = 2
+
+
+@dataclass
+class FsHicpConfig:
+    """FS-HICP exactly as paper-notes.md section 2."""
+
+    max_depth_m: float = 7.0
+    coarse_voxel_m: float = 0.1
+    coarse_max_corr_m: float = 0.2
+    # Coarse level runs while the fitness score is >= this fraction of the initial score.
+    coarse_score_fraction: float = 0.5
+    fine_voxel_m: float = 0.05
+    fine_max_corr_m: float = 0.1
+    fine_corr_shrink_m: float = 0.001
+    # Internal ICP iterations per Align call.
+    align_iterations: int = 2
+    # Simulated annealing: accept a non-improving step with this probability.
+    accept_worse_probability: float = 0.3
+    # Stop after this many non-improving steps in a row.
+    max_no_improve: int = 3
+    # Convergence precision on the fitness score change (m^2).
+    score_epsilon: float = 1e-7
+    # Hard caps so a pathological pair cannot run forever.
+    max_coarse_steps: int = 200
+    max_fine_steps: int = 400
+    seed: int = 0
+    num_threads: int = 2
+
+
+@dataclass
+class MergeConfig:
+    """Initial guess for the merge (this version: ground truth plus a labelled perturbation)."""
+
+    perturb_rotation_deg: float = 10.0
+    perturb_translation_m: float = 0.3
+    seed: int = 7
+
+
+@dataclass
+class SyntheticConfig:
+    """The built-in synthetic multi-robot scene."""
+
+    seed: int = 1
+    n_robots: int = 2
+    frames_per_robot: int = 120
+    width: int = 640
+    height: int = 480
+    fx: float = 525.0
+    fy: float = 525.0
+    cx: float = 319.5
+    cy: float = 239.5
+    fps: float = 30.0
+    room_size_m: tuple[float, float, float] = (6.0, 5.0, 2.8)
+    n_furniture: int = 8
+    # Kinect-like depth noise: sigma(z) = a + b * (z - 0.4)^2 (Nguyen et al. 2012).
+    depth_noise_a: float = 0.0012
+    depth_noise_b: float = 0.0019
+    depth_dropout: float = 0.02
+    max_depth_m: float = 5.0
+
+
+@dataclass
+class Config:
+    orb: OrbConfig = field(default_factory=OrbConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    fshicp: FsHicpConfig = field(default_factory=FsHicpConfig)
+    merge: MergeConfig = field(default_factory=MergeConfig)
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+
+
+def _update(obj: Any, values: dict[str, Any], where: str) -> None:
+    names = {f.name: f for f in dataclasses.fields(obj)}
+    for key, value in values.items():
+        if key not in names:
+            raise ValueError(f"{where}: unknown setting '{key}' (known: {', '.join(names)})")
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ValueError(f"{where}.{key}: expected a table")
+            _update(current, value, f"{where}.{key}")
+        elif isinstance(current, tuple):
+            setattr(obj, key, tuple(value))
+        else:
+            setattr(obj, key, type(current)(value))
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Defaults, overridden by the TOML file at ``path`` if given."""
+    config = Config()
+    if path is not None:
+        path = Path(path)
+        try:
+            values = tomllib.loads(path.read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ValueError(f"{path}: cannot read config: {exc}") from exc
+        _update(config, values, str(path))
+    return config
+
+
+def config_to_dict(config: Config) -> dict[str, Any]:
+    return dataclasses.asdict(config)

@@ -1,0 +1,1 @@
+"""Standard file formats: PLY point clouds, TUM trajectories."""
