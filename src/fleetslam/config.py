@@ -50,6 +50,14 @@ class TrackingConfig:
     keyframe_rotation_deg: float = 12.0
     # Landmarks from this many recent keyframes form the local map matched against.
     local_map_keyframes: int = 6
+    # Search radius (pixels, at octave 0) around a landmark's predicted position.
+    guided_radius_px: float = 25.0
+    # Fewer guided matches than this: match against the whole local map instead.
+    min_guided_matches: int = 60
+    # Virtual stereo baseline for the depth residual (ORB-SLAM's RGB-D "bf" / fx).
+    virtual_baseline_m: float = 0.08
+    # After this many lost frames in a row, restart the map at the predicted pose.
+    lost_frames_before_reset: int = 15
     # A repeated image (byte-identical, as 7-Scenes fills dropped frames) is detected by
     # this fraction of keypoints at the same place with the same descriptor.
     repeated_frame_fraction: float = 0.98

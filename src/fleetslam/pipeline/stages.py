@@ -1,0 +1,329 @@
+"""The tracking stages, in the paper's order (Table "Time using of each part"):
+
+    Extract -> Describe -> AssociateDepth -> Match -> EstimatePose -> DecideKeyframe
+
+Stage k maps state k to state k+1 (see states.py). Stages before the offloading point run
+on the robot and touch only the robot's side of the session; stages after it run in the
+cloud and own the tracking map.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fleetslam.pipeline.pose_optimizer import optimize_pose
+from fleetslam.pipeline.session import TrackingSession
+from fleetslam.pipeline.states import (
+    CapturedFrame,
+    DescribedFrame,
+    DetectedFrame,
+    FeatureFrame,
+    MatchedFrame,
+    PosedFrame,
+    TrackedFrame,
+)
+from fleetslam.transforms import invert, rotation_angle_deg
+
+
+class Stage(Protocol):
+    name: str
+
+    def __call__(self, state: Any, session: TrackingSession) -> Any: ...
+
+
+def _keypoints_to_array(kps: tuple[cv2.KeyPoint, ...]) -> np.ndarray:
+    return np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response, k.octave, k.class_id)
+                     for k in kps], dtype=np.float32).reshape(-1, 7)
+
+
+def _array_to_keypoints(table: np.ndarray) -> list[cv2.KeyPoint]:
+    return [cv2.KeyPoint(float(x), float(y), float(s), float(a), float(r), int(o), int(c))
+            for x, y, s, a, r, o, c in table]
+
+
+def spread_over_grid(table: np.ndarray, n: int, shape: tuple[int, int], cols: int, rows: int
+                     ) -> np.ndarray:
+    """Keep ``n`` keypoints spread over a grid: the strongest of each cell first, in rounds,
+    so that texture-rich areas cannot take the whole budget."""
+    if len(table) <= n:
+        return table
+    h, w = shape
+    cell = (np.minimum((table[:, 1] * rows / h).astype(int), rows - 1) * cols
+            + np.minimum((table[:, 0] * cols / w).astype(int), cols - 1))
+    order = np.lexsort((-table[:, 4], cell))
+    sorted_cell = cell[order]
+    starts = np.searchsorted(sorted_cell, sorted_cell, side="left")
+    rank_in_cell = np.arange(len(order)) - starts
+    # Round by rank in cell, then by response within a round.
+    pick = order[np.lexsort((-table[order, 4], rank_in_cell))][:n]
+    return table[np.sort(pick)]
+
+
+class Extract:
+    """ORB keypoint detection (FAST on an image pyramid, oriented)."""
+
+    name = "extract"
+
+    def __call__(self, state: CapturedFrame, session: TrackingSession) -> DetectedFrame:
+        gray = cv2.cvtColor(state.rgb, cv2.COLOR_RGB2GRAY)
+        kps = session.orb.detect(gray, None)
+        table = _keypoints_to_array(kps)
+        cfg = session.config.orb
+        table = spread_over_grid(table, cfg.n_features, gray.shape, cfg.grid_cols, cfg.grid_rows)
+        return DetectedFrame(state.index, state.timestamp, gray, state.depth_m, table)
+
+
+class Describe:
+    """ORB (rotated BRIEF) descriptors of the detected keypoints."""
+
+    name = "describe"
+
+    def __call__(self, state: DetectedFrame, session: TrackingSession) -> DescribedFrame:
+        kps, desc = session.orb.compute(state.gray, _array_to_keypoints(state.keypoints))
+        table = _keypoints_to_array(kps)
+        if desc is None:
+            desc = np.zeros((0, 32), np.uint8)
+        return DescribedFrame(state.index, state.timestamp, state.depth_m, table, desc)
+
+
+class AssociateDepth:
+    """Depth per keypoint (ORB-SLAM's 'compute stereo' for RGB-D) and undistortion.
+
+    A keypoint on a depth edge gets no depth: its pixel mixes foreground and background,
+    which would create a landmark floating in between."""
+
+    name = "associate_depth"
+
+    def __call__(self, state: DescribedFrame, session: TrackingSession) -> FeatureFrame:
+        cfg = session.config.tracking
+        depth_img = state.depth_m
+        h, w = depth_img.shape
+        u = np.clip(np.round(state.keypoints[:, 0]).astype(int), 1, w - 2)
+        v = np.clip(np.round(state.keypoints[:, 1]).astype(int), 1, h - 2)
+        du, dv = np.meshgrid([-1, 0, 1], [-1, 0, 1])
+        patch = depth_img[v[:, None] + dv.ravel(), u[:, None] + du.ravel()]  # N x 9
+        z = depth_img[v, u]
+        valid_patch = np.where(patch > 0, patch, np.nan)
+        with np.errstate(all="ignore"):
+            spread = np.nanmax(valid_patch, axis=1) - np.nanmin(valid_patch, axis=1)
+        ok = (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m) & (np.nan_to_num(spread) < 0.05 * z)
+        depth = np.where(ok, z, 0.0).astype(np.float32)
+        uv = session.camera.undistort_points(state.keypoints[:, :2].astype(np.float64))
+        return FeatureFrame(state.index, state.timestamp, state.keypoints, state.descriptors,
+                            depth, uv)
+
+
+class Match:
+    """Match features to the local map: guided by the constant-velocity prediction, or
+    against the whole local map when too few guided matches are found."""
+
+    name = "match"
+
+    def __call__(self, state: FeatureFrame, session: TrackingSession) -> MatchedFrame:
+        n = len(state.keypoints)
+        ids = np.full(n, -1, np.int64)
+        T_pred = session.predict_pose()
+        repeated = session.is_repeat_of_last(state)
+        if not repeated and session.map.keyframes and n:
+            ids = self._match(state, session, T_pred)
+        xyz = np.full((n, 3), np.nan)
+        xyz[ids >= 0] = session.map.xyz[ids[ids >= 0]]
+        return MatchedFrame(state, ids, xyz, T_pred, repeated)
+
+    def _match(self, state: FeatureFrame, session: TrackingSession, T_pred: np.ndarray
+               ) -> np.ndarray:
+        cfg = session.config.tracking
+        cam = session.camera
+        ids = np.full(len(state.keypoints), -1, np.int64)
+        if not session.lost_frames:
+            # Every landmark of the map that falls in the predicted view is a candidate:
+            # returning to a place matches the old landmarks, which bounds the drift.
+            P = (session.map.xyz - T_pred[:3, 3]) @ T_pred[:3, :3]
+            visible = np.flatnonzero((P[:, 2] > cfg.min_depth_m) & (P[:, 2] < cfg.max_depth_m))
+            proj = cam.project(P[visible])
+            inside = ((proj[:, 0] >= 0) & (proj[:, 0] < cam.width)
+                      & (proj[:, 1] >= 0) & (proj[:, 1] < cam.height))
+            visible, proj = visible[inside], proj[inside]
+            level = session.map.predicted_octave(visible, np.linalg.norm(P[visible], axis=1),
+                                                 session.config.orb.scale_factor,
+                                                 session.config.orb.n_levels)
+            ids = guided_match(state, session.map.descriptors, visible, proj, level,
+                               cfg.guided_radius_px, session.config.orb.scale_factor,
+                               cfg.max_hamming, cfg.match_ratio)
+        if (ids >= 0).sum() < cfg.min_guided_matches:
+            # Prediction too far off (fast rotation, after a loss): search the landmarks of
+            # the newest keyframes by descriptor alone.
+            pool = session.map.local_landmarks(cfg.local_map_keyframes)
+            ids = self._knn(state.descriptors, session.map.descriptors[pool], pool,
+                            cfg.max_hamming, cfg.match_ratio, None)
+        return ids
+
+    @staticmethod
+    def _knn(query: np.ndarray, train: np.ndarray, train_ids: np.ndarray, max_hamming: int,
+             ratio: float, mask: np.ndarray | None) -> np.ndarray:
+        ids = np.full(len(query), -1, np.int64)
+        if len(train) < 2 or len(query) == 0:
+            return ids
+        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        pairs = matcher.knnMatch(query, train, k=2, mask=mask) if mask is not None else \
+            matcher.knnMatch(query, train, k=2)
+        q, t, dist = [], [], []
+        for p in pairs:
+            if not p:
+                continue
+            best = p[0]
+            if best.distance > max_hamming:
+                continue
+            if len(p) > 1 and best.distance > ratio * p[1].distance:
+                continue
+            q.append(best.queryIdx)
+            t.append(best.trainIdx)
+            dist.append(best.distance)
+        if not q:
+            return ids
+        q_arr, t_arr, d_arr = np.array(q), np.array(t), np.array(dist)
+        # One keypoint per landmark: the closest descriptor wins.
+        order = np.lexsort((d_arr, t_arr))
+        first = np.ones(len(order), bool)
+        first[1:] = t_arr[order][1:] != t_arr[order][:-1]
+        keep = order[first]
+        ids[q_arr[keep]] = train_ids[t_arr[keep]]
+        return ids
+
+
+def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.ndarray,
+                 projected: np.ndarray, predicted_level: np.ndarray, radius_px: float,
+                 scale_factor: float, max_hamming: int, ratio: float) -> np.ndarray:
+    """Match each keypoint to the candidate landmarks projected within a radius of it
+    (scaled by the keypoint's octave) and predicted at its pyramid level +-1. Landmark id
+    per keypoint, -1 if none; one keypoint per landmark."""
+    n = len(state.keypoints)
+    ids = np.full(n, -1, np.int64)
+    if len(candidates) == 0 or n == 0:
+        return ids
+    # One radius search per pyramid level: the search radius grows with the keypoint's scale.
+    octave = state.keypoints[:, 5].astype(int)
+    lm_parts, kp_parts = [], []
+    for level in np.unique(octave):
+        members = np.flatnonzero(octave == level)
+        near = np.flatnonzero(np.abs(predicted_level - level) <= 1)
+        if len(near) == 0:
+            continue
+        pairs = cKDTree(projected[near]).sparse_distance_matrix(
+            cKDTree(state.uv[members]), radius_px * scale_factor**level, output_type="ndarray")
+        lm_parts.append(near[pairs["i"]])
+        kp_parts.append(members[pairs["j"]])
+    if not lm_parts:
+        return ids
+    lm, kp = np.concatenate(lm_parts), np.concatenate(kp_parts)
+    if len(lm) == 0:
+        return ids
+    ham = np.bitwise_count(state.descriptors[kp] ^ descriptors[candidates[lm]]).sum(axis=1)
+    # Best and second-best landmark per keypoint.
+    order = np.lexsort((ham, kp))
+    kp, lm, ham = kp[order], lm[order], ham[order]
+    first = np.ones(len(kp), bool)
+    first[1:] = kp[1:] != kp[:-1]
+    best = np.flatnonzero(first)
+    second = best + 1
+    has_second = (second < len(kp)) & ~np.append(first, True)[np.minimum(second, len(kp))]
+    second_ham = np.full(len(best), np.inf)
+    second_ham[has_second] = ham[second[has_second]]
+    good = (ham[best] <= max_hamming) & (ham[best] < ratio * second_ham)
+    best = best[good]
+    # One keypoint per landmark: the closest descriptor wins.
+    order = np.lexsort((ham[best], lm[best]))
+    best = best[order]
+    unique = np.ones(len(best), bool)
+    unique[1:] = lm[best][1:] != lm[best][:-1]
+    best = best[unique]
+    ids[kp[best]] = candidates[lm[best]]
+    return ids
+
+
+class EstimatePose:
+    """PnP with RANSAC on the matches, then RGB-D motion-only bundle adjustment."""
+
+    name = "estimate_pose"
+
+    def __call__(self, state: MatchedFrame, session: TrackingSession) -> PosedFrame:
+        cfg = session.config.tracking
+        f = state.features
+        n = len(f.keypoints)
+        matched = np.flatnonzero(state.landmark_ids >= 0)
+        inliers = np.zeros(n, bool)
+        if not session.map.keyframes:
+            # First frame: it defines the robot's map frame.
+            return PosedFrame(state, np.eye(4), inliers, tracked=bool((f.depth > 0).sum()
+                                                                        >= cfg.min_inliers))
+        if state.repeated:
+            # A repeated image carries no new observation: keep the motion prediction.
+            return PosedFrame(state, state.T_world_camera_predicted, inliers,
+                              tracked=session.last_tracked)
+        if len(matched) < cfg.min_inliers:
+            return PosedFrame(state, state.T_world_camera_predicted, inliers, tracked=False)
+        obj = state.landmark_xyz[matched]
+        img = f.uv[matched]
+        T_cw = invert(state.T_world_camera_predicted)
+        rvec, _ = cv2.Rodrigues(T_cw[:3, :3])
+        ok, rvec, tvec, ransac_inliers = cv2.solvePnPRansac(
+            obj, img, session.camera.K, None, rvec=rvec, tvec=T_cw[:3, 3].copy(),
+            useExtrinsicGuess=False, iterationsCount=cfg.ransac_iterations,
+            reprojectionError=cfg.ransac_reproj_px, confidence=cfg.ransac_confidence,
+            flags=cv2.SOLVEPNP_SQPNP)
+        if not ok or ransac_inliers is None or len(ransac_inliers) < cfg.min_inliers:
+            return PosedFrame(state, state.T_world_camera_predicted, inliers, tracked=False)
+        R, _ = cv2.Rodrigues(rvec)
+        T_cw = np.eye(4)
+        T_cw[:3, :3], T_cw[:3, 3] = R, tvec.ravel()
+        scale = session.config.orb.scale_factor ** f.keypoints[matched, 5]
+        T_wc, good = optimize_pose(session.camera, invert(T_cw), obj, img,
+                                   f.depth[matched].astype(np.float64), scale,
+                                   cfg.virtual_baseline_m)
+        inliers[matched[good]] = True
+        tracked = int(good.sum()) >= cfg.min_inliers
+        return PosedFrame(state, T_wc if tracked else state.T_world_camera_predicted, inliers,
+                          tracked)
+
+
+class DecideKeyframe:
+    """Keyframe decision, map update and motion bookkeeping (the paper's 'Others')."""
+
+    name = "decide_keyframe"
+
+    def __call__(self, state: PosedFrame, session: TrackingSession) -> TrackedFrame:
+        cfg = session.config.tracking
+        f = state.matched.features
+        is_kf = False
+        if not session.map.keyframes:
+            is_kf = state.tracked
+        elif state.tracked and not state.matched.repeated:
+            ref = session.map.keyframes[-1]
+            T_rel = invert(ref.T_world_camera) @ state.T_world_camera
+            n_in = int(state.inliers.sum())
+            # Inliers fall against the first frame tracked after the keyframe: the view has
+            # moved on. (The keyframe's own landmark count is no reference: many of its
+            # keypoints are never matched again.)
+            reference = session.inliers_after_keyframe or n_in
+            is_kf = (n_in < cfg.keyframe_inlier_ratio * reference
+                     or np.linalg.norm(T_rel[:3, 3]) > cfg.keyframe_translation_m
+                     or rotation_angle_deg(T_rel[:3, :3]) > cfg.keyframe_rotation_deg)
+        elif not state.tracked and session.lost_frames + 1 >= cfg.lost_frames_before_reset:
+            # Lost for too long: continue from the prediction with fresh landmarks.
+            is_kf = True
+            session.resets += 1
+        if is_kf:
+            matched_ids = np.where(state.inliers, state.matched.landmark_ids, -1)
+            session.map.add_keyframe(session.camera, f.index, f.timestamp, state.T_world_camera,
+                                     f.uv, f.depth, f.descriptors,
+                                     f.keypoints[:, 5].astype(np.int64), matched_ids)
+        session.record(state, f, is_kf)
+        return TrackedFrame(state, is_kf)
+
+
+def default_stages() -> list[Stage]:
+    return [Extract(), Describe(), AssociateDepth(), Match(), EstimatePose(), DecideKeyframe()]

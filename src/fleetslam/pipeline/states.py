@@ -1,0 +1,112 @@
+"""The typed state between each pair of tracking stages: what crosses a split point.
+
+State k is the input of stage k (state 0 is the captured frame). Every state is plain
+numpy arrays and numbers, so it can be serialised at any split point. Images are dropped
+as soon as no later stage needs them: that is what makes late split points cheap to send.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Keypoint table columns, as OpenCV KeyPoint and the paper's YAML message: x, y, size,
+# angle, response, octave, class_id.
+KEYPOINT_COLUMNS = ("x", "y", "size", "angle", "response", "octave", "class_id")
+
+
+@dataclass
+class CapturedFrame:
+    """State 0: the RGB-D frame as captured (what total offloading sends)."""
+
+    index: int
+    timestamp: float
+    rgb: np.ndarray  # H x W x 3 uint8 RGB
+    depth_m: np.ndarray  # H x W float32 metres, 0 = no measurement
+
+
+@dataclass
+class DetectedFrame:
+    """State 1: keypoints found; the grey image is still needed for descriptors."""
+
+    index: int
+    timestamp: float
+    gray: np.ndarray  # H x W uint8
+    depth_m: np.ndarray
+    keypoints: np.ndarray  # N x 7 float32, KEYPOINT_COLUMNS
+
+
+@dataclass
+class DescribedFrame:
+    """State 2: ORB descriptors computed; only the depth image is still needed."""
+
+    index: int
+    timestamp: float
+    depth_m: np.ndarray
+    keypoints: np.ndarray  # N x 7 float32
+    descriptors: np.ndarray  # N x 32 uint8
+
+
+@dataclass
+class FeatureFrame:
+    """State 3: features with a depth per keypoint (the paper's chosen offloading point)."""
+
+    index: int
+    timestamp: float
+    keypoints: np.ndarray  # N x 7 float32 (distorted pixel coordinates, as detected)
+    descriptors: np.ndarray  # N x 32 uint8
+    depth: np.ndarray  # N float32 metres, 0 = no reliable depth
+    # Undistorted (ideal pinhole) keypoint coordinates; derived from keypoints and the
+    # camera, carried so the cloud does not redo it.
+    uv: np.ndarray  # N x 2 float64
+
+
+@dataclass
+class MatchedFrame:
+    """State 4: features matched to the tracking map."""
+
+    features: FeatureFrame
+    landmark_ids: np.ndarray  # N int64, -1 = unmatched
+    landmark_xyz: np.ndarray  # N x 3 float64 world points of the matches (NaN if unmatched)
+    T_world_camera_predicted: np.ndarray  # 4 x 4, constant-velocity prediction
+    # The frame is a byte-for-byte repeat of the previous one (dropped-frame filler).
+    repeated: bool
+
+
+@dataclass
+class PosedFrame:
+    """State 5: camera pose estimated."""
+
+    matched: MatchedFrame
+    T_world_camera: np.ndarray  # 4 x 4
+    inliers: np.ndarray  # N bool over keypoints
+    tracked: bool
+
+
+@dataclass
+class TrackedFrame:
+    """State 6: the pipeline's output for one frame."""
+
+    posed: PosedFrame
+    is_keyframe: bool
+
+    @property
+    def index(self) -> int:
+        return self.posed.matched.features.index
+
+    @property
+    def timestamp(self) -> float:
+        return self.posed.matched.features.timestamp
+
+    @property
+    def T_world_camera(self) -> np.ndarray:
+        return self.posed.T_world_camera
+
+    @property
+    def tracked(self) -> bool:
+        return self.posed.tracked
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.posed.inliers.sum())
