@@ -1,0 +1,22 @@
+#!/bin/sh
+# System packages fleetslam needs: a Python 3.11+ with venv and pip. Everything else comes
+# from PyPI wheels (OpenCV headless, small_gicp, ...), which need no system libraries.
+set -e
+PYTHON="${1:-python3}"
+need_install=0
+if ! command -v "$PYTHON" >/dev/null 2>&1; then
+    need_install=1
+elif ! "$PYTHON" -c 'import sys, venv, ensurepip; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
+    need_install=1
+fi
+if [ "$need_install" = 1 ]; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""
+        [ "$(id -u)" = 0 ] || SUDO="sudo"
+        $SUDO apt-get update -qq
+        $SUDO apt-get install -y -qq python3 python3-venv python3-pip
+    else
+        echo "fleetslam needs Python >= 3.11 with venv; install it and rerun" >&2
+        exit 1
+    fi
+fi

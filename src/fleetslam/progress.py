@@ -1,0 +1,47 @@
+"""Progress lines for long work: done/total, rate, ETA, on one refreshed stderr line."""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+
+class Progress:
+    def __init__(self, label: str, total: int, unit: str = "frames", stream: TextIO | None = None,
+                 enabled: bool = True, min_interval_s: float = 0.25) -> None:
+        self.label = label
+        self.total = total
+        self.unit = unit
+        self.stream = stream or sys.stderr
+        self.enabled = enabled
+        self.start = time.perf_counter()
+        self._last_print = 0.0
+        self.min_interval_s = min_interval_s
+        # A terminal gets one refreshed line; a log file gets occasional full lines.
+        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def update(self, done: int, note: str = "") -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        final = done >= self.total
+        interval = self.min_interval_s if self._tty else 5.0
+        if not final and now - self._last_print < interval:
+            return
+        self._last_print = now
+        elapsed = now - self.start
+        rate = done / elapsed if elapsed > 0 else 0.0
+        eta = (self.total - done) / rate if rate > 0 else float("nan")
+        line = (f"{self.label}: {done}/{self.total} {self.unit}  {rate:5.1f}/s  "
+                f"ETA {eta:5.0f}s" + (f"  {note}" if note else ""))
+        if self._tty:
+            self.stream.write("\r" + line.ljust(100) + ("\n" if final else ""))
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def message(self, text: str) -> None:
+        if self.enabled:
+            self.stream.write(("\n" if self._tty else "") + text + "\n")
+            self.stream.flush()

@@ -1,0 +1,17 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+PROJECT = Path(__file__).resolve().parents[1]
+SHARED_DATA = PROJECT.parent / "shared" / "data"
+SEVEN_SCENES = SHARED_DATA / "7scenes_redkitchen_seq01_f0000-0599"
+TUM_RPY = SHARED_DATA / "tum_fr1_rpy_f000-149"
+FRAGMENTS = SHARED_DATA / "3dmatch_7scenes-redkitchen_fragments"
+
+
+def require(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"real data not present: {path}")
+    return path

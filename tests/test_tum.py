@@ -1,0 +1,120 @@
+"""The TUM RGB-D reader: association, camera choice, ground truth, clear errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import SEVEN_SCENES, TUM_RPY, require
+from fleetslam.datasets.tum import RgbdSequence, associate, parse_robot_spec
+
+
+def write_tum_folder(root: Path, rgb_times, depth_times, gt: bool = True) -> Path:
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    with open(root / "rgb.txt", "w") as f:
+        f.write("# color images\n# timestamp filename\n")
+        for t in rgb_times:
+            name = f"rgb/{t:.6f}.png"
+            cv2.imwrite(str(root / name), np.full((48, 64, 3), 100, np.uint8))
+            f.write(f"{t:.6f} {name}\n")
+    with open(root / "depth.txt", "w") as f:
+        for t in depth_times:
+            name = f"depth/{t:.6f}.png"
+            cv2.imwrite(str(root / name), np.full((48, 64), 5000, np.uint16))
+            f.write(f"{t:.6f} {name}\n")
+    if gt:
+        with open(root / "groundtruth.txt", "w") as f:
+            for k in range(0, 41):
+                t = k * 0.05
+                f.write(f"{t:.4f} {t:.4f} 0 0 0 0 0 1\n")
+    return root
+
+
+def test_associate_pairs_nearest_within_20ms_each_stamp_once():
+    rgb = np.array([0.0, 0.033, 0.066, 0.5])
+    depth = np.array([0.005, 0.030, 0.041, 0.2])
+    pairs = associate(rgb, depth)
+    assert pairs == [(0, 0), (1, 1)]  # 0.066 is 25 ms from its nearest free depth
+    assert (3, 3) not in pairs
+    assert len({j for _, j in pairs}) == len(pairs)
+
+
+def test_reads_frames_interpolates_ground_truth(tmp_path):
+    root = write_tum_folder(tmp_path / "rgbd_dataset_freiburg3_x", [0.1, 0.2, 0.3], [0.101, 0.205, 0.31])
+    seq = RgbdSequence(root)
+    assert len(seq) == 3
+    assert seq.camera.fx == pytest.approx(535.4)  # freiburg3 from the folder name
+    frame = seq[1]
+    assert frame.rgb.shape == (48, 64, 3) and frame.depth_m.dtype == np.float32
+    assert frame.depth_m[0, 0] == pytest.approx(1.0)
+    # GT x = t, interpolated at the rgb stamps.
+    np.testing.assert_allclose(seq.gt_poses[:, 0, 3], [0.1, 0.2, 0.3], atol=1e-9)
+    sub = RgbdSequence(root, first=1, last=2)
+    assert len(sub) == 2 and sub.timestamps[0] == pytest.approx(0.2)
+
+
+def test_robot_spec_with_frame_range():
+    assert parse_robot_spec("/data/seq:0-349") == (Path("/data/seq"), 0, 349)
+    assert parse_robot_spec("/data/seq") == (Path("/data/seq"), 0, None)
+    with pytest.raises(ValueError, match="empty"):
+        parse_robot_spec("seq:9-3")
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda r: (r / "rgb.txt").unlink(), "rgb.txt: cannot read"),
+    (lambda r: (r / "depth.txt").write_text("0.1\n"), "depth.txt:1: expected"),
+    (lambda r: (r / "depth.txt").write_text("abc depth/x.png\n"), "not a number"),
+    (lambda r: (r / "rgb" / "0.200000.png").unlink(), "0.200000.png: listed in the sequence index but missing"),
+    (lambda r: (r / "groundtruth.txt").write_text("0 1 2\n"), "groundtruth.txt:1: expected 8 values"),
+])
+def test_bad_folders_name_the_file(tmp_path, damage, message):
+    root = write_tum_folder(tmp_path / "seq", [0.1, 0.2], [0.1, 0.2])
+    damage(root)
+    with pytest.raises(ValueError, match=message):
+        RgbdSequence(root)
+
+
+def test_undecodable_image_names_the_file(tmp_path):
+    root = write_tum_folder(tmp_path / "seq", [0.1, 0.2], [0.1, 0.2])
+    (root / "depth" / "0.200000.png").write_bytes(b"not a png")
+    seq = RgbdSequence(root)
+    with pytest.raises(ValueError, match="0.200000.png: cannot decode depth"):
+        seq[1]
+
+
+def test_no_associable_pairs_is_an_error(tmp_path):
+    root = write_tum_folder(tmp_path / "seq", [0.1, 0.2], [0.5, 0.6])
+    with pytest.raises(ValueError, match="no rgb/depth pair"):
+        RgbdSequence(root)
+
+
+def test_range_outside_sequence(tmp_path):
+    root = write_tum_folder(tmp_path / "seq", [0.1, 0.2], [0.1, 0.2])
+    with pytest.raises(ValueError, match="outside"):
+        RgbdSequence(root, first=0, last=5)
+
+
+def test_real_tum_fr1_camera_and_ground_truth():
+    seq = RgbdSequence(require(TUM_RPY))
+    assert len(seq) == 150
+    assert seq.camera.fx == pytest.approx(517.306408) and seq.camera.has_distortion
+    assert seq.camera.depth_scale == 5000
+    assert np.isfinite(seq.gt_poses).all()
+    frame = seq[0]
+    assert 0.3 < np.median(frame.depth_m[frame.depth_m > 0]) < 4.0
+
+
+def test_real_seven_scenes_camera_depth_scale_and_invalid_values():
+    seq = RgbdSequence(require(SEVEN_SCENES))
+    assert len(seq) == 600
+    assert seq.camera.fx == 585 and seq.camera.depth_scale == 1000
+    assert 65535 in seq.camera.invalid_depth
+    frame = seq[0]
+    assert frame.depth_m.max() < 10.0  # 65535 mm is "no depth", not 65 m
+    # The ground truth of frame 0 is the 4x4 of frame-000000.pose.txt.
+    pose = np.loadtxt(SEVEN_SCENES / "frame-000000.pose.txt")
+    np.testing.assert_allclose(seq.gt_poses[0][:3, 3], pose[:3, 3], atol=1e-5)
