@@ -61,6 +61,36 @@ class TrackingConfig:
     # A repeated image (byte-identical, as 7-Scenes fills dropped frames) is detected by
     # this fraction of keypoints at the same place with the same descriptor.
     repeated_frame_fraction: float = 0.98
+    # After the pose is found, search the unmatched landmarks projected with it and refine
+    # the pose again (ORB-SLAM's TrackLocalMap) ...
+    track_local_map: bool = True
+    # ... within this radius in pixels at octave 0 (ORB-SLAM RGB-D: th 3 x 2.5 px).
+    local_map_radius_px: float = 7.5
+    # Local bundle adjustment of keyframe poses and landmarks at every keyframe (ORB-SLAM's
+    # local mapping, run in-line).
+    local_ba: bool = True
+    # Keyframes optimised: the new one and its most covisible ones (ORB-SLAM: all covisible).
+    local_ba_window: int = 10
+    # Landmarks two keyframes must share to be covisible (ORB-SLAM's covisibility edge: 15).
+    covisibility_min_shared: int = 15
+    # Levenberg-Marquardt iterations: robust pass, then inlier-only pass (ORB-SLAM: 5, 10).
+    local_ba_iterations: tuple[int, int] = (5, 10)
+    # Cull new landmarks as ORB-SLAM does (MapPointCulling) during their first keyframes.
+    cull_landmarks: bool = True
+    # ... when matched in fewer than this fraction of the frames predicted to see them ...
+    cull_min_found_ratio: float = 0.25
+    # ... or, two keyframes after creation, observation weight (with depth 2, without 1)
+    # still below this (ORB-SLAM RGB-D: more than 3) ...
+    cull_min_observation_weight: int = 4
+    # ... checked for this many keyframes after creation (ORB-SLAM: 3).
+    cull_probation_keyframes: int = 3
+    # At a keyframe, search unmatched keypoints against the landmarks projected into it
+    # (ORB-SLAM's fuse) so a view of a known landmark adds an observation, not a duplicate.
+    fuse_at_keyframe: bool = True
+    # Fuse search radius in pixels at octave 0, scaled by the octave (ORB-SLAM Fuse: 3).
+    fuse_radius_px: float = 3.0
+    # Fuse descriptor distance bound (ORB-SLAM's TH_LOW: 50).
+    fuse_max_hamming: int = 50
 
 
 @dataclass
@@ -93,6 +123,11 @@ class FsHicpConfig:
     max_no_improve: int = 3
     # Convergence precision on the fitness score change (m^2).
     score_epsilon: float = 1e-7
+    # Fitness score range. True: count only source points whose nearest target point lies
+    # within the level's starting max correspondence distance (what ICP minimises, and not
+    # biased by the parts of partially overlapping maps that have no counterpart). False:
+    # PCL's default getFitnessScore over all points (the paper's literal call).
+    score_within_corr: bool = True
     # Hard caps so a pathological pair cannot run forever.
     max_coarse_steps: int = 200
     max_fine_steps: int = 400

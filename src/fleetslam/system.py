@@ -24,7 +24,7 @@ from fleetslam.mapping.dense_map import build_dense_map, voxel_downsample
 from fleetslam.pipeline.split import TrackingPipeline
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
-from fleetslam.registration.fshicp import fshicp
+from fleetslam.registration.fshicp import chain_transforms, fshicp
 from fleetslam.registration.metrics import transform_error
 from fleetslam.report import format_table
 from fleetslam.transforms import invert, random_perturbation, transform_points
@@ -121,7 +121,7 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
     if truth is None:
         return None
     rng = np.random.default_rng(config.merge.seed)
-    T_global = [np.eye(4)]
+    results, guesses = [], []
     pairs = []
     progress = Progress("merge (FS-HICP)", len(runs) - 1, "pairs", enabled=show_progress)
     for i in range(1, len(runs)):
@@ -130,8 +130,12 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
         noise = random_perturbation(rng, config.merge.perturb_rotation_deg,
                                     config.merge.perturb_translation_m)
         T_guess = noise @ T_true
-        result = fshicp(runs[i].map_points, runs[i - 1].map_points, T_guess, config.fshicp)
-        T_global.append(T_global[i - 1] @ result.T_target_source)
+        results.append(fshicp(runs[i].map_points, runs[i - 1].map_points, T_guess, config.fshicp))
+        guesses.append(T_guess)
+        progress.update(i)
+    T_global = chain_transforms([r.T_target_source for r in results])
+    for i, (result, T_guess) in enumerate(zip(results, guesses), start=1):
+        T_true = invert(truth[i - 1]) @ truth[i]
         err = transform_error(result.T_target_source, T_true)
         err_guess = transform_error(T_guess, T_true)
         global_err = transform_error(T_global[i], truth[i])
@@ -148,7 +152,6 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
             "coarse_steps": result.coarse_steps, "fine_steps": result.fine_steps,
             "T_target_source": result.T_target_source.tolist(),
         })
-        progress.update(i)
     return MergeOutcome(T_global, pairs,
                         f"ground truth perturbed by {config.merge.perturb_rotation_deg:g} deg / "
                         f"{config.merge.perturb_translation_m:g} m (seed {config.merge.seed})")

@@ -1,9 +1,20 @@
-"""The tracking map of one robot: keyframes and the 3D landmarks they created.
+"""The tracking map of one robot: keyframes, the 3D landmarks they created, and the
+observations that tie them together.
 
-Landmarks are stored as growing numpy arrays. A landmark seen again from a later
-keyframe gets its position fused (inverse-variance weighted, the depth noise of a
-Kinect grows with z^2) and its descriptor refreshed to the newest view, so tracking keeps
-matching as the viewpoint changes.
+Everything is stored as growing numpy arrays (no per-point objects), so the map pickles
+with the session and every query is vectorised:
+
+* landmarks: position, descriptor, fusion weight, pyramid level and distance of the
+  newest view, an ``alive`` flag (culled landmarks are flagged, never deleted, so ids stay
+  valid), the keyframe that created it, and ORB-SLAM's visible/found counters;
+* observations: one row per (keyframe, landmark) pair with the keypoint's undistorted
+  pixel, depth (0 = none) and octave. Local bundle adjustment reads these rows and drops
+  the ones it finds to be outliers.
+
+A landmark seen again from a later keyframe gets its position fused (inverse-variance
+weighted, the depth noise of a Kinect grows with z^2) and its descriptor refreshed to the
+newest view, so tracking keeps matching as the viewpoint changes; local bundle adjustment
+then refines positions and keyframe poses together.
 """
 
 from __future__ import annotations
@@ -22,58 +33,115 @@ class Keyframe:
     frame_index: int
     timestamp: float
     T_world_camera: np.ndarray
-    landmark_ids: np.ndarray  # landmarks observed (matched inliers + created)
+    landmark_ids: np.ndarray  # landmarks observed at insertion (matched inliers + created)
+
+
+def _empty(dtype=np.float64, *shape: int) -> np.ndarray:
+    return np.zeros((0, *shape), dtype)
 
 
 @dataclass
 class LocalMap:
     keyframes: list[Keyframe] = field(default_factory=list)
-    xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
-    weight: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    last_keyframe: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    # --- landmarks (one entry per id) ---
+    xyz: np.ndarray = field(default_factory=lambda: _empty(np.float64, 3))
+    descriptors: np.ndarray = field(default_factory=lambda: _empty(np.uint8, 32))
+    weight: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    last_keyframe: np.ndarray = field(default_factory=lambda: _empty(np.int64))
     # Pyramid level and camera distance of the newest observation: together they predict
     # the level at which the landmark appears from another distance.
-    octave: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    octave: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    distance: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    # False once culled (or left without observations); dead landmarks are never matched.
+    alive: np.ndarray = field(default_factory=lambda: _empty(bool))
+    first_keyframe: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    # ORB-SLAM's counters: frames in which the landmark was predicted in view, and frames
+    # in which it was matched as a pose inlier. found/visible is its usefulness.
+    n_visible: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    n_found: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    # --- observations (one row per keyframe x landmark) ---
+    obs_keyframe: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    obs_landmark: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    obs_uv: np.ndarray = field(default_factory=lambda: _empty(np.float64, 2))
+    obs_depth: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    obs_octave: np.ndarray = field(default_factory=lambda: _empty(np.int64))
 
     @property
     def n_landmarks(self) -> int:
         return len(self.xyz)
 
+    @property
+    def n_alive(self) -> int:
+        return int(self.alive.sum())
+
+    @property
+    def n_observations(self) -> int:
+        return len(self.obs_keyframe)
+
+    def keyframe_poses(self, ids: np.ndarray | None = None) -> np.ndarray:
+        """T_world_camera of keyframes ``ids`` (all if None), (K, 4, 4)."""
+        kfs = self.keyframes if ids is None else [self.keyframes[i] for i in ids]
+        return np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4)
+
     def local_landmarks(self, n_keyframes: int) -> np.ndarray:
-        """Ids of the landmarks observed by the last ``n_keyframes`` keyframes."""
+        """Ids of the live landmarks observed by the last ``n_keyframes`` keyframes."""
         if not self.keyframes:
             return np.zeros(0, np.int64)
         newest = self.keyframes[-1].id
-        return np.flatnonzero(self.last_keyframe > newest - n_keyframes)
+        return np.flatnonzero((self.last_keyframe > newest - n_keyframes) & self.alive)
+
+    def predicted_level(self, ids: np.ndarray, distance: np.ndarray, scale_factor: float
+                        ) -> np.ndarray:
+        """Unclipped (fractional) pyramid level of landmarks ``ids`` seen from ``distance``."""
+        ratio = self.distance[ids] / np.maximum(distance, 1e-6)
+        return self.octave[ids] + np.log(ratio) / np.log(scale_factor)
 
     def predicted_octave(self, ids: np.ndarray, distance: np.ndarray, scale_factor: float,
                          n_levels: int) -> np.ndarray:
         """Pyramid level at which landmarks ``ids`` should appear from ``distance``."""
-        ratio = self.distance[ids] / np.maximum(distance, 1e-6)
-        level = self.octave[ids] + np.log(ratio) / np.log(scale_factor)
+        level = self.predicted_level(ids, distance, scale_factor)
         return np.clip(np.round(level), 0, n_levels - 1).astype(np.int64)
+
+    def in_view(self, camera: Camera, T_world_camera: np.ndarray, min_depth: float,
+                max_depth: float, ids: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Live landmarks (of ``ids``, all if None) that project inside the image from
+        ``T_world_camera`` within the depth range. Returns (ids, pixels (n, 2), camera-frame
+        points (n, 3))."""
+        ids = np.flatnonzero(self.alive) if ids is None else ids[self.alive[ids]]
+        P = (self.xyz[ids] - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]
+        front = (P[:, 2] > min_depth) & (P[:, 2] < max_depth)
+        ids, P = ids[front], P[front]
+        proj = camera.project(P)
+        inside = ((proj[:, 0] >= 0) & (proj[:, 0] < camera.width)
+                  & (proj[:, 1] >= 0) & (proj[:, 1] < camera.height))
+        return ids[inside], proj[inside], P[inside]
+
+    # ------------------------------------------------------------------ updates
 
     def add_keyframe(self, camera: Camera, frame_index: int, timestamp: float,
                      T_world_camera: np.ndarray, uv: np.ndarray, depth: np.ndarray,
                      descriptors: np.ndarray, octave: np.ndarray, matched_ids: np.ndarray
                      ) -> Keyframe:
-        """Insert a keyframe. ``matched_ids`` (N, -1 = none) are inlier matches; they are
-        fused with this view. Keypoints with depth and no match become new landmarks."""
+        """Insert a keyframe. ``matched_ids`` (N, -1 = none) are inlier matches; they become
+        observations of this keyframe and, with depth, are fused with this view. Keypoints
+        with depth and no match become new landmarks."""
         kf_id = len(self.keyframes)
+        octave = octave.astype(np.int64)
+        depth64 = depth.astype(np.float64)
         has_depth = depth > 0
-        local = camera.backproject(uv, depth.astype(np.float64))
+        local = camera.backproject(uv, depth64)
         distance = np.linalg.norm(local, axis=1)
         points = transform_points(T_world_camera, local)
         # Inverse variance of depth noise ~ 1/z^4, normalised at 1 m.
-        w_new = 1.0 / np.maximum(depth.astype(np.float64), 0.1) ** 4
+        w_new = 1.0 / np.maximum(depth64, 0.1) ** 4
 
-        fuse = (matched_ids >= 0) & has_depth
-        ids = matched_ids[fuse]
-        # A landmark matched twice in one frame keeps the first update only.
-        ids, first = np.unique(ids, return_index=True)
-        src = np.flatnonzero(fuse)[first]
+        # A landmark matched twice in one frame keeps the first keypoint only.
+        matched = np.flatnonzero(matched_ids >= 0)
+        seen, first = np.unique(matched_ids[matched], return_index=True)
+        seen_kp = matched[first]
+        fuse = has_depth[seen_kp]
+        ids, src = seen[fuse], seen_kp[fuse]
         w_old = self.weight[ids]
         self.xyz[ids] = (self.xyz[ids] * w_old[:, None] + points[src] * w_new[src, None]) / (
             w_old + w_new[src])[:, None]
@@ -81,20 +149,104 @@ class LocalMap:
         self.descriptors[ids] = descriptors[src]
         self.octave[ids] = octave[src]
         self.distance[ids] = distance[src]
-        seen = matched_ids[matched_ids >= 0]
         self.last_keyframe[seen] = kf_id
 
-        create = (matched_ids < 0) & has_depth
+        create = np.flatnonzero((matched_ids < 0) & has_depth)
+        n_new = len(create)
         start = self.n_landmarks
+        new_ids = np.arange(start, start + n_new)
         self.xyz = np.vstack([self.xyz, points[create]])
         self.descriptors = np.vstack([self.descriptors, descriptors[create]])
         self.weight = np.concatenate([self.weight, w_new[create]])
-        self.octave = np.concatenate([self.octave, octave[create].astype(np.int64)])
+        self.octave = np.concatenate([self.octave, octave[create]])
         self.distance = np.concatenate([self.distance, distance[create]])
-        self.last_keyframe = np.concatenate(
-            [self.last_keyframe, np.full(int(create.sum()), kf_id, np.int64)])
-        new_ids = np.arange(start, self.n_landmarks)
+        self.last_keyframe = np.concatenate([self.last_keyframe, np.full(n_new, kf_id, np.int64)])
+        self.alive = np.concatenate([self.alive, np.ones(n_new, bool)])
+        self.first_keyframe = np.concatenate(
+            [self.first_keyframe, np.full(n_new, kf_id, np.int64)])
+        # As ORB-SLAM: a new landmark starts as seen once and found once.
+        self.n_visible = np.concatenate([self.n_visible, np.ones(n_new, np.int64)])
+        self.n_found = np.concatenate([self.n_found, np.ones(n_new, np.int64)])
+
+        kp = np.concatenate([seen_kp, create])
+        self._add_observations(kf_id, np.concatenate([seen, new_ids]), uv[kp],
+                               np.where(has_depth[kp], depth64[kp], 0.0), octave[kp])
         observed = np.unique(np.concatenate([seen, new_ids]))
         keyframe = Keyframe(kf_id, frame_index, timestamp, T_world_camera.copy(), observed)
         self.keyframes.append(keyframe)
         return keyframe
+
+    def _add_observations(self, kf_id: int, landmarks: np.ndarray, uv: np.ndarray,
+                          depth: np.ndarray, octave: np.ndarray) -> None:
+        self.obs_keyframe = np.concatenate(
+            [self.obs_keyframe, np.full(len(landmarks), kf_id, np.int64)])
+        self.obs_landmark = np.concatenate([self.obs_landmark, landmarks.astype(np.int64)])
+        self.obs_uv = np.vstack([self.obs_uv, uv.astype(np.float64)])
+        self.obs_depth = np.concatenate([self.obs_depth, depth.astype(np.float64)])
+        self.obs_octave = np.concatenate([self.obs_octave, octave.astype(np.int64)])
+
+    def remove_observations(self, rows: np.ndarray) -> int:
+        """Drop observation rows (bool mask or indices). A landmark left without any
+        observation dies. Returns the number of landmarks that died."""
+        keep = np.ones(self.n_observations, bool)
+        keep[rows] = False
+        touched = np.unique(self.obs_landmark[~keep])
+        self.obs_keyframe = self.obs_keyframe[keep]
+        self.obs_landmark = self.obs_landmark[keep]
+        self.obs_uv = self.obs_uv[keep]
+        self.obs_depth = self.obs_depth[keep]
+        self.obs_octave = self.obs_octave[keep]
+        remaining = np.bincount(self.obs_landmark, minlength=self.n_landmarks)
+        orphan = touched[(remaining[touched] == 0) & self.alive[touched]]
+        self.alive[orphan] = False
+        return len(orphan)
+
+    def count_views(self, visible: np.ndarray, found: np.ndarray) -> None:
+        """One tracked frame: landmarks ``visible`` were predicted in view, ``found`` were
+        matched as pose inliers (a found landmark counts as visible too)."""
+        seen = np.zeros(self.n_landmarks, bool)
+        seen[visible] = True
+        seen[found] = True
+        self.n_visible += seen
+        self.n_found[np.unique(found)] += 1
+
+    # ------------------------------------------------------------------ queries
+
+    def covisible(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Other keyframes sharing live landmarks with ``kf_id``, most shared first (ties:
+        newest first). Returns (keyframe ids, shared landmark counts)."""
+        mine = np.zeros(self.n_landmarks, bool)
+        mine[self.obs_landmark[self.obs_keyframe == kf_id]] = True
+        mine &= self.alive
+        rows = mine[self.obs_landmark]
+        shared = np.bincount(self.obs_keyframe[rows], minlength=len(self.keyframes))
+        shared[kf_id] = 0
+        ids = np.flatnonzero(shared)
+        order = np.lexsort((-ids, -shared[ids]))
+        return ids[order], shared[ids[order]]
+
+    def observation_weight(self, stereo_weight: int = 2) -> np.ndarray:
+        """Per landmark, ORB-SLAM's observation count: an observation with depth counts
+        ``stereo_weight`` (it constrains the point alone), one without counts 1."""
+        w = np.where(self.obs_depth > 0, stereo_weight, 1)
+        return np.bincount(self.obs_landmark, weights=w, minlength=self.n_landmarks)
+
+    # ------------------------------------------------------------------ culling
+
+    def cull_recent(self, kf_id: int, min_found_ratio: float, min_observation_weight: int,
+                    probation_keyframes: int) -> int:
+        """ORB-SLAM's map-point culling of recently created landmarks (created within the
+        last ``probation_keyframes`` keyframes): a landmark dies if it was matched in fewer
+        than ``min_found_ratio`` of the frames that should have seen it, or if, two
+        keyframes after its creation, its observation weight is still below
+        ``min_observation_weight``. Returns how many died."""
+        age = kf_id - self.first_keyframe
+        recent = self.alive & (age <= probation_keyframes)
+        ratio = self.n_found / np.maximum(self.n_visible, 1)
+        weight = self.observation_weight()
+        die = recent & ((ratio < min_found_ratio)
+                        | ((age >= 2) & (weight < min_observation_weight)))
+        self.alive[die] = False
+        if die.any():
+            self.remove_observations(die[self.obs_landmark])
+        return int(die.sum())

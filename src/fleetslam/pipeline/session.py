@@ -35,6 +35,12 @@ class TrackingSession:
     repeated_frames: int = 0
     # Inliers of the first frame tracked after the newest keyframe (keyframe decision).
     inliers_after_keyframe: int = 0
+    # Local mapping statistics: wall time of each local bundle adjustment, observations it
+    # erased as outliers, landmarks culled, observations added by fusion at keyframes.
+    local_ba_seconds: list[float] = field(default_factory=list)
+    local_ba_outliers: int = 0
+    culled_landmarks: int = 0
+    fused_observations: int = 0
     _keyframe_was_last: bool = False
     _last_features: FeatureFrame | None = None
     _orb: cv2.ORB | None = None

@@ -9,13 +9,15 @@ cloud and own the tracking map.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Protocol
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fleetslam.pipeline.pose_optimizer import optimize_pose
+from fleetslam.pipeline.local_ba import local_bundle_adjustment, reprojection_chi2
+from fleetslam.pipeline.pose_optimizer import CHI2_MONO, CHI2_STEREO, optimize_pose
 from fleetslam.pipeline.session import TrackingSession
 from fleetslam.pipeline.states import (
     CapturedFrame,
@@ -140,15 +142,10 @@ class Match:
         cam = session.camera
         ids = np.full(len(state.keypoints), -1, np.int64)
         if not session.lost_frames:
-            # Every landmark of the map that falls in the predicted view is a candidate:
+            # Every live landmark of the map that falls in the predicted view is a candidate:
             # returning to a place matches the old landmarks, which bounds the drift.
-            P = (session.map.xyz - T_pred[:3, 3]) @ T_pred[:3, :3]
-            visible = np.flatnonzero((P[:, 2] > cfg.min_depth_m) & (P[:, 2] < cfg.max_depth_m))
-            proj = cam.project(P[visible])
-            inside = ((proj[:, 0] >= 0) & (proj[:, 0] < cam.width)
-                      & (proj[:, 1] >= 0) & (proj[:, 1] < cam.height))
-            visible, proj = visible[inside], proj[inside]
-            level = session.map.predicted_octave(visible, np.linalg.norm(P[visible], axis=1),
+            visible, proj, P = session.map.in_view(cam, T_pred, cfg.min_depth_m, cfg.max_depth_m)
+            level = session.map.predicted_octave(visible, np.linalg.norm(P, axis=1),
                                                  session.config.orb.scale_factor,
                                                  session.config.orb.n_levels)
             ids = guided_match(state, session.map.descriptors, visible, proj, level,
@@ -286,8 +283,59 @@ class EstimatePose:
                                    cfg.virtual_baseline_m)
         inliers[matched[good]] = True
         tracked = int(good.sum()) >= cfg.min_inliers
+        if tracked and cfg.track_local_map:
+            state, T_wc, inliers = track_local_map(session, state, T_wc, inliers)
+            tracked = int(inliers.sum()) >= cfg.min_inliers
         return PosedFrame(state, T_wc if tracked else state.T_world_camera_predicted, inliers,
                           tracked)
+
+
+def in_scale_range(session: TrackingSession, ids: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Landmarks ``ids`` at camera-frame points ``P`` whose distance lies within their
+    scale-invariance range, ORB-SLAM's [0.8 d_min, 1.2 d_max] with d_max = d * s^octave,
+    d_min = d_max / s^(levels - 1) (d, octave: of the landmark's reference view)."""
+    orb, lmap = session.config.orb, session.map
+    dist = np.linalg.norm(P, axis=1)
+    d_max = lmap.distance[ids] * orb.scale_factor ** lmap.octave[ids]
+    d_min = d_max / orb.scale_factor ** (orb.n_levels - 1)
+    return (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
+
+
+def track_local_map(session: TrackingSession, state: MatchedFrame, T_world_camera: np.ndarray,
+                    inliers: np.ndarray) -> tuple[MatchedFrame, np.ndarray, np.ndarray]:
+    """ORB-SLAM's TrackLocalMap: with the pose now known, project the live landmarks not yet
+    matched into the frame and search the keypoints left free within a few pixels, then
+    refine the pose on all matches. Returns (matched frame with the new associations, pose,
+    inlier mask)."""
+    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    f = state.features
+    ids = np.where(inliers, state.landmark_ids, -1)
+    free_kp = np.flatnonzero(ids < 0)
+    cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
+                                 cfg.max_depth_m)
+    unmatched = np.ones(lmap.n_landmarks, bool)
+    unmatched[ids[ids >= 0]] = False
+    keep = unmatched[cand]
+    keep[keep] = in_scale_range(session, cand[keep], P[keep])
+    cand, proj, P = cand[keep], proj[keep], P[keep]
+    if len(free_kp) and len(cand):
+        level = lmap.predicted_octave(cand, np.linalg.norm(P, axis=1), orb.scale_factor,
+                                      orb.n_levels)
+        sub = replace(f, keypoints=f.keypoints[free_kp], descriptors=f.descriptors[free_kp],
+                      depth=f.depth[free_kp], uv=f.uv[free_kp])
+        ids[free_kp] = guided_match(sub, lmap.descriptors, cand, proj, level,
+                                    cfg.local_map_radius_px, orb.scale_factor,
+                                    cfg.max_hamming, cfg.match_ratio)
+    matched = np.flatnonzero(ids >= 0)
+    xyz = np.full((len(ids), 3), np.nan)
+    xyz[matched] = lmap.xyz[ids[matched]]
+    scale = orb.scale_factor ** f.keypoints[matched, 5]
+    T_wc, good = optimize_pose(session.camera, T_world_camera, xyz[matched], f.uv[matched],
+                               f.depth[matched].astype(np.float64), scale,
+                               cfg.virtual_baseline_m)
+    out = np.zeros(len(ids), bool)
+    out[matched[good]] = True
+    return replace(state, landmark_ids=ids, landmark_xyz=xyz), T_wc, out
 
 
 class DecideKeyframe:
@@ -316,13 +364,84 @@ class DecideKeyframe:
             # Lost for too long: continue from the prediction with fresh landmarks.
             is_kf = True
             session.resets += 1
+        lmap = session.map
+        if state.tracked and not state.matched.repeated and lmap.keyframes:
+            count_views(session, state)
         if is_kf:
             matched_ids = np.where(state.inliers, state.matched.landmark_ids, -1)
-            session.map.add_keyframe(session.camera, f.index, f.timestamp, state.T_world_camera,
-                                     f.uv, f.depth, f.descriptors,
-                                     f.keypoints[:, 5].astype(np.int64), matched_ids)
+            if cfg.fuse_at_keyframe and lmap.keyframes and state.tracked:
+                matched_ids = fuse_search(session, f, state.T_world_camera, matched_ids)
+            kf = lmap.add_keyframe(session.camera, f.index, f.timestamp, state.T_world_camera,
+                                   f.uv, f.depth, f.descriptors,
+                                   f.keypoints[:, 5].astype(np.int64), matched_ids)
+            if cfg.cull_landmarks:
+                session.culled_landmarks += lmap.cull_recent(
+                    kf.id, cfg.cull_min_found_ratio, cfg.cull_min_observation_weight,
+                    cfg.cull_probation_keyframes)
+            if cfg.local_ba and kf.id > 0:
+                result = local_bundle_adjustment(
+                    lmap, session.camera, kf.id, baseline_m=cfg.virtual_baseline_m,
+                    scale_factor=session.config.orb.scale_factor,
+                    window_size=cfg.local_ba_window, min_shared=cfg.covisibility_min_shared,
+                    iterations=tuple(cfg.local_ba_iterations))
+                session.local_ba_seconds.append(result.seconds)
+                session.local_ba_outliers += result.n_outliers
+                # The frame is the keyframe: report its refined pose, and move the previous
+                # pose with it so the constant-velocity model keeps its velocity.
+                state = replace(state, T_world_camera=kf.T_world_camera.copy())
+                if session.T_last is not None:
+                    session.T_last = result.correction @ session.T_last
         session.record(state, f, is_kf)
         return TrackedFrame(state, is_kf)
+
+
+def count_views(session: TrackingSession, state: PosedFrame) -> None:
+    """ORB-SLAM's visible/found counters for one tracked frame: landmarks predicted in view
+    at the estimated pose (inside the image, within their scale-invariance distance range)
+    and the landmarks matched as pose inliers."""
+    cfg, lmap = session.config.tracking, session.map
+    ids, _, P = lmap.in_view(session.camera, state.T_world_camera, cfg.min_depth_m,
+                             cfg.max_depth_m)
+    ids = ids[in_scale_range(session, ids, P)]
+    found = state.matched.landmark_ids[state.inliers]
+    lmap.count_views(ids, found[found >= 0])
+
+
+def fuse_search(session: TrackingSession, f: FeatureFrame, T_world_camera: np.ndarray,
+                matched_ids: np.ndarray) -> np.ndarray:
+    """At a keyframe, search the keypoints tracking left unmatched against the live landmarks
+    projected from the keyframe's pose, within a few pixels (ORB-SLAM's Fuse): a match that
+    is also consistent with the keypoint's depth becomes an observation of the old landmark
+    instead of a duplicate landmark. Returns the updated ``matched_ids``."""
+    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    unmatched = np.flatnonzero(matched_ids < 0)
+    if not len(unmatched):
+        return matched_ids
+    cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
+                                 cfg.max_depth_m)
+    free = np.ones(lmap.n_landmarks, bool)
+    free[matched_ids[matched_ids >= 0]] = False
+    keep = free[cand]
+    cand, proj, P = cand[keep], proj[keep], P[keep]
+    level = lmap.predicted_octave(cand, np.linalg.norm(P, axis=1), orb.scale_factor,
+                                  orb.n_levels)
+    sub = replace(f, keypoints=f.keypoints[unmatched], descriptors=f.descriptors[unmatched],
+                  depth=f.depth[unmatched], uv=f.uv[unmatched])
+    ids = guided_match(sub, lmap.descriptors, cand, proj, level, cfg.fuse_radius_px,
+                       orb.scale_factor, cfg.fuse_max_hamming, 1.0)
+    got = np.flatnonzero(ids >= 0)
+    if not len(got):
+        return matched_ids
+    kp, lm = unmatched[got], ids[got]
+    depth = f.depth[kp].astype(np.float64)
+    chi2, z = reprojection_chi2(session.camera, session.camera.fx * cfg.virtual_baseline_m,
+                                np.broadcast_to(T_world_camera, (len(kp), 4, 4)), lmap.xyz[lm],
+                                f.uv[kp], depth, orb.scale_factor ** f.keypoints[kp, 5])
+    ok = (chi2 <= np.where(depth > 0, CHI2_STEREO, CHI2_MONO)) & (z > 0)
+    out = matched_ids.copy()
+    out[kp[ok]] = lm[ok]
+    session.fused_observations += int(ok.sum())
+    return out
 
 
 def default_stages() -> list[Stage]:

@@ -1,0 +1,239 @@
+"""Local bundle adjustment at keyframe insertion: ORB-SLAM's local mapping, run in-line.
+
+When a keyframe is inserted, the poses of a window of keyframes (the new one and the
+keyframes that share the most landmarks with it) and the positions of the landmarks they
+observe are optimised together with gtsam. Keyframes outside the window that also observe
+those landmarks enter the problem with their poses held fixed (they anchor the window to the
+rest of the map), and the first keyframe, which defines the map frame, is always fixed.
+
+Each observation is an RGB-D measurement: with depth it is a stereo measurement of a virtual
+right camera (u_left, u_right = u_left - b*fx/z, v), as ORB-SLAM's RGB-D mode, a
+``GenericStereoFactor3D``; without depth a plain projection factor. Noise grows with the
+keypoint's pyramid scale; a Huber kernel at the 95% chi-square bound limits outliers.
+As ORB-SLAM: a first robust pass, drop observations beyond the chi-square bound, a second
+pass on the inliers, then erase the observations that are still outliers from the map.
+
+gtsam objects live only inside ``local_bundle_adjustment``: the map and the session stay
+plain numpy (picklable, split-invariant).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from fleetslam.camera import Camera
+from fleetslam.pipeline.local_map import LocalMap
+from fleetslam.pipeline.pose_optimizer import CHI2_MONO, CHI2_STEREO
+
+# gtsam keys: keyframe poses use their id, landmarks this offset + their id.
+LANDMARK_KEY = 1 << 40
+# A fixed keyframe is held by a prior this tight (gtsam's NonlinearEquality makes the
+# multifrontal Cholesky solve indeterminate); its pose is never written back anyway.
+FIXED_SIGMA = 1e-6
+
+
+@dataclass
+class LocalBAResult:
+    window: np.ndarray  # keyframe ids whose poses were optimised
+    fixed: np.ndarray  # keyframe ids held fixed
+    n_landmarks: int  # landmarks optimised
+    n_observations: int  # observation rows in the problem
+    n_outliers: int  # observation rows erased from the map
+    # World-frame correction of the newest keyframe: T_new = correction @ T_old.
+    correction: np.ndarray
+    seconds: float
+
+
+def select_window(lmap: LocalMap, kf_id: int, size: int, min_shared: int) -> np.ndarray:
+    """The new keyframe and its ``size - 1`` most covisible keyframes (at least
+    ``min_shared`` landmarks in common: ORB-SLAM's covisibility edge), sorted by id."""
+    ids, shared = lmap.covisible(kf_id)
+    ids = ids[shared >= min_shared][: max(size - 1, 0)]
+    return np.sort(np.append(ids, kf_id)).astype(np.int64)
+
+
+def reprojection_chi2(camera: Camera, bf: float, T_world_camera: np.ndarray, xyz: np.ndarray,
+                      uv: np.ndarray, depth: np.ndarray, octave_scale: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened squared error of each observation (rows: camera pose (n, 4, 4), world point,
+    pixel, depth (0 = none), pyramid scale). Returns (chi2, camera-frame z)."""
+    R, t = T_world_camera[:, :3, :3], T_world_camera[:, :3, 3]
+    P = np.einsum("nji,nj->ni", R, xyz - t)  # R^T (X - t)
+    z = P[:, 2]
+    iz = 1.0 / np.where(np.abs(z) > 1e-9, z, 1e-9)
+    u = camera.fx * P[:, 0] * iz + camera.cx
+    v = camera.fy * P[:, 1] * iz + camera.cy
+    stereo = depth > 0
+    ur_meas = uv[:, 0] - bf / np.where(stereo, depth, 1.0)
+    e_r = np.where(stereo, u - bf * iz - ur_meas, 0.0)
+    chi2 = ((u - uv[:, 0]) ** 2 + (v - uv[:, 1]) ** 2 + e_r**2) / octave_scale**2
+    return chi2, z
+
+
+def _noise_models(n_levels: int, scale_factor: float) -> tuple[list, list]:
+    huber_stereo = gtsam.noiseModel.mEstimator.Huber.Create(np.sqrt(CHI2_STEREO))
+    huber_mono = gtsam.noiseModel.mEstimator.Huber.Create(np.sqrt(CHI2_MONO))
+    stereo, mono = [], []
+    for level in range(n_levels):
+        sigma = scale_factor**level
+        stereo.append(gtsam.noiseModel.Robust.Create(
+            huber_stereo, gtsam.noiseModel.Isotropic.Sigma(3, sigma)))
+        mono.append(gtsam.noiseModel.Robust.Create(
+            huber_mono, gtsam.noiseModel.Isotropic.Sigma(2, sigma)))
+    return stereo, mono
+
+
+def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int
+              ) -> gtsam.Values | None:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    try:
+        return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError:  # an indeterminate system: keep the map as it was
+        return None
+
+
+def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: float,
+                            scale_factor: float, window_size: int = 10, min_shared: int = 15,
+                            iterations: tuple[int, int] = (5, 10)) -> LocalBAResult:
+    """Optimise the window around keyframe ``kf_id`` and write poses, landmark positions and
+    the removal of outlier observations back into ``lmap``."""
+    start = time.perf_counter()
+    n_kf = len(lmap.keyframes)
+    none = LocalBAResult(np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0, 0, np.eye(4), 0.0)
+
+    window = select_window(lmap, kf_id, window_size, min_shared)
+    in_window = np.zeros(n_kf, bool)
+    in_window[window] = True
+    local = np.zeros(lmap.n_landmarks, bool)
+    local[lmap.obs_landmark[in_window[lmap.obs_keyframe]]] = True
+    local &= lmap.alive
+    rows = np.flatnonzero(local[lmap.obs_landmark])
+    n_rows_of = np.bincount(lmap.obs_landmark[rows], minlength=lmap.n_landmarks)
+    # A landmark seen by one keyframe only constrains nothing but itself: it is left out
+    # of the problem and follows its keyframe rigidly.
+    in_graph = local & (n_rows_of >= 2)
+    follower = local & (n_rows_of == 1)
+    rows = rows[in_graph[lmap.obs_landmark[rows]]]
+    kfs = np.unique(lmap.obs_keyframe[rows])
+    fixed_mask = ~in_window[kfs] | (kfs == 0)
+    if not fixed_mask.any() and len(kfs):
+        fixed_mask[0] = True  # nothing anchors the window: hold its oldest keyframe
+    fixed, free = kfs[fixed_mask], kfs[~fixed_mask]
+    if len(free) == 0 or len(rows) == 0:
+        none.seconds = time.perf_counter() - start
+        return none
+
+    landmarks = np.flatnonzero(in_graph)
+    obs_kf = lmap.obs_keyframe[rows]
+    obs_lm = lmap.obs_landmark[rows]
+    obs_uv = lmap.obs_uv[rows]
+    obs_depth = lmap.obs_depth[rows]
+    obs_oct = lmap.obs_octave[rows]
+    stereo = obs_depth > 0
+    octave_scale = scale_factor ** obs_oct.astype(np.float64)
+    bf = camera.fx * baseline_m
+    threshold = np.where(stereo, CHI2_STEREO, CHI2_MONO)
+
+    # --- the graph (the one per-observation Python loop: gtsam has no batch API) ---
+    K_stereo = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, baseline_m)
+    K_mono = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
+    noise_stereo, noise_mono = _noise_models(int(obs_oct.max()) + 1, scale_factor)
+    T_old = {int(k): lmap.keyframes[k].T_world_camera for k in kfs}
+    values = gtsam.Values()
+    for k in kfs.tolist():
+        values.insert(k, gtsam.Pose3(T_old[k]))
+    for lm, p in zip((landmarks + LANDMARK_KEY).tolist(), lmap.xyz[landmarks]):
+        values.insert(lm, p)
+    anchor_noise = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
+    anchors = [gtsam.PriorFactorPose3(k, gtsam.Pose3(T_old[k]), anchor_noise) for k in fixed.tolist()]
+    factors = []
+    u_l, v_l = obs_uv[:, 0].tolist(), obs_uv[:, 1].tolist()
+    u_r = (obs_uv[:, 0] - bf / np.where(stereo, obs_depth, 1.0)).tolist()
+    lm_keys = (obs_lm + LANDMARK_KEY).tolist()
+    Stereo, Projection = gtsam.GenericStereoFactor3D, gtsam.GenericProjectionFactorCal3_S2
+    Point, Point2 = gtsam.StereoPoint2, gtsam.Point2
+    for i, (k, lm, o, s) in enumerate(zip(obs_kf.tolist(), lm_keys, obs_oct.tolist(),
+                                          stereo.tolist())):
+        if s:
+            factors.append(Stereo(Point(u_l[i], u_r[i], v_l[i]), noise_stereo[o], k, lm, K_stereo))
+        else:
+            factors.append(Projection(Point2(u_l[i], v_l[i]), noise_mono[o], k, lm, K_mono))
+
+    def build(use: np.ndarray) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        present = np.zeros(n_kf, bool)
+        present[obs_kf[use]] = True
+        for k, anchor in zip(fixed.tolist(), anchors):
+            if present[k]:
+                graph.add(anchor)
+        for i in np.flatnonzero(use).tolist():
+            graph.add(factors[i])
+        return graph
+
+    def unpack(result: gtsam.Values, pose_ids: np.ndarray, lm_ids: np.ndarray
+               ) -> tuple[dict[int, np.ndarray], np.ndarray]:
+        poses = {k: result.atPose3(k).matrix() for k in pose_ids.tolist()}
+        return poses, gtsam.utilities.extractPoint3(result).reshape(-1, 3)
+
+    def chi2_of(poses: dict[int, np.ndarray], xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        T = np.array([poses[k] for k in kfs.tolist()])[np.searchsorted(kfs, obs_kf)]
+        return reprojection_chi2(camera, bf, T, xyz[np.searchsorted(landmarks, obs_lm)],
+                                 obs_uv, obs_depth, octave_scale)
+
+    # --- pass 1: robust, from the current estimates ---
+    all_rows = np.ones(len(rows), bool)
+    result = _optimise(build(all_rows), values, iterations[0])
+    if result is None:
+        none.seconds = time.perf_counter() - start
+        return none
+    poses, xyz = unpack(result, kfs, landmarks)
+    chi2, z = chi2_of(poses, xyz)
+    inlier = (chi2 <= threshold) & (z > 0)
+
+    # --- pass 2: inliers only. A landmark keeps its pass-1 position if its inliers no
+    # longer determine it (one observation without depth); same for a pose. ---
+    constraint = np.where(stereo, 3, 2) * inlier
+    determined = np.bincount(np.searchsorted(landmarks, obs_lm), weights=constraint,
+                             minlength=len(landmarks)) >= 3
+    use = inlier & determined[np.searchsorted(landmarks, obs_lm)]
+    if use.any() and iterations[1] > 0:
+        used_kfs = np.unique(obs_kf[use])
+        used_lms = landmarks[determined]
+        values2 = gtsam.Values()
+        for k in used_kfs.tolist():
+            values2.insert(k, gtsam.Pose3(poses[k]))
+        for lm, p in zip((used_lms + LANDMARK_KEY).tolist(), xyz[determined]):
+            values2.insert(lm, p)
+        result2 = _optimise(build(use), values2, iterations[1])
+        if result2 is not None:
+            poses2, xyz2 = unpack(result2, used_kfs, used_lms)
+            poses.update(poses2)
+            xyz[determined] = xyz2
+    chi2, z = chi2_of(poses, xyz)
+    outlier = (chi2 > threshold) | (z <= 0)
+
+    # --- write back: free poses, landmark positions, followers, outlier removal ---
+    for k in free.tolist():
+        lmap.keyframes[k].T_world_camera = poses[k]
+    lmap.xyz[landmarks] = xyz
+    followers = np.flatnonzero(follower)
+    if len(followers):
+        f_rows = np.flatnonzero(follower[lmap.obs_landmark])
+        f_kf, f_lm = lmap.obs_keyframe[f_rows], lmap.obs_landmark[f_rows]
+        moved = np.isin(f_kf, free)
+        f_kf, f_lm = f_kf[moved], f_lm[moved]
+        if len(f_lm):
+            C = np.array([poses[k] @ np.linalg.inv(T_old[k]) for k in free.tolist()])
+            C = C[np.searchsorted(free, f_kf)]
+            lmap.xyz[f_lm] = np.einsum("nij,nj->ni", C[:, :3, :3], lmap.xyz[f_lm]) + C[:, :3, 3]
+    lmap.remove_observations(rows[outlier])
+    correction = np.eye(4)
+    if kf_id in T_old and kf_id in free:
+        correction = poses[kf_id] @ np.linalg.inv(T_old[kf_id])
+    return LocalBAResult(free, fixed, len(landmarks), len(rows), int(outlier.sum()), correction,
+                         time.perf_counter() - start)
