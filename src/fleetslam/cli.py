@@ -119,6 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # small_gicp's OpenMP threads busy-wait by default, which slows everything else on a
+    # 2-core robot or a shared server; they must sleep instead.
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

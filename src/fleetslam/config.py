@@ -66,6 +66,18 @@ class TrackingConfig:
     track_local_map: bool = True
     # ... within this radius in pixels at octave 0 (ORB-SLAM RGB-D: th 3 x 2.5 px).
     local_map_radius_px: float = 7.5
+    # Also take a keyframe as ORB-SLAM's RGB-D tracking does (using the observation records):
+    # inliers below a fraction of the reference keyframe's established landmarks, or too few
+    # close points tracked while many are untracked.
+    orb_slam_keyframe_policy: bool = True
+    # ORB-SLAM thRefRatio for stereo / RGB-D.
+    keyframe_reference_ratio: float = 0.75
+    # "Close" points: depth below this many virtual baselines (ORB-SLAM ThDepth, TUM: 40).
+    close_depth_baselines: float = 40.0
+    # Keyframe when fewer close points than this are tracked (ORB-SLAM: 100) ...
+    keyframe_close_tracked: int = 100
+    # ... and more close points than this are not (ORB-SLAM: 70).
+    keyframe_close_untracked: int = 70
     # Local bundle adjustment of keyframe poses and landmarks at every keyframe (ORB-SLAM's
     # local mapping, run in-line).
     local_ba: bool = True

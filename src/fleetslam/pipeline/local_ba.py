@@ -87,10 +87,18 @@ def _noise_models(n_levels: int, scale_factor: float) -> tuple[list, list]:
     return stereo, mono
 
 
-def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int
-              ) -> gtsam.Values | None:
+def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_keys: list[int],
+              pose_keys: list[int], iterations: int) -> gtsam.Values | None:
+    # Eliminate landmarks first, then poses: the Schur-complement order of bundle adjustment
+    # (every landmark block is independent given the poses). Sequential Cholesky on it is
+    # about twice as fast as multifrontal with COLAMD on these problems.
+    ordering = gtsam.Ordering()
+    for key in landmark_keys + pose_keys:
+        ordering.push_back(key)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
+    params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
+    params.setOrdering(ordering)
     try:
         return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     except RuntimeError:  # an indeterminate system: keep the map as it was
@@ -187,7 +195,8 @@ def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, basel
 
     # --- pass 1: robust, from the current estimates ---
     all_rows = np.ones(len(rows), bool)
-    result = _optimise(build(all_rows), values, iterations[0])
+    result = _optimise(build(all_rows), values, (landmarks + LANDMARK_KEY).tolist(), kfs.tolist(),
+                       iterations[0])
     if result is None:
         none.seconds = time.perf_counter() - start
         return none
@@ -209,7 +218,8 @@ def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, basel
             values2.insert(k, gtsam.Pose3(poses[k]))
         for lm, p in zip((used_lms + LANDMARK_KEY).tolist(), xyz[determined]):
             values2.insert(lm, p)
-        result2 = _optimise(build(use), values2, iterations[1])
+        result2 = _optimise(build(use), values2, (used_lms + LANDMARK_KEY).tolist(),
+                            used_kfs.tolist(), iterations[1])
         if result2 is not None:
             poses2, xyz2 = unpack(result2, used_kfs, used_lms)
             poses.update(poses2)

@@ -231,6 +231,14 @@ class LocalMap:
         w = np.where(self.obs_depth > 0, stereo_weight, 1)
         return np.bincount(self.obs_landmark, weights=w, minlength=self.n_landmarks)
 
+    def tracked_by_keyframe(self, kf_id: int, min_weight: int) -> int:
+        """Live landmarks observed by keyframe ``kf_id`` whose observation weight is at
+        least ``min_weight`` (ORB-SLAM's KeyFrame::TrackedMapPoints)."""
+        lm = self.obs_landmark[self.obs_keyframe == kf_id]
+        weight = np.bincount(self.obs_landmark, weights=np.where(self.obs_depth > 0, 2, 1),
+                             minlength=self.n_landmarks)
+        return int(((weight[lm] >= min_weight) & self.alive[lm]).sum())
+
     # ------------------------------------------------------------------ culling
 
     def cull_recent(self, kf_id: int, min_found_ratio: float, min_observation_weight: int,

@@ -41,6 +41,13 @@ class TrackingSession:
     local_ba_outliers: int = 0
     culled_landmarks: int = 0
     fused_observations: int = 0
+    # Robot side: digest of the previous depth image, to spot a repeated (stale) one, and
+    # how many frames went on without depth because of it.
+    last_depth_digest: bytes | None = None
+    stale_depth_frames: int = 0
+    # Established landmarks (enough observations) of the newest keyframe: the reference of
+    # ORB-SLAM's keyframe test.
+    reference_tracked: int = 0
     _keyframe_was_last: bool = False
     _last_features: FeatureFrame | None = None
     _orb: cv2.ORB | None = None

@@ -9,6 +9,7 @@ cloud and own the tracking map.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import replace
 from typing import Any, Protocol
 
@@ -109,10 +110,18 @@ class AssociateDepth:
         du, dv = np.meshgrid([-1, 0, 1], [-1, 0, 1])
         patch = depth_img[v[:, None] + dv.ravel(), u[:, None] + du.ravel()]  # N x 9
         z = depth_img[v, u]
-        valid_patch = np.where(patch > 0, patch, np.nan)
-        with np.errstate(all="ignore"):
-            spread = np.nanmax(valid_patch, axis=1) - np.nanmin(valid_patch, axis=1)
-        ok = (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m) & (np.nan_to_num(spread) < 0.05 * z)
+        valid = patch > 0
+        spread = (np.where(valid, patch, -np.inf).max(axis=1)
+                  - np.where(valid, patch, np.inf).min(axis=1))
+        ok = (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m) & (spread < 0.05 * z)
+        # A depth image that is a byte-for-byte copy of the previous one (7-Scenes fills
+        # dropped frames so) belongs to another instant than this colour image: its values
+        # at the keypoints would be wrong, so the frame goes on without depth.
+        digest = hashlib.blake2b(depth_img.tobytes(), digest_size=16).digest()
+        if digest == session.last_depth_digest:
+            ok[:] = False
+            session.stale_depth_frames += 1
+        session.last_depth_digest = digest
         depth = np.where(ok, z, 0.0).astype(np.float32)
         uv = session.camera.undistort_points(state.keypoints[:, :2].astype(np.float64))
         return FeatureFrame(state.index, state.timestamp, state.keypoints, state.descriptors,
@@ -359,7 +368,8 @@ class DecideKeyframe:
             reference = session.inliers_after_keyframe or n_in
             is_kf = (n_in < cfg.keyframe_inlier_ratio * reference
                      or np.linalg.norm(T_rel[:3, 3]) > cfg.keyframe_translation_m
-                     or rotation_angle_deg(T_rel[:3, :3]) > cfg.keyframe_rotation_deg)
+                     or rotation_angle_deg(T_rel[:3, :3]) > cfg.keyframe_rotation_deg
+                     or (cfg.orb_slam_keyframe_policy and orb_slam_needs_keyframe(session, state)))
         elif not state.tracked and session.lost_frames + 1 >= cfg.lost_frames_before_reset:
             # Lost for too long: continue from the prediction with fresh landmarks.
             is_kf = True
@@ -391,8 +401,27 @@ class DecideKeyframe:
                 state = replace(state, T_world_camera=kf.T_world_camera.copy())
                 if session.T_last is not None:
                     session.T_last = result.correction @ session.T_last
+            # ORB-SLAM's reference: the keyframe's landmarks with enough observations
+            # (3, or 2 while the map has at most two keyframes; with depth counts 2).
+            min_weight = 3 if len(lmap.keyframes) > 2 else 2
+            session.reference_tracked = lmap.tracked_by_keyframe(kf.id, min_weight)
         session.record(state, f, is_kf)
         return TrackedFrame(state, is_kf)
+
+
+def orb_slam_needs_keyframe(session: TrackingSession, state: PosedFrame) -> bool:
+    """ORB-SLAM's keyframe test for RGB-D (with local mapping always idle, as it runs
+    in-line): the frame tracks fewer than a fraction of the landmarks the reference keyframe
+    tracks (those with enough observations to be established), or it tracks few close points
+    while many close points could be created."""
+    cfg = session.config.tracking
+    inliers = state.inliers
+    n_in = int(inliers.sum())
+    depth = state.matched.features.depth
+    close = (depth > 0) & (depth < cfg.close_depth_baselines * cfg.virtual_baseline_m)
+    need_close = (int((close & inliers).sum()) < cfg.keyframe_close_tracked
+                  and int((close & ~inliers).sum()) > cfg.keyframe_close_untracked)
+    return n_in < cfg.keyframe_reference_ratio * session.reference_tracked or need_close
 
 
 def count_views(session: TrackingSession, state: PosedFrame) -> None:

@@ -106,7 +106,8 @@ def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> TransformError:
     T_est = np.asarray(T_est, dtype=np.float64)
     T_true = np.asarray(T_true, dtype=np.float64)
     if T_est.shape != (4, 4) or T_true.shape != (4, 4):
-        raise ValueError(f"transform_error: expected 4x4 matrices, got {T_est.shape}, {T_true.shape}")
+        raise ValueError(f"transform_error: expected 4x4 matrices, "
+                         f"got {T_est.shape} and {T_true.shape}")
     diff = T_est[:3, :4] - T_true[:3, :4]  # the 9 rotation and 3 translation entries
     return TransformError(
         eq6=float(np.sum(diff * diff)),

@@ -1,0 +1,67 @@
+"""Tracking on the real sequences of ../shared/data: frames, losses, ATE, time per stage.
+
+    .venv/bin/python bench/tracking_real.py [--out bench/results/tracking_real.json]
+
+Prints one table row per sequence and writes JSON. ATE is RMSE after an SE(3) alignment,
+as `evo_ape tum GT EST -a`; the trajectory of each run is written beside the JSON so evo
+can check it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.io.trajectory import write_tum_trajectory
+from fleetslam.report import format_table
+from fleetslam.system import track_robot
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SEQUENCES = {
+    "7scenes_redkitchen_0-599": DATA / "7scenes_redkitchen_seq01_f0000-0599",
+    "tum_fr1_rpy_0-149": DATA / "tum_fr1_rpy_f000-149",
+}
+STAGES = ["extract", "describe", "associate_depth", "match", "estimate_pose", "decide_keyframe"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="bench/results/tracking_real.json")
+    args = parser.parse_args()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    results = []
+    for name, folder in SEQUENCES.items():
+        if not folder.exists():
+            print(f"skip {name}: {folder} missing")
+            continue
+        seq = RgbdSequence(folder)
+        run = track_robot(name, str(folder), seq, Config(), show_progress=False)
+        write_tum_trajectory(out.parent / f"{name}.tum", run.timestamps, run.poses)
+        results.append({
+            "sequence": name, "frames": len(run.timestamps),
+            "tracked": int(run.tracked.sum()), "lost_frames": run.lost_frames,
+            "keyframes": len(run.keyframe_indices), "repeated_frames": run.repeated_frames,
+            "ate_rmse_m": run.ate["rmse_m"] if run.ate else None,
+            "ate_max_m": run.ate["max_m"] if run.ate else None,
+            "fps": len(run.timestamps) / run.wall_s, "stage_ms": run.stage_ms,
+        })
+    headers = ["sequence", "frames", "tracked", "lost", "kf", "ATE cm", "fps"] + \
+        [f"{s} ms" for s in STAGES]
+    rows = [[r["sequence"], r["frames"], r["tracked"], r["lost_frames"], r["keyframes"],
+             r["ate_rmse_m"] * 100, r["fps"]] + [r["stage_ms"].get(s) for s in STAGES]
+            for r in results]
+    print(format_table(headers, rows))
+    print(f"cores: {os.cpu_count()}")
+    out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M"), "cores": os.cpu_count(),
+                               "results": results}, indent=2))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
