@@ -135,11 +135,14 @@ class FsHicpConfig:
     max_no_improve: int = 3
     # Convergence precision on the fitness score change (m^2).
     score_epsilon: float = 1e-7
-    # Fitness score range. True: count only source points whose nearest target point lies
-    # within the level's starting max correspondence distance (what ICP minimises, and not
-    # biased by the parts of partially overlapping maps that have no counterpart). False:
-    # PCL's default getFitnessScore over all points (the paper's literal call).
-    score_within_corr: bool = True
+    # Fitness score used to steer the levels, with r = the level's starting max
+    # correspondence distance (0.2 m coarse, 0.1 m fine):
+    #   "pcl": PCL's default getFitnessScore, mean d^2 over all points (the paper's call);
+    #          on partial overlap it is dominated by points with no counterpart.
+    #   "inliers": mean d^2 over points with d <= r; it rewards sliding off until only a
+    #          small, well-fitting patch still overlaps (seen on planar overlaps).
+    #   "truncated": mean of min(d^2, r^2); a lost neighbour costs r^2, a far one no more.
+    fitness: str = "truncated"
     # Hard caps so a pathological pair cannot run forever.
     max_coarse_steps: int = 200
     max_fine_steps: int = 400

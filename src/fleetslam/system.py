@@ -27,7 +27,7 @@ from fleetslam.progress import Progress
 from fleetslam.registration.fshicp import chain_transforms, fshicp
 from fleetslam.registration.metrics import transform_error
 from fleetslam.report import format_table
-from fleetslam.transforms import invert, random_perturbation, transform_points
+from fleetslam.transforms import invert, make_T, random_perturbation, transform_points
 
 SUMMARY_VERSION = 1
 
@@ -129,7 +129,10 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
         T_true = invert(truth[i - 1]) @ truth[i]
         noise = random_perturbation(rng, config.merge.perturb_rotation_deg,
                                     config.merge.perturb_translation_m)
-        T_guess = noise @ T_true
+        # The rotation turns the map about its own centroid: about a far-away origin the same
+        # angle would also shift it by metres, hiding the stated translation.
+        centre = transform_points(T_true, runs[i].map_points).mean(axis=0)
+        T_guess = (make_T(np.eye(3), centre) @ noise @ make_T(np.eye(3), -centre)) @ T_true
         results.append(fshicp(runs[i].map_points, runs[i - 1].map_points, T_guess, config.fshicp))
         guesses.append(T_guess)
         progress.update(i)
@@ -153,8 +156,9 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
             "T_target_source": result.T_target_source.tolist(),
         })
     return MergeOutcome(T_global, pairs,
-                        f"ground truth perturbed by {config.merge.perturb_rotation_deg:g} deg / "
-                        f"{config.merge.perturb_translation_m:g} m (seed {config.merge.seed})")
+                        f"ground truth perturbed by {config.merge.perturb_rotation_deg:g} deg "
+                        f"(about the map centroid) and {config.merge.perturb_translation_m:g} m "
+                        f"(seed {config.merge.seed})")
 
 
 def run_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config, out_dir: Path,
