@@ -27,7 +27,8 @@ from fleetslam.progress import Progress
 from fleetslam.registration.fshicp import chain_transforms, fshicp
 from fleetslam.registration.metrics import transform_error
 from fleetslam.report import format_table
-from fleetslam.transforms import invert, make_T, random_perturbation, transform_points
+from fleetslam.registration.initial_guess import perturbed_guess
+from fleetslam.transforms import invert, transform_points
 
 SUMMARY_VERSION = 1
 
@@ -127,12 +128,9 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
     for i in range(1, len(runs)):
         # Truth and guess of T_{i-1}_i: map i into map i-1.
         T_true = invert(truth[i - 1]) @ truth[i]
-        noise = random_perturbation(rng, config.merge.perturb_rotation_deg,
-                                    config.merge.perturb_translation_m)
-        # The rotation turns the map about its own centroid: about a far-away origin the same
-        # angle would also shift it by metres, hiding the stated translation.
-        centre = transform_points(T_true, runs[i].map_points).mean(axis=0)
-        T_guess = (make_T(np.eye(3), centre) @ noise @ make_T(np.eye(3), -centre)) @ T_true
+        T_guess = perturbed_guess(T_true, runs[i].map_points, rng,
+                                  config.merge.perturb_rotation_deg,
+                                  config.merge.perturb_translation_m)
         results.append(fshicp(runs[i].map_points, runs[i - 1].map_points, T_guess, config.fshicp))
         guesses.append(T_guess)
         progress.update(i)
