@@ -11,7 +11,10 @@ right camera (u_left, u_right = u_left - b*fx/z, v), as ORB-SLAM's RGB-D mode, a
 ``GenericStereoFactor3D``; without depth a plain projection factor. Noise grows with the
 keypoint's pyramid scale; a Huber kernel at the 95% chi-square bound limits outliers.
 As ORB-SLAM: a first robust pass, drop observations beyond the chi-square bound, a second
-pass on the inliers, then erase the observations that are still outliers from the map.
+pass on the inliers (it keeps the kernel, which is plain least squares on inliers), then
+erase the observations that are still outliers from the map. Landmarks seen by a single
+keyframe carry no information on poses: they stay out of the problem and move rigidly with
+their keyframe.
 
 gtsam objects live only inside ``local_bundle_adjustment``: the map and the session stay
 plain numpy (picklable, split-invariant).
@@ -90,8 +93,8 @@ def _noise_models(n_levels: int, scale_factor: float) -> tuple[list, list]:
 def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_keys: list[int],
               pose_keys: list[int], iterations: int) -> gtsam.Values | None:
     # Eliminate landmarks first, then poses: the Schur-complement order of bundle adjustment
-    # (every landmark block is independent given the poses). Sequential Cholesky on it is
-    # about twice as fast as multifrontal with COLAMD on these problems.
+    # (every landmark block is independent given the poses), fixed rather than left to
+    # COLAMD, so the fill-in is only the small dense pose block.
     ordering = gtsam.Ordering()
     for key in landmark_keys + pose_keys:
         ordering.push_back(key)
@@ -158,7 +161,8 @@ def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, basel
     for lm, p in zip((landmarks + LANDMARK_KEY).tolist(), lmap.xyz[landmarks]):
         values.insert(lm, p)
     anchor_noise = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
-    anchors = [gtsam.PriorFactorPose3(k, gtsam.Pose3(T_old[k]), anchor_noise) for k in fixed.tolist()]
+    anchors = [gtsam.PriorFactorPose3(k, gtsam.Pose3(T_old[k]), anchor_noise)
+               for k in fixed.tolist()]
     factors = []
     u_l, v_l = obs_uv[:, 0].tolist(), obs_uv[:, 1].tolist()
     u_r = (obs_uv[:, 0] - bf / np.where(stereo, obs_depth, 1.0)).tolist()
