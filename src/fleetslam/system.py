@@ -122,21 +122,20 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
     if truth is None:
         return None
     rng = np.random.default_rng(config.merge.seed)
-    results, guesses = [], []
-    pairs = []
+    # Truth of T_{i-1}_i (map i into map i-1), the pair FS-HICP registers.
+    truths = [invert(truth[i - 1]) @ truth[i] for i in range(1, len(runs))]
+    guesses = [perturbed_guess(T_true, run.map_points, rng, config.merge.perturb_rotation_deg,
+                               config.merge.perturb_translation_m)
+               for T_true, run in zip(truths, runs[1:])]
     progress = Progress("merge (FS-HICP)", len(runs) - 1, "pairs", enabled=show_progress)
+    results = []
     for i in range(1, len(runs)):
-        # Truth and guess of T_{i-1}_i: map i into map i-1.
-        T_true = invert(truth[i - 1]) @ truth[i]
-        T_guess = perturbed_guess(T_true, runs[i].map_points, rng,
-                                  config.merge.perturb_rotation_deg,
-                                  config.merge.perturb_translation_m)
-        results.append(fshicp(runs[i].map_points, runs[i - 1].map_points, T_guess, config.fshicp))
-        guesses.append(T_guess)
+        results.append(fshicp(runs[i].map_points, runs[i - 1].map_points, guesses[i - 1],
+                              config.fshicp))
         progress.update(i)
     T_global = chain_transforms([r.T_target_source for r in results])
-    for i, (result, T_guess) in enumerate(zip(results, guesses), start=1):
-        T_true = invert(truth[i - 1]) @ truth[i]
+    pairs = []
+    for i, (result, T_guess, T_true) in enumerate(zip(results, guesses, truths), start=1):
         err = transform_error(result.T_target_source, T_true)
         err_guess = transform_error(T_guess, T_true)
         global_err = transform_error(T_global[i], truth[i])
