@@ -9,9 +9,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from fleetslam.camera import Camera
-from fleetslam.config import SyntheticConfig
+from fleetslam.config import MapConfig, SyntheticConfig
 from fleetslam.datasets.synthetic import (
     MIN_SENSOR_DEPTH_M,
     Room,
@@ -67,7 +68,7 @@ def reproject(camera: Camera, depth_i: np.ndarray, T_world_i: np.ndarray, T_worl
 def test_tum_layout_camera_and_ground_truth(scene, config):
     assert [f.name for f in scene] == ["robot_0", "robot_1"]
     record = json.loads((scene[0].parent / "scene.json").read_text())
-    assert record["format_version"] == 1 and record["seed"] == config.seed
+    assert record["format_version"] == 2 and record["seed"] == config.seed
     assert record["robots"] == ["robot_0", "robot_1"]
     assert record["config"]["frames_per_robot"] == FRAMES
     trajectories = robot_trajectories(config)
@@ -138,6 +139,50 @@ def test_robots_see_a_common_part_of_the_room(scene, config, room):
         n_points = np.count_nonzero(depth_0[::4, ::4])
         seen_by_both = np.count_nonzero(np.abs(z - z_rendered) < 0.05)
         assert seen_by_both > 0.3 * n_points
+
+
+def world_map(room: Room, camera: Camera, poses: np.ndarray, cell_m: float = 0.05) -> np.ndarray:
+    """Noise-free points of the given views within the dense map's range, one per cell."""
+    clouds = []
+    for T in poses:
+        _, depth = render(room, camera, T)
+        local, _ = camera.backproject_image(depth, stride=4, max_depth_m=MapConfig().max_depth_m)
+        clouds.append(transform_points(T, local))
+    points = np.vstack(clouds)
+    _, first = np.unique(np.floor(points / cell_m).astype(np.int64), axis=0, return_index=True)
+    return points[first]
+
+
+def test_default_scene_overlap_pins_down_a_map_merge():
+    """The two robots' maps (every 20th frame of the default 120) overlap on 3D structure,
+    not just on the wall and floor: sliding one map along the wall, which on a bare room
+    gains overlap (the wrong merge scored better than the truth), must lose it; and the
+    point-to-plane normal equations of the overlap constrain all six degrees of freedom."""
+    config = SyntheticConfig()
+    room = Room.from_config(config)
+    camera = scene_camera(config)
+    map_0, map_1 = (world_map(room, camera, T[::20]) for T in robot_trajectories(config))
+    tree = cKDTree(map_0)
+
+    def truncated_score(shift: np.ndarray, r: float = 0.1) -> float:  # FS-HICP's fitness
+        d, _ = tree.query(map_1 + shift, distance_upper_bound=r)
+        return float(np.mean(np.minimum(d, r) ** 2))
+
+    truth = truncated_score(np.zeros(3))
+    slides = [truncated_score(np.array([dx, 0.0, 0.0])) for dx in np.arange(-2.4, 2.45, 0.1)
+              if abs(dx) > 0.35]
+    assert min(slides) > 1.1 * truth  # a bare wall + floor + one table: 0.7 x truth
+
+    d, index = tree.query(map_1, distance_upper_bound=0.05)
+    overlap = np.isfinite(d)
+    assert overlap.mean() > 0.3
+    points, matched = map_1[overlap], map_0[index[overlap]]
+    _, neighbours = tree.query(matched, k=12)
+    patches = map_0[neighbours] - map_0[neighbours].mean(axis=1, keepdims=True)
+    normals = np.linalg.svd(patches, full_matrices=False)[2][:, 2]
+    J = np.hstack([np.cross(points - points.mean(axis=0), normals), normals])  # metres, radians
+    eigenvalues = np.linalg.eigvalsh(J.T @ J)
+    assert eigenvalues[0] > 0.05 * eigenvalues[-1]  # bare room: 0.001-0.014
 
 
 def test_orb_finds_many_well_spread_keypoints_on_every_frame(scene):

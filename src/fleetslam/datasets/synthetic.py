@@ -6,6 +6,15 @@ numpy for every pixel at once. Robots walk smooth, bounded paths in the middle o
 room; they start looking at a common region (the middle of the +y wall) and then turn
 apart, each sweeping its own side, so their maps overlap and can be merged.
 
+The common region is furnished so that the overlap pins down all six degrees of freedom
+of a map merge: a tall piece and a shelf flank it (both robots see their inner sides),
+a sideboard with a wall unit above it stands between them, a table with things on it and
+a stack of boxes stand in front at other depths; runs of storage modules line the side
+walls the robots turn to; every piece has depth relief (recessed plinths, shelf boards
+and books, overhanging tops). A bare wall and floor let one map slide along the other:
+on such a scene the best-overlapping wrong pose, 1.4 m along the wall, scored better than
+the truth, and no ICP can fix that.
+
 World frame: z up, floor at z = 0, room centred on x = y = 0 (x along the first room
 dimension). Cameras follow OpenCV (x right, y down, z forward); poses are
 ``T_world_camera``.
@@ -37,7 +46,7 @@ from fleetslam.config import SyntheticConfig
 from fleetslam.io.trajectory import write_tum_trajectory
 
 FORMAT_NAME = "fleetslam-synthetic"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: furnished common view, views that cross at the start
 DEPTH_SCALE = 5000.0  # TUM: raw value per metre
 # Texture resolution (texels per metre): 5 mm texels stay about one pixel wide at 3 m.
 TEXELS_PER_M = 200.0
@@ -56,10 +65,13 @@ _ROBOT_SPACING_M = 0.5
 _ROBOT_DRIFT_M = 0.45
 _ROBOT_SWAY_M = 0.3
 _MAX_ROBOTS_IN_ZONE = 4
-# Heading offset between neighbouring robots at the start, and how far each turns away.
-# (Chosen so two robots' 120-frame maps share ~30% of their surface at 10 cm voxels.)
-_START_SPREAD_DEG = 10.0
-_TURN_DEG = 60.0
+# Heading offset between neighbouring robots at the start (negative: each looks a little
+# towards the others, so all views cross in the middle of the +y wall), and how far each
+# turns away. (Chosen so each of two robots' 120-frame maps shares ~45% of its 10 cm voxels
+# with the other's: with less, sliding one map along the wall gains more overlap than the
+# furniture costs.)
+_START_SPREAD_DEG = -10.0
+_TURN_DEG = 45.0
 _TURN_RATE = 0.8  # rad/s of the turning cosine: peak yaw rate = _TURN_DEG/2 * 0.8 = 24 deg/s
 
 
@@ -129,17 +141,125 @@ def _rect_gap(a: tuple, b: tuple) -> float:
     return math.hypot(dx, dy)
 
 
-def _furniture_size(rng: np.random.Generator, kind: str) -> tuple[float, float, float]:
-    """(width, depth, height) in metres."""
+# Furniture kinds. Every kind has depth relief (boards, plinths, overhangs, objects on top),
+# so pieces differ in 3D, not only in texture, and the wall behind them is no bare plane.
+_KINDS = ("table", "shelf", "cabinet", "sideboard", "boxes", "wardrobe", "wall_unit", "pillar")
+_RUN_MODULES = ("shelf", "cabinet", "sideboard", "wardrobe")  # of a "run" (storage wall)
+_WALL_MOUNTED = ("wall_unit", "pillar")  # fixed to a wall, never turned away from it
+# The view every robot starts with: the middle of the +y wall, |x| < _SHARED_HALF_WIDTH_M.
+# Its pieces, in this order: a tall piece on one side and a shelf on the other, whose inner
+# sides (|x| in _FLANK_INNER_X_M) both robots see; a sideboard (with a wall unit above it)
+# against the wall between them; a table and a stack of boxes standing in front at other
+# depths. Pieces after these go to the walls robots see when they turn away.
+_SHARED_HALF_WIDTH_M = 1.7
+_FLANK_INNER_X_M = (0.6, 1.2)
+_SHARED_PIECES = (("wardrobe|pillar", "flank"), ("shelf", "flank"), ("sideboard", "wall"),
+                  ("table", "free"), ("boxes", "free"))
+_PANEL_M = 0.02  # board thickness of shelves
+
+
+def _furniture_size(rng: np.random.Generator, kind: str, room_height: float
+                    ) -> tuple[float, float, float]:
+    """(width, depth, height) in metres; for ``boxes`` the size of the bottom box."""
+    u = rng.uniform
     if kind == "table":
-        return rng.uniform(0.8, 1.6), rng.uniform(0.6, 0.9), rng.uniform(0.72, 0.78)
+        return u(0.8, 1.4), u(0.6, 0.9), u(0.72, 0.78)
     if kind == "shelf":
-        return rng.uniform(0.6, 1.2), rng.uniform(0.3, 0.45), rng.uniform(1.6, 2.1)
-    return rng.uniform(0.5, 1.0), rng.uniform(0.4, 0.6), rng.uniform(0.8, 1.2)  # cabinet
+        return u(0.7, 1.2), u(0.3, 0.4), min(u(1.5, 2.0), room_height - 0.15)
+    if kind in ("cabinet", "sideboard"):
+        return u(0.6, 1.2), u(0.4, 0.55), u(0.75, 1.0)
+    if kind == "boxes":
+        return u(0.4, 0.7), u(0.35, 0.6), u(0.25, 0.45)
+    if kind == "wardrobe":
+        return u(0.8, 1.2), u(0.55, 0.65), min(u(1.9, 2.2), room_height - 0.1)
+    if kind == "wall_unit":
+        return u(0.6, 1.2), u(0.25, 0.35), u(0.45, 0.7)
+    if kind == "run":  # modules of their own depth and height, backs against the wall
+        return u(1.6, 2.6), 0.65, room_height
+    return u(0.4, 0.9), u(0.3, 0.6), room_height  # pillar (or chimney breast)
+
+
+_Place = Callable[..., Box]
+
+
+def _objects_on(rng: np.random.Generator, at: _Place, w: float, d: float, z: float,
+                count: int) -> list[Box]:
+    """Small things standing on a surface of ``w`` x ``d`` at height ``z``: boxes, bottles,
+    lying books; different shapes give the map small-scale 3D structure."""
+    parts = []
+    for _ in range(count):
+        shape = int(rng.integers(3))
+        if shape == 0:
+            ow, od, oh = rng.uniform(0.12, 0.3), rng.uniform(0.1, 0.25), rng.uniform(0.08, 0.3)
+        elif shape == 1:
+            ow = od = rng.uniform(0.06, 0.1)
+            oh = rng.uniform(0.2, 0.35)
+        else:
+            ow, od, oh = rng.uniform(0.2, 0.32), rng.uniform(0.15, 0.24), rng.uniform(0.03, 0.06)
+        ow, od = min(ow, w), min(od, d)
+        lx = rng.uniform(-(w - ow) / 2, (w - ow) / 2)
+        ly = rng.uniform(-(d - od) / 2, (d - od) / 2) * 0.8
+        parts.append(at((lx, ly), z + oh / 2, (ow / 2, od / 2, oh / 2), "object",
+                        float(rng.uniform(-0.4, 0.4))))
+    return parts
+
+
+def _shelf_parts(rng: np.random.Generator, at: _Place, w: float, d: float, h: float,
+                 z0: float = 0.0, plinth: float = 0.08, level_m: tuple[float, float] = (0.32, 0.42)
+                 ) -> list[Box]:
+    """An open shelf from ``z0`` to ``z0 + h``: carcass (a recessed plinth, or a bottom board if
+    ``plinth`` is 0), boards at even heights, blocks of books of random width, height and
+    depth standing against the back (so their fronts are recessed by different amounts),
+    now and then a box instead of books, and gaps."""
+    t = _PANEL_M
+    parts = [at((sx * (w - t) / 2, 0), z0 + h / 2, (t / 2, d / 2, h / 2), "wood") for sx in (-1, 1)]
+    parts.append(at((0, -(d - t) / 2), z0 + h / 2, ((w - 2 * t) / 2, t / 2, h / 2), "wood"))  # back
+    parts.append(at((0, 0), z0 + h - t / 2, ((w - 2 * t) / 2, d / 2, t / 2), "wood"))  # top
+    if plinth > 0:
+        parts.append(at((0, -0.02), z0 + plinth / 2, ((w - 2 * t) / 2, d / 2 - 0.02, plinth / 2),
+                        "wood"))
+    else:
+        plinth = t
+        parts.append(at((0, 0), z0 + t / 2, ((w - 2 * t) / 2, d / 2, t / 2), "wood"))
+    levels = max(1, int(round((h - plinth - t) / rng.uniform(*level_m))))
+    pitch = (h - plinth - t) / levels
+    inner_w, inner_d = w - 2 * t, d - t
+    for k in range(levels):
+        lo = z0 + plinth + k * pitch + (t / 2 if k else 0.0)
+        hi = z0 + plinth + (k + 1) * pitch - (t / 2 if k < levels - 1 else 0.0)
+        if k:
+            parts.append(at((0, 0), z0 + plinth + k * pitch, (inner_w / 2, d / 2, t / 2), "wood"))
+        x = -inner_w / 2 + float(rng.uniform(0.0, 0.1))
+        while x < inner_w / 2 - 0.05:
+            bw = min(float(rng.uniform(0.08, 0.35)), inner_w / 2 - x)
+            if rng.random() < 0.2:  # an empty stretch of board
+                x += bw
+                continue
+            bh = (hi - lo) * rng.uniform(0.6, 0.92)
+            bd = inner_d * rng.uniform(0.55, 0.95)
+            kind = "books" if rng.random() < 0.8 else "object"
+            parts.append(at((x + bw / 2, -d / 2 + t + bd / 2), lo + bh / 2,
+                            (bw / 2, bd / 2, bh / 2), kind))
+            x += bw + float(rng.uniform(0.0, 0.02))
+    return parts
+
+
+def _wall_unit_parts(rng: np.random.Generator, at: _Place, w: float, d: float, h: float,
+                     bottom: float, back_y: float) -> list[Box]:
+    """A wall cabinet or an open wall shelf with books, hung from ``bottom`` (m above the
+    floor) with its back at local y = ``back_y``."""
+    y = back_y + d / 2
+    if rng.random() < 0.5:
+        return [at((0, y), bottom + h / 2, (w / 2, d / 2, h / 2), "paint")]
+
+    def moved(xy: tuple[float, float], *args, **kwargs) -> Box:
+        return at((xy[0], xy[1] + y), *args, **kwargs)
+
+    return _shelf_parts(rng, moved, w, d, h, z0=bottom, plinth=0.0, level_m=(0.3, 0.4))
 
 
 def _furniture_parts(rng: np.random.Generator, kind: str, center_xy: np.ndarray, yaw: float,
-                     size: tuple[float, float, float]) -> list[Box]:
+                     size: tuple[float, float, float], room_height: float) -> list[Box]:
     """Boxes of one piece of furniture; local +y is its front."""
     w, d, h = size
     R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
@@ -152,52 +272,148 @@ def _furniture_parts(rng: np.random.Generator, kind: str, center_xy: np.ndarray,
     parts: list[Box] = []
     if kind == "table":
         top = 0.04
-        parts.append(at((0, 0), h - top / 2, (w / 2, d / 2, top / 2), "wood"))
+        parts.append(at((0, 0), h - top / 2, (w / 2, d / 2, top / 2), "tabletop"))
         leg = 0.025
         for sx in (-1, 1):
             for sy in (-1, 1):
                 parts.append(at((sx * (w / 2 - 0.06), sy * (d / 2 - 0.06)), (h - top) / 2,
                                 (leg, leg, (h - top) / 2), "paint"))
-    else:
-        parts.append(at((0, 0), h / 2, (w / 2, d / 2, h / 2), "books" if kind == "shelf" else "paint"))
-    # Objects on top (boxes, books, bins) give the map some small-scale 3D structure.
-    if kind in ("table", "cabinet"):
-        for _ in range(int(rng.integers(1, 3))):
-            ow, od, oh = rng.uniform(0.1, 0.3), rng.uniform(0.1, 0.25), rng.uniform(0.08, 0.3)
-            lx = rng.uniform(-(w - ow) / 2, (w - ow) / 2)
-            ly = rng.uniform(-(d - od) / 2, (d - od) / 2) * 0.8
-            parts.append(at((lx, ly), h + oh / 2, (ow / 2, od / 2, oh / 2), "object",
-                            float(rng.uniform(-0.4, 0.4))))
+        parts += _objects_on(rng, at, w, d, h, int(rng.integers(2, 4)))
+    elif kind == "shelf":
+        parts += _shelf_parts(rng, at, w, d, h)
+    elif kind in ("cabinet", "sideboard"):
+        # Recessed plinth, body, overhanging top, things on it; a sideboard has a wall
+        # cabinet or wall shelf above it.
+        plinth, top = 0.08, 0.03
+        parts.append(at((0, -0.03), plinth / 2, (w / 2 - 0.02, d / 2 - 0.03, plinth / 2), "paint"))
+        body = h - plinth - top
+        parts.append(at((0, 0), plinth + body / 2, (w / 2, d / 2, body / 2), "paint"))
+        parts.append(at((0, 0.015), h - top / 2, (w / 2 + 0.02, d / 2 + 0.015, top / 2), "wood"))
+        parts += _objects_on(rng, at, w, d, h, int(rng.integers(1, 4)))
+        unit_h, unit_d = float(rng.uniform(0.4, 0.7)), float(rng.uniform(0.25, 0.35))
+        bottom = max(h + 0.4, 1.4)
+        if kind == "sideboard" and bottom + unit_h < room_height - 0.1:
+            unit_w = w * rng.uniform(0.6, 1.0)
+            shift = rng.uniform(-(w - unit_w) / 2, (w - unit_w) / 2)
+
+            def shifted(xy: tuple[float, float], *args, **kwargs) -> Box:
+                return at((xy[0] + shift, xy[1]), *args, **kwargs)
+
+            parts += _wall_unit_parts(rng, shifted, unit_w, unit_d, unit_h, bottom, -d / 2)
+    elif kind == "boxes":
+        # A stack of two or three boxes, each smaller and turned against the one below.
+        z, bw, bd, bh, ox, oy, turn = 0.0, w, d, h, 0.0, 0.0, 0.0
+        for level in range(int(rng.integers(2, 4))):
+            if level:
+                bw, bd = bw * rng.uniform(0.6, 0.9), bd * rng.uniform(0.6, 0.9)
+                bh = bh * rng.uniform(0.6, 1.0)
+                ox += float(rng.uniform(-0.08, 0.08))
+                oy += float(rng.uniform(-0.08, 0.08))
+                turn += float(rng.uniform(-0.5, 0.5))
+            parts.append(at((ox, oy), z + bh / 2, (bw / 2, bd / 2, bh / 2), "object", turn))
+            z += bh
+    elif kind == "wardrobe":
+        # Recessed plinth, body, cornice, two door handles.
+        plinth, top = 0.1, 0.05
+        parts.append(at((0, -0.04), plinth / 2, (w / 2 - 0.03, d / 2 - 0.04, plinth / 2), "paint"))
+        body = h - plinth - top
+        parts.append(at((0, 0), plinth + body / 2, (w / 2, d / 2, body / 2), "wood"))
+        parts.append(at((0, 0.02), h - top / 2, (w / 2 + 0.03, d / 2 + 0.02, top / 2), "paint"))
+        for sx in (-1, 1):
+            parts.append(at((sx * 0.06, d / 2 + 0.015), plinth + body * 0.5,
+                            (0.012, 0.015, 0.12), "object"))
+    elif kind == "wall_unit":
+        parts += _wall_unit_parts(rng, at, w, d, h, float(rng.uniform(1.4, 1.6)), -d / 2)
+    elif kind == "run":
+        # Two or three modules side by side (a storage wall): each a shelf, cabinet,
+        # sideboard or wardrobe of its own width, depth and height.
+        n = int(rng.integers(2, 4))
+        widths = 0.5 + (w - 0.5 * n) * rng.dirichlet(np.full(n, 4.0))  # >= 0.5 m each
+        x = -w / 2
+        for width in widths:
+            module = _RUN_MODULES[int(rng.integers(len(_RUN_MODULES)))]
+            _, depth, height = _furniture_size(rng, module, room_height)
+            centre = center_xy + R @ np.array([x + width / 2, -d / 2 + depth / 2])
+            parts += _furniture_parts(rng, module, centre, yaw, (float(width), depth, height),
+                                      room_height)
+            x += width
+    else:  # pillar: the wall steps out, floor to ceiling
+        parts.append(at((0, 0), h / 2, (w / 2, d / 2, h / 2), "wall"))
     return parts
 
 
 def _walls(size_m: tuple[float, float, float]) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
-    """(point on wall, inward normal, wall length, yaw that turns local +y to the normal)."""
+    """(point on wall, inward normal, wall length, yaw that turns local +y to the normal):
+    the +y, -x and +x walls, the ones robots look at (never the -y wall behind them)."""
     Lx, Ly, _ = size_m
     return [(np.array([0.0, Ly / 2]), np.array([0.0, -1.0]), Lx, math.pi),
-            (np.array([0.0, -Ly / 2]), np.array([0.0, 1.0]), Lx, 0.0),
             (np.array([-Lx / 2, 0.0]), np.array([1.0, 0.0]), Ly, -math.pi / 2),
             (np.array([Lx / 2, 0.0]), np.array([-1.0, 0.0]), Ly, math.pi / 2)]
 
 
-def _furniture_candidate(rng: np.random.Generator, kind: str, free_standing: bool,
-                         size_m: tuple[float, float, float]) -> list[Box]:
-    """One randomly placed piece: against a random wall (longer walls more often, some
-    turned a little), or free-standing in the +y half, between the robots and the wall."""
+def _wall_spans(where: str, size_m: tuple[float, float, float]
+                ) -> list[tuple[int, float, float]]:
+    """(wall index in _walls, along from, along to) of the stretches of wall that ``where``
+    allows; "along" is the coordinate along the wall's tangent (z x normal)."""
     Lx, Ly, _ = size_m
-    size = _furniture_size(rng, kind)
-    if free_standing:
-        center = np.array([rng.uniform(-Lx / 4, Lx / 4), rng.uniform(0.0, Ly / 2 - 0.5)])
-        return _furniture_parts(rng, kind, center, float(rng.uniform(-0.5, 0.5)), size)
+    half = min(_SHARED_HALF_WIDTH_M, Lx / 2)
+    if where == "shared wall":
+        return [(0, -half, half)]
+    if where.startswith("outer"):
+        # The stretches a robot turning towards side s sees: the +y wall beyond the shared
+        # view and the side wall in front of the robots.
+        side = float(where[5:])
+        y0 = _robot_base_y(size_m)
+        beyond = (0, half, Lx / 2) if side > 0 else (0, -Lx / 2, -half)
+        # y from the robots' line to the +y wall (the +x wall's tangent points to -y).
+        front = (2, -Ly / 2, -y0) if side > 0 else (1, y0, Ly / 2)
+        return [beyond, front]
+    # Anywhere robots look: the +y wall and the side walls in front of the robots' line.
+    y0 = _robot_base_y(size_m)
+    return [(0, -Lx / 2, Lx / 2), (1, y0, Ly / 2), (2, -Ly / 2, -y0)]
+
+
+def _furniture_candidate(rng: np.random.Generator, kind: str, where: str,
+                         size_m: tuple[float, float, float]) -> list[Box] | None:
+    """One randomly placed piece. ``where``: "wall" (anywhere along the +y wall, or the -x or
+    +x wall in front of the robots; longer stretches more often); "outer-1" / "outer+1" (the
+    walls a robot turning towards -x / +x sees beyond the shared view); "flank-1" / "flank+1"
+    (against the +y wall on the -x / +x side of the shared view, its inner side at |x| in
+    _FLANK_INNER_X_M); "shared wall" (against the +y wall within the shared view); "shared
+    free" (free-standing in front of it). Pieces that are neither wall-mounted nor hold a
+    wall unit are sometimes turned a little away from their wall. None if the piece drawn
+    fits on none of the allowed stretches."""
+    Lx, Ly, Lz = size_m
+    size = _furniture_size(rng, kind, Lz)
+    if where == "shared free":
+        half = min(_SHARED_HALF_WIDTH_M, Lx / 2)
+        y_lo = _robot_zone(size_m)[3] + ROBOT_CLEARANCE_M
+        center = np.array([rng.uniform(-half + 0.3, half - 0.3), rng.uniform(y_lo, Ly / 2 - 0.5)])
+        return _furniture_parts(rng, kind, center, float(rng.uniform(-0.6, 0.6)), size, Lz)
     walls = _walls(size_m)
-    lengths = np.array([w[2] for w in walls])
-    point, normal, length, yaw = walls[int(rng.choice(len(walls), p=lengths / lengths.sum()))]
-    jitter = float(rng.uniform(-0.25, 0.25)) if rng.random() < 0.3 else 0.0
+    mounted = kind in _WALL_MOUNTED
+    turnable = not mounted and kind not in ("sideboard", "run")  # (wall units hang on the wall)
+    jitter = float(rng.uniform(-0.25, 0.25)) if turnable and rng.random() < 0.3 else 0.0
+    if where.startswith("flank"):
+        wall, jitter = 0, 0.0
+        along = float(where[5:]) * (rng.uniform(*_FLANK_INNER_X_M) + size[0] / 2)
+    else:
+        # Stretches the piece fits in (with 5 cm to spare at either end).
+        spans = [(wall, lo + size[0] / 2 + 0.05, hi - size[0] / 2 - 0.05)
+                 for wall, lo, hi in _wall_spans(where, size_m)]
+        spans = [span for span in spans if span[2] > span[1]]
+        if not spans:
+            return None
+        lengths = np.array([hi - lo for _, lo, hi in spans]) + 0.1 + size[0]
+        wall, lo, hi = spans[int(rng.choice(len(spans), p=lengths / lengths.sum()))]
+        along = rng.uniform(lo, hi)
+    point, normal, _, yaw = walls[wall]
     tangent = np.array([-normal[1], normal[0]])
-    along = rng.uniform(-(length - size[0]) / 2 + 0.05, (length - size[0]) / 2 - 0.05)
     # Off the wall by half its depth, plus what a turned piece needs to clear the wall.
-    off = size[1] / 2 + 0.03 + abs(math.sin(jitter)) * size[0] / 2
-    return _furniture_parts(rng, kind, point + along * tangent + off * normal, yaw + jitter, size)
+    off = size[1] / 2 + (0.0 if kind == "pillar" else 0.01 if mounted else 0.03)
+    off += abs(math.sin(jitter)) * size[0] / 2
+    return _furniture_parts(rng, kind, point + along * tangent + off * normal, yaw + jitter, size,
+                            Lz)
 
 
 def _footprint(parts: list[Box]) -> tuple[float, float, float, float]:
@@ -207,21 +423,39 @@ def _footprint(parts: list[Box]) -> tuple[float, float, float, float]:
 
 def _place_furniture(rng: np.random.Generator, size_m: tuple[float, float, float],
                      n_furniture: int) -> list[list[Box]]:
-    """Up to ``n_furniture`` pieces, not overlapping, none near the robots' zone. The first
-    three are one of each kind; item 3 is a free-standing table (3D structure away from the
-    walls); the rest are random kinds against walls."""
+    """Up to ``n_furniture`` pieces, not overlapping, none near the robots' zone.
+
+    The first ones (_SHARED_PIECES) furnish the view every robot starts with, the middle of
+    the +y wall: pieces of different shapes and heights at different depths, so that maps
+    overlapping there fit together in one way only (a bare wall, floor and one table let a
+    map slide along the wall). The rest stand against the walls robots turn to, alternately
+    a run of storage modules on the -x side, one on the +x side and any kind anywhere."""
     Lx, Ly, _ = size_m
     zone = _robot_zone(size_m)
-    kinds = ["table", "shelf", "cabinet"]
     placed: list[list[Box]] = []
     footprints: list[tuple[float, float, float, float]] = []
+    flank_side = 1 if rng.random() < 0.5 else -1
     for item in range(n_furniture):
-        free_standing = item == 3
-        kind = "table" if free_standing else kinds[item] if item < 3 else kinds[int(rng.integers(3))]
+        if item < len(_SHARED_PIECES):
+            kinds, where = _SHARED_PIECES[item]
+            choices = kinds.split("|")
+            kind = choices[int(rng.integers(len(choices)))]
+            if where == "flank":
+                where = f"flank{flank_side:+d}"
+                flank_side = -flank_side
+            else:
+                where = "shared " + where
+        else:
+            where = ("outer-1", "outer+1", "wall")[(item - len(_SHARED_PIECES)) % 3]
+            kind = "run" if where != "wall" else _KINDS[int(rng.integers(len(_KINDS)))]
         for _attempt in range(200):
-            parts = _furniture_candidate(rng, kind, free_standing, size_m)
+            parts = _furniture_candidate(rng, kind, where, size_m)
+            if parts is None:
+                continue
             fp = _footprint(parts)
-            inside = fp[0] > -Lx / 2 and fp[1] < Lx / 2 and fp[2] > -Ly / 2 and fp[3] < Ly / 2
+            eps = 1e-6  # a pillar stands flush with its wall
+            inside = (fp[0] > -Lx / 2 - eps and fp[1] < Lx / 2 + eps and fp[2] > -Ly / 2 - eps
+                      and fp[3] < Ly / 2 + eps)
             padded = (fp[0] - 0.05, fp[1] + 0.05, fp[2] - 0.05, fp[3] + 0.05)
             if (inside and _rect_gap(fp, zone) >= ROBOT_CLEARANCE_M
                     and not any(_rects_overlap(padded, other) for other in footprints)):
@@ -244,8 +478,11 @@ _STYLES: dict[str, tuple[tuple[int, int, int], tuple[int, int, int], float, floa
     "wall": ((150, 140, 120), (215, 210, 200), 28.0, 8.0, 0.45, 150.0),
     "floor": ((70, 60, 50), (150, 130, 110), 30.0, 3.0, 0.25, 150.0),
     "ceiling": ((170, 170, 165), (220, 220, 215), 20.0, 3.0, 0.3, 80.0),
-    "wood": ((90, 60, 35), (170, 120, 80), 35.0, 6.0, 0.0, 150.0),
-    "paint": ((50, 50, 50), (200, 200, 200), 35.0, 8.0, 0.0, 150.0),
+    # Furniture is seen from a metre or less too: denser marks than on the walls, so a face
+    # filling a quadrant of the image still holds its share of ORB's strongest corners.
+    "wood": ((90, 60, 35), (170, 120, 80), 60.0, 10.0, 0.0, 600.0),
+    "tabletop": ((90, 60, 35), (170, 120, 80), 60.0, 15.0, 0.0, 600.0),
+    "paint": ((50, 50, 50), (200, 200, 200), 60.0, 10.0, 0.0, 600.0),
     "books": ((60, 45, 35), (120, 90, 70), 0.0, 0.0, 0.0, 0.0),
     "object": ((40, 40, 40), (220, 220, 220), 60.0, 20.0, 0.0, 150.0),
 }
@@ -357,29 +594,23 @@ def _draw_poster(rng: np.random.Generator, img: np.ndarray) -> None:
 
 
 def _draw_books(rng: np.random.Generator, img: np.ndarray) -> None:
-    """Shelf boards at irregular heights, books of random width, colour and height."""
+    """The spines of a row of books filling the face: random width, colour and height (the
+    shelf boards are geometry), labels, and the odd gap."""
     h, w = img.shape[:2]
-    board = max(3, int(0.02 * TEXELS_PER_M))
-    y = board
-    while y < h - board:
-        row_h = int(rng.uniform(0.25, 0.42) * TEXELS_PER_M)
-        bottom = min(h - board, y + row_h)
-        x = int(rng.integers(0, int(0.1 * TEXELS_PER_M)))
-        while x < w:
-            bw = int(rng.uniform(0.015, 0.07) * TEXELS_PER_M)
-            if rng.random() < 0.12:  # gaps and leaning books break any rhythm
-                x += bw * 2
-                continue
-            top = bottom - int((bottom - y) * rng.uniform(0.55, 0.95))
-            colour = tuple(int(c) for c in rng.integers(20, 240, 3))
-            cv2.rectangle(img, (x, top), (x + bw - 1, bottom), colour, -1)
-            if bw > 6 and rng.random() < 0.7:
-                label = tuple(int(255 - c) for c in colour)
-                ly = int(top + (bottom - top) * rng.uniform(0.15, 0.6))
-                cv2.rectangle(img, (x + 1, ly), (x + bw - 2, ly + max(2, bw // 2)), label, -1)
-            x += bw + int(rng.integers(0, 3))
-        cv2.rectangle(img, (0, bottom), (w - 1, bottom + board), (70, 50, 35), -1)
-        y = bottom + board
+    x = 0
+    while x < w:
+        bw = int(rng.uniform(0.015, 0.07) * TEXELS_PER_M)
+        if rng.random() < 0.08:  # gaps and leaning books break any rhythm
+            x += bw
+            continue
+        top = int(h * rng.uniform(0.0, 0.25))
+        colour = tuple(int(c) for c in rng.integers(20, 240, 3))
+        cv2.rectangle(img, (x, top), (x + bw - 1, h - 1), colour, -1)
+        if bw > 6 and rng.random() < 0.7:
+            label = tuple(int(255 - c) for c in colour)
+            ly = int(top + (h - top) * rng.uniform(0.15, 0.6))
+            cv2.rectangle(img, (x + 1, ly), (x + bw - 2, ly + max(2, bw // 2)), label, -1)
+        x += bw + int(rng.integers(0, 3))
 
 
 def paint_texture(rng: np.random.Generator, width_m: float, height_m: float, style: str) -> np.ndarray:
@@ -438,7 +669,7 @@ def _face_style(box_index: int, box: Box, axis: int, side: int) -> str:
     if box_index == 0:
         return ("ceiling" if side == 1 else "floor") if axis == 2 else "wall"
     if box.kind == "books" and (axis, side) != (1, 1):
-        return "wood"  # only a shelf's front (local +y) shows books
+        return "wood"  # only the front (local +y) of a block of books shows their spines
     return box.kind
 
 
@@ -580,24 +811,30 @@ def _cast_box(index: int, box: Box, R_wc: np.ndarray, t_wc: np.ndarray, camera: 
         if inside:
             # From inside, the visible surface is where the ray leaves the shell.
             t = np.minimum(np.minimum(far[0], far[1]), far[2])
-            axis = np.where(far[0] <= far[1], np.where(far[0] <= far[2], 0, 2),
-                            np.where(far[1] <= far[2], 1, 2))
             hit = t > 0
         else:
             t = np.maximum(np.maximum(near[0], near[1]), near[2])
             t_out = np.minimum(np.minimum(far[0], far[1]), far[2])
-            axis = np.where(near[0] >= near[1], np.where(near[0] >= near[2], 0, 2),
-                            np.where(near[1] >= near[2], 1, 2))
             hit = (t <= t_out) & (t > 0)
-    d_axis = np.choose(axis, dirs)
-    # Entering through the +half face means travelling towards -axis; leaving the shell
-    # through it means travelling towards +axis.
-    side = (d_axis > 0) if inside else (d_axis < 0)
     depth_rect = depth[v0:v1, u0:u1]
     face_rect = face[v0:v1, u0:u1]
     nearer = hit & (t < depth_rect)
-    np.copyto(depth_rect, t, where=nearer)
-    np.copyto(face_rect, (6 * index + 2 * axis + side).astype(np.int32), where=nearer)
+    if not nearer.any():
+        return
+    # Which face was hit, only where it is kept (usually a small part of the rectangle).
+    s0, s1, s2 = (far if inside else near)
+    s0, s1, s2 = s0[nearer], s1[nearer], s2[nearer]
+    if inside:
+        axis = np.where(s0 <= s1, np.where(s0 <= s2, 0, 2), np.where(s1 <= s2, 1, 2))
+    else:
+        axis = np.where(s0 >= s1, np.where(s0 >= s2, 0, 2), np.where(s1 >= s2, 1, 2))
+    d0, d1, d2 = dirs[0][nearer], dirs[1][nearer], dirs[2][nearer]
+    d_axis = np.where(axis == 0, d0, np.where(axis == 1, d1, d2))
+    # Entering through the +half face means travelling towards -axis; leaving the shell
+    # through it means travelling towards +axis.
+    side = (d_axis > 0) if inside else (d_axis < 0)
+    depth_rect[nearer] = t[nearer]
+    face_rect[nearer] = (6 * index + 2 * axis + side).astype(np.int32)
 
 
 def _sample_texture(room: Room, face: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -716,7 +953,8 @@ def _robot_pose(t: np.ndarray, robot: int, n_robots: int, size_m: tuple[float, f
     """Poses (N, 4, 4) at times ``t`` (s from the robot's start).
 
     Robot k (offset ``k`` from the middle of the group) starts looking at the middle of the
-    +y wall, slightly turned towards its own side, then turns away by up to _TURN_DEG and
+    +y wall (turned a little towards the group's middle, so the views cross there), then
+    turns towards its own side by up to _TURN_DEG and
     back (periodic, so any length stays bounded), drifting sideways the same way. Every
     motion is a sinusoid, so velocity is smooth and starts at zero."""
     k = robot - (n_robots - 1) / 2
