@@ -1,0 +1,95 @@
+"""Feature matching: descriptor matching against landmarks, by descriptor alone or guided
+by a predicted pose (candidates near their projection, at a compatible pyramid level)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fleetslam.pipeline.states import FeatureFrame
+
+
+def descriptor_match(query: np.ndarray, train: np.ndarray, train_ids: np.ndarray,
+                     max_hamming: int, ratio: float, mask: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """Best descriptor match per query (Hamming, Lowe ratio, optional mask), one query per
+    train item; train ids per query, -1 if none."""
+    ids = np.full(len(query), -1, np.int64)
+    if len(train) < 2 or len(query) == 0:
+        return ids
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    pairs = matcher.knnMatch(query, train, k=2, mask=mask) if mask is not None else \
+        matcher.knnMatch(query, train, k=2)
+    q, t, dist = [], [], []
+    for p in pairs:
+        if not p:
+            continue
+        best = p[0]
+        if best.distance > max_hamming:
+            continue
+        if len(p) > 1 and best.distance > ratio * p[1].distance:
+            continue
+        q.append(best.queryIdx)
+        t.append(best.trainIdx)
+        dist.append(best.distance)
+    if not q:
+        return ids
+    q_arr, t_arr, d_arr = np.array(q), np.array(t), np.array(dist)
+    # One keypoint per landmark: the closest descriptor wins.
+    order = np.lexsort((d_arr, t_arr))
+    first = np.ones(len(order), bool)
+    first[1:] = t_arr[order][1:] != t_arr[order][:-1]
+    keep = order[first]
+    ids[q_arr[keep]] = train_ids[t_arr[keep]]
+    return ids
+
+
+def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.ndarray,
+                 projected: np.ndarray, predicted_level: np.ndarray, radius_px: float,
+                 scale_factor: float, max_hamming: int, ratio: float) -> np.ndarray:
+    """Match each keypoint to the candidate landmarks projected within a radius of it
+    (scaled by the keypoint's octave) and predicted at its pyramid level +-1. Landmark id
+    per keypoint, -1 if none; one keypoint per landmark."""
+    n = len(state.keypoints)
+    ids = np.full(n, -1, np.int64)
+    if len(candidates) == 0 or n == 0:
+        return ids
+    # One radius search per pyramid level: the search radius grows with the keypoint's scale.
+    octave = state.keypoints[:, 5].astype(int)
+    lm_parts, kp_parts = [], []
+    for level in np.unique(octave):
+        members = np.flatnonzero(octave == level)
+        near = np.flatnonzero(np.abs(predicted_level - level) <= 1)
+        if len(near) == 0:
+            continue
+        pairs = cKDTree(projected[near]).sparse_distance_matrix(
+            cKDTree(state.uv[members]), radius_px * scale_factor**level, output_type="ndarray")
+        lm_parts.append(near[pairs["i"]])
+        kp_parts.append(members[pairs["j"]])
+    if not lm_parts:
+        return ids
+    lm, kp = np.concatenate(lm_parts), np.concatenate(kp_parts)
+    if len(lm) == 0:
+        return ids
+    ham = np.bitwise_count(state.descriptors[kp] ^ descriptors[candidates[lm]]).sum(axis=1)
+    # Best and second-best landmark per keypoint.
+    order = np.lexsort((ham, kp))
+    kp, lm, ham = kp[order], lm[order], ham[order]
+    first = np.ones(len(kp), bool)
+    first[1:] = kp[1:] != kp[:-1]
+    best = np.flatnonzero(first)
+    second = best + 1
+    has_second = (second < len(kp)) & ~np.append(first, True)[np.minimum(second, len(kp))]
+    second_ham = np.full(len(best), np.inf)
+    second_ham[has_second] = ham[second[has_second]]
+    good = (ham[best] <= max_hamming) & (ham[best] < ratio * second_ham)
+    best = best[good]
+    # One keypoint per landmark: the closest descriptor wins.
+    order = np.lexsort((ham[best], lm[best]))
+    best = best[order]
+    unique = np.ones(len(best), bool)
+    unique[1:] = lm[best][1:] != lm[best][:-1]
+    best = best[unique]
+    ids[kp[best]] = candidates[lm[best]]
+    return ids
