@@ -24,7 +24,7 @@ from fleetslam.mapping.dense_map import build_dense_map, voxel_downsample
 from fleetslam.pipeline.split import TrackingPipeline
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
-from fleetslam.registration.fshicp import chain_transforms, fshicp
+from fleetslam.registration.fshicp import chain_transforms, register_chain
 from fleetslam.registration.metrics import transform_error
 from fleetslam.report import format_table
 from fleetslam.registration.initial_guess import perturbed_guess
@@ -128,11 +128,8 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
                                config.merge.perturb_translation_m)
                for T_true, run in zip(truths, runs[1:])]
     progress = Progress("merge (FS-HICP)", len(runs) - 1, "pairs", enabled=show_progress)
-    results = []
-    for i in range(1, len(runs)):
-        results.append(fshicp(runs[i].map_points, runs[i - 1].map_points, guesses[i - 1],
-                              config.fshicp))
-        progress.update(i)
+    results = register_chain([r.map_points for r in runs], guesses, config.fshicp)
+    progress.update(len(runs) - 1)
     T_global = chain_transforms([r.T_target_source for r in results])
     pairs = []
     for i, (result, T_guess, T_true) in enumerate(zip(results, guesses, truths), start=1):
