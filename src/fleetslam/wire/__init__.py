@@ -1,0 +1,1 @@
+"""Messages between robot and cloud."""
