@@ -232,6 +232,33 @@ def in_scale_range(session: TrackingSession, ids: np.ndarray, P: np.ndarray) -> 
     return (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
 
 
+def match_free_keypoints(session: TrackingSession, f: FeatureFrame, T_world_camera: np.ndarray,
+                         matched_ids: np.ndarray, radius_px: float, max_hamming: int,
+                         ratio: float, scale_check: bool) -> np.ndarray:
+    """``matched_ids`` plus matches of its free keypoints (-1) to the live landmarks not yet
+    matched, projected from ``T_world_camera`` and searched within ``radius_px``;
+    ``scale_check`` also requires each landmark's scale-invariance distance range."""
+    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    free_kp = np.flatnonzero(matched_ids < 0)
+    cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
+                                 cfg.max_depth_m)
+    unmatched = np.ones(lmap.n_landmarks, bool)
+    unmatched[matched_ids[matched_ids >= 0]] = False
+    keep = unmatched[cand]
+    if scale_check:
+        keep[keep] = in_scale_range(session, cand[keep], P[keep])
+    cand, proj, P = cand[keep], proj[keep], P[keep]
+    ids = matched_ids.copy()
+    if len(free_kp) and len(cand):
+        level = lmap.predicted_octave(cand, np.linalg.norm(P, axis=1), orb.scale_factor,
+                                      orb.n_levels)
+        sub = replace(f, keypoints=f.keypoints[free_kp], descriptors=f.descriptors[free_kp],
+                      depth=f.depth[free_kp], uv=f.uv[free_kp])
+        ids[free_kp] = guided_match(sub, lmap.descriptors, cand, proj, level, radius_px,
+                                    orb.scale_factor, max_hamming, ratio)
+    return ids
+
+
 def track_local_map(session: TrackingSession, state: MatchedFrame, T_world_camera: np.ndarray,
                     inliers: np.ndarray) -> tuple[MatchedFrame, np.ndarray, np.ndarray]:
     """ORB-SLAM's TrackLocalMap: with the pose now known, project the live landmarks not yet
@@ -240,23 +267,10 @@ def track_local_map(session: TrackingSession, state: MatchedFrame, T_world_camer
     inlier mask)."""
     cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
     f = state.features
-    ids = np.where(inliers, state.landmark_ids, -1)
-    free_kp = np.flatnonzero(ids < 0)
-    cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
-                                 cfg.max_depth_m)
-    unmatched = np.ones(lmap.n_landmarks, bool)
-    unmatched[ids[ids >= 0]] = False
-    keep = unmatched[cand]
-    keep[keep] = in_scale_range(session, cand[keep], P[keep])
-    cand, proj, P = cand[keep], proj[keep], P[keep]
-    if len(free_kp) and len(cand):
-        level = lmap.predicted_octave(cand, np.linalg.norm(P, axis=1), orb.scale_factor,
-                                      orb.n_levels)
-        sub = replace(f, keypoints=f.keypoints[free_kp], descriptors=f.descriptors[free_kp],
-                      depth=f.depth[free_kp], uv=f.uv[free_kp])
-        ids[free_kp] = guided_match(sub, lmap.descriptors, cand, proj, level,
-                                    cfg.local_map_radius_px, orb.scale_factor,
-                                    cfg.max_hamming, cfg.match_ratio)
+    ids = match_free_keypoints(session, f, T_world_camera,
+                               np.where(inliers, state.landmark_ids, -1),
+                               cfg.local_map_radius_px, cfg.max_hamming, cfg.match_ratio,
+                               scale_check=True)
     matched = np.flatnonzero(ids >= 0)
     xyz = np.full((len(ids), 3), np.nan)
     xyz[matched] = lmap.xyz[ids[matched]]
@@ -365,25 +379,14 @@ def fuse_search(session: TrackingSession, f: FeatureFrame, T_world_camera: np.nd
     is also consistent with the keypoint's depth becomes an observation of the old landmark
     instead of a duplicate landmark. Returns the updated ``matched_ids``."""
     cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
-    unmatched = np.flatnonzero(matched_ids < 0)
-    if not len(unmatched):
+    if not (matched_ids < 0).any():
         return matched_ids
-    cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
-                                 cfg.max_depth_m)
-    free = np.ones(lmap.n_landmarks, bool)
-    free[matched_ids[matched_ids >= 0]] = False
-    keep = free[cand]
-    cand, proj, P = cand[keep], proj[keep], P[keep]
-    level = lmap.predicted_octave(cand, np.linalg.norm(P, axis=1), orb.scale_factor,
-                                  orb.n_levels)
-    sub = replace(f, keypoints=f.keypoints[unmatched], descriptors=f.descriptors[unmatched],
-                  depth=f.depth[unmatched], uv=f.uv[unmatched])
-    ids = guided_match(sub, lmap.descriptors, cand, proj, level, cfg.fuse_radius_px,
-                       orb.scale_factor, cfg.fuse_max_hamming, 1.0)
-    got = np.flatnonzero(ids >= 0)
-    if not len(got):
+    ids = match_free_keypoints(session, f, T_world_camera, matched_ids, cfg.fuse_radius_px,
+                               cfg.fuse_max_hamming, 1.0, scale_check=False)
+    kp = np.flatnonzero((ids >= 0) & (matched_ids < 0))
+    if not len(kp):
         return matched_ids
-    kp, lm = unmatched[got], ids[got]
+    lm = ids[kp]
     depth = f.depth[kp].astype(np.float64)
     chi2, z = reprojection_chi2(session.camera, session.camera.fx * cfg.virtual_baseline_m,
                                 np.broadcast_to(T_world_camera, (len(kp), 4, 4)), lmap.xyz[lm],
