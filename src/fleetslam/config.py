@@ -184,6 +184,47 @@ class SyntheticConfig:
 
 
 @dataclass
+class WireConfig:
+    """The binary message between robot and cloud (wire/)."""
+
+    # zstd over each message payload (descriptors barely shrink; keypoints and images do).
+    compress: bool = True
+    zstd_level: int = 3
+    # Images inside frame messages (split points 0 and 1): "png" is lossless, so the cloud's
+    # poses equal the in-memory run; "jpeg" is smaller but changes what the cloud sees.
+    frame_image_codec: str = "png"
+    jpeg_quality: int = 90
+    # Keyframe uploads for the dense map: colour only feeds the map's point colours.
+    keyframe_rgb_codec: str = "jpeg"
+
+
+@dataclass
+class LinkConfig:
+    """Emulated robot-to-cloud link on the robot's send path (0 = not limited)."""
+
+    bandwidth_mbps: float = 0.0
+    latency_ms: float = 0.0
+    # Probability that a frame message is lost (keyframe uploads are retried until acked).
+    loss: float = 0.0
+    seed: int = 0
+
+
+@dataclass
+class TransportConfig:
+    """Zenoh endpoints and the reliability of keyframe uploads and the robot's handshake."""
+
+    endpoint: str = "tcp/127.0.0.1:7447"
+    # Wait this long for a keyframe upload's acknowledgement before sending it again ...
+    ack_timeout_s: float = 2.0
+    # ... and give up (an error, never a silent loss) after this many attempts.
+    max_attempts: int = 30
+    # A robot waits this long for the cloud to answer its hello before retrying.
+    connect_timeout_s: float = 2.0
+    # Frames a robot keeps (RGB-D) for keyframe uploads the cloud may still ask for.
+    keyframe_buffer_frames: int = 120
+
+
+@dataclass
 class Config:
     orb: OrbConfig = field(default_factory=OrbConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -191,6 +232,9 @@ class Config:
     fshicp: FsHicpConfig = field(default_factory=FsHicpConfig)
     merge: MergeConfig = field(default_factory=MergeConfig)
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    wire: WireConfig = field(default_factory=WireConfig)
+    link: LinkConfig = field(default_factory=LinkConfig)
+    transport: TransportConfig = field(default_factory=TransportConfig)
 
 
 def _update(obj: Any, values: dict[str, Any], where: str) -> None:
