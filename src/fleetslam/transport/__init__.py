@@ -1,0 +1,1 @@
+"""Robot-to-cloud transport: the emulated link on a robot's send path."""
