@@ -44,6 +44,10 @@ class Camera:
             depth[raw == bad] = 0.0
         return depth
 
+    def metres_to_depth(self, depth_m: np.ndarray) -> np.ndarray:
+        """Inverse of depth_to_metres for measured pixels: raw 16-bit units, 0 = none."""
+        return np.round(depth_m.astype(np.float64) * self.depth_scale).astype(np.uint16)
+
     def undistort_points(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixel coordinates (N, 2) to ideal pinhole pixel coordinates."""
         if not self.has_distortion or len(uv) == 0:
@@ -66,29 +70,44 @@ class Camera:
         )
 
     def backproject_image(
-        self, depth_m: np.ndarray, stride: int = 1, max_depth_m: float = np.inf
+        self, depth_m: np.ndarray, stride: int = 1, max_depth_m: float = np.inf,
+        decimated_by: int = 1,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Depth image to camera-frame points; returns (points (N, 3), pixel indices (N, 2) as v, u)."""
+        """Depth image to camera-frame points; returns (points (N, 3), pixel indices (N, 2) as v, u).
+
+        ``decimated_by``: the image is ``full[::n, ::n]`` of this camera's full image (a
+        keyframe upload), so pixel (v, u) of it is pixel (n v, n u) of the camera."""
         v, u = np.mgrid[0 : depth_m.shape[0] : stride, 0 : depth_m.shape[1] : stride]
         z = depth_m[v, u]
         ok = (z > 0) & (z <= max_depth_m)
         u, v, z = u[ok], v[ok], z[ok].astype(np.float64)
-        uv = np.stack([u, v], axis=1).astype(np.float64)
+        uv = np.stack([u, v], axis=1).astype(np.float64) * decimated_by
         uv = self.undistort_points(uv)
         return self.backproject(uv, z), np.stack([v, u], axis=1)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
 
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(values: dict, where: str = "camera") -> "Camera":
+        try:
+            values = dict(values)
+            values["distortion"] = tuple(values.get("distortion", ()))
+            values["invalid_depth"] = tuple(values.get("invalid_depth", (0,)))
+            return Camera(**values)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{where}: not a valid camera: {exc}") from exc
+
     @staticmethod
     def from_json(path: Path) -> "Camera":
         try:
             values = json.loads(Path(path).read_text())
-            values["distortion"] = tuple(values.get("distortion", ()))
-            values["invalid_depth"] = tuple(values.get("invalid_depth", (0,)))
-            return Camera(**values)
-        except (OSError, ValueError, TypeError) as exc:
+        except (OSError, ValueError) as exc:
             raise ValueError(f"{path}: not a valid camera file: {exc}") from exc
+        return Camera.from_dict(values, str(path))
 
 
 # TUM RGB-D colour cameras (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats).

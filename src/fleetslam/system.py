@@ -102,34 +102,38 @@ class MergeOutcome:
     initial_guess: str
 
 
-def ground_truth_map_poses(runs: list[RobotRun]) -> list[np.ndarray] | None:
-    """T_map0_mapi from ground truth: each map frame is its robot's first camera pose."""
-    firsts = []
-    for run in runs:
-        gt = run.sequence.gt_poses
-        if gt is None or not np.isfinite(gt[0]).all():
-            return None
-        firsts.append(gt[0])
-    return [invert(firsts[0]) @ g for g in firsts]
+def first_ground_truth_pose(run: RobotRun) -> np.ndarray | None:
+    gt = run.sequence.gt_poses
+    if gt is None or not np.isfinite(gt[0]).all():
+        return None
+    return gt[0]
 
 
 def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool = True
                      ) -> MergeOutcome | None:
-    """Register every map into robot 0's frame with FS-HICP, chained as the paper does:
-    map i onto map i-1 (already in the global frame). The initial guess is ground truth
-    plus a perturbation of the configured size (a later version finds it itself)."""
-    truth = ground_truth_map_poses(runs)
-    if truth is None:
+    return merge_maps([r.name for r in runs], [r.map_points for r in runs],
+                      [first_ground_truth_pose(r) for r in runs], config, show_progress)
+
+
+def merge_maps(names: list[str], maps: list[np.ndarray], T_world_first: list[np.ndarray | None],
+               config: Config, show_progress: bool = True) -> MergeOutcome | None:
+    """Register every map into map 0's frame with FS-HICP, chained as the paper does:
+    map i onto map i-1 (already in the global frame). Each map frame is its robot's first
+    camera pose; the initial guess is the ground truth of those first poses plus a
+    perturbation of the configured size (a later version finds it itself). None when a
+    robot has no such prior."""
+    if any(T is None for T in T_world_first):
         return None
+    truth = [invert(T_world_first[0]) @ T for T in T_world_first]  # T_map0_mapi
     rng = np.random.default_rng(config.merge.seed)
     # Truth of T_{i-1}_i (map i into map i-1), the pair FS-HICP registers.
-    truths = [invert(truth[i - 1]) @ truth[i] for i in range(1, len(runs))]
-    guesses = [perturbed_guess(T_true, run.map_points, rng, config.merge.perturb_rotation_deg,
+    truths = [invert(truth[i - 1]) @ truth[i] for i in range(1, len(maps))]
+    guesses = [perturbed_guess(T_true, points, rng, config.merge.perturb_rotation_deg,
                                config.merge.perturb_translation_m)
-               for T_true, run in zip(truths, runs[1:])]
-    progress = Progress("merge (FS-HICP)", len(runs) - 1, "pairs", enabled=show_progress)
-    results = register_chain([r.map_points for r in runs], guesses, config.fshicp)
-    progress.update(len(runs) - 1)
+               for T_true, points in zip(truths, maps[1:])]
+    progress = Progress("merge (FS-HICP)", len(maps) - 1, "pairs", enabled=show_progress)
+    results = register_chain(maps, guesses, config.fshicp)
+    progress.update(len(maps) - 1)
     T_global = chain_transforms([r.T_target_source for r in results])
     pairs = []
     for i, (result, T_guess, T_true) in enumerate(zip(results, guesses, truths), start=1):
@@ -137,7 +141,7 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
         err_guess = transform_error(T_guess, T_true)
         global_err = transform_error(T_global[i], truth[i])
         pairs.append({
-            "source": runs[i].name, "target": runs[i - 1].name,
+            "source": names[i], "target": names[i - 1],
             "initial_rotation_error_deg": err_guess.rotation_deg,
             "initial_translation_error_m": err_guess.translation_m,
             "rotation_error_deg": err.rotation_deg, "translation_error_m": err.translation_m,
@@ -153,6 +157,16 @@ def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool =
                         f"ground truth perturbed by {config.merge.perturb_rotation_deg:g} deg "
                         f"(about the map centroid) and {config.merge.perturb_translation_m:g} m "
                         f"(seed {config.merge.seed})")
+
+
+def write_global_map(path: Path, merge: MergeOutcome, maps: list[np.ndarray],
+                     colors: list[np.ndarray], config: Config) -> int:
+    """All maps in the global frame, voxel filtered again where they overlap, as PLY."""
+    clouds = [transform_points(T, p) for T, p in zip(merge.T_global_map, maps)]
+    points, merged_colors = voxel_downsample(np.vstack(clouds), np.vstack(colors),
+                                             config.map.voxel_m)
+    write_ply(path, points, merged_colors)
+    return len(points)
 
 
 def run_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config, out_dir: Path,
@@ -175,11 +189,8 @@ def run_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config, out_d
 
     merge = merge_robot_maps(runs, config, show_progress) if len(runs) > 1 else None
     if merge is not None:
-        clouds = [transform_points(T, r.map_points) for T, r in zip(merge.T_global_map, runs)]
-        points, colors = voxel_downsample(np.vstack(clouds),
-                                          np.vstack([r.map_colors for r in runs]),
-                                          config.map.voxel_m)
-        write_ply(out_dir / "global_map.ply", points, colors)
+        write_global_map(out_dir / "global_map.ply", merge, [r.map_points for r in runs],
+                         [r.map_colors for r in runs], config)
     summary = make_summary(runs, merge, config, time.perf_counter() - start)
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

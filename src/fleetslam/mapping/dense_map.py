@@ -34,23 +34,31 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, voxel_m: flo
 
 
 def keyframe_cloud(camera: Camera, rgb: np.ndarray, depth_m: np.ndarray,
-                   T_world_camera: np.ndarray, config: MapConfig
+                   T_world_camera: np.ndarray, config: MapConfig, decimated_by: int = 1
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Back-project one keyframe (invalid depth dropped) into the world, voxel filtered."""
-    local, vu = camera.backproject_image(depth_m, stride=config.pixel_stride,
-                                         max_depth_m=config.max_depth_m)
+    """Back-project one keyframe (invalid depth dropped) into the world, voxel filtered.
+
+    A keyframe upload is already decimated to every ``config.pixel_stride``-th pixel
+    (``decimated_by``): the same pixels, so the same points, as the full image."""
+    if decimated_by not in (1, config.pixel_stride):
+        raise ValueError(f"keyframe decimated by {decimated_by}, the map samples every "
+                         f"{config.pixel_stride} pixels")
+    local, vu = camera.backproject_image(depth_m, stride=config.pixel_stride // decimated_by,
+                                         max_depth_m=config.max_depth_m,
+                                         decimated_by=decimated_by)
     colors = rgb[vu[:, 0], vu[:, 1]]
     return voxel_downsample(transform_points(T_world_camera, local), colors, config.voxel_m)
 
 
 def build_dense_map(camera: Camera,
-                    keyframes: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                    keyframes: Iterable[tuple[np.ndarray, ...]],
                     config: MapConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse keyframes given as (rgb, depth_m, T_world_camera) into one voxel-filtered cloud."""
+    """Fuse keyframes given as (rgb, depth_m, T_world_camera[, decimated_by]) into one
+    voxel-filtered cloud."""
     parts_p: list[np.ndarray] = []
     parts_c: list[np.ndarray] = []
-    for rgb, depth_m, T in keyframes:
-        p, c = keyframe_cloud(camera, rgb, depth_m, T, config)
+    for rgb, depth_m, T, *decimated in keyframes:
+        p, c = keyframe_cloud(camera, rgb, depth_m, T, config, *decimated)
         parts_p.append(p)
         parts_c.append(c)
     if not parts_p:
