@@ -55,11 +55,19 @@ def test_reads_frames_interpolates_ground_truth(tmp_path):
     np.testing.assert_allclose(seq.gt_poses[:, 0, 3], [0.1, 0.2, 0.3], atol=1e-9)
     sub = RgbdSequence(root, first=1, last=2)
     assert len(sub) == 2 and sub.timestamps[0] == pytest.approx(0.2)
+    # Forward then backward: re-timed forward at the median interval, GT follows the frames.
+    there_and_back = RgbdSequence(root, segments=[(0, 2), (1, 0)])
+    assert len(there_and_back) == 5 and there_and_back.retimed
+    np.testing.assert_allclose(there_and_back.timestamps, 0.1 + 0.1 * np.arange(5))
+    np.testing.assert_allclose(there_and_back.gt_poses[:, 0, 3], [0.1, 0.2, 0.3, 0.2, 0.1],
+                               atol=1e-9)
+    assert there_and_back[3].rgb.shape == frame.rgb.shape
 
 
-def test_robot_spec_with_frame_range():
-    assert parse_robot_spec("/data/seq:0-349") == (Path("/data/seq"), 0, 349)
-    assert parse_robot_spec("/data/seq") == (Path("/data/seq"), 0, None)
+def test_robot_spec_with_frame_ranges():
+    assert parse_robot_spec("/data/seq:0-349") == (Path("/data/seq"), [(0, 349)])
+    assert parse_robot_spec("/data/seq") == (Path("/data/seq"), None)
+    assert parse_robot_spec("s:0-599,598-199") == (Path("s"), [(0, 599), (598, 199)])
     with pytest.raises(ValueError, match="empty"):
         parse_robot_spec("seq:9-3")
 

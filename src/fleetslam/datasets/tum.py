@@ -114,7 +114,12 @@ class RgbdSequence:
     """Random access to the associated RGB-D frames of one folder, optionally a frame range."""
 
     def __init__(self, folder: str | Path, camera: Camera | None = None,
-                 first: int = 0, last: int | None = None) -> None:
+                 first: int = 0, last: int | None = None,
+                 segments: list[tuple[int, int]] | None = None) -> None:
+        """``segments``: inclusive frame ranges played one after the other; a range whose
+        first frame is after its last plays backwards (the camera retraces its path). The
+        played frames are then re-timed at the recording's median frame interval, so time
+        still runs forward."""
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise ValueError(f"{self.folder}: no such sequence folder")
@@ -138,11 +143,21 @@ class RgbdSequence:
                 f"(rgb.txt {rgb_t[0]:.3f}..{rgb_t[-1]:.3f}, depth.txt {depth_t[0]:.3f}..{depth_t[-1]:.3f})")
         total = len(pairs)
         last = total - 1 if last is None else last
-        if not (0 <= first <= last < total):
-            raise ValueError(f"{self.folder}: frame range {first}-{last} outside 0-{total - 1}")
-        pairs = pairs[first: last + 1]
-        self.first = first
-        self.timestamps = np.array([rgb_t[i] for i, _ in pairs])
+        segments = segments or [(first, last)]
+        order: list[int] = []
+        for a, b in segments:
+            if not (0 <= a < total and 0 <= b < total):
+                raise ValueError(f"{self.folder}: frame range {a}-{b} outside 0-{total - 1}")
+            order += list(range(a, b + 1) if a <= b else range(a, b - 1, -1))
+        recorded = np.array([rgb_t[i] for i, _ in pairs])
+        pairs = [pairs[i] for i in order]
+        self.first = order[0]
+        self.recorded_timestamps = recorded[order]
+        self.timestamps = self.recorded_timestamps.copy()
+        self.retimed = bool(np.any(np.diff(self.timestamps) <= 0))
+        if self.retimed:
+            dt = float(np.median(np.diff(recorded))) if len(recorded) > 1 else 1 / 30
+            self.timestamps = recorded[order[0]] + dt * np.arange(len(order))
         self.rgb_paths = [self.folder / rgb[i][1] for i, _ in pairs]
         self.depth_paths = [self.folder / depth[j][1] for _, j in pairs]
         for path in self.rgb_paths + self.depth_paths:
@@ -156,16 +171,17 @@ class RgbdSequence:
         if not path.exists():
             return None
         times, poses = read_tum_trajectory(path)
-        out = np.full((len(self.timestamps), 4, 4), np.nan)
-        inside = (self.timestamps >= times[0]) & (self.timestamps <= times[-1])
+        stamps = self.recorded_timestamps  # ground truth at each played frame's own time
+        out = np.full((len(stamps), 4, 4), np.nan)
+        inside = (stamps >= times[0]) & (stamps <= times[-1])
         if len(times) == 1:
-            out[self.timestamps == times[0]] = poses[0]
+            out[stamps == times[0]] = poses[0]
             return out
-        idx = np.clip(np.searchsorted(times, self.timestamps), 1, len(times) - 1)
+        idx = np.clip(np.searchsorted(times, stamps), 1, len(times) - 1)
         gap = times[idx] - times[idx - 1]
         ok = inside & (gap <= MAX_GT_GAP_S)
         if ok.any():
-            out[ok] = interpolate_poses(times, poses, self.timestamps[ok])
+            out[ok] = interpolate_poses(times, poses, stamps[ok])
         return out
 
     @property
@@ -201,20 +217,22 @@ class RgbdSequence:
             yield self[i]
 
 
-_RANGE = re.compile(r"^(?P<path>.+?):(?P<first>\d+)-(?P<last>\d+)$")
+_RANGES = re.compile(r"^(?P<path>.+?):(?P<ranges>\d+-\d+(?:,\d+-\d+)*)$")
 
 
-def parse_robot_spec(spec: str) -> tuple[Path, int, int | None]:
-    """``DIR`` or ``DIR:first-last`` (inclusive frame range) to (folder, first, last)."""
-    match = _RANGE.match(spec)
-    if match:
-        first, last = int(match["first"]), int(match["last"])
-        if last < first:
-            raise ValueError(f"robot '{spec}': frame range {first}-{last} is empty")
-        return Path(match["path"]), first, last
-    return Path(spec), 0, None
+def parse_robot_spec(spec: str) -> tuple[Path, list[tuple[int, int]] | None]:
+    """``DIR``, ``DIR:first-last`` (inclusive) or ``DIR:a-b,c-d,...`` (ranges played in
+    turn; ``c > d`` plays backwards) to (folder, ranges or None for all frames)."""
+    match = _RANGES.match(spec)
+    if not match:
+        return Path(spec), None
+    ranges = [tuple(int(v) for v in r.split("-")) for r in match["ranges"].split(",")]
+    if len(ranges) == 1 and ranges[0][1] < ranges[0][0]:
+        raise ValueError(f"robot '{spec}': frame range {ranges[0][0]}-{ranges[0][1]} is empty "
+                         f"(to play backwards, follow a forward range: DIR:0-99,98-0)")
+    return Path(match["path"]), ranges  # type: ignore[return-value]
 
 
 def open_robot(spec: str, camera: Camera | None = None) -> RgbdSequence:
-    folder, first, last = parse_robot_spec(spec)
-    return RgbdSequence(folder, camera=camera, first=first, last=last)
+    folder, ranges = parse_robot_spec(spec)
+    return RgbdSequence(folder, camera=camera, segments=ranges)
