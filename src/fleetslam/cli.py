@@ -49,9 +49,8 @@ def cmd_generate(args: argparse.Namespace, config: Config) -> int:
 
 def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.synthetic import ensure_scene
-    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.demo import run_demo
     from fleetslam.progress import Progress
-    from fleetslam.system import run_fleet
 
     if args.robots is not None:
         config.synthetic.n_robots = args.robots
@@ -63,10 +62,102 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     total = config.synthetic.n_robots * config.synthetic.frames_per_robot
     progress = Progress(f"synthetic scene {scene}", total, enabled=not args.quiet)
     folders = ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))
-    robots = [(f"r{i}", str(f), RgbdSequence(f)) for i, f in enumerate(folders)]
     out = Path(args.out) if args.out else _default_out("demo")
-    summary = run_fleet(robots, config, out, show_progress=not args.quiet)
+    if args.in_process:
+        from fleetslam.datasets.tum import RgbdSequence
+        from fleetslam.system import run_fleet
+
+        robots = [(f"r{i}", str(f), RgbdSequence(f)) for i, f in enumerate(folders)]
+        summary = run_fleet(robots, config, out, show_progress=not args.quiet)
+    else:
+        summary = run_demo([str(f) for f in folders], out, args.offload_at, args.config,
+                           link_args=_link_args(args), show_progress=not args.quiet)
     _finish(summary, out)
+    return 0
+
+
+def _link_args(args: argparse.Namespace) -> list[str]:
+    out = []
+    for name in ("bandwidth_mbps", "latency_ms", "loss"):
+        value = getattr(args, name, None)
+        if value is not None:
+            out += [f"--{name.replace('_', '-')}", str(value)]
+    return out
+
+
+def _add_link_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--bandwidth-mbps", type=float, help="emulated link bandwidth "
+                        "(Mbit/s; default from config: not limited)")
+    parser.add_argument("--latency-ms", type=float, help="emulated one-way latency")
+    parser.add_argument("--loss", type=float, help="probability a message is lost on the link "
+                        "(keyframe uploads are resent until acknowledged)")
+
+
+def _setup_logging(quiet: bool) -> None:
+    import logging
+
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
+    import signal
+    import threading
+
+    from fleetslam.cloud.server import CloudServer
+
+    _setup_logging(args.quiet)
+    server = CloudServer(config, Path(args.out), args.listen).start()
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"fleetslam cloud: listening on {server.endpoint}, writing to {args.out}",
+          file=sys.stderr, flush=True)
+    stop.wait()
+    server.close()
+    print("fleetslam cloud: stopped", file=sys.stderr)
+    return 0
+
+
+def cmd_robot(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.datasets.tum import open_robot
+    from fleetslam.edge.robot import Robot, parse_offload_point
+    from fleetslam.pipeline.stages import default_stages
+
+    _setup_logging(args.quiet)
+    for name in ("bandwidth_mbps", "latency_ms", "loss"):
+        value = getattr(args, name)
+        if value is not None:
+            setattr(config.link, name, value)
+    if args.link_seed is not None:
+        config.link.seed = args.link_seed
+    k = parse_offload_point(args.offload_at, [s.name for s in default_stages()])
+    camera = Camera.from_json(Path(args.camera)) if args.camera else None
+    sequence = open_robot(args.source, camera)
+    robot = Robot(args.id, sequence, args.source, k, config, args.connect, args.rate,
+                  show_progress=not args.quiet)
+    report = robot.run()
+    if args.report:
+        Path(args.report).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.report).write_text(report.to_json())
+    print(f"robot {args.id}: {report.frames} frames sent from {report.first_index} "
+          f"({report.frames_lost_on_link} lost on the link), {report.keyframes} keyframes "
+          f"({report.upload_retries} upload retries), {report.frame_bytes / max(report.frames, 1) / 1000:.1f} "
+          f"kB/frame, total {report.total_s:.1f} s", file=sys.stderr)
+    return 0
+
+
+def cmd_merge(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.launch import CloudClient
+
+    client = CloudClient(args.connect)
+    try:
+        summary = client.merge()
+    finally:
+        client.close()
+    from fleetslam.system import summary_table
+
+    print(summary_table(summary))
     return 0
 
 
@@ -102,6 +193,12 @@ def build_parser() -> argparse.ArgumentParser:
                       "(default: a cache folder)")
     demo.add_argument("--robots", type=int, help="number of robots (default from config: 2)")
     demo.add_argument("--frames", type=int, help="frames per robot (default from config)")
+    demo.add_argument("--offload-at", default="paper",
+                      help="split point of every robot: 0-3 or 6, 'paper' (3), or the first "
+                      "cloud stage's name")
+    demo.add_argument("--in-process", action="store_true",
+                      help="track, map and merge in this one process (no network)")
+    _add_link_options(demo)
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="run robots on TUM-layout folders")
@@ -111,6 +208,35 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--camera", help="camera.json overriding the detected camera")
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
     run.set_defaults(func=cmd_run)
+
+    cloud = sub.add_parser("cloud", help="serve robots over Zenoh: track, map, merge")
+    cloud.add_argument("--listen", default=None, metavar="ENDPOINT",
+                       help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
+    cloud.add_argument("--out", required=True, help="folder for maps, trajectories, "
+                       "keyframes and checkpoints (reused after a restart)")
+    cloud.set_defaults(func=cmd_cloud)
+
+    robot = sub.add_parser("robot", help="stream a recorded sequence to the cloud")
+    robot.add_argument("--connect", default=None, metavar="ENDPOINT",
+                       help="the cloud's Zenoh endpoint (default tcp/127.0.0.1:7447)")
+    robot.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ -)")
+    robot.add_argument("--source", required=True, metavar="DIR[:FIRST-LAST]",
+                       help="TUM-layout folder (a synthetic scene's robot folder works too)")
+    robot.add_argument("--camera", help="camera.json overriding the detected camera")
+    robot.add_argument("--offload-at", default="paper",
+                       help="split point: 0-3 (cloud tracks) or 6 (robot tracks), 'paper' "
+                       "(3), or the first cloud stage's name (e.g. match)")
+    robot.add_argument("--rate", default="max",
+                       help="'max' (as fast as stages and link allow), 'recorded' (at the "
+                       "recording's timestamps) or frames per second")
+    _add_link_options(robot)
+    robot.add_argument("--link-seed", type=int, help="seed of the link's loss pattern")
+    robot.add_argument("--report", help="write the robot's measurements here (JSON)")
+    robot.set_defaults(func=cmd_robot)
+
+    merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")
+    merge.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    merge.set_defaults(func=cmd_merge)
 
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")
@@ -127,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(args.config)
         return args.func(args, config)
-    except (ValueError, FileExistsError) as exc:
+    except (ValueError, FileExistsError, RuntimeError, TimeoutError) as exc:
         print(f"fleetslam: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -17,6 +17,7 @@ class Progress:
         self.enabled = enabled
         self.start = time.perf_counter()
         self._last_print = 0.0
+        self._finished = False
         self.min_interval_s = min_interval_s
         # A terminal gets one refreshed line; a log file gets occasional full lines.
         self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
@@ -26,15 +27,18 @@ class Progress:
             return
         now = time.perf_counter()
         final = done >= self.total
+        if final and self._finished:
+            return  # the final line is printed once
+        self._finished = final
         interval = self.min_interval_s if self._tty else 5.0
         if not final and now - self._last_print < interval:
             return
         self._last_print = now
         elapsed = now - self.start
         rate = done / elapsed if elapsed > 0 else 0.0
-        eta = (self.total - done) / rate if rate > 0 else float("nan")
+        eta = f"{(self.total - done) / rate:5.0f}s" if rate > 0 else "    -"
         line = (f"{self.label}: {done}/{self.total} {self.unit}  {rate:5.1f}/s  "
-                f"ETA {eta:5.0f}s" + (f"  {note}" if note else ""))
+                f"ETA {eta}" + (f"  {note}" if note else ""))
         if self._tty:
             self.stream.write("\r" + line.ljust(100) + ("\n" if final else ""))
         else:

@@ -44,3 +44,9 @@ def open_connecting(endpoint: str) -> zenoh.Session:
         return zenoh.open(config)
     except zenoh.ZError as exc:
         raise RuntimeError(f"cannot connect to {endpoint}: {exc}") from exc
+
+
+def put(session: zenoh.Session, key: str, data: bytes) -> None:
+    """Publish without Zenoh dropping it under a burst: the emulated link decides losses,
+    the transport must not add its own."""
+    session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)

@@ -1,0 +1,206 @@
+"""Four robots at once on one cloud process: the frame rate the cloud sustains and its
+per-frame latency.
+
+    .venv/bin/python bench/fleet.py [--robots 4] [--frames 300] [--load 0.8]
+
+The robots' messages (offloading point 3, the paper's) are made from the real 7-Scenes
+frames before the clock starts, so that robot computation on this same machine does not
+take CPU from the cloud being measured; the bench then publishes them over Zenoh to a
+separate cloud process, as robots do, and times each frame from publish to feedback.
+  1. saturation: every robot sends all its frames at once; the cloud works through its
+     queues; sustained rate = frames / (last feedback - first publish).
+  2. paced: fresh sessions, each robot at (load x sustained / robots) frames per second;
+     latency median and p95 (publish -> feedback; includes any queueing).
+Writes bench/results/fleet.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fleetslam.cloud.robot_session import PROTOCOL
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.launch import free_endpoint, start_cloud, stop
+from fleetslam.pipeline.split import TrackingPipeline, run_stages
+from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.report import format_table
+from fleetslam.transport import keys
+from fleetslam.transport.zenoh_session import open_connecting, put
+from fleetslam.wire.frames import encode_frame_message
+from fleetslam.wire.messages import decode_feedback
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SEQ = DATA / "7scenes_redkitchen_seq01_f0000-0599"
+K = 3
+
+
+def robot_messages(robot_id: str, first: int, frames: int) -> tuple[list[bytes], dict]:
+    seq = RgbdSequence(SEQ, first=first, last=first + frames - 1)
+    pipeline = TrackingPipeline(Config(), seq.camera)
+    stages = pipeline.split(K)[0]
+    msgs = []
+    for n, f in enumerate(seq):
+        state = run_stages(stages, CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m),
+                           pipeline.session)
+        msgs.append(encode_frame_message(state, K, robot_id, n, seq.camera, Config().wire))
+    return msgs, seq.camera.to_dict()
+
+
+class Fleet:
+    """Publishes prepared messages for several robots and times their feedback."""
+
+    def __init__(self, session, robots: dict[str, tuple[list[bytes], dict]]) -> None:
+        self.z = session
+        self.robots = robots
+        self.sent: dict[tuple[str, int], float] = {}
+        self.got: dict[tuple[str, int], float] = {}
+        self.cloud_ms: list[float] = []
+        self.done = threading.Event()
+        self.total = sum(len(m) for m, _ in robots.values())
+        self.replies: queue.Queue = queue.Queue()
+        self.subs = []
+        for rid in robots:
+            self.subs.append(session.declare_subscriber(
+                keys.feedback(rid), lambda s, rid=rid: self._on_feedback(rid, s)))
+            self.subs.append(session.declare_subscriber(
+                keys.reply(rid),
+                lambda s, rid=rid: self.replies.put((rid, json.loads(s.payload.to_bytes())))))
+
+    def _on_feedback(self, rid: str, sample) -> None:
+        header, fb = decode_feedback(sample.payload.to_bytes())
+        self.got[(rid, header.seq)] = time.monotonic()
+        self.cloud_ms.append(fb.cloud_ms)
+        if len(self.got) == self.total:
+            self.done.set()
+
+    def hello(self) -> None:
+        waiting = set(self.robots)
+        for _ in range(50):
+            for rid in waiting:
+                put(self.z, keys.control(rid), json.dumps({
+                    "type": "hello", "protocol": PROTOCOL, "offload_at": K,
+                    "camera": self.robots[rid][1], "source": str(SEQ),
+                    "prior_T_world_first": None}).encode())
+            deadline = time.monotonic() + 1.0
+            while waiting and time.monotonic() < deadline:
+                try:
+                    rid, reply = self.replies.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+                if reply["type"] == "welcome":
+                    waiting.discard(rid)
+            if not waiting:
+                return
+        raise RuntimeError(f"no welcome for {sorted(waiting)}")
+
+    def send(self, fps_per_robot: float | None) -> None:
+        ids = sorted(self.robots)
+        n = max(len(self.robots[r][0]) for r in ids)
+        start = time.monotonic()
+        for i in range(n):
+            if fps_per_robot is not None:
+                wait = start + i / fps_per_robot - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+            for rid in ids:
+                msgs = self.robots[rid][0]
+                if i < len(msgs):
+                    self.sent[(rid, i)] = time.monotonic()
+                    put(self.z, keys.frame(rid), msgs[i])
+
+    def result(self, timeout: float) -> dict:
+        self.done.wait(timeout)
+        lat = np.array([1000 * (self.got[k] - self.sent[k]) for k in self.got if k in self.sent])
+        span = max(self.got.values()) - min(self.sent.values())
+        return {"frames_sent": len(self.sent), "frames_tracked": len(self.got),
+                "cloud_fps": len(self.got) / span, "span_s": span,
+                "latency_ms_median": float(np.median(lat)),
+                "latency_ms_p95": float(np.percentile(lat, 95)),
+                "cloud_ms_median": float(np.median(self.cloud_ms)),
+                "cloud_ms_p95": float(np.percentile(self.cloud_ms, 95))}
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robots", type=int, default=4)
+    parser.add_argument("--frames", type=int, default=300, help="frames per robot")
+    parser.add_argument("--load", type=float, default=0.8,
+                        help="paced run: offered rate as a fraction of the sustained rate")
+    parser.add_argument("--out", default="bench/results/fleet.json")
+    args = parser.parse_args()
+    if not SEQ.exists():
+        sys.exit(f"{SEQ} missing: this benchmark needs ../shared/data")
+    starts = np.linspace(0, 600 - args.frames, args.robots).astype(int)
+    print(f"preparing {args.robots} x {args.frames} messages (robot stages, point {K}) ...",
+          flush=True)
+    prepared = [robot_messages(f"r{i}", int(s), args.frames) for i, s in enumerate(starts)]
+    out = Path(args.out)
+    work = out.parent / "fleet-runs" / time.strftime("%Y%m%d-%H%M%S")
+    endpoint = free_endpoint()
+    cloud = start_cloud(endpoint, work / "cloud", work / "cloud.log")
+    z = open_connecting(endpoint)
+    results = {}
+    try:
+        for phase in ("saturation", "paced"):
+            tag = "s" if phase == "saturation" else "p"
+            robots = {}
+            for i, (msgs, cam) in enumerate(prepared):
+                rid = f"{tag}{i}"
+                # Re-sealed with this phase's robot id (ids are in the signed header).
+                robots[rid] = (robot_messages_for(rid, msgs), cam)
+            fleet = Fleet(z, robots)
+            fleet.hello()
+            fps = None
+            if phase == "paced":
+                fps = args.load * results["saturation"]["cloud_fps"] / args.robots
+            print(f"{phase}: {args.robots} robots "
+                  f"{'all at once' if fps is None else f'at {fps:.1f} fps each'} ...", flush=True)
+            fleet.send(fps)
+            results[phase] = fleet.result(timeout=1800)
+            results[phase]["offered_fps_per_robot"] = fps
+            fleet.close()
+    finally:
+        z.close()
+        stop(cloud)
+    rows = [[phase, r["frames_tracked"],
+             "all at once" if r["offered_fps_per_robot"] is None
+             else f"{r['offered_fps_per_robot'] * args.robots:.1f}",
+             r["cloud_fps"], r["latency_ms_median"], r["latency_ms_p95"],
+             r["cloud_ms_median"], r["cloud_ms_p95"]] for phase, r in results.items()]
+    print(format_table(["run", "frames", "offered fps", "cloud fps", "latency ms median",
+                        "latency ms p95", "cloud ms median", "cloud ms p95"], rows))
+    print(f"{args.robots} robots x {args.frames} frames of {SEQ.name}, offloading point {K}; "
+          f"cores: {os.cpu_count()}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"robots": args.robots, "frames_per_robot": args.frames,
+                               "cores": os.cpu_count(), "results": results}, indent=2))
+    print(f"wrote {out}")
+
+
+def robot_messages_for(robot_id: str, messages: list[bytes]) -> list[bytes]:
+    from fleetslam.wire.envelope import open_message, seal
+
+    out = []
+    for data in messages:
+        header, payload = open_message(data)
+        out.append(seal(header.kind, robot_id, header.seq, header.timestamp, header.split_point,
+                        payload, compress=header.compressed))
+    return out
+
+
+if __name__ == "__main__":
+    main()

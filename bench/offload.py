@@ -1,0 +1,115 @@
+"""Offloading over an emulated 10 Mbps link, measured end to end with real processes.
+
+    .venv/bin/python bench/offload.py [--points 0,3,6] [--frames 1000] [--mbps 10]
+
+For each offloading point: a fresh cloud process, one robot process streaming the 7-Scenes
+frames as fast as its stages and its link allow (1000 frames = 0-599 then back 598-199),
+and the paper's columns (Table "Running time comparison"):
+  robot  seconds of robot computation (its stages and message encoding)
+  trans  seconds the link was busy (frames, keyframe uploads, control)
+  cloud  seconds of cloud computation (its stages)
+  sum    robot + trans + cloud
+  total  wall time, first frame sent -> the cloud's 'ended' (all frames tracked, the
+         keyframes stored and the dense map built); less than sum where they overlap.
+Point 0 is total offloading (eta = 0), 3 the paper's point, 6 everything on the robot.
+Writes bench/results/offload.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from fleetslam.datasets.tum import open_robot
+from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop, trajectory_ate
+from fleetslam.report import format_table
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SEQ = DATA / "7scenes_redkitchen_seq01_f0000-0599"
+PAPER = {  # robot / trans / cloud / sum / total seconds, 1000 frames at 10 Mbps
+    "paper total offloading": (0, 498, 80, 578, 578),
+    "paper partial (eta 0.484)": (50, 232, 45, 327, 282),
+}
+
+
+def source_spec(frames: int) -> str:
+    """``frames`` frames of the 600-frame sequence: forward, then back along the same path."""
+    if frames <= 600:
+        return f"{SEQ}:0-{frames - 1}"
+    if frames > 1199:
+        raise ValueError("at most 1199 frames (600 forward, 599 back)")
+    return f"{SEQ}:0-599,598-{598 - (frames - 601)}"
+
+
+def run_point(k: int, spec: str, mbps: float, work: Path) -> dict:
+    endpoint, out = free_endpoint(), work / f"point{k}"
+    cloud = start_cloud(endpoint, out, work / f"point{k}-cloud.log")
+    report_path = work / f"point{k}-robot.json"
+    try:
+        robot = start_robot(endpoint, "r0", spec, k, work / f"point{k}-robot.log", report_path,
+                            extra=["--bandwidth-mbps", str(mbps)])
+        code = robot.wait()
+        if code != 0:
+            raise RuntimeError(f"robot at point {k} failed ({code}); see "
+                               f"{work / f'point{k}-robot.log'}")
+    finally:
+        stop(cloud)
+    r = json.loads(report_path.read_text())
+    cloud_summary = r["cloud_summary"]
+    ate = trajectory_ate(out / "r0" / "trajectory.tum", open_robot(spec))
+    robot_s, trans_s, cloud_s = r["robot_compute_s"], r["link_busy_s"], cloud_summary["cloud_s_total"]
+    return {
+        "point": k, "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,
+        "cloud_s": cloud_s, "sum_s": robot_s + trans_s + cloud_s, "total_s": r["total_s"],
+        "last_feedback_s": r["last_feedback_s"], "streaming_s": r["streaming_s"],
+        "frame_kB": r["frame_bytes"] / r["frames"] / 1000,
+        "keyframes": cloud_summary["keyframes"], "keyframe_MB": r["keyframe_bytes"] / 1e6,
+        "upload_retries": r["upload_retries"],
+        "lost_frames": cloud_summary["lost_frames"],
+        "ate_m": ate["rmse_m"] if ate else None,
+        "round_trip_ms_median": r["round_trip_ms_median"],
+        "round_trip_ms_p95": r["round_trip_ms_p95"],
+        "robot_stage_ms": r["robot_stage_ms"], "cloud_stage_ms": cloud_summary["stage_ms"],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", default="0,3,6", help="offloading points to measure")
+    parser.add_argument("--frames", type=int, default=1000)
+    parser.add_argument("--mbps", type=float, default=10.0)
+    parser.add_argument("--out", default="bench/results/offload.json")
+    args = parser.parse_args()
+    if not SEQ.exists():
+        sys.exit(f"{SEQ} missing: this benchmark needs ../shared/data")
+    out = Path(args.out)
+    work = out.parent / "offload-runs" / time.strftime("%Y%m%d-%H%M%S")
+    work.mkdir(parents=True, exist_ok=True)
+    spec = source_spec(args.frames)
+    results = []
+    for k in (int(p) for p in args.points.split(",")):
+        print(f"point {k}: {args.frames} frames over {args.mbps:g} Mbit/s ...", flush=True)
+        results.append(run_point(k, spec, args.mbps, work))
+        r = results[-1]
+        print(f"  total {r['total_s']:.1f} s, {r['frame_kB']:.1f} kB/frame", flush=True)
+    rows = [[f"point {r['point']}", r["robot_s"], r["trans_s"], r["cloud_s"], r["sum_s"],
+             r["total_s"], r["frame_kB"], r["keyframes"], r["keyframe_MB"],
+             None if r["ate_m"] is None else r["ate_m"] * 100] for r in results]
+    rows += [[name, *cols, None, None, None, None] for name, cols in PAPER.items()]
+    print(format_table(["run", "robot s", "trans s", "cloud s", "sum s", "total s",
+                        "kB/frame", "KF", "KF MB", "ATE cm"], rows))
+    print(f"{args.frames} frames of {SEQ.name} ({spec.split(':')[-1]}), link "
+          f"{args.mbps:g} Mbit/s, cores: {os.cpu_count()} (robot and cloud share them)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"frames": args.frames, "mbps": args.mbps, "source": spec,
+                               "cores": os.cpu_count(), "results": results,
+                               "paper": PAPER}, indent=2))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

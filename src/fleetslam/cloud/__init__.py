@@ -1,0 +1,1 @@
+"""The cloud: one isolated tracking session per robot, keyframe storage, dense maps, merge."""

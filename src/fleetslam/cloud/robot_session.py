@@ -1,0 +1,369 @@
+"""One robot's session in the cloud: its tracking (the stages after the offloading point),
+its trajectory, its keyframes and its dense map. Sessions share nothing, and each runs on
+its own worker thread, so one robot's bad message or slow map never touches another's.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from fleetslam.camera import Camera
+from fleetslam.cloud.store import CloudStore
+from fleetslam.config import Config
+from fleetslam.io.ply import write_ply
+from fleetslam.io.trajectory import write_tum_trajectory
+from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.pipeline.session import TrackingSession
+from fleetslam.pipeline.split import StageTimer, run_stages
+from fleetslam.pipeline.stages import default_stages
+from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
+from fleetslam.transport import keys
+from fleetslam.wire.envelope import WireError
+from fleetslam.wire.frames import decode_frame_message
+from fleetslam.wire.messages import (
+    Feedback,
+    KeyframeUpload,
+    decode_keyframe,
+    encode_feedback,
+    encode_keyframe,
+)
+
+log = logging.getLogger("fleetslam.cloud")
+
+# Offloading points a distributed run supports. At 4 and 5 the robot would match against a
+# tracking map that the cloud's later stages update: the map would have to live on both.
+CLOUD_TRACKS = (0, 1, 2, 3)
+ROBOT_TRACKS = 6
+SUPPORTED_POINTS = (*CLOUD_TRACKS, ROBOT_TRACKS)
+PROTOCOL = 1
+
+
+@dataclass
+class Hello:
+    """A robot opening (or resuming) its session."""
+
+    offload_at: int
+    camera: Camera
+    source: str
+    # The robot's first camera pose in the world, if its source has ground truth: this
+    # version's merge starts from it, perturbed (see system.merge_maps).
+    prior_T_world_first: np.ndarray | None
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> "Hello":
+        if message.get("protocol") != PROTOCOL:
+            raise ValueError(f"protocol {message.get('protocol')!r} not supported "
+                             f"(this cloud speaks {PROTOCOL})")
+        k = message.get("offload_at")
+        if k not in SUPPORTED_POINTS:
+            raise ValueError(f"offloading point {k!r} not supported; use one of "
+                             f"{', '.join(map(str, SUPPORTED_POINTS))}")
+        camera = Camera.from_dict(message.get("camera") or {}, "hello camera")
+        prior = message.get("prior_T_world_first")
+        if prior is not None:
+            prior = np.asarray(prior, dtype=np.float64)
+            if prior.shape != (4, 4) or not np.isfinite(prior).all():
+                raise ValueError("prior_T_world_first must be a finite 4x4 matrix")
+        return Hello(int(k), camera, str(message.get("source", "")), prior)
+
+
+@dataclass
+class TrajectoryRow:
+    index: int
+    timestamp: float
+    T_world_camera: np.ndarray
+    tracked: bool
+    is_keyframe: bool
+
+
+@dataclass
+class SessionState:
+    """Everything a session must keep across a cloud restart (pickled at keyframes)."""
+
+    robot_id: str
+    hello: Hello
+    tracking: TrackingSession
+    last_seq: int = -1
+    last_index: int = -1
+    rows: list[TrajectoryRow] = field(default_factory=list)
+    # Keyframe poses reported by a robot that tracks itself (offloading point 6).
+    robot_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    counts: Counter = field(default_factory=Counter)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    cloud_ms: list[float] = field(default_factory=list)
+    latency_ms: list[float] = field(default_factory=list)
+    first_frame_time: float | None = None
+    last_frame_time: float | None = None
+
+
+@dataclass
+class FinishedMap:
+    robot_id: str
+    points: np.ndarray
+    colors: np.ndarray
+    prior_T_world_first: np.ndarray | None
+    summary: dict[str, Any]
+
+
+Publish = Callable[[str, bytes], None]
+
+
+class RobotSession:
+    def __init__(self, state: SessionState, config: Config, store: CloudStore,
+                 publish: Publish) -> None:
+        self.state = state
+        self.config = config
+        self.store = store
+        self.publish = publish
+        self.stages = default_stages()[state.hello.offload_at:] \
+            if state.hello.offload_at in CLOUD_TRACKS else []
+        self.finished: FinishedMap | None = None
+        self._frames: queue.Queue = queue.Queue()
+        self._keyframes: queue.Queue = queue.Queue()
+        self._threads = [
+            threading.Thread(target=self._serve, args=(self._frames, self._on_work),
+                             name=f"cloud-{state.robot_id}", daemon=True),
+            threading.Thread(target=self._serve, args=(self._keyframes, self._on_keyframe),
+                             name=f"cloud-{state.robot_id}-keyframes", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    # -- construction ------------------------------------------------------------------
+
+    @staticmethod
+    def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
+             publish: Publish) -> "RobotSession":
+        tracking = TrackingSession(config, hello.camera)
+        return RobotSession(SessionState(robot_id, hello, tracking), config, store, publish)
+
+    @property
+    def robot_id(self) -> str:
+        return self.state.robot_id
+
+    # -- entry points (called from Zenoh callbacks: only enqueue) -----------------------
+
+    def submit_frame(self, data: bytes, arrival: float) -> None:
+        self._frames.put(("frame", data, arrival))
+
+    def submit_control(self, message: dict[str, Any], arrival: float) -> None:
+        self._frames.put(("control", message, arrival))
+
+    def submit_keyframe(self, data: bytes, arrival: float) -> None:
+        self._keyframes.put(("keyframe", data, arrival))
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._frames.put(None)
+        self._keyframes.put(None)
+        for t in self._threads:
+            t.join(timeout)
+
+    def drain(self, timeout: float = 60.0) -> None:
+        """Wait until everything submitted so far is processed (tests, shutdown)."""
+        done = threading.Event()
+        self._frames.put(("call", done.set, 0.0))
+        done.wait(timeout)
+
+    # -- workers --------------------------------------------------------------------------
+
+    def _serve(self, q: queue.Queue, handle: Callable[[str, Any, float], None]) -> None:
+        while True:
+            item = q.get()
+            if item is None:
+                return
+            kind, payload, arrival = item
+            try:
+                handle(kind, payload, arrival)
+            except Exception:  # a bug on one message must not end the robot's session
+                self.state.counts["errors"] += 1
+                log.exception("robot %s: %s message failed", self.robot_id, kind)
+
+    def _reject(self, what: str, reason: str) -> None:
+        self.state.counts[f"rejected {what}"] += 1
+        log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
+
+    def _reply(self, message: dict[str, Any]) -> None:
+        self.publish(keys.reply(self.robot_id), json.dumps(message).encode())
+
+    def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
+        if kind == "frame":
+            self._on_frame(payload, arrival)
+        elif kind == "control":
+            self._on_control(payload)
+        elif kind == "call":
+            payload()
+
+    def _on_frame(self, data: bytes, arrival: float) -> None:
+        st = self.state
+        camera = st.hello.camera
+        try:
+            header, state = decode_frame_message(data, camera)
+        except WireError as exc:
+            return self._reject("frame", str(exc))
+        if header.robot_id != self.robot_id:
+            return self._reject("frame", f"header names robot {header.robot_id!r}, "
+                                         f"sent on {self.robot_id!r}'s key")
+        if header.split_point != st.hello.offload_at:
+            return self._reject("frame", f"split point {header.split_point}, but the session "
+                                         f"offloads at {st.hello.offload_at} (send a hello)")
+        if header.seq <= st.last_seq:
+            what = "duplicate" if header.seq == st.last_seq else "out of order"
+            return self._reject("frame", f"{what}: seq {header.seq} after {st.last_seq}")
+        if st.last_seq >= 0 and header.seq > st.last_seq + 1:
+            st.counts["frames lost in transit"] += header.seq - st.last_seq - 1
+        start = time.perf_counter()
+        if self.stages:
+            timer = StageTimer()
+            out: TrackedFrame = run_stages(self.stages, state, st.tracking, timer)
+            for name, seconds in timer.seconds.items():
+                st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
+        else:
+            out = state  # the robot tracked (point 6): the cloud records its result
+        cloud_ms = 1000.0 * (time.perf_counter() - start)
+        st.last_seq = header.seq
+        st.last_index = out.index
+        st.counts["frames"] += 1
+        st.rows.append(TrajectoryRow(out.index, out.timestamp, out.T_world_camera.copy(),
+                                     out.tracked, out.is_keyframe))
+        st.cloud_ms.append(cloud_ms)
+        now = time.monotonic()
+        st.first_frame_time = st.first_frame_time or now
+        st.last_frame_time = now
+        if out.is_keyframe:
+            if isinstance(state, CapturedFrame):
+                # Total offloading: the cloud already has the keyframe's RGB-D.
+                self._store_captured_keyframe(state, header.seq)
+            # Persist what the session knows before the robot hears of the keyframe, so the
+            # upload it sends next is never acknowledged for a keyframe a restart forgets.
+            self.store.save_checkpoint(self.robot_id, st)
+        feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
+                            out.n_inliers, out.T_world_camera, cloud_ms)
+        self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
+                                                                   feedback))
+        st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
+
+    def _store_captured_keyframe(self, frame: CapturedFrame, seq: int) -> None:
+        camera = self.state.hello.camera
+        upload = KeyframeUpload.from_frame(frame.index, frame.timestamp, frame.rgb,
+                                           camera.metres_to_depth(frame.depth_m),
+                                           self.config.map.pixel_stride)
+        self.store.put_keyframe(self.robot_id, frame.index,
+                                encode_keyframe(self.robot_id, seq, upload, self.config.wire))
+
+    def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
+        try:
+            header, upload = decode_keyframe(data)
+        except WireError as exc:
+            return self._reject("keyframe", str(exc))
+        if header.robot_id != self.robot_id:
+            return self._reject("keyframe", f"header names robot {header.robot_id!r}")
+        if upload.stride not in (1, self.config.map.pixel_stride):
+            return self._reject("keyframe", f"decimated by {upload.stride}, the map samples "
+                                            f"every {self.config.map.pixel_stride} pixels")
+        if self.store.has_keyframe(self.robot_id, upload.frame_index):
+            self.state.counts["duplicate keyframe uploads"] += 1
+        else:
+            self.store.put_keyframe(self.robot_id, upload.frame_index, data)
+            self.state.counts["keyframes stored"] += 1
+        # Acknowledged only now that it is on disk (a resent one is acknowledged again).
+        self._reply({"type": "ack", "frame_index": upload.frame_index})
+
+    # -- control ------------------------------------------------------------------------
+
+    def welcome(self, resumed: bool) -> None:
+        st = self.state
+        self._reply({"type": "welcome", "resumed": resumed, "next_index": st.last_index + 1,
+                     "next_seq": st.last_seq + 1,
+                     "keyframes_stored": len(self.store.keyframe_indices(self.robot_id))})
+
+    def _on_control(self, message: dict[str, Any]) -> None:
+        kind = message.get("type")
+        if kind == "hello":
+            self.welcome(resumed=True)
+        elif kind == "end":
+            poses = message.get("keyframe_poses") or {}
+            try:
+                for index, T in poses.items():
+                    self.state.robot_keyframe_poses[int(index)] = np.asarray(T, float).reshape(4, 4)
+            except (TypeError, ValueError) as exc:
+                return self._reply({"type": "error", "reason": f"bad keyframe poses: {exc}"})
+            missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
+                self.robot_id, i)]
+            if missing:
+                return self._reply({"type": "need", "frames": missing})
+            self.finished = self.finish()
+            self._reply({"type": "ended", "summary": self.finished.summary})
+        else:
+            self._reply({"type": "error", "reason": f"unknown control message {kind!r}"})
+
+    # -- outputs ------------------------------------------------------------------------
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        """Final pose of every keyframe (after local BA), by frame index."""
+        if self.state.hello.offload_at == ROBOT_TRACKS:
+            return dict(self.state.robot_keyframe_poses)
+        return {kf.frame_index: kf.T_world_camera for kf in self.state.tracking.map.keyframes}
+
+    def finish(self) -> FinishedMap:
+        """Write the trajectory, keyframes and dense map; return the map for the merge."""
+        st = self.state
+        out_dir: Path = self.store.robot_dir(self.robot_id)
+        rows = st.rows
+        timestamps = np.array([r.timestamp for r in rows])
+        write_tum_trajectory(out_dir / "trajectory.tum", timestamps,
+                             np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4),
+                             comment=f"fleetslam robot {self.robot_id} from {st.hello.source}\n"
+                                     "T_map_camera; map frame = first camera pose")
+        kf_poses = self.keyframe_poses()
+        kf_index = sorted(kf_poses)
+        time_of = {r.index: r.timestamp for r in rows}
+        write_tum_trajectory(out_dir / "keyframes.tum",
+                             np.array([time_of.get(i, np.nan) for i in kf_index]),
+                             np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
+                             comment=f"fleetslam robot {self.robot_id} keyframes")
+
+        def keyframes():
+            for i in kf_index:
+                _, upload = decode_keyframe(self.store.keyframe(self.robot_id, i))
+                yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
+                       kf_poses[i], upload.stride)
+
+        points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map)
+        write_ply(out_dir / "map.ply", points, colors)
+        summary = self.summary(len(points))
+        (out_dir / "robot.json").write_text(json.dumps(summary, indent=2))
+        log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
+                 len(rows), len(kf_index), len(points))
+        return FinishedMap(self.robot_id, points, colors, st.hello.prior_T_world_first, summary)
+
+    def summary(self, map_points: int) -> dict[str, Any]:
+        st = self.state
+        tracking = st.tracking
+        n = max(len(st.rows), 1)
+        span = ((st.last_frame_time or 0.0) - (st.first_frame_time or 0.0))
+        return {
+            "name": self.robot_id, "source": st.hello.source,
+            "offload_at": st.hello.offload_at,
+            "frames": len(st.rows), "keyframes": len(self.keyframe_poses()),
+            "lost_frames": int(sum(not r.tracked for r in st.rows)),
+            "loss_events": tracking.loss_events, "repeated_frames": tracking.repeated_frames,
+            "map_resets": tracking.resets, "map_points": map_points,
+            "stage_ms": {k: 1000.0 * v / n for k, v in st.stage_seconds.items()},
+            "cloud_ms_mean": float(np.mean(st.cloud_ms)) if st.cloud_ms else None,
+            "cloud_s_total": float(np.sum(st.cloud_ms)) / 1000.0,
+            "latency_ms_median": float(np.median(st.latency_ms)) if st.latency_ms else None,
+            "latency_ms_p95": float(np.percentile(st.latency_ms, 95)) if st.latency_ms else None,
+            "tracking_fps": len(st.rows) / span if span > 0 else None,
+            "transport": dict(st.counts),
+            "trajectory": f"{self.robot_id}/trajectory.tum", "map": f"{self.robot_id}/map.ply",
+        }

@@ -1,0 +1,237 @@
+"""The cloud process: listens on one Zenoh endpoint, keeps one RobotSession per robot id,
+merges the finished maps on request and writes the run folder.
+
+Zenoh callbacks only check the key and enqueue; each robot's work happens on its session's
+own threads. After a restart with the same output folder, a robot's session is restored
+from its last checkpoint the first time that robot is heard from again.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from fleetslam.cloud.robot_session import Hello, RobotSession
+from fleetslam.cloud.store import CloudStore
+from fleetslam.config import Config, config_to_dict
+from fleetslam.report import format_table
+from fleetslam.system import merge_maps, write_global_map
+from fleetslam.transport import keys
+from fleetslam.transport.zenoh_session import open_listening, put
+
+log = logging.getLogger("fleetslam.cloud")
+
+SUMMARY_VERSION = 2
+# Control messages are small JSON; anything bigger is not one.
+MAX_CONTROL_BYTES = 1 << 20
+
+
+class CloudServer:
+    def __init__(self, config: Config, out_dir: Path, endpoint: str | None = None) -> None:
+        self.config = config
+        self.out_dir = Path(out_dir)
+        self.endpoint = endpoint or config.transport.endpoint
+        self.store = CloudStore(self.out_dir)
+        self.sessions: dict[str, RobotSession] = {}
+        self._lock = threading.Lock()
+        self._zenoh: zenoh.Session | None = None
+        self._subscribers: list[Any] = []
+        self.stopped = threading.Event()
+        self.unrouted = 0  # messages on keys that name no valid robot
+
+    # -- lifecycle ----------------------------------------------------------------------
+
+    def start(self) -> "CloudServer":
+        self._zenoh = open_listening(self.endpoint)
+        z = self._zenoh
+        self._subscribers = [
+            z.declare_subscriber(keys.ALL_FRAMES, lambda s: self._route(s, "frame")),
+            z.declare_subscriber(keys.ALL_KEYFRAMES, lambda s: self._route(s, "keyframe")),
+            z.declare_subscriber(keys.ALL_CONTROL, lambda s: self._route(s, "control")),
+        ]
+        log.info("cloud listening on %s, writing to %s", self.endpoint, self.out_dir)
+        return self
+
+    def close(self) -> None:
+        for session in list(self.sessions.values()):
+            session.close()
+        for sub in self._subscribers:
+            sub.undeclare()
+        if self._zenoh is not None:
+            self._zenoh.close()
+            self._zenoh = None
+        self.stopped.set()
+
+    def publish(self, key: str, data: bytes) -> None:
+        if self._zenoh is not None:
+            put(self._zenoh, key, data)
+
+    # -- routing ------------------------------------------------------------------------
+
+    def _route(self, sample: zenoh.Sample, kind: str) -> None:
+        arrival = time.monotonic()
+        try:
+            robot_id = keys.check_robot_id(keys.robot_of(str(sample.key_expr))) \
+                if not str(sample.key_expr) == keys.CLOUD_CONTROL else keys.CLOUD
+            data = sample.payload.to_bytes()
+            if robot_id == keys.CLOUD:
+                return self._on_cloud_control(data)
+            if kind == "control":
+                return self._on_robot_control(robot_id, data, arrival)
+            session = self._session(robot_id)
+            if session is None:
+                self.publish(keys.reply(robot_id), json.dumps(
+                    {"type": "error", "reason": "no session: send a hello first"}).encode())
+                log.warning("robot %s: %s rejected: no session (no hello yet)", robot_id, kind)
+                return
+            if kind == "frame":
+                session.submit_frame(data, arrival)
+            else:
+                session.submit_keyframe(data, arrival)
+        except ValueError as exc:
+            self.unrouted += 1
+            log.warning("message on %s rejected: %s", sample.key_expr, exc)
+        except Exception:
+            self.unrouted += 1
+            log.exception("message on %s failed", sample.key_expr)
+
+    def _session(self, robot_id: str) -> RobotSession | None:
+        """The live session, or the one restored from its checkpoint after a restart."""
+        with self._lock:
+            session = self.sessions.get(robot_id)
+            if session is None:
+                try:
+                    state = self.store.load_checkpoint(robot_id)
+                except ValueError as exc:
+                    log.error("%s", exc)
+                    return None
+                if state is None:
+                    return None
+                session = RobotSession(state, self.config, self.store, self.publish)
+                self.sessions[robot_id] = session
+                log.info("robot %s: session restored from its checkpoint (frame %d)",
+                         robot_id, state.last_index)
+            return session
+
+    @staticmethod
+    def _parse_json(data: bytes) -> dict[str, Any]:
+        if len(data) > MAX_CONTROL_BYTES:
+            raise ValueError(f"control message of {len(data)} bytes (limit {MAX_CONTROL_BYTES})")
+        try:
+            message = json.loads(data)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"control message is not JSON: {exc}") from exc
+        if not isinstance(message, dict) or "type" not in message:
+            raise ValueError("control message must be a JSON object with a 'type'")
+        return message
+
+    def _on_robot_control(self, robot_id: str, data: bytes, arrival: float) -> None:
+        try:
+            message = self._parse_json(data)
+            hello = Hello.parse(message) if message["type"] == "hello" else None
+        except ValueError as exc:
+            log.warning("robot %s: control message rejected: %s", robot_id, exc)
+            self.publish(keys.reply(robot_id), json.dumps(
+                {"type": "error", "reason": str(exc)}).encode())
+            return
+        session = self._session(robot_id)
+        if hello is not None and session is not None \
+                and session.state.hello.offload_at != hello.offload_at:
+            reason = (f"session offloads at {session.state.hello.offload_at}; a robot cannot "
+                      f"change its offloading point within a session")
+            self.publish(keys.reply(robot_id), json.dumps(
+                {"type": "error", "reason": reason}).encode())
+            return
+        if session is None:
+            if hello is None:
+                self.publish(keys.reply(robot_id), json.dumps(
+                    {"type": "error", "reason": "no session: send a hello first"}).encode())
+                return
+            with self._lock:
+                session = self.sessions.get(robot_id) or RobotSession.open(
+                    robot_id, hello, self.config, self.store, self.publish)
+                self.sessions[robot_id] = session
+            log.info("robot %s: new session, offloading at %d, source %s", robot_id,
+                     hello.offload_at, hello.source)
+            session.welcome(resumed=False)
+            return
+        if message["type"] == "end":
+            # Heard at once; the answer (need / ended) comes when its frames are done.
+            self.publish(keys.reply(robot_id), json.dumps({"type": "ending"}).encode())
+        session.submit_control(message, arrival)
+
+    def _on_cloud_control(self, data: bytes) -> None:
+        try:
+            message = self._parse_json(data)
+        except ValueError as exc:
+            log.warning("cloud control message rejected: %s", exc)
+            return
+        if message["type"] == "merge":
+            # Merging takes seconds: not on Zenoh's callback thread.
+            threading.Thread(target=self._merge_and_reply, daemon=True).start()
+        elif message["type"] == "status":
+            self.publish(keys.CLOUD_REPLY, json.dumps(
+                {"type": "status", "robots": {r: {"frames": s.state.counts["frames"],
+                                                  "finished": s.finished is not None}
+                                              for r, s in self.sessions.items()}}).encode())
+        else:
+            log.warning("cloud control message of unknown type %r", message["type"])
+
+    # -- merge and outputs ----------------------------------------------------------------
+
+    def _merge_and_reply(self) -> None:
+        try:
+            summary = self.merge()
+            self.publish(keys.CLOUD_REPLY, json.dumps({"type": "merged",
+                                                       "summary": summary}).encode())
+        except Exception as exc:
+            log.exception("merge failed")
+            self.publish(keys.CLOUD_REPLY, json.dumps({"type": "error",
+                                                       "reason": str(exc)}).encode())
+
+    def merge(self) -> dict[str, Any]:
+        """Register the finished maps (in robot id order), write global_map.ply and
+        summary.json; return the summary."""
+        start = time.perf_counter()
+        finished = sorted((s.finished for s in self.sessions.values() if s.finished),
+                          key=lambda f: f.robot_id)
+        merge = None
+        if len(finished) > 1:
+            merge = merge_maps([f.robot_id for f in finished], [f.points for f in finished],
+                               [f.prior_T_world_first for f in finished], self.config,
+                               show_progress=False)
+        if merge is not None:
+            write_global_map(self.out_dir / "global_map.ply", merge,
+                             [f.points for f in finished], [f.colors for f in finished],
+                             self.config)
+        summary = {
+            "version": SUMMARY_VERSION,
+            "wall_time_s": time.perf_counter() - start,
+            "robots": [f.summary for f in finished],
+            "merge": None if merge is None else {
+                "method": "FS-HICP", "initial_guess": merge.initial_guess,
+                "pairs": merge.pairs, "global_map": "global_map.ply",
+                "T_global_map": {f.robot_id: T.tolist()
+                                 for f, T in zip(finished, merge.T_global_map)},
+            },
+            "merge_skipped_reason": None if merge is not None else (
+                "fewer than two finished robots" if len(finished) < 2 else
+                "a robot sent no first-frame prior, which this version's initial guess needs"),
+            "config": config_to_dict(self.config),
+        }
+        (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
+        return summary
+
+
+def status_table(sessions: dict[str, RobotSession]) -> str:
+    rows = [[r, s.state.counts["frames"], s.state.last_index,
+             sum(v for k, v in s.state.counts.items() if k.startswith("rejected"))]
+            for r, s in sorted(sessions.items())]
+    return format_table(["robot", "frames", "last frame", "rejected"], rows)

@@ -1,0 +1,79 @@
+"""What the cloud must not lose: acknowledged keyframes and the tracking checkpoints.
+
+Layout under the cloud's output folder:
+
+    <robot>/keyframes/<frame index>.fskf   KEYFRAME messages as received (checksummed)
+    <robot>/session.pkl                    checkpoint of the robot's cloud session
+
+Every write is atomic and durable (temporary file, fsync, rename, fsync of the folder)
+before anyone is told it happened: the cloud acknowledges a keyframe only after this.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import re
+from pathlib import Path
+from typing import Any
+
+_KEYFRAME_FILE = re.compile(r"^(\d+)\.fskf$")
+
+
+def write_durably(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+class CloudStore:
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def robot_dir(self, robot_id: str) -> Path:
+        return self.root / robot_id
+
+    def _keyframe_path(self, robot_id: str, frame_index: int) -> Path:
+        return self.robot_dir(robot_id) / "keyframes" / f"{frame_index:06d}.fskf"
+
+    def put_keyframe(self, robot_id: str, frame_index: int, message: bytes) -> None:
+        write_durably(self._keyframe_path(robot_id, frame_index), message)
+
+    def has_keyframe(self, robot_id: str, frame_index: int) -> bool:
+        return self._keyframe_path(robot_id, frame_index).exists()
+
+    def keyframe(self, robot_id: str, frame_index: int) -> bytes:
+        return self._keyframe_path(robot_id, frame_index).read_bytes()
+
+    def keyframe_indices(self, robot_id: str) -> list[int]:
+        folder = self.robot_dir(robot_id) / "keyframes"
+        if not folder.is_dir():
+            return []
+        found = (_KEYFRAME_FILE.match(p.name) for p in folder.iterdir())
+        return sorted(int(m.group(1)) for m in found if m)
+
+    def save_checkpoint(self, robot_id: str, state: Any) -> None:
+        write_durably(self.robot_dir(robot_id) / "session.pkl",
+                      pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL))
+
+    def load_checkpoint(self, robot_id: str) -> Any | None:
+        path = self.robot_dir(robot_id) / "session.pkl"
+        if not path.exists():
+            return None
+        try:
+            return pickle.loads(path.read_bytes())
+        except Exception as exc:  # a checkpoint from another version, or damaged
+            raise ValueError(f"{path}: cannot load the session checkpoint: {exc}") from exc
+
+    def robots_with_checkpoints(self) -> list[str]:
+        return sorted(p.parent.name for p in self.root.glob("*/session.pkl"))

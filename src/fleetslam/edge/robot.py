@@ -1,0 +1,363 @@
+"""The robot process: read frames, run the stages before the offloading point, send the
+state over the (emulated) link, follow the cloud's feedback, upload keyframes reliably.
+
+Streams and threads:
+- main thread: pace the frames, run the robot stages, ``link.send`` (blocks at link speed);
+- Zenoh callbacks: feedback (pose, keyframe yes/no) and replies (welcome, ack, need, ended);
+- uploader thread: each keyframe's decimated RGB-D, resent until the cloud acknowledges it.
+Frames and uploads share the one link, so a robot never sends faster than its link.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.cloud.robot_session import PROTOCOL, ROBOT_TRACKS, SUPPORTED_POINTS
+from fleetslam.pipeline.split import StageTimer, TrackingPipeline, run_stages
+from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.progress import Progress
+from fleetslam.transport import keys
+from fleetslam.transport.link import EmulatedLink
+from fleetslam.transport.zenoh_session import open_connecting, put
+from fleetslam.wire.envelope import WireError
+from fleetslam.wire.frames import encode_frame_message
+from fleetslam.wire.messages import KeyframeUpload, decode_feedback, encode_keyframe
+
+log = logging.getLogger("fleetslam.robot")
+
+# A robot that sends "end" waits this long for its last frames and map (cloud backlog).
+END_TIMEOUT_S = 900.0
+
+
+def parse_offload_point(text: str, stage_names: list[str]) -> int:
+    """A split point: a number 0..6, 'paper' (3, the paper's choice), or the name of the
+    first stage that runs in the cloud ('match' = 3)."""
+    if text == "paper":
+        return 3
+    if text.isdigit():
+        k = int(text)
+    elif text in stage_names:
+        k = stage_names.index(text)
+    else:
+        raise ValueError(f"offloading point {text!r}: give 0..{len(stage_names)}, 'paper', or "
+                         f"the first cloud stage ({', '.join(stage_names)})")
+    if k not in SUPPORTED_POINTS:
+        raise ValueError(
+            f"offloading point {k} ({'after ' + stage_names[k - 1] if k else 'nothing'} on the "
+            f"robot) splits the tracking map between robot and cloud; use "
+            f"{', '.join(map(str, SUPPORTED_POINTS))}")
+    return k
+
+
+def parse_rate(text: str) -> float | None:
+    """'max' (None: as fast as stages and link allow), 'recorded' (0: at the recording's
+    timestamps) or frames per second."""
+    if text == "max":
+        return None
+    if text == "recorded":
+        return 0.0
+    try:
+        fps = float(text)
+    except ValueError:
+        fps = -1.0
+    if not fps > 0:
+        raise ValueError(f"rate {text!r}: 'max', 'recorded' or frames per second > 0")
+    return fps
+
+
+@dataclass
+class RobotReport:
+    robot_id: str
+    offload_at: int
+    frames: int = 0
+    first_index: int = 0
+    frames_lost_on_link: int = 0
+    frame_bytes: int = 0
+    control_bytes: int = 0
+    keyframe_uploads: int = 0
+    keyframe_bytes: int = 0
+    upload_retries: int = 0
+    feedback: int = 0
+    keyframes: int = 0
+    robot_compute_s: float = 0.0
+    robot_stage_ms: dict[str, float] = field(default_factory=dict)
+    link_busy_s: float = 0.0
+    round_trip_ms_median: float | None = None
+    round_trip_ms_p95: float | None = None
+    streaming_s: float = 0.0  # first frame sent -> last frame sent
+    last_feedback_s: float = 0.0  # first frame sent -> last feedback received
+    total_s: float = 0.0  # first frame sent -> the cloud's "ended" (map built)
+    resumed_at: int | None = None
+    cloud_summary: dict[str, Any] | None = None
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2)
+
+
+class Robot:
+    def __init__(self, robot_id: str, sequence: RgbdSequence, source: str, offload_at: int,
+                 config: Config, endpoint: str | None = None, rate: str = "max",
+                 show_progress: bool = True) -> None:
+        self.robot_id = keys.check_robot_id(robot_id)
+        if offload_at not in SUPPORTED_POINTS:
+            raise ValueError(f"offloading point {offload_at} not supported "
+                             f"({', '.join(map(str, SUPPORTED_POINTS))})")
+        self.fps = parse_rate(rate)
+        self.sequence = sequence
+        self.source = source
+        self.offload_at = offload_at
+        self.config = config
+        self.endpoint = endpoint or config.transport.endpoint
+        self.rate = rate
+        self.show_progress = show_progress
+        self.pipeline = TrackingPipeline(config, sequence.camera)
+        self.robot_stages, _ = self.pipeline.split(offload_at)
+        self.timer = StageTimer()
+        self.report = RobotReport(robot_id, offload_at)
+        self._replies: queue.Queue = queue.Queue()
+        self._acks: dict[int, threading.Event] = {}
+        self._acks_lock = threading.Lock()
+        self._uploads: queue.Queue = queue.Queue()
+        self._buffer: OrderedDict[int, KeyframeUpload] = OrderedDict()
+        self._buffer_lock = threading.Lock()
+        self._sent_at: dict[int, float] = {}
+        self._round_trips: list[float] = []
+        self._last_feedback = 0.0
+        self._need_hello = threading.Event()
+        self._upload_error: str | None = None
+
+    # -- Zenoh callbacks ------------------------------------------------------------------
+
+    def _on_feedback(self, sample: Any) -> None:
+        try:
+            header, fb = decode_feedback(sample.payload.to_bytes())
+        except WireError as exc:
+            log.warning("robot %s: feedback rejected: %s", self.robot_id, exc)
+            return
+        now = time.monotonic()
+        self._last_feedback = now
+        self.report.feedback += 1
+        sent = self._sent_at.pop(header.seq, None)
+        if sent is not None:
+            self._round_trips.append(1000.0 * (now - sent))
+        if fb.is_keyframe:
+            self.report.keyframes += 1
+            if self.offload_at > 0:  # at point 0 the cloud already has the images
+                self._uploads.put(fb.frame_index)
+
+    def _on_reply(self, sample: Any) -> None:
+        try:
+            message = json.loads(sample.payload.to_bytes())
+            kind = message["type"]
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("robot %s: reply rejected: %s", self.robot_id, exc)
+            return
+        if kind == "ack":
+            with self._acks_lock:
+                event = self._acks.get(int(message["frame_index"]))
+            if event is not None:
+                event.set()
+        elif kind == "error":
+            log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
+            if "send a hello" in str(message.get("reason")):
+                self._need_hello.set()
+            self._replies.put(message)
+        else:
+            self._replies.put(message)
+
+    # -- sending --------------------------------------------------------------------------
+
+    def _send_control(self, message: dict[str, Any]) -> None:
+        data = json.dumps(message).encode()
+        self.report.control_bytes += len(data)
+        self.link.send(keys.control(self.robot_id), data)
+
+    def _await_reply(self, kinds: tuple[str, ...], timeout: float) -> dict[str, Any] | None:
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                message = self._replies.get(timeout=left)
+            except queue.Empty:
+                return None
+            if message["type"] in kinds:
+                return message
+            if message["type"] == "error" and "hello" in kinds:
+                raise RuntimeError(f"cloud refused robot {self.robot_id}: {message['reason']}")
+        return None
+
+    def _hello(self) -> dict[str, Any]:
+        gt = self.sequence.gt_poses
+        prior = gt[0].tolist() if gt is not None and np.isfinite(gt[0]).all() else None
+        message = {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
+                   "camera": self.sequence.camera.to_dict(), "source": self.source,
+                   "frames": len(self.sequence), "prior_T_world_first": prior}
+        cfg = self.config.transport
+        for _ in range(cfg.max_attempts):
+            self._send_control(message)
+            welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
+            if welcome is not None:
+                self._need_hello.clear()
+                return welcome
+        raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
+                           f"{self.endpoint} after {cfg.max_attempts} hellos")
+
+    def _keyframe_upload(self, index: int) -> KeyframeUpload:
+        with self._buffer_lock:
+            upload = self._buffer.get(index)
+        if upload is None:  # older than the buffer: read it again from the recording
+            frame = self.sequence[index]
+            upload = KeyframeUpload.from_frame(index, frame.timestamp, frame.rgb, frame.depth_raw,
+                                               self.config.map.pixel_stride)
+        return upload
+
+    def _upload(self, index: int) -> None:
+        cfg = self.config.transport
+        data = encode_keyframe(self.robot_id, index, self._keyframe_upload(index),
+                               self.config.wire)
+        with self._acks_lock:
+            event = self._acks.setdefault(index, threading.Event())
+        for attempt in range(cfg.max_attempts):
+            if attempt:
+                self.report.upload_retries += 1
+            self.link.send(keys.keyframe(self.robot_id), data)
+            self.report.keyframe_uploads += 1
+            self.report.keyframe_bytes += len(data)
+            if event.wait(cfg.ack_timeout_s):
+                return
+        raise RuntimeError(f"keyframe {index} not acknowledged after {cfg.max_attempts} tries")
+
+    def _uploader(self) -> None:
+        while (index := self._uploads.get()) is not None:
+            try:
+                self._upload(index)
+            except Exception as exc:
+                self._upload_error = f"robot {self.robot_id}: {exc}"
+                log.error("%s", self._upload_error)
+            finally:
+                self._uploads.task_done()
+        self._uploads.task_done()
+
+    # -- the run --------------------------------------------------------------------------
+
+    def run(self) -> RobotReport:
+        zs = open_connecting(self.endpoint)
+        self.link = EmulatedLink(self.config.link, lambda key, data: put(zs, key, data))
+        subs = [zs.declare_subscriber(keys.feedback(self.robot_id), self._on_feedback),
+                zs.declare_subscriber(keys.reply(self.robot_id), self._on_reply)]
+        uploader = threading.Thread(target=self._uploader, name=f"robot-{self.robot_id}-upload",
+                                    daemon=True)
+        uploader.start()
+        try:
+            self._stream()
+            self._finish()
+        finally:
+            self._uploads.put(None)
+            uploader.join(5.0)
+            self.link.close()
+            for sub in subs:
+                sub.undeclare()
+            zs.close()
+        return self.report
+
+    def _stream(self) -> None:
+        welcome = self._hello()
+        start_index = int(welcome["next_index"])
+        seq = int(welcome["next_seq"])
+        if welcome.get("resumed"):
+            self.report.resumed_at = start_index
+            log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,
+                     start_index)
+        self.report.first_index = start_index
+        n = len(self.sequence)
+        progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
+                            n - start_index, enabled=self.show_progress)
+        stride = self.config.map.pixel_stride
+        t0 = time.monotonic()
+        self._t0 = t0
+        first_stamp = None
+        for i in range(start_index, n):
+            if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
+                seq = max(seq, int(self._hello()["next_seq"]))
+            frame = self.sequence[i]
+            if self.fps is not None:  # pace: at the recording's times, or at a fixed rate
+                first_stamp = frame.timestamp if first_stamp is None else first_stamp
+                due = (frame.timestamp - first_stamp) if self.fps == 0 \
+                    else (i - start_index) / self.fps
+                wait = t0 + due - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+            start = time.perf_counter()
+            state = run_stages(self.robot_stages,
+                               CapturedFrame(frame.index, frame.timestamp, frame.rgb,
+                                             frame.depth_m),
+                               self.pipeline.session, self.timer)
+            data = encode_frame_message(state, self.offload_at, self.robot_id, seq,
+                                        self.sequence.camera, self.config.wire)
+            self.report.robot_compute_s += time.perf_counter() - start
+            if self.offload_at > 0:
+                with self._buffer_lock:
+                    self._buffer[frame.index] = KeyframeUpload.from_frame(
+                        frame.index, frame.timestamp, frame.rgb, frame.depth_raw, stride)
+                    while len(self._buffer) > self.config.transport.keyframe_buffer_frames:
+                        self._buffer.popitem(last=False)
+            self._sent_at[seq] = time.monotonic()
+            if not self.link.send(keys.frame(self.robot_id), data):
+                self.report.frames_lost_on_link += 1
+                self._sent_at.pop(seq, None)
+            self.report.frames += 1
+            self.report.frame_bytes += len(data)
+            seq += 1
+            progress.update(i + 1 - start_index, f"kf {self.report.keyframes}")
+        self.report.streaming_s = time.monotonic() - t0
+        self._last_seq = seq - 1
+
+    def _finish(self) -> None:
+        """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
+        for its 'ended' (trajectory and map written)."""
+        self._uploads.join()
+        message: dict[str, Any] = {"type": "end", "last_seq": self._last_seq}
+        if self.offload_at == ROBOT_TRACKS:
+            message["keyframe_poses"] = {
+                str(kf.frame_index): kf.T_world_camera.tolist()
+                for kf in self.pipeline.session.map.keyframes}
+        cfg = self.config.transport
+        for _ in range(cfg.max_attempts):
+            if self._upload_error:
+                raise RuntimeError(self._upload_error)
+            self._send_control(message)
+            if self._await_reply(("ending",), cfg.connect_timeout_s) is None:
+                continue  # the end message was lost, or the cloud is restarting
+            answer = self._await_reply(("need", "ended"), END_TIMEOUT_S)
+            if answer is None:
+                raise RuntimeError(f"robot {self.robot_id}: the cloud did not finish in "
+                                   f"{END_TIMEOUT_S:.0f} s")
+            if answer["type"] == "ended":
+                self._record_end(answer)
+                return
+            log.info("robot %s: cloud needs keyframes %s", self.robot_id, answer["frames"])
+            for index in answer["frames"]:
+                self._uploads.put(int(index))
+            self._uploads.join()
+        raise RuntimeError(f"robot {self.robot_id}: the cloud never confirmed the end")
+
+    def _record_end(self, answer: dict[str, Any]) -> None:
+        r = self.report
+        r.total_s = time.monotonic() - self._t0
+        r.last_feedback_s = max(0.0, self._last_feedback - self._t0)
+        r.link_busy_s = self.link.stats.busy_s
+        r.robot_stage_ms = self.timer.mean_ms()
+        if self._round_trips:
+            r.round_trip_ms_median = float(np.median(self._round_trips))
+            r.round_trip_ms_p95 = float(np.percentile(self._round_trips, 95))
+        r.cloud_summary = answer.get("summary")

@@ -1,0 +1,131 @@
+"""Starting the cloud and robots as separate processes, and talking to a running cloud:
+what ``fleetslam demo``, the tests and the benchmarks share."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.evaluation.ate import absolute_trajectory_error
+from fleetslam.io.trajectory import read_tum_trajectory
+from fleetslam.transport import keys
+from fleetslam.transport.zenoh_session import open_connecting, put
+
+
+def free_endpoint() -> str:
+    """A loopback TCP endpoint nobody listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def _python(config_path: str | None) -> list[str]:
+    cmd = [sys.executable, "-m", "fleetslam.cli"]
+    return cmd + (["--config", str(config_path)] if config_path else [])
+
+
+def start_cloud(endpoint: str, out_dir: Path, log_path: Path, config_path: str | None = None,
+                extra: list[str] | None = None) -> subprocess.Popen:
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    cmd = _python(config_path) + ["cloud", "--listen", endpoint, "--out", str(out_dir),
+                                  *(extra or [])]
+    return subprocess.Popen(cmd, stdout=open(log_path, "ab"), stderr=subprocess.STDOUT,
+                            env=_env())
+
+
+def start_robot(endpoint: str, robot_id: str, source: str, offload_at: int | str,
+                log_path: Path, report_path: Path | None = None,
+                config_path: str | None = None, extra: list[str] | None = None
+                ) -> subprocess.Popen:
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    cmd = _python(config_path) + ["--quiet", "robot", "--connect", endpoint, "--id", robot_id,
+                                  "--source", source, "--offload-at", str(offload_at)]
+    if report_path is not None:
+        cmd += ["--report", str(report_path)]
+    return subprocess.Popen(cmd + (extra or []), stdout=open(log_path, "ab"),
+                            stderr=subprocess.STDOUT, env=_env())
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("OMP_WAIT_POLICY", "passive")
+    return env
+
+
+def stop(process: subprocess.Popen, timeout: float = 20.0) -> int:
+    """SIGTERM (the cloud closes cleanly), then SIGKILL if it does not."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    return process.returncode
+
+
+class CloudClient:
+    """Ask a running cloud something over its control key (status, merge)."""
+
+    def __init__(self, endpoint: str) -> None:
+        self._session = open_connecting(endpoint)
+        self._replies: queue.Queue = queue.Queue()
+        self._sub = self._session.declare_subscriber(
+            keys.CLOUD_REPLY, lambda s: self._replies.put(s.payload.to_bytes()))
+
+    def request(self, message: dict[str, Any], reply_type: str, timeout: float,
+                resend_s: float = 1.0) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        sent = 0.0
+        while time.monotonic() < deadline:
+            if time.monotonic() - sent > resend_s:
+                put(self._session, keys.CLOUD_CONTROL, json.dumps(message).encode())
+                sent = time.monotonic()
+            try:
+                reply = json.loads(self._replies.get(timeout=0.2))
+            except queue.Empty:
+                continue
+            if reply.get("type") == reply_type:
+                return reply
+            if reply.get("type") == "error":
+                raise RuntimeError(f"cloud: {reply.get('reason')}")
+        raise TimeoutError(f"no '{reply_type}' from the cloud within {timeout:.0f} s")
+
+    def status(self, timeout: float = 30.0) -> dict[str, Any]:
+        return self.request({"type": "status"}, "status", timeout)
+
+    def merge(self, timeout: float = 600.0) -> dict[str, Any]:
+        # A merge takes seconds: ask once, then only wait.
+        return self.request({"type": "merge"}, "merged", timeout, resend_s=timeout)["summary"]
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self._session.close()
+
+
+def trajectory_ate(trajectory: Path, sequence: RgbdSequence) -> dict[str, Any] | None:
+    """ATE of a written TUM trajectory against the sequence's ground truth, frames paired by
+    timestamp (the cloud's trajectory misses frames the link lost)."""
+    if not sequence.has_ground_truth:
+        return None
+    times, poses = read_tum_trajectory(trajectory)
+    if not len(times):
+        return None
+    idx = np.searchsorted(sequence.timestamps, times).clip(1, len(sequence.timestamps) - 1)
+    idx = np.where(np.abs(sequence.timestamps[idx - 1] - times)
+                   < np.abs(sequence.timestamps[idx] - times), idx - 1, idx)
+    ok = np.abs(sequence.timestamps[idx] - times) < 1e-3
+    ate = absolute_trajectory_error(poses[ok], sequence.gt_poses[idx[ok]])
+    return {"rmse_m": ate.rmse_m, "mean_m": ate.mean_m, "median_m": ate.median_m,
+            "max_m": ate.max_m, "n_poses": ate.n_poses, "alignment": "SE(3) Umeyama"}

@@ -1,0 +1,145 @@
+"""Cloud and robots as separate processes over Zenoh: a killed robot resumes its session, a
+killed cloud comes back from its checkpoints with every acknowledged keyframe, and frames
+lost on the link do not lose keyframes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fleetslam.config import Config
+from fleetslam.datasets.synthetic import ensure_scene
+from fleetslam.io.trajectory import read_tum_trajectory
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop
+
+N_FRAMES = 60
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    config = Config()
+    config.synthetic.frames_per_robot = N_FRAMES
+    return ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)
+
+
+def _wait(predicate, timeout: float, what: str, interval: float = 0.1):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _frames(client: CloudClient, robot: str) -> int:
+    try:
+        return client.status(timeout=2.0)["robots"].get(robot, {}).get("frames", 0)
+    except TimeoutError:
+        return 0
+
+
+def _log(path: Path) -> str:
+    return path.read_text(errors="replace") if path.exists() else ""
+
+
+def _keyframe_files(out: Path, robot: str) -> set[int]:
+    return {int(p.stem) for p in (out / robot / "keyframes").glob("*.fskf")}
+
+
+def _finish(robot, log: Path, timeout: float = 120.0) -> None:
+    try:
+        assert robot.wait(timeout) == 0, _log(log)
+    except Exception:
+        stop(robot, 2.0)
+        raise
+
+
+def test_killed_robot_resumes_its_session(scene, tmp_path):
+    endpoint, out = free_endpoint(), tmp_path / "cloud"
+    cloud = start_cloud(endpoint, out, tmp_path / "cloud.log")
+    client = CloudClient(endpoint)
+    try:
+        first = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-a.log",
+                            extra=["--rate", "recorded"])
+        _wait(lambda: _frames(client, "r0") >= 20, 60, "20 frames tracked")
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+        report = tmp_path / "r0-b.json"
+        second = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-b.log", report)
+        _finish(second, tmp_path / "r0-b.log")
+    finally:
+        client.close()
+        stop(cloud)
+    resumed_at = json.loads(report.read_text())["resumed_at"]
+    assert resumed_at is not None and 20 <= resumed_at < N_FRAMES
+    times, _ = read_tum_trajectory(out / "r0" / "trajectory.tum")
+    # One trajectory, every frame exactly once: the restarted robot went on where the
+    # cloud's session was, and the session kept its map (tracking did not restart).
+    np.testing.assert_allclose(times, RgbdSequence(scene[0]).timestamps, atol=1e-6)
+    summary = json.loads((out / "r0" / "robot.json").read_text())
+    assert summary["map_resets"] == 0 and summary["lost_frames"] == 0
+    kf_times, _ = read_tum_trajectory(out / "r0" / "keyframes.tum")
+    assert len(_keyframe_files(out, "r0")) == len(kf_times) >= 2
+
+
+def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, tmp_path):
+    endpoint, out = free_endpoint(), tmp_path / "cloud"
+    cloud = start_cloud(endpoint, out, tmp_path / "cloud-a.log")
+    client = CloudClient(endpoint)
+    report = tmp_path / "r1.json"
+    robot = start_robot(endpoint, "r1", str(scene[1]), 3, tmp_path / "r1.log", report,
+                        extra=["--rate", "10"])
+    try:
+        _wait(lambda: _frames(client, "r1") >= 15 and len(_keyframe_files(out, "r1")) >= 2,
+              60, "15 frames and 2 stored keyframes")
+        cloud.send_signal(signal.SIGKILL)
+        cloud.wait()
+        stored_before = _keyframe_files(out, "r1")
+        time.sleep(0.5)  # the robot streams on into the void
+        cloud = start_cloud(endpoint, out, tmp_path / "cloud-b.log")
+        _finish(robot, tmp_path / "r1.log")
+    finally:
+        client.close()
+        stop(robot, 2.0)
+        stop(cloud)
+    assert "restored from its checkpoint" in _log(tmp_path / "cloud-b.log")
+    stored_after = _keyframe_files(out, "r1")
+    assert stored_before <= stored_after
+    # The map was built from all of them: each is a keyframe of the final map.
+    kf_times, _ = read_tum_trajectory(out / "r1" / "keyframes.tum")
+    stamps = RgbdSequence(scene[1]).timestamps
+    kf_index = {int(np.argmin(np.abs(stamps - t))) for t in kf_times}
+    assert stored_before <= kf_index == stored_after
+    times, _ = read_tum_trajectory(out / "r1" / "trajectory.tum")
+    assert times[-1] == pytest.approx(stamps[-1])  # tracking went on to the last frame
+    assert (out / "r1" / "map.ply").stat().st_size > 1000
+
+
+def test_lossy_slow_link_loses_frames_but_no_keyframe(scene, tmp_path):
+    endpoint, out = free_endpoint(), tmp_path / "cloud"
+    cloud = start_cloud(endpoint, out, tmp_path / "cloud.log")
+    report = tmp_path / "r0.json"
+    try:
+        robot = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0.log", report,
+                            extra=["--bandwidth-mbps", "20", "--latency-ms", "20",
+                                   "--loss", "0.2", "--link-seed", "3"])
+        _finish(robot, tmp_path / "r0.log")
+    finally:
+        stop(cloud)
+    r = json.loads(report.read_text())
+    assert r["frames_lost_on_link"] > 0
+    times, _ = read_tum_trajectory(out / "r0" / "trajectory.tum")
+    assert len(times) == N_FRAMES - r["frames_lost_on_link"]
+    kf_times, _ = read_tum_trajectory(out / "r0" / "keyframes.tum")
+    assert len(_keyframe_files(out, "r0")) == len(kf_times) >= 2
+    # The link was the limit: 20 Mbit/s for what was sent, never faster.
+    assert r["link_busy_s"] == pytest.approx(
+        8 * (r["frame_bytes"] + r["keyframe_bytes"] + r.get("control_bytes", 0)) / 20e6, rel=0.05)
