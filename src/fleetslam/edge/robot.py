@@ -286,10 +286,16 @@ class Robot:
         t0 = time.monotonic()
         self._t0 = t0
         first_stamp = None
-        for i in range(start_index, n):
+        # The link sends frame i while the stages work on frame i+1 (a robot's NIC and CPU
+        # run side by side); the short queue keeps the robot from running ahead of its link.
+        outbox: queue.Queue = queue.Queue(maxsize=2)
+        sender = threading.Thread(target=self._sender, args=(outbox,),
+                                  name=f"robot-{self.robot_id}-send", daemon=True)
+        sender.start()
+        for i, frame in zip(range(start_index, n), self._read_ahead(start_index)):
             if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
+                outbox.join()
                 seq = max(seq, int(self._hello()["next_seq"]))
-            frame = self.sequence[i]
             if self.fps is not None:  # pace: at the recording's times, or at a fixed rate
                 first_stamp = frame.timestamp if first_stamp is None else first_stamp
                 due = (frame.timestamp - first_stamp) if self.fps == 0 \
@@ -312,15 +318,43 @@ class Robot:
                     while len(self._buffer) > self.config.transport.keyframe_buffer_frames:
                         self._buffer.popitem(last=False)
             self._sent_at[seq] = time.monotonic()
-            if not self.link.send(keys.frame(self.robot_id), data):
-                self.report.frames_lost_on_link += 1
-                self._sent_at.pop(seq, None)
+            outbox.put((seq, data))
             self.report.frames += 1
             self.report.frame_bytes += len(data)
             seq += 1
             progress.update(i + 1 - start_index, f"kf {self.report.keyframes}")
+        outbox.put(None)
+        sender.join()
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
+
+    def _sender(self, outbox: queue.Queue) -> None:
+        while (item := outbox.get()) is not None:
+            seq, data = item
+            if not self.link.send(keys.frame(self.robot_id), data):
+                self.report.frames_lost_on_link += 1
+                self._sent_at.pop(seq, None)
+            outbox.task_done()
+        outbox.task_done()
+
+    def _read_ahead(self, start: int, depth: int = 3):
+        """Frames from ``start`` on, decoded by a background thread (as a camera driver
+        delivers them) so reading images does not stall the stages."""
+        frames: queue.Queue = queue.Queue(maxsize=depth)
+
+        def read() -> None:
+            try:
+                for i in range(start, len(self.sequence)):
+                    frames.put(self.sequence[i])
+            except Exception as exc:  # an unreadable image ends the stream with its error
+                frames.put(exc)
+            frames.put(None)
+
+        threading.Thread(target=read, name=f"robot-{self.robot_id}-read", daemon=True).start()
+        while (frame := frames.get()) is not None:
+            if isinstance(frame, Exception):
+                raise frame
+            yield frame
 
     def _finish(self) -> None:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
