@@ -1,0 +1,590 @@
+"""The frame message: the pipeline state at split point k (states.py) as a binary payload.
+
+Exactness: the cloud's stages (stages[k:]) give bit-identical poses and keyframe decisions
+whether the state came in memory or through encode -> decode. Everything a later stage reads
+is reproduced bit for bit:
+
+- images: PNG (lossless) by default; depth as a 16-bit PNG of the sensor values
+  (``camera.depth_scale``), turned back into the very float32 metres of
+  ``Camera.depth_to_metres``. With ``frame_image_codec = "jpeg"`` colour (k=0) and grey (k=1)
+  images are lossy, and the cloud's results differ.
+- keypoints at k=1 (Describe reads pt, size, angle, octave): the N x 7 float32 table as is.
+- keypoints at k>=2 (later stages read x, y, octave): OpenCV's ORB puts a keypoint of octave o
+  at integer coordinates of the level-o image times the level's float32 scale. They are sent
+  as those integers (delta-coded within a level, in the keypoints' own order) with one scale
+  per level, and rebuilt with the same float32 multiply. The encoder checks every keypoint
+  and sends raw float32 x, y for the whole message if one is not exactly so. ``size`` is one
+  value per octave (raw column otherwise), ``class_id`` one constant (raw column otherwise).
+- depth per keypoint (k>=3): a pixel of the depth image or 0, sent as its uint16 sensor value
+  (raw float32 if a value is not one).
+- ``uv`` (undistorted coordinates) is not sent: the cloud recomputes it with
+  ``camera.undistort_points`` exactly as AssociateDepth does (the encoder checks this and
+  sends uv as float64 if it differs).
+- descriptors as raw bytes; landmark ids (int32 if in range), their float64 world points for
+  the matched rows, float64 poses, inlier bits and flags as they are.
+
+Quantised or dropped, as no stage after Describe reads them (k>=2 only):
+- ``angle``: uint8 steps of 360/256 degrees (1.4 deg);
+- ``response``: not sent, decoded as 0;
+- NaN world points of unmatched rows come back as the standard NaN.
+
+The payload also carries a digest of the camera (intrinsics, distortion, depth scale), so a
+cloud that would rebuild uv or depth with another camera rejects the message instead.
+
+Layout, for zstd: every array is its own column (numbers byte-shuffled, descriptors column
+by column, keypoint positions as byte planes, depth as a palette of the few distinct sensor
+values plus one index byte per keypoint), and ``encode_frame_message`` gives each column its
+own zstd block. Measured (bench/payload.py, frames with 1000 keypoints, k = 3): 35.5 kB on
+7-Scenes, 34.9 kB on TUM fr1_rpy, of which ~31 kB are descriptors.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from typing import Any, Callable
+
+import numpy as np
+
+from fleetslam.camera import Camera
+from fleetslam.config import WireConfig
+from fleetslam.pipeline.states import (
+    CapturedFrame,
+    DescribedFrame,
+    DetectedFrame,
+    FeatureFrame,
+    MatchedFrame,
+    PosedFrame,
+    TrackedFrame,
+)
+from fleetslam.wire.binary import (
+    Reader,
+    Writer,
+    check_codec,
+    get_image,
+    metres_to_raw,
+    put_image,
+    raw_to_metres,
+)
+from fleetslam.wire.envelope import N_SPLIT_POINTS, Header, Kind, WireError, open_message, seal
+
+State = Any
+STATE_TYPES: tuple[type, ...] = (CapturedFrame, DetectedFrame, DescribedFrame, FeatureFrame,
+                                 MatchedFrame, PosedFrame, TrackedFrame)
+assert len(STATE_TYPES) == N_SPLIT_POINTS
+
+# Keypoint table columns (states.KEYPOINT_COLUMNS).
+X, Y, SIZE, ANGLE, RESPONSE, OCTAVE, CLASS_ID = range(7)
+MAX_OCTAVES = 32
+# A decoded keypoint table is at most 28 MB, whatever a payload claims (ORB: ~1000).
+MAX_KEYPOINTS = 1 << 20
+# A level's scale is searched this many float32 steps around size[o] / size[0].
+_SCALE_SEARCH_ULPS = 4
+
+_KP_RAW, _KP_COMPACT = 0, 1
+_KP_XY_RAW, _KP_SIZE_RAW, _KP_CLASS_RAW = 1, 2, 4
+_VALUES_PALETTE, _VALUES_F32 = 0, 1
+_DEPTH_PNG, _DEPTH_F32 = 0, 1
+_UV_RECOMPUTE, _UV_F64 = 0, 1
+_IDS_I32, _IDS_I64 = 0, 1
+_XYZ_MATCHED, _XYZ_ALL = 0, 1
+
+
+def camera_digest(camera: Camera) -> int:
+    """CRC-32 of what decoding depends on: intrinsics, distortion, depth scale."""
+    values = (camera.fx, camera.fy, camera.cx, camera.cy, camera.depth_scale,
+              *camera.distortion)
+    return zlib.crc32(struct.pack(f"<{len(values)}d", *values))
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal bit for bit (unlike ==, tells -0.0 from 0.0)."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+# ---------------------------------------------------------------------------------------
+# Depth images and per-keypoint depth
+# ---------------------------------------------------------------------------------------
+
+
+def _put_depth_image(w: Writer, depth_m: np.ndarray, camera: Camera) -> None:
+    _require(depth_m.ndim == 2 and depth_m.dtype == np.float32,
+             f"depth image must be H x W float32, got {depth_m.shape} {depth_m.dtype}")
+    raw = metres_to_raw(depth_m, camera.depth_scale)
+    if raw is not None:
+        w.pack("B", _DEPTH_PNG)
+        put_image(w, raw, "png")
+    else:
+        w.pack("BHH", _DEPTH_F32, *depth_m.shape)
+        w.shuffled(depth_m, "f4")
+
+
+def _get_depth_image(r: Reader, camera: Camera) -> np.ndarray:
+    (mode,) = r.unpack("B", "depth image mode")
+    if mode == _DEPTH_PNG:
+        raw, _ = get_image(r, "depth image")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise WireError(f"depth image is {raw.shape} {raw.dtype}, expected 16-bit grey")
+        return raw_to_metres(raw, camera.depth_scale)
+    if mode == _DEPTH_F32:
+        h, width = r.unpack("HH", "depth image size")
+        return r.shuffled("f4", h * width, "depth image").reshape(h, width)
+    raise WireError(f"unknown depth image mode {mode}")
+
+
+def _put_depth_values(w: Writer, depth: np.ndarray, camera: Camera) -> None:
+    raw = metres_to_raw(depth, camera.depth_scale)
+    if raw is None:
+        w.pack("B", _VALUES_F32)
+        w.shuffled(depth, "f4")
+        return
+    # Keypoints sit on a few surfaces and the sensor quantises depth: ~150 distinct values
+    # among 1000 keypoints. A sorted palette (delta-coded) and one byte per keypoint.
+    palette, index = np.unique(raw, return_inverse=True)
+    w.pack("BI", _VALUES_PALETTE, len(palette))
+    w.array(np.diff(palette.astype(np.int64), prepend=0), "u2")
+    w.array(index, "u1" if len(palette) <= 256 else "u2")
+
+
+def _get_depth_values(r: Reader, n: int, camera: Camera) -> np.ndarray:
+    (mode,) = r.unpack("B", "keypoint depth mode")
+    if mode == _VALUES_PALETTE:
+        (n_palette,) = r.unpack("I", "depth palette size")
+        palette = np.cumsum(r.array("u2", n_palette, "depth palette").astype(np.int64))
+        index = r.array("u1" if n_palette <= 256 else "u2", n, "keypoint depth").astype(np.int64)
+        if n and (index.max() >= n_palette or palette[-1] > 0xFFFF):
+            raise WireError(f"keypoint depth refers past its {n_palette}-value palette")
+        return raw_to_metres(palette.astype(np.uint16)[index], camera.depth_scale)
+    if mode == _VALUES_F32:
+        return r.shuffled("f4", n, "keypoint depth")
+    raise WireError(f"unknown keypoint depth mode {mode}")
+
+
+# ---------------------------------------------------------------------------------------
+# Keypoints
+# ---------------------------------------------------------------------------------------
+
+
+def _check_keypoints(kp: np.ndarray) -> None:
+    _require(kp.ndim == 2 and kp.shape[1] == 7 and kp.dtype == np.float32,
+             f"keypoints must be N x 7 float32, got {kp.shape} {kp.dtype}")
+    _require(len(kp) <= MAX_KEYPOINTS, f"{len(kp)} keypoints exceed {MAX_KEYPOINTS}")
+
+
+def _keypoint_count(r: Reader) -> int:
+    (n,) = r.unpack("I", "keypoint count")
+    if n > MAX_KEYPOINTS:
+        raise WireError(f"keypoint count {n} exceeds the limit of {MAX_KEYPOINTS}")
+    return n
+
+
+def _level_scales(kp: np.ndarray, octave: np.ndarray, n_levels: int,
+                  level_size: np.ndarray | None) -> np.ndarray | None:
+    """The float32 scale of each level such that every keypoint's x and y is
+    float32(integer) * scale exactly, or None. Candidates come from the size per level
+    (ORB: patch size times the scale)."""
+    if level_size is None or not (octave == 0).any() or not level_size[0] > 0:
+        return None
+    scales = np.ones(n_levels, np.float32)
+    for o in range(n_levels):  # a handful of levels; the keypoints are vectorised
+        xy = kp[octave == o][:, :2]
+        if not len(xy):
+            continue
+        guess = np.float32(float(level_size[o]) / float(level_size[0]))
+        found = False
+        for step in sorted(range(-_SCALE_SEARCH_ULPS, _SCALE_SEARCH_ULPS + 1), key=abs):
+            s = guess
+            for _ in range(abs(step)):
+                s = np.nextafter(s, np.float32(np.inf if step > 0 else -np.inf))
+            if not s > 0:
+                continue
+            with np.errstate(invalid="ignore", over="ignore"):
+                i = np.rint(xy / s)
+                ok = (i >= 0).all() and (i < 0xFFFF).all()  # level widths are u16
+            if ok and _same_bits(i.astype(np.float32) * s, xy):
+                scales[o], found = s, True
+                break
+        if not found:
+            return None
+    return scales
+
+
+def _zigzag(d: np.ndarray) -> np.ndarray:
+    return (d << 1) ^ (d >> 63)
+
+
+def _unzigzag(z: np.ndarray) -> np.ndarray:
+    return (z >> 1) ^ -(z & 1)
+
+
+def _put_keypoints(w: Writer, kp: np.ndarray) -> None:
+    """The compact keypoint table of split points >= 2 (see the module docstring)."""
+    _check_keypoints(kp)
+    n = len(kp)
+    oct_f = kp[:, OCTAVE]
+    if n and not (np.all(oct_f == np.round(oct_f)) and oct_f.min() >= 0
+                  and oct_f.max() < MAX_OCTAVES):
+        w.pack("IB", n, _KP_RAW)
+        w.shuffled(kp, "f4")
+        return
+    octave = oct_f.astype(np.int64)
+    n_levels = int(octave.max()) + 1 if n else 0
+    level_size: np.ndarray | None = np.zeros(n_levels, np.float32)
+    level_size[octave] = kp[:, SIZE]
+    if not _same_bits(level_size[octave], kp[:, SIZE]):
+        level_size = None
+    class_id = kp[:1, CLASS_ID]
+    class_constant = _same_bits(np.broadcast_to(class_id, (n,)), kp[:, CLASS_ID])
+    scales = _level_scales(kp, octave, n_levels, level_size)
+    flags = ((_KP_XY_RAW if scales is None else 0) | (_KP_SIZE_RAW if level_size is None else 0)
+             | (_KP_CLASS_RAW if not class_constant else 0))
+    w.pack("IBBB", n, _KP_COMPACT, flags, n_levels)
+    w.array(octave, "u1")  # ORB lists keypoints level by level: runs that zstd removes
+    if scales is None:
+        w.shuffled(kp[:, X], "f4")
+        w.shuffled(kp[:, Y], "f4")
+    else:
+        ix = np.rint(kp[:, X] / scales[octave]).astype(np.int64)
+        iy = np.rint(kp[:, Y] / scales[octave]).astype(np.int64)
+        width = np.ones(n_levels, np.int64)
+        np.maximum.at(width, octave, ix + 1)
+        # Position within the level image, delta to the previous keypoint of the same level:
+        # FAST finds corners row by row, so these are mostly small and positive.
+        order = np.argsort(octave, kind="stable")
+        pos = (iy * width[octave] + ix)[order]
+        first = np.r_[True, octave[order][1:] != octave[order][:-1]] if n else np.zeros(0, bool)
+        delta = pos - np.where(first, 0, np.r_[0, pos[:-1]])
+        z = _zigzag(delta)
+        n_bytes = max(1, (int(z.max()).bit_length() + 7) // 8) if n else 1
+        w.array(scales, "f4")
+        w.array(width, "u2")
+        w.pack("B", n_bytes)
+        w.planes(z, n_bytes)
+    if level_size is None:
+        w.shuffled(kp[:, SIZE], "f4")
+    else:
+        w.array(level_size, "f4")
+    if class_constant:
+        w.array(class_id if n else np.zeros(1, np.float32), "f4")
+    else:
+        w.shuffled(kp[:, CLASS_ID], "f4")
+    with np.errstate(invalid="ignore"):
+        angle = np.nan_to_num(np.mod(kp[:, ANGLE].astype(np.float64), 360.0))
+    w.array(np.rint(angle * (256 / 360)).astype(np.int64) % 256, "u1")
+
+
+def _get_keypoints(r: Reader) -> np.ndarray:
+    n = _keypoint_count(r)
+    (mode,) = r.unpack("B", "keypoint mode")
+    if mode == _KP_RAW:
+        return r.shuffled("f4", n * 7, "keypoints").reshape(n, 7)
+    if mode != _KP_COMPACT:
+        raise WireError(f"unknown keypoint mode {mode}")
+    flags, n_levels = r.unpack("BB", "keypoint flags")
+    if flags & ~(_KP_XY_RAW | _KP_SIZE_RAW | _KP_CLASS_RAW) or n_levels > MAX_OCTAVES:
+        raise WireError(f"bad keypoint flags 0x{flags:02x} or {n_levels} levels")
+    octave = r.array("u1", n, "octaves").astype(np.int64)
+    if n and octave.max() >= n_levels:
+        raise WireError(f"keypoint octave {octave.max()} outside the {n_levels} levels sent")
+    kp = np.zeros((n, 7), np.float32)
+    kp[:, OCTAVE] = octave
+    if flags & _KP_XY_RAW:
+        kp[:, X] = r.shuffled("f4", n, "keypoint x")
+        kp[:, Y] = r.shuffled("f4", n, "keypoint y")
+    else:
+        scales = r.array("f4", n_levels, "level scales").astype(np.float32)
+        width = r.array("u2", n_levels, "level widths").astype(np.int64)
+        (n_bytes,) = r.unpack("B", "position bytes")
+        if not 1 <= n_bytes <= 5 or (n and width[octave].min() < 1):
+            raise WireError(f"bad keypoint positions ({n_bytes} bytes, widths {width.tolist()})")
+        delta = _unzigzag(r.planes(n_bytes, n, "keypoint positions"))
+        order = np.argsort(octave, kind="stable")
+        first = np.r_[True, octave[order][1:] != octave[order][:-1]] if n else np.zeros(0, bool)
+        # Undo the per-level deltas: a running sum, minus what it had reached before the
+        # keypoint's level began.
+        total = np.cumsum(delta)
+        level_start = np.maximum.accumulate(np.where(first, np.arange(n), 0))
+        pos = np.empty(n, np.int64)
+        pos[order] = total - (total - delta)[level_start]
+        ix, iy = pos % width[octave], pos // width[octave]
+        kp[:, X] = ix.astype(np.float32) * scales[octave]
+        kp[:, Y] = iy.astype(np.float32) * scales[octave]
+    if flags & _KP_SIZE_RAW:
+        kp[:, SIZE] = r.shuffled("f4", n, "keypoint size")
+    else:
+        kp[:, SIZE] = r.array("f4", n_levels, "level sizes")[octave]
+    if flags & _KP_CLASS_RAW:
+        kp[:, CLASS_ID] = r.shuffled("f4", n, "keypoint class id")
+    else:
+        kp[:, CLASS_ID] = r.array("f4", 1, "keypoint class id")[0]
+    kp[:, ANGLE] = r.array("u1", n, "keypoint angle").astype(np.float32) * np.float32(360 / 256)
+    return kp
+
+
+def _put_raw_keypoints(w: Writer, kp: np.ndarray) -> None:
+    _check_keypoints(kp)
+    w.pack("I", len(kp))
+    w.shuffled(kp, "f4")
+
+
+def _get_raw_keypoints(r: Reader) -> np.ndarray:
+    n = _keypoint_count(r)
+    return r.shuffled("f4", n * 7, "keypoints").reshape(n, 7)
+
+
+def _put_descriptors(w: Writer, descriptors: np.ndarray, n: int) -> None:
+    _require(descriptors.shape == (n, 32) and descriptors.dtype == np.uint8,
+             f"descriptors must be {n} x 32 uint8, got {descriptors.shape} {descriptors.dtype}")
+    # Column by column, each its own zstd block: every byte position has its own bit biases,
+    # which zstd exploits only with a table per position (TUM fr1_rpy 4 % smaller, 7-Scenes
+    # 1 %; row by row zstd level 3 gains nothing).
+    w.columns(descriptors)
+
+
+def _get_descriptors(r: Reader, n: int) -> np.ndarray:
+    return r.columns(n, 32, "descriptors")
+
+
+# ---------------------------------------------------------------------------------------
+# States, one encoder and one decoder per split point; later states nest earlier ones
+# ---------------------------------------------------------------------------------------
+
+
+def _put_captured(w: Writer, s: CapturedFrame, camera: Camera, config: WireConfig) -> None:
+    _require(s.rgb.ndim == 3 and s.rgb.shape[2] == 3 and s.rgb.dtype == np.uint8,
+             f"rgb must be H x W x 3 uint8, got {s.rgb.shape} {s.rgb.dtype}")
+    put_image(w, s.rgb, config.frame_image_codec, config.jpeg_quality)
+    _put_depth_image(w, s.depth_m, camera)
+
+
+def _get_captured(r: Reader, index: int, timestamp: float, camera: Camera) -> CapturedFrame:
+    rgb, _ = get_image(r, "rgb image")
+    if rgb.ndim != 3:
+        raise WireError(f"rgb image has shape {rgb.shape}")
+    return CapturedFrame(index, timestamp, rgb, _get_depth_image(r, camera))
+
+
+def _put_detected(w: Writer, s: DetectedFrame, camera: Camera, config: WireConfig) -> None:
+    _require(s.gray.ndim == 2 and s.gray.dtype == np.uint8,
+             f"grey image must be H x W uint8, got {s.gray.shape} {s.gray.dtype}")
+    put_image(w, s.gray, config.frame_image_codec, config.jpeg_quality)
+    _put_depth_image(w, s.depth_m, camera)
+    _put_raw_keypoints(w, s.keypoints)
+
+
+def _get_detected(r: Reader, index: int, timestamp: float, camera: Camera) -> DetectedFrame:
+    gray, _ = get_image(r, "grey image")
+    if gray.ndim != 2 or gray.dtype != np.uint8:
+        raise WireError(f"grey image is {gray.shape} {gray.dtype}")
+    depth = _get_depth_image(r, camera)
+    return DetectedFrame(index, timestamp, gray, depth, _get_raw_keypoints(r))
+
+
+def _put_described(w: Writer, s: DescribedFrame, camera: Camera, config: WireConfig) -> None:
+    _put_depth_image(w, s.depth_m, camera)
+    _put_keypoints(w, s.keypoints)
+    _put_descriptors(w, s.descriptors, len(s.keypoints))
+
+
+def _get_described(r: Reader, index: int, timestamp: float, camera: Camera) -> DescribedFrame:
+    depth = _get_depth_image(r, camera)
+    kp = _get_keypoints(r)
+    return DescribedFrame(index, timestamp, depth, kp, _get_descriptors(r, len(kp)))
+
+
+def _undistort(kp: np.ndarray, camera: Camera) -> np.ndarray:
+    # Exactly AssociateDepth's call, so the result is the same bits.
+    return camera.undistort_points(kp[:, :2].astype(np.float64))
+
+
+def _put_features(w: Writer, f: FeatureFrame, camera: Camera, config: WireConfig) -> None:
+    n = len(f.keypoints)
+    _put_keypoints(w, f.keypoints)
+    _put_descriptors(w, f.descriptors, n)
+    _require(f.depth.shape == (n,) and f.depth.dtype == np.float32,
+             f"keypoint depth must be {n} float32, got {f.depth.shape} {f.depth.dtype}")
+    _put_depth_values(w, f.depth, camera)
+    uv = np.asarray(f.uv)
+    _require(uv.shape == (n, 2), f"uv must be {n} x 2, got {uv.shape}")
+    if _same_bits(_undistort(f.keypoints, camera), uv):
+        w.pack("B", _UV_RECOMPUTE)
+    else:
+        w.pack("B", _UV_F64)
+        w.shuffled(uv, "f8")
+
+
+def _get_features(r: Reader, index: int, timestamp: float, camera: Camera) -> FeatureFrame:
+    kp = _get_keypoints(r)
+    n = len(kp)
+    descriptors = _get_descriptors(r, n)
+    depth = _get_depth_values(r, n, camera)
+    (uv_mode,) = r.unpack("B", "uv mode")
+    if uv_mode == _UV_RECOMPUTE:
+        uv = _undistort(kp, camera)
+    elif uv_mode == _UV_F64:
+        uv = r.shuffled("f8", 2 * n, "uv").reshape(n, 2)
+    else:
+        raise WireError(f"unknown uv mode {uv_mode}")
+    return FeatureFrame(index, timestamp, kp, descriptors, depth, uv)
+
+
+def _put_pose(w: Writer, T: np.ndarray, what: str) -> None:
+    T = np.asarray(T)
+    _require(T.shape == (4, 4), f"{what} must be 4 x 4, got {T.shape}")
+    w.array(T.astype(np.float64), "f8")
+
+
+def _get_pose(r: Reader, what: str) -> np.ndarray:
+    return r.array("f8", 16, what).reshape(4, 4)
+
+
+def _put_matched(w: Writer, s: MatchedFrame, camera: Camera, config: WireConfig) -> None:
+    _put_features(w, s.features, camera, config)
+    n = len(s.features.keypoints)
+    ids, xyz = np.asarray(s.landmark_ids), np.asarray(s.landmark_xyz, dtype=np.float64)
+    _require(ids.shape == (n,) and xyz.shape == (n, 3),
+             f"landmark ids {ids.shape} / points {xyz.shape} do not match {n} keypoints")
+    matched = ids >= 0
+    # Unmatched rows are -1 / NaN: send which rows match, then only their ids and points.
+    ids_mode = _IDS_I32 if (not n or (ids.min() >= -1 and ids.max() < 2**31)) else _IDS_I64
+    xyz_mode = _XYZ_MATCHED if np.isnan(xyz[~matched]).all() else _XYZ_ALL
+    w.pack("BB", ids_mode, xyz_mode)
+    w.bits(matched)
+    if ids_mode == _IDS_I32:
+        w.shuffled(ids[matched], "i4")
+    else:
+        w.shuffled(ids, "i8")
+    w.shuffled(xyz[matched] if xyz_mode == _XYZ_MATCHED else xyz, "f8")
+    _put_pose(w, s.T_world_camera_predicted, "predicted pose")
+    w.pack("B", bool(s.repeated))
+
+
+def _get_matched(r: Reader, index: int, timestamp: float, camera: Camera) -> MatchedFrame:
+    features = _get_features(r, index, timestamp, camera)
+    n = len(features.keypoints)
+    ids_mode, xyz_mode = r.unpack("BB", "landmark modes")
+    if ids_mode not in (_IDS_I32, _IDS_I64) or xyz_mode not in (_XYZ_MATCHED, _XYZ_ALL):
+        raise WireError(f"unknown landmark modes {ids_mode}, {xyz_mode}")
+    matched = r.bits(n, "matched rows")
+    m = int(matched.sum())
+    if ids_mode == _IDS_I32:
+        ids = np.full(n, -1, np.int64)
+        ids[matched] = r.shuffled("i4", m, "landmark ids")
+    else:
+        ids = r.shuffled("i8", n, "landmark ids").astype(np.int64)
+    if xyz_mode == _XYZ_MATCHED:
+        xyz = np.full((n, 3), np.nan)
+        xyz[matched] = r.shuffled("f8", 3 * m, "landmark points").reshape(m, 3)
+    else:
+        xyz = r.shuffled("f8", 3 * n, "landmark points").reshape(n, 3)
+    T_pred = _get_pose(r, "predicted pose")
+    return MatchedFrame(features, ids, xyz, T_pred, r.flag("repeated flag"))
+
+
+def _put_posed(w: Writer, s: PosedFrame, camera: Camera, config: WireConfig) -> None:
+    _put_matched(w, s.matched, camera, config)
+    n = len(s.matched.features.keypoints)
+    _require(np.shape(s.inliers) == (n,), f"inliers must have {n} entries")
+    _put_pose(w, s.T_world_camera, "pose")
+    w.bits(s.inliers)
+    w.pack("B", bool(s.tracked))
+
+
+def _get_posed(r: Reader, index: int, timestamp: float, camera: Camera) -> PosedFrame:
+    matched = _get_matched(r, index, timestamp, camera)
+    T = _get_pose(r, "pose")
+    inliers = r.bits(len(matched.features.keypoints), "inliers")
+    return PosedFrame(matched, T, inliers, r.flag("tracked flag"))
+
+
+def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig) -> None:
+    _put_posed(w, s.posed, camera, config)
+    w.pack("B", bool(s.is_keyframe))
+
+
+def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera) -> TrackedFrame:
+    posed = _get_posed(r, index, timestamp, camera)
+    return TrackedFrame(posed, r.flag("keyframe flag"))
+
+
+_ENCODERS: tuple[Callable[[Writer, Any, Camera, WireConfig], None], ...] = (
+    _put_captured, _put_detected, _put_described, _put_features, _put_matched, _put_posed,
+    _put_tracked)
+_DECODERS: tuple[Callable[[Reader, int, float, Camera], Any], ...] = (
+    _get_captured, _get_detected, _get_described, _get_features, _get_matched, _get_posed,
+    _get_tracked)
+
+
+def state_index_time(state: State) -> tuple[int, float]:
+    """(frame index, timestamp) of a state of any split point."""
+    if isinstance(state, PosedFrame):
+        state = state.matched
+    if isinstance(state, MatchedFrame):
+        state = state.features
+    return int(state.index), float(state.timestamp)
+
+
+# ---------------------------------------------------------------------------------------
+# Public API
+# ---------------------------------------------------------------------------------------
+
+
+def _write_state(state: State, split_point: int, camera: Camera, config: WireConfig) -> Writer:
+    if not 0 <= split_point < N_SPLIT_POINTS:
+        raise ValueError(f"split point {split_point} outside 0..{N_SPLIT_POINTS - 1}")
+    expected = STATE_TYPES[split_point]
+    if not isinstance(state, expected):
+        raise TypeError(f"split point {split_point} sends a {expected.__name__}, "
+                        f"got {type(state).__name__}")
+    check_codec(config.frame_image_codec)
+    index, timestamp = state_index_time(state)
+    w = Writer()
+    w.pack("Iqd", camera_digest(camera), index, timestamp)
+    _ENCODERS[split_point](w, state, camera, config)
+    return w
+
+
+def encode_state(state: State, split_point: int, camera: Camera, config: WireConfig) -> bytes:
+    """The payload of state ``split_point`` (the input of stage ``split_point``)."""
+    return _write_state(state, split_point, camera, config).getvalue()
+
+
+def decode_state(payload: bytes, split_point: int, camera: Camera) -> State:
+    """The state :func:`encode_state` encoded. Raises WireError on any inconsistency."""
+    if not 0 <= split_point < N_SPLIT_POINTS:
+        raise WireError(f"split point {split_point} outside 0..{N_SPLIT_POINTS - 1}")
+    r = Reader(payload, f"frame payload (split point {split_point})")
+    digest, index, timestamp = r.unpack("Iqd", "frame header")
+    if digest != camera_digest(camera):
+        raise WireError("the sender's camera differs from this one (intrinsics, distortion or "
+                        "depth scale): keypoints and depth would be rebuilt wrongly")
+    state = _DECODERS[split_point](r, index, timestamp, camera)
+    r.finish()
+    return state
+
+
+def encode_frame_message(state: State, split_point: int, robot_id: str, seq: int,
+                         camera: Camera, config: WireConfig) -> bytes:
+    """The whole frame message (envelope + payload); its timestamp is the frame's."""
+    sections = _write_state(state, split_point, camera, config).sections()
+    _, timestamp = state_index_time(state)
+    return seal(Kind.FRAME, robot_id, seq, timestamp, split_point, sections,
+                compress=config.compress, level=config.zstd_level)
+
+
+def decode_frame_message(data: bytes, camera: Camera) -> tuple[Header, State]:
+    header, payload = open_message(data)
+    if header.kind != Kind.FRAME:
+        raise WireError(f"expected a frame message, got {header.kind.name}")
+    state = decode_state(payload, header.split_point, camera)
+    _, timestamp = state_index_time(state)
+    if timestamp != header.timestamp:
+        raise WireError(f"payload timestamp {timestamp} differs from the header's "
+                        f"{header.timestamp}")
+    return header, state

@@ -1,0 +1,409 @@
+"""The binary wire format: the envelope's checks, feedback and keyframe messages, and the
+frame message at every split point, whose decoded state must give the cloud bit-identical
+poses and keyframe decisions."""
+
+from __future__ import annotations
+
+import dataclasses
+import struct
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+import zstandard
+
+from conftest import SEVEN_SCENES, require
+from fleetslam.camera import Camera
+from fleetslam.config import Config, SyntheticConfig, WireConfig
+from fleetslam.datasets.synthetic import generate_scene
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.pipeline.split import TrackingPipeline, run_stages
+from fleetslam.pipeline.states import CapturedFrame, FeatureFrame
+from fleetslam.wire.envelope import (
+    FLAG_ZSTD,
+    FORMAT_VERSION,
+    MAX_PAYLOAD_BYTES,
+    Header,
+    Kind,
+    WireError,
+    _assemble,
+    header_size,
+    open_message,
+    seal,
+)
+from fleetslam.wire.frames import (
+    decode_frame_message,
+    decode_state,
+    encode_frame_message,
+    encode_state,
+)
+from fleetslam.wire.messages import (
+    Feedback,
+    KeyframeUpload,
+    decode_feedback,
+    decode_keyframe,
+    encode_feedback,
+    encode_keyframe,
+)
+
+N_FRAMES = 30
+ROBOT = "robot_7"
+
+
+# ---------------------------------------------------------------------------------------
+# Envelope
+# ---------------------------------------------------------------------------------------
+
+
+def message(payload: bytes = b"payload " * 50, compress: bool = True) -> bytes:
+    return seal(Kind.FRAME, ROBOT, 42, 1305031102.175304, 3, payload, compress=compress)
+
+
+@pytest.mark.parametrize("compress", [True, False])
+def test_envelope_round_trip(compress):
+    payload = bytes(range(256)) * 3 + b"\0" * 500
+    data = message(payload, compress)
+    header, out = open_message(data)
+    assert out == payload
+    assert header == Header(FORMAT_VERSION, Kind.FRAME, ROBOT, 42, 1305031102.175304, 3,
+                            header.payload_length, header.checksum, compress, len(payload))
+    assert header.size == len(data) == header_size(ROBOT) + header.payload_length
+    assert (header.payload_length < len(payload)) == compress
+
+
+def test_incompressible_payload_is_sent_uncompressed():
+    payload = np.random.default_rng(0).integers(0, 256, 4000, dtype=np.uint8).tobytes()
+    header, out = open_message(message(payload, compress=True))
+    assert out == payload and not header.compressed and header.payload_length == len(payload)
+
+
+def test_empty_and_garbage():
+    with pytest.raises(WireError, match="empty message"):
+        open_message(b"")
+    garbage = np.random.default_rng(1).integers(0, 256, 300, dtype=np.uint8).tobytes()
+    with pytest.raises(WireError, match="bad magic"):
+        open_message(garbage)
+
+
+def test_truncated_at_every_length():
+    data = message()
+    for n in [1, 4, 9, 10, 17, header_size(ROBOT) - 1, header_size(ROBOT), len(data) - 1]:
+        with pytest.raises(WireError, match="truncated"):
+            open_message(data[:n])
+
+
+def patched(data: bytes, offset: int, new: bytes) -> bytes:
+    return data[:offset] + new + data[offset + len(new):]
+
+
+def test_header_faults_name_their_reason():
+    data = message()
+    with pytest.raises(WireError, match="bad magic"):
+        open_message(patched(data, 0, b"FSLN"))
+    with pytest.raises(WireError, match=r"format version 7 not supported \(this build reads 1\)"):
+        open_message(patched(data, 4, struct.pack("<H", 7)))
+    with pytest.raises(WireError, match="unknown message kind 9"):
+        open_message(patched(data, 6, b"\x09"))
+    with pytest.raises(WireError, match=r"split point 9 outside 0\.\.6"):
+        open_message(patched(data, 7, b"\x09"))
+    with pytest.raises(WireError, match="unknown flags"):
+        open_message(patched(data, 8, b"\x80"))
+    with pytest.raises(WireError, match="trailing bytes: 3"):
+        open_message(data + b"abc")
+
+
+def test_corruption_is_caught_by_the_checksum():
+    data = message()
+    flipped_payload = patched(data, len(data) - 5, bytes([data[-5] ^ 0x10]))
+    with pytest.raises(WireError, match="checksum mismatch"):
+        open_message(flipped_payload)
+    seq_offset = 10 + len(ROBOT)
+    with pytest.raises(WireError, match="checksum mismatch"):
+        open_message(patched(data, seq_offset, b"\x43"))
+
+
+def test_robot_id_checked_on_both_sides():
+    for bad in ["", "a b", "x" * 65, "robot/1", "é"]:
+        with pytest.raises(ValueError, match="robot id"):
+            seal(Kind.FRAME, bad, 0, 0.0, 0, b"", compress=False)
+    seal(Kind.FRAME, "A-z_09" + "x" * 58, 0, 0.0, 0, b"", compress=False)  # 64 characters
+    forged = _assemble(FORMAT_VERSION, 1, 0, 0, b"a b", 0, 0.0, 0, b"")
+    with pytest.raises(WireError, match="outside"):
+        open_message(forged)
+    with pytest.raises(WireError, match="robot id not valid UTF-8"):
+        open_message(_assemble(FORMAT_VERSION, 1, 0, 0, b"\xff\xfe", 0, 0.0, 0, b""))
+    with pytest.raises(WireError, match="robot id length 0"):
+        open_message(_assemble(FORMAT_VERSION, 1, 0, 0, b"", 0, 0.0, 0, b""))
+
+
+def test_decompression_is_bounded():
+    bomb = zstandard.ZstdCompressor(level=3).compress(b"\0" * 10_000_000)
+    assert len(bomb) < 1000
+    with pytest.raises(WireError, match="zstd frame declares 10000000 bytes, header says 100"):
+        open_message(_assemble(FORMAT_VERSION, 1, 0, FLAG_ZSTD, b"r", 0, 0.0, 100, bomb))
+    with pytest.raises(WireError, match="exceeds the limit"):
+        open_message(_assemble(FORMAT_VERSION, 1, 0, FLAG_ZSTD, b"r", 0, 0.0,
+                               MAX_PAYLOAD_BYTES + 1, bomb))
+    unsized = zstandard.ZstdCompressor(write_content_size=False).compress(b"\0" * 1000)
+    with pytest.raises(WireError, match="declares no size"):
+        open_message(_assemble(FORMAT_VERSION, 1, 0, FLAG_ZSTD, b"r", 0, 0.0, 1000, unsized))
+    with pytest.raises(WireError, match="zstd"):
+        open_message(_assemble(FORMAT_VERSION, 1, 0, FLAG_ZSTD, b"r", 0, 0.0, 10, b"notzstd!"))
+
+
+# ---------------------------------------------------------------------------------------
+# Feedback and keyframe messages
+# ---------------------------------------------------------------------------------------
+
+
+def test_feedback_round_trip_is_exact():
+    rng = np.random.default_rng(2)
+    T = np.eye(4)
+    T[:3, :] = rng.normal(size=(3, 4)) * np.array([1e-17, 1.0, 3e5, np.pi])
+    fb = Feedback(1234, 1305031102.175304, True, False, 317, T, 12.5)
+    header, out = decode_feedback(encode_feedback(ROBOT, 9, fb))
+    assert header.kind == Kind.FEEDBACK and header.seq == 9 and header.robot_id == ROBOT
+    assert out.T_world_camera.tobytes() == T.tobytes()
+    assert dataclasses.astuple(replace(out, T_world_camera=None)) == \
+        dataclasses.astuple(replace(fb, T_world_camera=None))
+    with pytest.raises(WireError, match="expected a feedback message"):
+        decode_feedback(message())
+
+
+def textured_rgbd(h: int = 96, w: int = 128) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(3)
+    base = cv2.resize(rng.integers(0, 256, (h // 8, w // 8, 3), dtype=np.uint8), (w, h))
+    rgb = cv2.GaussianBlur(base, (5, 5), 0)
+    depth = (1000 + 10 * np.arange(h)[:, None] + np.arange(w)[None, :]).astype(np.uint16)
+    depth[::7, ::5] = 0
+    return rgb, depth
+
+
+@pytest.mark.parametrize("codec", ["png", "jpeg"])
+def test_keyframe_round_trip(codec):
+    rgb, depth = textured_rgbd()
+    kf = KeyframeUpload.from_frame(17, 3.25, rgb, depth, stride=2)
+    assert kf.rgb.shape == (48, 64, 3) and kf.depth_raw.shape == (48, 64)
+    data = encode_keyframe(ROBOT, 5, kf, WireConfig(keyframe_rgb_codec=codec))
+    header, out = decode_keyframe(data)
+    assert header.kind == Kind.KEYFRAME and header.timestamp == 3.25
+    assert (out.frame_index, out.timestamp, out.stride) == (17, 3.25, 2)
+    np.testing.assert_array_equal(out.depth_raw, kf.depth_raw)
+    assert out.depth_raw.dtype == np.uint16
+    assert out.rgb.shape == kf.rgb.shape
+    if codec == "png":
+        np.testing.assert_array_equal(out.rgb, kf.rgb)
+    else:
+        assert np.abs(out.rgb.astype(int) - kf.rgb).mean() < 8
+
+
+# ---------------------------------------------------------------------------------------
+# Frame messages: exactness of every split point
+# ---------------------------------------------------------------------------------------
+
+
+def assert_same_state(original, decoded, k: int, path: str = "state") -> None:
+    """Field by field, bit for bit; at k >= 2 the keypoint angle is quantised and the
+    response dropped (module docstring of wire/frames.py)."""
+    assert type(original) is type(decoded), path
+    for field in dataclasses.fields(original):
+        a, b = getattr(original, field.name), getattr(decoded, field.name)
+        where = f"{path}.{field.name}"
+        if dataclasses.is_dataclass(a):
+            assert_same_state(a, b, k, where)
+        elif isinstance(a, np.ndarray):
+            assert a.dtype == b.dtype and a.shape == b.shape, where
+            if field.name == "keypoints" and k >= 2:
+                exact = [0, 1, 2, 5, 6]
+                assert a[:, exact].tobytes() == b[:, exact].tobytes(), where
+                err = np.abs((a[:, 3] - b[:, 3] + 180) % 360 - 180)
+                assert err.max(initial=0) <= 360 / 512 + 1e-3, where
+                assert not b[:, 4].any(), where
+            elif field.name == "landmark_xyz":
+                np.testing.assert_array_equal(a, b, err_msg=where)  # NaN rows: NaN
+                assert a[~np.isnan(a)].tobytes() == b[~np.isnan(b)].tobytes(), where
+            else:
+                assert a.tobytes() == b.tobytes(), where
+        else:
+            assert a == b and type(a) is type(b) or (bool(a) == b and isinstance(b, bool)), where
+
+
+def run_reference(camera: Camera, frames: list[CapturedFrame]) -> tuple[np.ndarray, list[bool]]:
+    pipeline = TrackingPipeline(Config(), camera)
+    out = [pipeline.track(f) for f in frames]
+    return np.array([o.T_world_camera for o in out]), [o.is_keyframe for o in out]
+
+
+def run_through_wire(camera: Camera, frames: list[CapturedFrame], k: int,
+                     config: Config | None = None) -> tuple[np.ndarray, list[bool], list[int]]:
+    """Robot stages, then the state at k through encode -> decode, then the cloud stages;
+    every decoded state is checked against the one encoded."""
+    config = config or Config()
+    pipeline = TrackingPipeline(config, camera)
+    robot, cloud = pipeline.split(k)
+    poses, keyframes, sizes = [], [], []
+    for seq, frame in enumerate(frames):
+        state = run_stages(robot, frame, pipeline.session)
+        data = encode_frame_message(state, k, ROBOT, seq, camera, config.wire)
+        header, decoded = decode_frame_message(data, camera)
+        assert (header.split_point, header.seq, header.timestamp) == (k, seq, frame.timestamp)
+        assert_same_state(state, decoded, k)
+        sizes.append(len(data))
+        out = run_stages(cloud, decoded, pipeline.session)
+        poses.append(out.T_world_camera)
+        keyframes.append(out.is_keyframe)
+    return np.array(poses), keyframes, sizes
+
+
+@pytest.fixture(scope="module")
+def seven_scenes() -> tuple[Camera, list[CapturedFrame]]:
+    seq = RgbdSequence(require(SEVEN_SCENES), last=N_FRAMES - 1)
+    frames = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
+    return seq.camera, frames
+
+
+@pytest.fixture(scope="module")
+def seven_scenes_reference(seven_scenes):
+    return run_reference(*seven_scenes)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("k", range(7))
+def test_every_split_point_through_the_wire_is_exact(seven_scenes, seven_scenes_reference, k):
+    camera, frames = seven_scenes
+    expected_poses, expected_kf = seven_scenes_reference
+    assert np.linalg.norm(expected_poses[-1][:3, 3]) > 0.01 and sum(expected_kf) >= 2
+    poses, keyframes, sizes = run_through_wire(camera, frames, k)
+    assert poses.tobytes() == expected_poses.tobytes(), f"k={k}"
+    assert keyframes == expected_kf
+    if k == 3:
+        # Compact keypoints: ~32 bytes of descriptor plus ~4.5 of the rest per keypoint.
+        pipeline = TrackingPipeline(Config(), camera)
+        n = [len(run_stages(pipeline.stages[:3], f, pipeline.session).keypoints) for f in frames]
+        assert all(s < 38 * m + 300 for s, m in zip(sizes, n)), list(zip(sizes, n))
+
+
+def test_synthetic_scene_through_the_wire_is_exact(tmp_path):
+    config = SyntheticConfig(n_robots=1, frames_per_robot=8)
+    folder = generate_scene(tmp_path / "scene", config)[0]
+    seq = RgbdSequence(folder)
+    frames = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
+    expected_poses, expected_kf = run_reference(seq.camera, frames)
+    for k in (0, 3, 5):
+        poses, keyframes, _ = run_through_wire(seq.camera, frames, k)
+        assert poses.tobytes() == expected_poses.tobytes(), f"k={k}"
+        assert keyframes == expected_kf
+
+
+@pytest.mark.realdata
+def test_jpeg_frames_decode_and_are_smaller(seven_scenes):
+    camera, frames = seven_scenes
+    pipeline = TrackingPipeline(Config(), camera)
+    detected = run_stages(pipeline.stages[:1], frames[0], pipeline.session)
+    jpeg = WireConfig(frame_image_codec="jpeg")
+    for k, state in ((0, frames[0]), (1, detected)):
+        png_data = encode_frame_message(state, k, ROBOT, 0, camera, WireConfig())
+        jpeg_data = encode_frame_message(state, k, ROBOT, 0, camera, jpeg)
+        _, decoded = decode_frame_message(jpeg_data, camera)
+        image = decoded.rgb if k == 0 else decoded.gray
+        original = state.rgb if k == 0 else state.gray
+        assert image.shape == original.shape and image.dtype == np.uint8
+        assert np.abs(image.astype(int) - original).mean() < 5
+        np.testing.assert_array_equal(decoded.depth_m, state.depth_m)  # depth stays exact
+        # Only the image changes codec (the depth PNG stays): ~100 kB less either way.
+        assert len(jpeg_data) < len(png_data) - 50_000, (k, len(jpeg_data), len(png_data))
+
+
+# ---------------------------------------------------------------------------------------
+# Frame messages: fallbacks and faults, on a small synthetic feature frame
+# ---------------------------------------------------------------------------------------
+
+
+DISTORTED = Camera(517.3, 516.5, 318.6, 255.3, distortion=(0.26, -0.95, -0.005, 0.003, 1.16))
+
+
+def orb_features(camera: Camera = DISTORTED) -> FeatureFrame:
+    """ORB on a textured image, depth from a plane: a FeatureFrame as AssociateDepth makes."""
+    rgb, _ = textured_rgbd(480, 640)
+    orb = cv2.ORB_create(nfeatures=500)
+    kps, desc = orb.detectAndCompute(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), None)
+    kp = np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response, k.octave, k.class_id)
+                   for k in kps], np.float32)
+    raw = (2000 + 3 * (np.arange(len(kp)) % 50)).astype(np.uint16)
+    raw[::4] = 0
+    depth = raw.astype(np.float32) / np.float32(camera.depth_scale)
+    uv = camera.undistort_points(kp[:, :2].astype(np.float64))
+    return FeatureFrame(3, 0.5, kp, desc, depth, uv)
+
+
+def features_round_trip(f: FeatureFrame, camera: Camera = DISTORTED) -> tuple[FeatureFrame, int]:
+    payload = encode_state(f, 3, camera, WireConfig())
+    out = decode_state(payload, 3, camera)
+    assert_same_state(f, out, 3)
+    return out, len(payload)
+
+
+def test_orb_keypoints_are_sent_compactly():
+    f = orb_features()
+    assert len(f.keypoints) > 300 and len(np.unique(f.keypoints[:, 5])) >= 4
+    _, size = features_round_trip(f)
+    # Per keypoint: descriptor 32, position 3 (raw x, y: 8), octave, angle, depth 1 each.
+    assert size < len(f.keypoints) * (32 + 3 + 1 + 1 + 1) + 400
+
+
+def test_fallbacks_keep_decoding_exact():
+    f = orb_features()
+    _, compact = features_round_trip(f)
+    odd = f.keypoints.copy()
+    odd[5, 0] += 0.1  # not on the level grid: x, y go raw
+    odd[7, 2] = 12.0  # size not the level's
+    odd[9, 6] = 3  # class id not constant
+    _, raw_xy = features_round_trip(replace(f, keypoints=odd, uv=DISTORTED.undistort_points(
+        odd[:, :2].astype(np.float64))))
+    assert raw_xy > compact
+    depth = f.depth.copy()
+    depth[3] = 1.2345678  # no sensor value gives this float32
+    features_round_trip(replace(f, depth=depth))
+    features_round_trip(replace(f, uv=f.uv + 1e-9))  # uv not recomputable: sent
+    features_round_trip(replace(f, keypoints=f.keypoints[:0], descriptors=f.descriptors[:0],
+                                depth=f.depth[:0], uv=f.uv[:0]))
+
+
+def test_frame_payload_faults():
+    f = orb_features()
+    payload = encode_state(f, 3, DISTORTED, WireConfig())
+    other = replace(DISTORTED, fx=DISTORTED.fx + 1e-6)
+    with pytest.raises(WireError, match="camera differs"):
+        decode_state(payload, 3, other)
+    with pytest.raises(WireError, match="truncated"):
+        decode_state(payload[:-10], 3, DISTORTED)
+    with pytest.raises(WireError, match="unexpected bytes"):
+        decode_state(payload + b"\0", 3, DISTORTED)
+    for n in range(0, len(payload), 97):
+        with pytest.raises(WireError):
+            decode_state(payload[:n], 3, DISTORTED)
+    with pytest.raises(TypeError, match="FeatureFrame"):
+        encode_state(f, 2, DISTORTED, WireConfig())
+    with pytest.raises(WireError, match="expected a frame message"):
+        decode_frame_message(encode_feedback(ROBOT, 0, Feedback(0, 0.0, True, True, 0, np.eye(4),
+                                                                1.0)), DISTORTED)
+
+
+
+def test_corrupted_payloads_raise_only_wire_errors():
+    # The envelope's CRC stops random corruption; this is what a hostile sender could try.
+    payload = encode_state(orb_features(), 3, DISTORTED, WireConfig())
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        data = bytearray(payload)
+        for pos in rng.integers(0, len(data), 3):
+            data[pos] = rng.integers(0, 256)
+        try:
+            decode_state(bytes(data), 3, DISTORTED)
+        except WireError:
+            pass
+    huge = bytearray(payload)
+    huge[20:24] = struct.pack("<I", 0xFFFFFFFF)  # keypoint count, after the frame header
+    with pytest.raises(WireError, match="keypoint count"):
+        decode_state(bytes(huge), 3, DISTORTED)
