@@ -143,3 +143,21 @@ def test_lossy_slow_link_loses_frames_but_no_keyframe(scene, tmp_path):
     # The link was the limit: 20 Mbit/s for what was sent, never faster.
     assert r["link_busy_s"] == pytest.approx(
         8 * (r["frame_bytes"] + r["keyframe_bytes"] + r.get("control_bytes", 0)) / 20e6, rel=0.05)
+
+
+def test_demo_runs_cloud_and_robots_as_processes(scene, tmp_path, capsys):
+    from fleetslam.cli import main
+
+    out = tmp_path / "demo"
+    assert main(["--quiet", "demo", "--frames", str(N_FRAMES), "--scene",
+                 str(Path(scene[0]).parent), "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["deployment"]["processes"] == 3
+    for robot in summary["robots"]:
+        assert robot["frames"] == N_FRAMES and robot["lost_frames"] == 0
+        assert robot["ate"]["rmse_m"] < 0.02
+        assert robot["robot"]["frames"] == N_FRAMES  # the robot process's own report
+    pair = summary["merge"]["pairs"][0]
+    assert pair["rotation_error_deg"] < 2.0 and pair["translation_error_m"] < 0.05
+    assert (out / "global_map.ply").exists() and (out / "logs" / "cloud.log").exists()
+    assert "FS-HICP" in capsys.readouterr().out
