@@ -77,6 +77,10 @@ class Extract:
         table = _keypoints_to_array(kps)
         cfg = session.config.orb
         table = spread_over_grid(table, cfg.n_features, gray.shape, cfg.grid_cols, cfg.grid_rows)
+        # One canonical order (pyramid level, then row, then column): neighbours follow each
+        # other, so the wire's delta-coded positions are small (OpenCV's order is partly
+        # shuffled by its per-level selection), and Describe keeps it (it wants level order).
+        table = table[np.lexsort((table[:, 0], table[:, 1], table[:, 5]))]
         return DetectedFrame(state.index, state.timestamp, gray, state.depth_m, table)
 
 
