@@ -229,6 +229,23 @@ def summary_table(summary: dict[str, Any]) -> str:
                      r["tracking_fps"], r["map_points"]])
     text = format_table(["robot", "frames", "keyframes", "lost", "ATE RMSE cm", "fps",
                          "map points"], rows)
+    deployed = [r for r in summary["robots"] if "transport" in r]
+    if deployed:
+        trows = []
+        for r in deployed:
+            robot = r.get("robot") or {}
+            counts = r["transport"]
+            trows.append([
+                r["name"], r["offload_at"],
+                robot["frame_bytes"] / max(robot["frames"], 1) / 1000 if robot else None,
+                robot.get("frames_lost_on_link"),
+                sum(v for k, v in counts.items() if k.startswith("rejected")),
+                robot.get("keyframe_uploads"), robot.get("upload_retries"),
+                r["cloud_ms_mean"], r["latency_ms_median"], robot.get("round_trip_ms_median"),
+                robot.get("round_trip_ms_p95")])
+        text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + format_table(
+            ["robot", "offload at", "kB/frame", "lost on link", "rejected", "KF uploads",
+             "retries", "cloud ms/frame", "cloud latency ms", "round trip ms", "p95"], trows)
     merge = summary.get("merge")
     if merge:
         mrows = [[f"{p['source']} -> {p['target']}", p["initial_rotation_error_deg"],

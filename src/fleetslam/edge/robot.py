@@ -274,6 +274,11 @@ class Robot:
         welcome = self._hello()
         start_index = int(welcome["next_index"])
         seq = int(welcome["next_seq"])
+        if welcome.get("resumed") and start_index and self.offload_at == ROBOT_TRACKS:
+            raise RuntimeError(
+                f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
+                f"but a robot that tracks itself (point 6) kept its map on the robot and "
+                f"cannot resume it; start again under a new --id")
         if welcome.get("resumed"):
             self.report.resumed_at = start_index
             log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,

@@ -15,17 +15,17 @@ A robot id is 1-64 characters of [A-Za-z0-9_-], so it is always one key chunk.
 
 from __future__ import annotations
 
-import re
+from fleetslam.wire import envelope
 
 ROOT = "fleet"
-ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 CLOUD = "cloud"  # reserved: not a robot id
 
 
 def check_robot_id(robot_id: str) -> str:
-    if not ROBOT_ID.match(robot_id) or robot_id == CLOUD:
-        raise ValueError(f"robot id {robot_id!r}: use 1-64 characters of A-Z a-z 0-9 _ - "
-                         f"(and not '{CLOUD}')")
+    """The id itself (the same rule as the message header's), or ValueError."""
+    envelope.check_robot_id(robot_id)
+    if robot_id == CLOUD:
+        raise ValueError(f"robot id '{CLOUD}' is reserved for the cloud's own keys")
     return robot_id
 
 
