@@ -17,6 +17,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.synthetic import ensure_scene
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.wire.paper_yaml import read_paper_yaml
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop
 
 N_FRAMES = 60
@@ -130,7 +131,8 @@ def test_lossy_slow_link_loses_frames_but_no_keyframe(scene, tmp_path):
     try:
         robot = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0.log", report,
                             extra=["--bandwidth-mbps", "20", "--latency-ms", "20",
-                                   "--loss", "0.2", "--link-seed", "3"])
+                                   "--loss", "0.2", "--link-seed", "3",
+                                   "--paper-yaml", str(tmp_path / "yaml")])
         _finish(robot, tmp_path / "r0.log")
     finally:
         stop(cloud)
@@ -140,6 +142,11 @@ def test_lossy_slow_link_loses_frames_but_no_keyframe(scene, tmp_path):
     assert len(times) == N_FRAMES - r["frames_lost_on_link"]
     kf_times, _ = read_tum_trajectory(out / "r0" / "keyframes.tum")
     assert len(_keyframe_files(out, "r0")) == len(kf_times) >= 2
+    # The paper's message of every frame was exported too, and OpenCV reads it back.
+    exported = sorted((tmp_path / "yaml").glob("*.yml"))
+    assert len(exported) == N_FRAMES
+    message = read_paper_yaml(exported[-1])
+    assert message.descriptors.shape == (len(message.keypoints), 32)
     # The link was the limit: 20 Mbit/s for what was sent, never faster.
     assert r["link_busy_s"] == pytest.approx(
         8 * (r["frame_bytes"] + r["keyframe_bytes"] + r.get("control_bytes", 0)) / 20e6, rel=0.05)

@@ -135,7 +135,8 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
     sequence = open_robot(args.source, camera)
     robot = Robot(args.id, sequence, args.source, k, config, args.connect, args.rate,
-                  show_progress=not args.quiet)
+                  show_progress=not args.quiet,
+                  paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None)
     report = robot.run()
     if args.report:
         Path(args.report).parent.mkdir(parents=True, exist_ok=True)
@@ -232,6 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_link_options(robot)
     robot.add_argument("--link-seed", type=int, help="seed of the link's loss pattern")
     robot.add_argument("--report", help="write the robot's measurements here (JSON)")
+    robot.add_argument("--paper-yaml", metavar="DIR", help="also write every frame's message "
+                       "as the paper's OpenCV YAML file (point 3 only)")
     robot.set_defaults(func=cmd_robot)
 
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")

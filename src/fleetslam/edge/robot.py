@@ -17,6 +17,7 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,7 @@ from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.messages import KeyframeUpload, decode_feedback, encode_keyframe
+from fleetslam.wire.paper_yaml import write_paper_yaml
 
 log = logging.getLogger("fleetslam.robot")
 
@@ -108,12 +110,19 @@ class RobotReport:
 class Robot:
     def __init__(self, robot_id: str, sequence: RgbdSequence, source: str, offload_at: int,
                  config: Config, endpoint: str | None = None, rate: str = "max",
-                 show_progress: bool = True) -> None:
+                 show_progress: bool = True, paper_yaml_dir: Path | None = None) -> None:
         self.robot_id = keys.check_robot_id(robot_id)
         if offload_at not in SUPPORTED_POINTS:
             raise ValueError(f"offloading point {offload_at} not supported "
                              f"({', '.join(map(str, SUPPORTED_POINTS))})")
         self.fps = parse_rate(rate)
+        if paper_yaml_dir is not None and offload_at != 3:
+            raise ValueError("the paper's YAML message holds the state at point 3 "
+                             f"(--offload-at paper), not {offload_at}")
+        # Also write each frame as the paper's YAML file (inspection, old tools).
+        self.paper_yaml_dir = paper_yaml_dir
+        if paper_yaml_dir is not None:
+            paper_yaml_dir.mkdir(parents=True, exist_ok=True)
         self.sequence = sequence
         self.source = source
         self.offload_at = offload_at
@@ -316,6 +325,8 @@ class Robot:
             data = encode_frame_message(state, self.offload_at, self.robot_id, seq,
                                         self.sequence.camera, self.config.wire)
             self.report.robot_compute_s += time.perf_counter() - start
+            if self.paper_yaml_dir is not None:
+                write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
             if self.offload_at > 0:
                 with self._buffer_lock:
                     self._buffer[frame.index] = KeyframeUpload.from_frame(
