@@ -18,7 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fleetslam.camera import Camera
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.store import CloudStore, snapshot
 from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
@@ -130,11 +130,17 @@ class RobotSession:
         self.finished: FinishedMap | None = None
         self._frames: queue.Queue = queue.Queue()
         self._keyframes: queue.Queue = queue.Queue()
+        self._checkpoints: queue.Queue = queue.Queue()
+        # Newest frame index covered by a checkpoint on disk (a restored session: all of it).
+        self._durable_index = state.last_index
+        self._durable = threading.Condition()
         self._threads = [
             threading.Thread(target=self._serve, args=(self._frames, self._on_work),
                              name=f"cloud-{state.robot_id}", daemon=True),
             threading.Thread(target=self._serve, args=(self._keyframes, self._on_keyframe),
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
+            threading.Thread(target=self._write_checkpoints,
+                             name=f"cloud-{state.robot_id}-checkpoints", daemon=True),
         ]
         for t in self._threads:
             t.start()
@@ -165,6 +171,7 @@ class RobotSession:
     def close(self, timeout: float = 5.0) -> None:
         self._frames.put(None)
         self._keyframes.put(None)
+        self._checkpoints.put(None)
         for t in self._threads:
             t.join(timeout)
 
@@ -187,6 +194,28 @@ class RobotSession:
             except Exception:  # a bug on one message must not end the robot's session
                 self.state.counts["errors"] += 1
                 log.exception("robot %s: %s message failed", self.robot_id, kind)
+
+    def _write_checkpoints(self) -> None:
+        while (item := self._checkpoints.get()) is not None:
+            index, blob = item
+            while not self._checkpoints.empty():  # only the newest one matters
+                newer = self._checkpoints.get()
+                if newer is None:
+                    self._checkpoints.put(None)
+                    break
+                index, blob = newer
+            try:
+                self.store.write_checkpoint(self.robot_id, blob)
+            except OSError:
+                log.exception("robot %s: checkpoint not written", self.robot_id)
+                continue
+            with self._durable:
+                self._durable_index = max(self._durable_index, index)
+                self._durable.notify_all()
+
+    def _await_checkpoint(self, frame_index: int, timeout: float = 30.0) -> bool:
+        with self._durable:
+            return self._durable.wait_for(lambda: self._durable_index >= frame_index, timeout)
 
     def _reject(self, what: str, reason: str) -> None:
         self.state.counts[f"rejected {what}"] += 1
@@ -243,9 +272,10 @@ class RobotSession:
             if isinstance(state, CapturedFrame):
                 # Total offloading: the cloud already has the keyframe's RGB-D.
                 self._store_captured_keyframe(state, header.seq)
-            # Persist what the session knows before the robot hears of the keyframe, so the
-            # upload it sends next is never acknowledged for a keyframe a restart forgets.
-            self.store.save_checkpoint(self.robot_id, st)
+            # Checkpoint the session as it is now (the snapshot here, the slow durable write
+            # on the writer thread); the keyframe's upload is acknowledged only once this
+            # checkpoint is on disk, so no acknowledged keyframe is one a restart forgets.
+            self._checkpoints.put((out.index, snapshot(st)))
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
                             out.n_inliers, out.T_world_camera, cloud_ms)
         self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
@@ -275,7 +305,11 @@ class RobotSession:
         else:
             self.store.put_keyframe(self.robot_id, upload.frame_index, data)
             self.state.counts["keyframes stored"] += 1
-        # Acknowledged only now that it is on disk (a resent one is acknowledged again).
+        # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
+        # (a resent one is acknowledged again).
+        if not self._await_checkpoint(upload.frame_index):
+            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
+                                            f"covers it yet (not acknowledged; resend)")
         self._reply({"type": "ack", "frame_index": upload.frame_index})
 
     # -- control ------------------------------------------------------------------------

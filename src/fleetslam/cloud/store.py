@@ -35,6 +35,11 @@ def write_durably(path: Path, data: bytes) -> None:
         os.close(dir_fd)
 
 
+def snapshot(state: Any) -> bytes:
+    """The state as it is now, as bytes a later load_checkpoint turns back into it."""
+    return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+
+
 class CloudStore:
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
@@ -63,8 +68,10 @@ class CloudStore:
         return sorted(int(m.group(1)) for m in found if m)
 
     def save_checkpoint(self, robot_id: str, state: Any) -> None:
-        write_durably(self.robot_dir(robot_id) / "session.pkl",
-                      pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL))
+        self.write_checkpoint(robot_id, snapshot(state))
+
+    def write_checkpoint(self, robot_id: str, blob: bytes) -> None:
+        write_durably(self.robot_dir(robot_id) / "session.pkl", blob)
 
     def load_checkpoint(self, robot_id: str) -> Any | None:
         path = self.robot_dir(robot_id) / "session.pkl"
