@@ -228,7 +228,7 @@ class RobotSession:
         if kind == "frame":
             self._on_frame(payload, arrival)
         elif kind == "control":
-            self._on_control(payload)
+            self._on_control(payload, arrival)
         elif kind == "call":
             payload()
 
@@ -320,11 +320,18 @@ class RobotSession:
                      "next_seq": st.last_seq + 1,
                      "keyframes_stored": len(self.store.keyframe_indices(self.robot_id))})
 
-    def _on_control(self, message: dict[str, Any]) -> None:
+    def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")
         if kind == "hello":
             self.welcome(resumed=True)
         elif kind == "end":
+            last_seq = message.get("last_seq")
+            if (isinstance(last_seq, int) and last_seq > self.state.last_seq
+                    and time.monotonic() - arrival < self.config.transport.end_grace_s):
+                # Frames travel on another key than control messages and may arrive after
+                # the end that follows them: look again once those in flight are in.
+                threading.Timer(0.05, self.submit_control, (message, arrival)).start()
+                return
             poses = message.get("keyframe_poses") or {}
             try:
                 for index, T in poses.items():
