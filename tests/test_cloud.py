@@ -197,3 +197,35 @@ def test_frames_without_a_session_and_bad_control_get_a_clear_error(cloud, messa
     assert robot.poses(1)[0].frame_index == 0
     assert server.unrouted >= 1
     robot.close()
+
+
+def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path):
+    from fleetslam.cloud.robot_session import Hello, RobotSession
+    from fleetslam.cloud.store import CloudStore
+
+    seq0, msgs0, _ = messages["r0"]
+    replies: list[dict] = []
+    holder: list[RobotSession] = []
+
+    def publish(key: str, data: bytes) -> None:
+        if key == keys.reply("r0"):  # with the number of frames tracked when it was sent
+            replies.append({**json.loads(data), "frames": holder[0].state.counts["frames"]})
+
+    hello = Hello(K, seq0.camera, "test", None)
+    session = RobotSession.open("r0", hello, Config(), CloudStore(tmp_path), publish)
+    holder.append(session)
+    now = time.monotonic()
+    for data in msgs0[:-3]:
+        session.submit_frame(data, now)
+    # The end arrives before the last three frames it follows (another key, another path).
+    session.submit_control({"type": "end", "last_seq": N_FRAMES - 1}, now)
+    time.sleep(0.2)
+    for data in msgs0[-3:]:
+        session.submit_frame(data, time.monotonic())
+    deadline = time.monotonic() + 30
+    while not any(r["type"] in ("need", "ended") for r in replies):
+        assert time.monotonic() < deadline, replies
+        time.sleep(0.05)
+    session.close()
+    # Keyframe uploads are still missing, so the cloud asks for them — after all frames.
+    assert replies[-1]["type"] == "need" and replies[-1]["frames"] == N_FRAMES
