@@ -10,6 +10,13 @@ from scipy.spatial import cKDTree
 from fleetslam.pipeline.states import FeatureFrame
 
 
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two N x 32 uint8 descriptor arrays (as 4 uint64 words:
+    8x fewer elements to count than bytes, same result)."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    return np.bitwise_count(a.view(np.uint64) ^ b.view(np.uint64)).sum(axis=1)
+
+
 def descriptor_match(query: np.ndarray, train: np.ndarray, train_ids: np.ndarray,
                      max_hamming: int, ratio: float, mask: np.ndarray | None = None
                      ) -> np.ndarray:
@@ -72,7 +79,7 @@ def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.nd
     lm, kp = np.concatenate(lm_parts), np.concatenate(kp_parts)
     if len(lm) == 0:
         return ids
-    ham = np.bitwise_count(state.descriptors[kp] ^ descriptors[candidates[lm]]).sum(axis=1)
+    ham = hamming(state.descriptors[kp], descriptors[candidates[lm]])
     # Best and second-best landmark per keypoint.
     order = np.lexsort((ham, kp))
     kp, lm, ham = kp[order], lm[order], ham[order]
