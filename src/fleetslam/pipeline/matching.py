@@ -81,7 +81,9 @@ def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.nd
         return ids
     ham = hamming(state.descriptors[kp], descriptors[candidates[lm]])
     # Best and second-best landmark per keypoint.
-    order = np.lexsort((ham, kp))
+    # By keypoint, then distance (ties in input order): one stable sort of a combined key
+    # is several times faster than lexsort on this many pairs.
+    order = np.argsort(kp * 257 + ham.astype(np.int64), kind="stable")
     kp, lm, ham = kp[order], lm[order], ham[order]
     first = np.ones(len(kp), bool)
     first[1:] = kp[1:] != kp[:-1]

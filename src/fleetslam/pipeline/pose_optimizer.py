@@ -67,8 +67,11 @@ def optimize_pose(camera: Camera, T_world_camera: np.ndarray, xyz_world: np.ndar
             k = np.sqrt(threshold)
             norm = np.sqrt(chi2)
             w = np.where(norm <= k, 1.0, k / np.maximum(norm, 1e-12)) * info * inlier
-            H = np.einsum("n,nij,nik->jk", w, J, J)
-            g = np.einsum("n,nij,ni->j", w, J, r)
+            # Normal equations as two matrix products (a 3-operand einsum takes numpy's
+            # slow generic path): H = sum w J^T J, g = sum w J^T r.
+            Jw = (J * w[:, None, None]).reshape(-1, 6)
+            H = Jw.T @ J.reshape(-1, 6)
+            g = Jw.T @ r.reshape(-1)
             try:
                 delta = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
             except np.linalg.LinAlgError:
