@@ -20,7 +20,6 @@ import zenoh
 from fleetslam.cloud.robot_session import Hello, RobotSession
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
-from fleetslam.report import format_table
 from fleetslam.system import merge_maps, write_global_map
 from fleetslam.transport import keys
 from fleetslam.transport.zenoh_session import open_listening, put
@@ -76,12 +75,12 @@ class CloudServer:
 
     def _route(self, sample: zenoh.Sample, kind: str) -> None:
         arrival = time.monotonic()
+        key = str(sample.key_expr)
         try:
-            robot_id = keys.check_robot_id(keys.robot_of(str(sample.key_expr))) \
-                if not str(sample.key_expr) == keys.CLOUD_CONTROL else keys.CLOUD
             data = sample.payload.to_bytes()
-            if robot_id == keys.CLOUD:
+            if key == keys.CLOUD_CONTROL:
                 return self._on_cloud_control(data)
+            robot_id = keys.check_robot_id(keys.robot_of(key))
             if kind == "control":
                 return self._on_robot_control(robot_id, data, arrival)
             session = self._session(robot_id)
@@ -228,10 +227,3 @@ class CloudServer:
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
         return summary
-
-
-def status_table(sessions: dict[str, RobotSession]) -> str:
-    rows = [[r, s.state.counts["frames"], s.state.last_index,
-             sum(v for k, v in s.state.counts.items() if k.startswith("rejected"))]
-            for r, s in sorted(sessions.items())]
-    return format_table(["robot", "frames", "last frame", "rejected"], rows)

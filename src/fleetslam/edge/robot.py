@@ -128,7 +128,6 @@ class Robot:
         self.offload_at = offload_at
         self.config = config
         self.endpoint = endpoint or config.transport.endpoint
-        self.rate = rate
         self.show_progress = show_progress
         self.pipeline = TrackingPipeline(config, sequence.camera)
         self.robot_stages, _ = self.pipeline.split(offload_at)
