@@ -162,7 +162,7 @@ class Robot:
         if fb.is_keyframe:
             self.report.keyframes += 1
             if self.offload_at > 0:  # at point 0 the cloud already has the images
-                self._uploads.put(fb.frame_index)
+                self._queue_upload(fb.frame_index)
 
     def _on_reply(self, sample: Any) -> None:
         try:
@@ -229,12 +229,21 @@ class Robot:
                                                self.config.map.pixel_stride)
         return upload
 
+    def _queue_upload(self, index: int) -> None:
+        """Upload a keyframe once: the cloud's 'need' at the end may name one whose feedback
+        came after the end was sent, and is already on its way."""
+        with self._acks_lock:
+            if index in self._acks:
+                return
+            self._acks[index] = threading.Event()
+        self._uploads.put(index)
+
     def _upload(self, index: int) -> None:
         cfg = self.config.transport
         data = encode_keyframe(self.robot_id, index, self._keyframe_upload(index),
                                self.config.wire)
         with self._acks_lock:
-            event = self._acks.setdefault(index, threading.Event())
+            event = self._acks[index]
         for attempt in range(cfg.max_attempts):
             if attempt:
                 self.report.upload_retries += 1
@@ -396,7 +405,7 @@ class Robot:
                 return
             log.info("robot %s: cloud needs keyframes %s", self.robot_id, answer["frames"])
             for index in answer["frames"]:
-                self._uploads.put(int(index))
+                self._queue_upload(int(index))
             self._uploads.join()
         raise RuntimeError(f"robot {self.robot_id}: the cloud never confirmed the end")
 
