@@ -38,9 +38,9 @@ from fleetslam.transport import keys
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.messages import decode_feedback
+from shared_data import SEVEN_SCENES
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-SEQ = DATA / "7scenes_redkitchen_seq01_f0000-0599"
+SEQ = SEVEN_SCENES
 K = 3
 
 

@@ -38,8 +38,9 @@ from fleetslam.registration.initial_guess import perturbed_guess  # noqa: E402
 from fleetslam.registration.metrics import transform_error  # noqa: E402
 from fleetslam.report import format_table  # noqa: E402
 from fleetslam.transforms import invert, random_perturbation, transform_points  # noqa: E402
+from shared_data import SEVEN_SCENES
 
-SEQ = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_seq01_f0000-0599"
+SEQ = SEVEN_SCENES
 RANGES = {"A": (0, 349), "B": (250, 599)}
 
 

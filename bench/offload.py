@@ -27,9 +27,9 @@ from pathlib import Path
 from fleetslam.datasets.tum import open_robot
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop, trajectory_ate
 from fleetslam.report import format_table
+from shared_data import SEVEN_SCENES
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-SEQ = DATA / "7scenes_redkitchen_seq01_f0000-0599"
+SEQ = SEVEN_SCENES
 PAPER = {  # robot / trans / cloud / sum / total seconds, 1000 frames at 10 Mbps
     "paper total offloading": (0, 498, 80, 578, 578),
     "paper partial (eta 0.484)": (50, 232, 45, 327, 282),

@@ -28,12 +28,8 @@ from fleetslam.progress import Progress
 from fleetslam.report import format_table
 from fleetslam.wire.frames import STATE_TYPES, decode_frame_message, encode_frame_message
 from fleetslam.wire.paper_yaml import paper_yaml_bytes
+from shared_data import SEQUENCES
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-SEQUENCES = {
-    "7scenes_redkitchen_0-599": DATA / "7scenes_redkitchen_seq01_f0000-0599",
-    "tum_fr1_rpy_0-149": DATA / "tum_fr1_rpy_f000-149",
-}
 ROBOT = "bench"
 
 

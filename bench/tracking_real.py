@@ -20,12 +20,8 @@ from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.report import format_table
 from fleetslam.system import track_robot
+from shared_data import SEQUENCES
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-SEQUENCES = {
-    "7scenes_redkitchen_0-599": DATA / "7scenes_redkitchen_seq01_f0000-0599",
-    "tum_fr1_rpy_0-149": DATA / "tum_fr1_rpy_f000-149",
-}
 STAGES = ["extract", "describe", "associate_depth", "match", "estimate_pose", "decide_keyframe"]
 
 

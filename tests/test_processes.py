@@ -5,7 +5,6 @@ lost on the link do not lose keyframes."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import time
 from pathlib import Path
