@@ -44,9 +44,19 @@ class Camera:
             depth[raw == bad] = 0.0
         return depth
 
-    def metres_to_depth(self, depth_m: np.ndarray) -> np.ndarray:
-        """Inverse of depth_to_metres for measured pixels: raw 16-bit units, 0 = none."""
-        return np.round(depth_m.astype(np.float64) * self.depth_scale).astype(np.uint16)
+    def metres_to_depth(self, depth_m: np.ndarray) -> np.ndarray | None:
+        """The raw 16-bit values that depth_to_metres turns back into exactly ``depth_m``
+        (bit for bit; 0 = no measurement), or None if some value is not such a reading."""
+        if depth_m.dtype != np.float32:
+            return None
+        with np.errstate(invalid="ignore", over="ignore"):
+            scaled = np.nan_to_num(depth_m.astype(np.float64) * self.depth_scale, nan=0.0,
+                                   posinf=0.0, neginf=0.0)
+            raw = np.rint(np.clip(scaled, 0, 0xFFFF)).astype(np.uint16)
+        back = self.depth_to_metres(raw)
+        if not np.array_equal(back.view(np.uint32), np.ascontiguousarray(depth_m).view(np.uint32)):
+            return None
+        return raw
 
     def undistort_points(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixel coordinates (N, 2) to ideal pinhole pixel coordinates."""

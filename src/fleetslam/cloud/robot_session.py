@@ -283,9 +283,10 @@ class RobotSession:
         st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
 
     def _store_captured_keyframe(self, frame: CapturedFrame, seq: int) -> None:
-        camera = self.state.hello.camera
-        upload = KeyframeUpload.from_frame(frame.index, frame.timestamp, frame.rgb,
-                                           camera.metres_to_depth(frame.depth_m),
+        depth_raw = self.state.hello.camera.metres_to_depth(frame.depth_m)
+        if depth_raw is None:  # decoded from sensor units, so this cannot happen
+            raise ValueError(f"frame {frame.index}: depth is not in the camera's sensor units")
+        upload = KeyframeUpload.from_frame(frame.index, frame.timestamp, frame.rgb, depth_raw,
                                            self.config.map.pixel_stride)
         self.store.put_keyframe(self.robot_id, frame.index,
                                 encode_keyframe(self.robot_id, seq, upload, self.config.wire))

@@ -250,29 +250,3 @@ def get_image(r: Reader, what: str) -> tuple[np.ndarray, str]:
     if channels == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     return image, codec
-
-
-# ---------------------------------------------------------------------------------------
-# Depth in sensor units
-# ---------------------------------------------------------------------------------------
-
-
-def metres_to_raw(depth_m: np.ndarray, depth_scale: float) -> np.ndarray | None:
-    """The uint16 sensor values that :func:`raw_to_metres` turns back into exactly
-    ``depth_m`` (bit for bit), or None if some value is not such a reading."""
-    if depth_m.dtype != np.float32:
-        return None
-    with np.errstate(invalid="ignore", over="ignore"):
-        scaled = np.nan_to_num(depth_m.astype(np.float64) * depth_scale, nan=0.0,
-                               posinf=0.0, neginf=0.0)
-        raw = np.rint(np.clip(scaled, 0, 0xFFFF)).astype(np.uint16)
-    back = raw_to_metres(raw, depth_scale)
-    if not np.array_equal(back.view(np.uint32), np.ascontiguousarray(depth_m).view(np.uint32)):
-        return None
-    return raw
-
-
-def raw_to_metres(raw: np.ndarray, depth_scale: float) -> np.ndarray:
-    """Sensor units to float32 metres, the arithmetic of Camera.depth_to_metres (its invalid
-    values are already 0 in what the robot sends)."""
-    return raw.astype(np.float32) / np.float32(depth_scale)

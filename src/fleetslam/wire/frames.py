@@ -62,9 +62,7 @@ from fleetslam.wire.binary import (
     Writer,
     check_codec,
     get_image,
-    metres_to_raw,
     put_image,
-    raw_to_metres,
 )
 from fleetslam.wire.envelope import N_SPLIT_POINTS, Header, Kind, WireError, open_message, seal
 
@@ -116,7 +114,7 @@ def _require(ok: bool, message: str) -> None:
 def _put_depth_image(w: Writer, depth_m: np.ndarray, camera: Camera) -> None:
     _require(depth_m.ndim == 2 and depth_m.dtype == np.float32,
              f"depth image must be H x W float32, got {depth_m.shape} {depth_m.dtype}")
-    raw = metres_to_raw(depth_m, camera.depth_scale)
+    raw = camera.metres_to_depth(depth_m)
     if raw is not None:
         w.pack("B", _DEPTH_PNG)
         put_image(w, raw, "png")
@@ -131,7 +129,7 @@ def _get_depth_image(r: Reader, camera: Camera) -> np.ndarray:
         raw, _ = get_image(r, "depth image")
         if raw.dtype != np.uint16 or raw.ndim != 2:
             raise WireError(f"depth image is {raw.shape} {raw.dtype}, expected 16-bit grey")
-        return raw_to_metres(raw, camera.depth_scale)
+        return camera.depth_to_metres(raw)
     if mode == _DEPTH_F32:
         h, width = r.unpack("HH", "depth image size")
         return r.shuffled("f4", h * width, "depth image").reshape(h, width)
@@ -139,7 +137,7 @@ def _get_depth_image(r: Reader, camera: Camera) -> np.ndarray:
 
 
 def _put_depth_values(w: Writer, depth: np.ndarray, camera: Camera) -> None:
-    raw = metres_to_raw(depth, camera.depth_scale)
+    raw = camera.metres_to_depth(depth)
     if raw is None:
         w.pack("B", _VALUES_F32)
         w.shuffled(depth, "f4")
@@ -160,7 +158,7 @@ def _get_depth_values(r: Reader, n: int, camera: Camera) -> np.ndarray:
         index = r.array("u1" if n_palette <= 256 else "u2", n, "keypoint depth").astype(np.int64)
         if n and (index.max() >= n_palette or palette[-1] > 0xFFFF):
             raise WireError(f"keypoint depth refers past its {n_palette}-value palette")
-        return raw_to_metres(palette.astype(np.uint16)[index], camera.depth_scale)
+        return camera.depth_to_metres(palette.astype(np.uint16)[index])
     if mode == _VALUES_F32:
         return r.shuffled("f4", n, "keypoint depth")
     raise WireError(f"unknown keypoint depth mode {mode}")
