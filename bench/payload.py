@@ -28,7 +28,7 @@ from fleetslam.progress import Progress
 from fleetslam.report import format_table
 from fleetslam.wire.frames import STATE_TYPES, decode_frame_message, encode_frame_message
 from fleetslam.wire.paper_yaml import paper_yaml_bytes
-from shared_data import SEQUENCES
+from shared_data import present_sequences
 
 ROBOT = "bench"
 
@@ -123,10 +123,7 @@ def main() -> None:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     results = []
-    for name, folder in SEQUENCES.items():
-        if not folder.exists():
-            print(f"skip {name}: {folder} missing")
-            continue
+    for name, folder in present_sequences():
         last = None if args.frames is None else args.frames - 1
         result = measure(name, folder, last)
         results.append(result)

@@ -20,7 +20,7 @@ from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.report import format_table
 from fleetslam.system import track_robot
-from shared_data import SEQUENCES
+from shared_data import present_sequences
 
 STAGES = ["extract", "describe", "associate_depth", "match", "estimate_pose", "decide_keyframe"]
 
@@ -32,10 +32,7 @@ def main() -> None:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     results = []
-    for name, folder in SEQUENCES.items():
-        if not folder.exists():
-            print(f"skip {name}: {folder} missing")
-            continue
+    for name, folder in present_sequences():
         seq = RgbdSequence(folder)
         run = track_robot(name, str(folder), seq, Config(), show_progress=False)
         write_tum_trajectory(out.parent / f"{name}.tum", run.timestamps, run.poses)
