@@ -18,3 +18,13 @@ def require(path: Path) -> Path:
     if not path.exists():
         pytest.skip(f"real data not present: {path}")
     return path
+
+
+def small_scene(tmp_path_factory, frames_per_robot: int) -> list[Path]:
+    """The built-in synthetic scene (2 robots) with this many frames each, in a temp dir."""
+    from fleetslam.config import Config
+    from fleetslam.datasets.synthetic import ensure_scene
+
+    config = Config()
+    config.synthetic.frames_per_robot = frames_per_robot
+    return ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)

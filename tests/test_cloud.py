@@ -14,10 +14,11 @@ import time
 import numpy as np
 import pytest
 
+from conftest import small_scene
+
 from fleetslam.cloud.robot_session import PROTOCOL
 from fleetslam.cloud.server import CloudServer
 from fleetslam.config import Config
-from fleetslam.datasets.synthetic import ensure_scene
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.launch import free_endpoint
 from fleetslam.pipeline.split import TrackingPipeline, run_stages
@@ -34,9 +35,7 @@ N_FRAMES = 12
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    config = Config()
-    config.synthetic.frames_per_robot = N_FRAMES
-    return ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)
+    return small_scene(tmp_path_factory, N_FRAMES)
 
 
 @pytest.fixture(scope="module")

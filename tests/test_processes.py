@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetslam.config import Config
-from fleetslam.datasets.synthetic import ensure_scene
+from conftest import small_scene
+
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.wire.paper_yaml import read_paper_yaml
@@ -24,9 +24,7 @@ N_FRAMES = 60
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    config = Config()
-    config.synthetic.frames_per_robot = N_FRAMES
-    return ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)
+    return small_scene(tmp_path_factory, N_FRAMES)
 
 
 def _wait(predicate, timeout: float, what: str, interval: float = 0.1):

@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 
+from conftest import small_scene
+
 from fleetslam.cli import main
 from fleetslam.config import Config
-from fleetslam.datasets.synthetic import ensure_scene
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.io.ply import read_ply
 from fleetslam.io.trajectory import read_tum_trajectory
@@ -20,8 +21,7 @@ from fleetslam.system import run_fleet, summary_table
 def scene(tmp_path_factory):
     config = Config()
     config.synthetic.frames_per_robot = 30
-    folders = ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)
-    return config, folders
+    return config, small_scene(tmp_path_factory, 30)
 
 
 @pytest.fixture(scope="module")
