@@ -107,6 +107,75 @@ class TrackingConfig:
 
 
 @dataclass
+class PlaceRecognitionConfig:
+    """Keyframe database: binary nearest-neighbour voting over ORB descriptors."""
+
+    # Neighbours looked up per query descriptor (a landmark seen by several old keyframes
+    # votes for each of them).
+    neighbours: int = 8
+    # A neighbour farther than this (bits of 256) casts no vote (ORB-SLAM's TH_LOW).
+    max_hamming: int = 50
+    # Candidates returned per query, best score first ...
+    top_k: int = 3
+    # ... each scoring at least this fraction of the best one.
+    min_score_ratio: float = 0.75
+
+
+@dataclass
+class LoopClosingConfig:
+    """Loop detection (place recognition), geometric verification and correction."""
+
+    enabled: bool = True
+    # No loop is searched before the map has this many keyframes ...
+    min_keyframes: int = 10
+    # ... nor against keyframes fewer than this many keyframes older than the query, or
+    # sharing at least ``covisibility_min_shared`` landmarks with it (tracking already
+    # ties those to the query).
+    min_keyframe_gap: int = 10
+    # A candidate's place: the candidate and this many of its most covisible keyframes,
+    # whose landmarks are matched against the query keyframe.
+    candidate_neighbours: int = 5
+    # Geometric verification: 3D-3D RANSAC on depth-backed matches, then a motion-only
+    # refinement with every landmark of the place projected into the query.
+    ransac_iterations: int = 300
+    # A 3D match is an inlier within max(inlier_m, inlier_depth_ratio * depth).
+    ransac_inlier_m: float = 0.03
+    ransac_inlier_depth_ratio: float = 0.02
+    min_ransac_inliers: int = 30
+    # Inliers of the refined pose (reprojection with depth, chi-square test).
+    min_refined_inliers: int = 60
+    # Detections on consecutive keyframes whose loop corrections agree within these bounds
+    # are required before a loop is closed (a single match can be a look-alike).
+    consistent_detections: int = 2
+    consistency_rotation_deg: float = 3.0
+    consistency_translation_m: float = 0.10
+    # A detection stays usable for consistency for this many keyframes.
+    consistency_window_keyframes: int = 3
+    # Pose graph (gtsam, graduated non-convexity with a truncated least squares loss on
+    # loop edges; odometry and covisibility edges are known inliers). Standard deviations
+    # of a keyframe-to-keyframe relative pose:
+    edge_sigma_rotation_deg: float = 0.3
+    edge_sigma_translation_m: float = 0.005
+    # Covisibility edges join keyframes sharing at least this many landmarks (ORB-SLAM's
+    # essential graph: 100).
+    pose_graph_min_shared: int = 100
+    # After a loop is corrected, bundle-adjust the whole map (every keyframe and landmark).
+    global_ba: bool = True
+    global_ba_iterations: tuple[int, int] = (5, 10)
+    seed: int = 0
+
+
+@dataclass
+class RelocalisationConfig:
+    """Finding the pose against the robot's own keyframes after tracking is lost."""
+
+    enabled: bool = True
+    # Candidate keyframes tried per lost frame (place recognition order).
+    candidates: int = 3
+    min_inliers: int = 40
+
+
+@dataclass
 class MapConfig:
     """Per-robot dense map from keyframes."""
 
@@ -231,6 +300,9 @@ class TransportConfig:
 class Config:
     orb: OrbConfig = field(default_factory=OrbConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
+    loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
+    relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
     map: MapConfig = field(default_factory=MapConfig)
     fshicp: FsHicpConfig = field(default_factory=FsHicpConfig)
     merge: MergeConfig = field(default_factory=MergeConfig)

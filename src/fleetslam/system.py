@@ -52,6 +52,10 @@ class RobotRun:
     resets: int
     wall_s: float
     ate: dict[str, float] | None = None
+    # The poses as tracking reported them frame by frame (``poses`` follow every later
+    # correction of their reference keyframes).
+    online_poses: np.ndarray | None = None
+    loop_closing: dict[str, Any] | None = None
     map_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     map_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
 
@@ -60,21 +64,28 @@ def track_robot(name: str, source: str, sequence: RgbdSequence, config: Config,
                 show_progress: bool = True) -> RobotRun:
     pipeline = TrackingPipeline(config, sequence.camera)
     progress = Progress(f"robot {name} tracking", len(sequence), enabled=show_progress)
-    poses, tracked = [], []
+    poses, tracked, refs, T_refs = [], [], [], []
+    session = pipeline.session.cloud
     start = time.perf_counter()
     for i, frame in enumerate(sequence):
         out = pipeline.track(CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m))
         poses.append(out.T_world_camera)
         tracked.append(out.tracked)
-        progress.update(i + 1, f"kf {len(pipeline.session.map.keyframes)}")
+        refs.append(out.reference_keyframe)
+        T_refs.append(out.T_reference_camera if out.T_reference_camera is not None
+                      else np.eye(4))
+        progress.update(i + 1, f"kf {len(session.map.keyframes)} "
+                               f"loops {len(session.loops.edges)}")
     wall = time.perf_counter() - start
-    session = pipeline.session
     kfs = session.map.keyframes
     run = RobotRun(
-        name, source, sequence, sequence.timestamps.copy(), np.array(poses), np.array(tracked),
+        name, source, sequence, sequence.timestamps.copy(),
+        session.final_poses(np.array(refs), np.array(T_refs), np.array(poses)),
+        np.array(tracked),
         [kf.frame_index for kf in kfs], np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4),
         pipeline.timer.mean_ms(), session.lost_total, session.loss_events,
-        session.repeated_frames, session.resets, wall)
+        session.repeated_frames, session.resets, wall, online_poses=np.array(poses),
+        loop_closing=session.loop_summary())
     if sequence.has_ground_truth:
         ate = absolute_trajectory_error(run.poses, sequence.gt_poses)
         run.ate = {"rmse_m": ate.rmse_m, "mean_m": ate.mean_m, "median_m": ate.median_m,
@@ -208,6 +219,7 @@ def make_summary(runs: list[RobotRun], merge: MergeOutcome | None, config: Confi
             "repeated_frames": r.repeated_frames, "map_resets": r.resets,
             "ate": r.ate, "tracking_fps": len(r.timestamps) / r.wall_s,
             "stage_ms": r.stage_ms, "map_points": len(r.map_points),
+            "loop_closing": r.loop_closing,
             "trajectory": f"{r.name}/trajectory.tum", "map": f"{r.name}/map.ply",
         } for r in runs],
         "merge": None if merge is None else {

@@ -23,7 +23,7 @@ from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import build_dense_map
-from fleetslam.pipeline.session import TrackingSession
+from fleetslam.pipeline.session import CloudSession, Session
 from fleetslam.pipeline.split import StageTimer, run_stages
 from fleetslam.pipeline.stages import default_stages
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
@@ -84,6 +84,9 @@ class TrajectoryRow:
     T_world_camera: np.ndarray
     tracked: bool
     is_keyframe: bool
+    # Reference keyframe (-1: none) and the pose relative to it (see CloudSession.final_poses).
+    reference_keyframe: int = -1
+    T_reference_camera: np.ndarray | None = None
 
 
 @dataclass
@@ -92,7 +95,7 @@ class SessionState:
 
     robot_id: str
     hello: Hello
-    tracking: TrackingSession
+    tracking: CloudSession
     last_seq: int = -1
     last_index: int = -1
     rows: list[TrajectoryRow] = field(default_factory=list)
@@ -150,7 +153,7 @@ class RobotSession:
     @staticmethod
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
              publish: Publish) -> "RobotSession":
-        tracking = TrackingSession(config, hello.camera)
+        tracking = CloudSession(config, hello.camera)
         return RobotSession(SessionState(robot_id, hello, tracking), config, store, publish)
 
     @property
@@ -253,7 +256,7 @@ class RobotSession:
         start = time.perf_counter()
         if self.stages:
             timer = StageTimer()
-            out: TrackedFrame = run_stages(self.stages, state, st.tracking, timer)
+            out: TrackedFrame = run_stages(self.stages, state, Session(cloud=st.tracking), timer)
             for name, seconds in timer.seconds.items():
                 st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
         else:
@@ -263,7 +266,8 @@ class RobotSession:
         st.last_index = out.index
         st.counts["frames"] += 1
         st.rows.append(TrajectoryRow(out.index, out.timestamp, out.T_world_camera.copy(),
-                                     out.tracked, out.is_keyframe))
+                                     out.tracked, out.is_keyframe, out.reference_keyframe,
+                                     out.T_reference_camera))
         st.cloud_ms.append(cloud_ms)
         now = time.monotonic()
         st.first_frame_time = st.first_frame_time or now
@@ -356,14 +360,25 @@ class RobotSession:
             return dict(self.state.robot_keyframe_poses)
         return {kf.frame_index: kf.T_world_camera for kf in self.state.tracking.map.keyframes}
 
+    def trajectory(self) -> np.ndarray:
+        """Every frame's final pose (N x 4 x 4): relative to its reference keyframe, so loop
+        and bundle-adjustment corrections reach every frame; as sent at point 6."""
+        rows = self.state.rows
+        online = np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4)
+        if self.state.hello.offload_at == ROBOT_TRACKS:
+            return online
+        refs = np.array([r.reference_keyframe for r in rows], np.int64)
+        T_refs = np.array([np.eye(4) if r.T_reference_camera is None else r.T_reference_camera
+                           for r in rows]).reshape(-1, 4, 4)
+        return self.state.tracking.final_poses(refs, T_refs, online)
+
     def finish(self) -> FinishedMap:
         """Write the trajectory, keyframes and dense map; return the map for the merge."""
         st = self.state
         out_dir: Path = self.store.robot_dir(self.robot_id)
         rows = st.rows
         timestamps = np.array([r.timestamp for r in rows])
-        write_tum_trajectory(out_dir / "trajectory.tum", timestamps,
-                             np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4),
+        write_tum_trajectory(out_dir / "trajectory.tum", timestamps, self.trajectory(),
                              comment=f"fleetslam robot {self.robot_id} from {st.hello.source}\n"
                                      "T_map_camera; map frame = first camera pose")
         kf_poses = self.keyframe_poses()
@@ -400,6 +415,7 @@ class RobotSession:
             "lost_frames": int(sum(not r.tracked for r in st.rows)),
             "loss_events": tracking.loss_events, "repeated_frames": tracking.repeated_frames,
             "map_resets": tracking.resets, "map_points": map_points,
+            "loop_closing": tracking.loop_summary(),
             "stage_ms": {k: 1000.0 * v / n for k, v in st.stage_seconds.items()},
             "cloud_ms_mean": float(np.mean(st.cloud_ms)) if st.cloud_ms else None,
             "cloud_s_total": float(np.sum(st.cloud_ms)) / 1000.0,

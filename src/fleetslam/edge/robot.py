@@ -131,6 +131,11 @@ class Robot:
         self.show_progress = show_progress
         self.pipeline = TrackingPipeline(config, sequence.camera)
         self.robot_stages, _ = self.pipeline.split(offload_at)
+        if any(stage.side == "edge" for stage in _):
+            raise ValueError(f"offloading point {offload_at} leaves robot stages to the cloud")
+        if not any(stage.side == "cloud" for stage in self.robot_stages):
+            # The cloud owns the tracking map: the robot keeps only its own side.
+            self.pipeline.session.cloud = None
         self.timer = StageTimer()
         self.report = RobotReport(robot_id, offload_at)
         self._replies: queue.Queue = queue.Queue()
@@ -388,7 +393,7 @@ class Robot:
         if self.offload_at == ROBOT_TRACKS:
             message["keyframe_poses"] = {
                 str(kf.frame_index): kf.T_world_camera.tolist()
-                for kf in self.pipeline.session.map.keyframes}
+                for kf in self.pipeline.session.cloud.map.keyframes}
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
             if self._upload_error:

@@ -110,14 +110,17 @@ def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_
 
 def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: float,
                             scale_factor: float, window_size: int = 10, min_shared: int = 15,
-                            iterations: tuple[int, int] = (5, 10)) -> LocalBAResult:
-    """Optimise the window around keyframe ``kf_id`` and write poses, landmark positions and
+                            iterations: tuple[int, int] = (5, 10),
+                            window: np.ndarray | None = None) -> LocalBAResult:
+    """Optimise the window around keyframe ``kf_id`` (or the given ``window`` of keyframe
+    ids: all of them is a global bundle adjustment) and write poses, landmark positions and
     the removal of outlier observations back into ``lmap``."""
     start = time.perf_counter()
     n_kf = len(lmap.keyframes)
     none = LocalBAResult(np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0, 0, np.eye(4), 0.0)
 
-    window = select_window(lmap, kf_id, window_size, min_shared)
+    if window is None:
+        window = select_window(lmap, kf_id, window_size, min_shared)
     in_window = np.zeros(n_kf, bool)
     in_window[window] = True
     local = np.zeros(lmap.n_landmarks, bool)

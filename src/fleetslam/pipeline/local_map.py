@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fleetslam.camera import Camera
+from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transforms import transform_points
 
 
@@ -34,6 +35,10 @@ class Keyframe:
     timestamp: float
     T_world_camera: np.ndarray
     landmark_ids: np.ndarray  # landmarks observed at insertion (matched inliers + created)
+    # The keyframe's own features, for place recognition, loop verification and
+    # relocalisation, and the landmark each keypoint observed at insertion (-1 = none).
+    features: FeatureFrame | None = None
+    keypoint_landmark: np.ndarray = field(default_factory=lambda: _empty(np.int64))
 
 
 def _empty(dtype=np.float64, *shape: int) -> np.ndarray:
@@ -90,6 +95,27 @@ class LocalMap:
         newest = self.keyframes[-1].id
         return np.flatnonzero((self.last_keyframe > newest - n_keyframes) & self.alive)
 
+    def place_landmarks(self, kf_id: int, n_neighbours: int) -> np.ndarray:
+        """Ids of the live landmarks observed by keyframe ``kf_id`` and its ``n_neighbours``
+        most covisible keyframes: the map of one place."""
+        neighbours, _ = self.covisible(kf_id)
+        members = np.zeros(len(self.keyframes), bool)
+        members[kf_id] = True
+        members[neighbours[:n_neighbours]] = True
+        ids = np.unique(self.obs_landmark[members[self.obs_keyframe]])
+        return ids[self.alive[ids]]
+
+    def covisibility_counts(self) -> np.ndarray:
+        """K x K matrix of live landmarks shared by every pair of keyframes."""
+        from scipy.sparse import csr_matrix
+        live = self.alive[self.obs_landmark]
+        A = csr_matrix((np.ones(int(live.sum())), (self.obs_keyframe[live],
+                                                     self.obs_landmark[live])),
+                       shape=(len(self.keyframes), self.n_landmarks))
+        counts = (A @ A.T).toarray()
+        np.fill_diagonal(counts, 0)
+        return counts.astype(np.int64)
+
     def predicted_level(self, ids: np.ndarray, distance: np.ndarray, scale_factor: float
                         ) -> np.ndarray:
         """Unclipped (fractional) pyramid level of landmarks ``ids`` seen from ``distance``."""
@@ -121,8 +147,8 @@ class LocalMap:
 
     def add_keyframe(self, camera: Camera, frame_index: int, timestamp: float,
                      T_world_camera: np.ndarray, uv: np.ndarray, depth: np.ndarray,
-                     descriptors: np.ndarray, octave: np.ndarray, matched_ids: np.ndarray
-                     ) -> Keyframe:
+                     descriptors: np.ndarray, octave: np.ndarray, matched_ids: np.ndarray,
+                     features: FeatureFrame | None = None) -> Keyframe:
         """Insert a keyframe. ``matched_ids`` (N, -1 = none) are inlier matches; they become
         observations of this keyframe and, with depth, are fused with this view. Keypoints
         with depth and no match become new landmarks."""
@@ -172,7 +198,10 @@ class LocalMap:
         self._add_observations(kf_id, np.concatenate([seen, new_ids]), uv[kp],
                                np.where(has_depth[kp], depth64[kp], 0.0), octave[kp])
         observed = np.unique(np.concatenate([seen, new_ids]))
-        keyframe = Keyframe(kf_id, frame_index, timestamp, T_world_camera.copy(), observed)
+        keypoint_landmark = np.full(len(uv), -1, np.int64)
+        keypoint_landmark[kp] = np.concatenate([seen, new_ids])
+        keyframe = Keyframe(kf_id, frame_index, timestamp, T_world_camera.copy(), observed,
+                            features, keypoint_landmark)
         self.keyframes.append(keyframe)
         return keyframe
 
@@ -200,6 +229,50 @@ class LocalMap:
         orphan = touched[(remaining[touched] == 0) & self.alive[touched]]
         self.alive[orphan] = False
         return len(orphan)
+
+    def merge_landmarks(self, keep: np.ndarray, drop: np.ndarray) -> int:
+        """Landmark ``drop[i]`` is the same point as ``keep[i]`` (a loop closed on it): its
+        observations move to ``keep[i]`` (one per keyframe) and it dies. Returns how many
+        were merged."""
+        ok = (keep != drop) & self.alive[keep] & self.alive[drop]
+        keep, drop = keep[ok], drop[ok]
+        _, first = np.unique(drop, return_index=True)
+        keep, drop = keep[first], drop[first]
+        # A landmark both kept and dropped would chain: keep the first role only.
+        chained = np.isin(keep, drop)
+        keep, drop = keep[~chained], drop[~chained]
+        if not len(drop):
+            return 0
+        target = np.arange(self.n_landmarks)
+        target[drop] = keep
+        self.obs_landmark = target[self.obs_landmark]
+        # A keyframe that observed both keeps one observation.
+        pair = self.obs_keyframe * self.n_landmarks + self.obs_landmark
+        _, unique_rows = np.unique(pair, return_index=True)
+        duplicate = np.ones(self.n_observations, bool)
+        duplicate[unique_rows] = False
+        self.obs_keyframe = self.obs_keyframe[~duplicate]
+        self.obs_landmark = self.obs_landmark[~duplicate]
+        self.obs_uv = self.obs_uv[~duplicate]
+        self.obs_depth = self.obs_depth[~duplicate]
+        self.obs_octave = self.obs_octave[~duplicate]
+        self.n_visible[keep] += self.n_visible[drop]
+        self.n_found[keep] += self.n_found[drop]
+        self.last_keyframe[keep] = np.maximum(self.last_keyframe[keep], self.last_keyframe[drop])
+        self.alive[drop] = False
+        for kf in self.keyframes:
+            kf.keypoint_landmark = np.where(kf.keypoint_landmark >= 0,
+                                            target[np.maximum(kf.keypoint_landmark, 0)], -1)
+        return len(drop)
+
+    def move_landmarks_with_keyframes(self, corrections: dict[int, np.ndarray]) -> None:
+        """Keyframe poses changed by T_new = C @ T_old: every landmark moves rigidly with the
+        keyframe that created it."""
+        C = np.tile(np.eye(4), (len(self.keyframes), 1, 1))
+        for k, Ck in corrections.items():
+            C[k] = Ck
+        Cl = C[self.first_keyframe]
+        self.xyz = np.einsum("nij,nj->ni", Cl[:, :3, :3], self.xyz) + Cl[:, :3, 3]
 
     def count_views(self, visible: np.ndarray, found: np.ndarray) -> None:
         """One tracked frame: landmarks ``visible`` were predicted in view, ``found`` were

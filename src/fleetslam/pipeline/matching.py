@@ -3,11 +3,17 @@ by a predicted pose (candidates near their projection, at a compatible pyramid l
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
 from fleetslam.pipeline.states import FeatureFrame
+
+if TYPE_CHECKING:
+    from fleetslam.pipeline.session import CloudSession
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -101,4 +107,42 @@ def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.nd
     unique[1:] = lm[best][1:] != lm[best][:-1]
     best = best[unique]
     ids[kp[best]] = candidates[lm[best]]
+    return ids
+
+
+def in_scale_range(session: "CloudSession", ids: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Landmarks ``ids`` at camera-frame points ``P`` whose distance lies within their
+    scale-invariance range, ORB-SLAM's [0.8 d_min, 1.2 d_max] with d_max = d * s^octave,
+    d_min = d_max / s^(levels - 1) (d, octave: of the landmark's reference view)."""
+    orb, lmap = session.config.orb, session.map
+    dist = np.linalg.norm(P, axis=1)
+    d_max = lmap.distance[ids] * orb.scale_factor ** lmap.octave[ids]
+    d_min = d_max / orb.scale_factor ** (orb.n_levels - 1)
+    return (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
+
+
+def match_free_keypoints(session: "CloudSession", f: FeatureFrame, T_world_camera: np.ndarray,
+                         matched_ids: np.ndarray, radius_px: float, max_hamming: int,
+                         ratio: float, scale_check: bool) -> np.ndarray:
+    """``matched_ids`` plus matches of its free keypoints (-1) to the live landmarks not yet
+    matched, projected from ``T_world_camera`` and searched within ``radius_px``;
+    ``scale_check`` also requires each landmark's scale-invariance distance range."""
+    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    free_kp = np.flatnonzero(matched_ids < 0)
+    cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
+                                 cfg.max_depth_m)
+    unmatched = np.ones(lmap.n_landmarks, bool)
+    unmatched[matched_ids[matched_ids >= 0]] = False
+    keep = unmatched[cand]
+    if scale_check:
+        keep[keep] = in_scale_range(session, cand[keep], P[keep])
+    cand, proj, P = cand[keep], proj[keep], P[keep]
+    ids = matched_ids.copy()
+    if len(free_kp) and len(cand):
+        level = lmap.predicted_octave(cand, np.linalg.norm(P, axis=1), orb.scale_factor,
+                                      orb.n_levels)
+        sub = replace(f, keypoints=f.keypoints[free_kp], descriptors=f.descriptors[free_kp],
+                      depth=f.depth[free_kp], uv=f.uv[free_kp])
+        ids[free_kp] = guided_match(sub, lmap.descriptors, cand, proj, level, radius_px,
+                                    orb.scale_factor, max_hamming, ratio)
     return ids

@@ -8,6 +8,7 @@ then a chi-square inlier test; all vectorised over matches.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -87,3 +88,28 @@ def optimize_pose(camera: Camera, T_world_camera: np.ndarray, xyz_world: np.ndar
         chi2 = (r0**2 + r1**2 + r2**2) * info
         inlier = (chi2 < np.where(stereo, CHI2_STEREO, CHI2_MONO)) & (P[:, 2] > 0)
     return invert(T_cw), inlier
+
+
+def pnp_pose(camera: Camera, xyz_world: np.ndarray, uv: np.ndarray, depth: np.ndarray,
+             octave_scale: np.ndarray, virtual_baseline_m: float, T_guess: np.ndarray,
+             ransac_iterations: int, ransac_reproj_px: float, ransac_confidence: float,
+             min_inliers: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A camera pose from 2D-3D matches: PnP with RANSAC (SQPnP), then the RGB-D motion-only
+    refinement. Returns (T_world_camera, inlier mask over the matches), or None when fewer
+    than ``min_inliers`` agree."""
+    if len(xyz_world) < max(min_inliers, 4):
+        return None
+    T_cw = invert(T_guess)
+    rvec, _ = cv2.Rodrigues(T_cw[:3, :3])
+    ok, rvec, tvec, ransac_inliers = cv2.solvePnPRansac(
+        xyz_world, uv, camera.K, None, rvec=rvec, tvec=T_cw[:3, 3].copy(),
+        useExtrinsicGuess=False, iterationsCount=ransac_iterations,
+        reprojectionError=ransac_reproj_px, confidence=ransac_confidence,
+        flags=cv2.SOLVEPNP_SQPNP)
+    if not ok or ransac_inliers is None or len(ransac_inliers) < min_inliers:
+        return None
+    R, _ = cv2.Rodrigues(rvec)
+    T_cw = np.eye(4)
+    T_cw[:3, :3], T_cw[:3, 3] = R, tvec.ravel()
+    return optimize_pose(camera, invert(T_cw), xyz_world, uv, depth, octave_scale,
+                         virtual_baseline_m)

@@ -14,7 +14,7 @@ from typing import Any
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
-from fleetslam.pipeline.session import TrackingSession
+from fleetslam.pipeline.session import Session
 from fleetslam.pipeline.stages import Stage, default_stages
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
 
@@ -29,11 +29,12 @@ class StageTimer:
         return {name: 1000.0 * sum(v) / len(v) for name, v in self.seconds.items() if v}
 
 
-def run_stages(stages: list[Stage], state: Any, session: TrackingSession,
+def run_stages(stages: list[Stage], state: Any, session: Session,
                timer: StageTimer | None = None) -> Any:
+    """Run ``stages`` in order; each gets its own side of ``session``."""
     for stage in stages:
         start = time.perf_counter()
-        state = stage(state, session)
+        state = stage(state, session.part(stage.side))
         if timer is not None:
             timer.seconds[stage.name].append(time.perf_counter() - start)
     return state
@@ -44,7 +45,7 @@ class TrackingPipeline:
 
     def __init__(self, config: Config, camera: Camera) -> None:
         self.stages: list[Stage] = default_stages()
-        self.session = TrackingSession(config, camera)
+        self.session = Session.full(config, camera)
         self.timer = StageTimer()
 
     @property

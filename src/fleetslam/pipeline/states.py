@@ -90,6 +90,10 @@ class TrackedFrame:
 
     posed: PosedFrame
     is_keyframe: bool
+    # The frame's reference keyframe (-1: none) and its pose relative to it, so the final
+    # trajectory follows later corrections of the keyframes (local BA, loop closing).
+    reference_keyframe: int = -1
+    T_reference_camera: np.ndarray | None = None
 
     @property
     def index(self) -> int:

@@ -504,11 +504,22 @@ def _get_posed(r: Reader, index: int, timestamp: float, camera: Camera) -> Posed
 def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig) -> None:
     _put_posed(w, s.posed, camera, config)
     w.pack("B", bool(s.is_keyframe))
+    # The reference keyframe (-1: none) and, with one, the pose relative to it.
+    _require(-1 <= s.reference_keyframe < 2**31, f"reference keyframe {s.reference_keyframe}")
+    w.pack("i", int(s.reference_keyframe))
+    if s.reference_keyframe >= 0:
+        _put_pose(w, s.T_reference_camera, "pose relative to the reference keyframe")
 
 
 def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera) -> TrackedFrame:
     posed = _get_posed(r, index, timestamp, camera)
-    return TrackedFrame(posed, r.flag("keyframe flag"))
+    is_keyframe = r.flag("keyframe flag")
+    (reference,) = r.unpack("i", "reference keyframe")
+    if reference < -1:
+        raise WireError(f"reference keyframe {reference} < -1")
+    T_reference = _get_pose(r, "pose relative to the reference keyframe") \
+        if reference >= 0 else None
+    return TrackedFrame(posed, is_keyframe, reference, T_reference)
 
 
 _ENCODERS: tuple[Callable[[Writer, Any, Camera, WireConfig], None], ...] = (

@@ -1,0 +1,99 @@
+"""Place recognition over keyframes: which stored keyframes show the place a new one shows.
+
+One component, used for loops within a robot and (later) for matches across robots. Every
+keyframe's ORB descriptors go into the database; a query looks up each of its descriptors'
+nearest neighbours (Hamming, faiss's exact binary index) among the entries it may match,
+and every entry holding a near neighbour gets a vote. A descriptor whose neighbours are
+spread over many entries (a generic corner) says little, so its vote is weighted by an
+inverse document frequency, log(1 + allowed entries / entries it hits), as a bag of words
+would weight a common word.
+
+No vocabulary is trained or shipped: the index is exact and built on the fly from the
+allowed entries (a copy of their descriptors, a few MB for a few hundred keyframes), so the
+candidates never depend on images seen elsewhere.
+
+The database is plain numpy (picklable with the session); faiss objects live only inside
+``query``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Hashable
+
+import faiss
+import numpy as np
+
+from fleetslam.config import PlaceRecognitionConfig
+
+DESCRIPTOR_BITS = 256
+
+
+@dataclass
+class PlaceCandidate:
+    entry: int  # database entry (insertion order)
+    key: Hashable  # what the caller stored with it (e.g. a keyframe id)
+    score: float  # idf-weighted votes per query descriptor
+    votes: int  # query descriptors with a near neighbour in this entry
+
+
+@dataclass
+class KeyframeDatabase:
+    config: PlaceRecognitionConfig
+    keys: list[Hashable] = field(default_factory=list)
+    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
+    # Entry of every stored descriptor row.
+    owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def add(self, key: Hashable, descriptors: np.ndarray) -> int:
+        """Store one keyframe's descriptors (N x 32 uint8); returns its entry number."""
+        entry = len(self.keys)
+        self.keys.append(key)
+        d = np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(-1, 32)
+        self.descriptors = np.vstack([self.descriptors, d])
+        self.owner = np.concatenate([self.owner, np.full(len(d), entry, np.int64)])
+        return entry
+
+    def query(self, descriptors: np.ndarray, allowed: np.ndarray | None = None,
+              top_k: int | None = None) -> list[PlaceCandidate]:
+        """Entries most similar to ``descriptors``, best first, among ``allowed`` (bool per
+        entry; all if None). At most ``top_k`` (config default), each scoring at least
+        ``min_score_ratio`` of the best."""
+        cfg = self.config
+        top_k = cfg.top_k if top_k is None else top_k
+        n_entries = len(self.keys)
+        if allowed is None:
+            allowed = np.ones(n_entries, bool)
+        if not n_entries or not allowed.any() or not len(descriptors):
+            return []
+        rows = np.flatnonzero(allowed[self.owner])
+        if not len(rows):
+            return []
+        index = faiss.IndexBinaryFlat(DESCRIPTOR_BITS)
+        index.add(self.descriptors[rows])
+        k = min(cfg.neighbours, len(rows))
+        dist, nn = index.search(np.ascontiguousarray(descriptors, dtype=np.uint8), k)
+        near = (dist <= cfg.max_hamming) & (nn >= 0)
+        entry = np.where(near, self.owner[rows[np.maximum(nn, 0)]], -1)
+        # One vote per (query descriptor, entry), however many of its neighbours the entry
+        # holds (one landmark seen twice in one keyframe is still one landmark).
+        entry = np.sort(entry, axis=1)
+        fresh = np.ones_like(entry, bool)
+        fresh[:, 1:] = entry[:, 1:] != entry[:, :-1]
+        fresh &= entry >= 0
+        hits = fresh.sum(axis=1)
+        n_allowed = int(allowed.sum())
+        idf = np.log1p(n_allowed / np.maximum(hits, 1))
+        q, c = np.nonzero(fresh)
+        votes = np.bincount(entry[q, c], minlength=n_entries)
+        score = np.bincount(entry[q, c], weights=idf[q], minlength=n_entries) / len(descriptors)
+        order = np.argsort(-score, kind="stable")
+        order = order[score[order] > 0][:top_k]
+        if not len(order):
+            return []
+        best = score[order[0]]
+        return [PlaceCandidate(int(e), self.keys[e], float(score[e]), int(votes[e]))
+                for e in order if score[e] >= cfg.min_score_ratio * best]

@@ -1,0 +1,230 @@
+"""Tracking (ORB-SLAM's Tracking): the cloud-side stages that give every frame its pose.
+
+    predict (constant velocity) -> Match -> EstimatePose (PnP + motion-only BA,
+    relocalisation when lost) -> DecideKeyframe (-> local mapper -> loop closer)
+
+Each stage reads and updates only the ``CloudSession``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from fleetslam.pipeline.local_mapper import insert_keyframe
+from fleetslam.pipeline.loop_closer import close_loops
+from fleetslam.pipeline.matching import (
+    descriptor_match,
+    guided_match,
+    in_scale_range,
+    match_free_keypoints,
+)
+from fleetslam.pipeline.pose_optimizer import optimize_pose, pnp_pose
+from fleetslam.pipeline.relocaliser import relocalise
+from fleetslam.pipeline.session import CloudSession
+from fleetslam.pipeline.states import FeatureFrame, MatchedFrame, PosedFrame, TrackedFrame
+from fleetslam.transforms import invert, rotation_angle_deg
+
+
+class Match:
+    """Match features to the local map: guided by the constant-velocity prediction, or
+    against the whole local map when too few guided matches are found."""
+
+    name = "match"
+    side = "cloud"
+
+    def __call__(self, state: FeatureFrame, session: CloudSession) -> MatchedFrame:
+        n = len(state.keypoints)
+        ids = np.full(n, -1, np.int64)
+        T_pred = session.predict_pose()
+        repeated = session.is_repeat_of_last(state)
+        if not repeated and session.map.keyframes and n:
+            ids = self._match(state, session, T_pred)
+        xyz = np.full((n, 3), np.nan)
+        xyz[ids >= 0] = session.map.xyz[ids[ids >= 0]]
+        return MatchedFrame(state, ids, xyz, T_pred, repeated)
+
+    def _match(self, state: FeatureFrame, session: CloudSession, T_pred: np.ndarray
+               ) -> np.ndarray:
+        cfg = session.config.tracking
+        cam = session.camera
+        ids = np.full(len(state.keypoints), -1, np.int64)
+        if not session.lost_frames:
+            # Every live landmark of the map that falls in the predicted view is a candidate:
+            # returning to a place matches the old landmarks, which bounds the drift.
+            visible, proj, P = session.map.in_view(cam, T_pred, cfg.min_depth_m, cfg.max_depth_m)
+            level = session.map.predicted_octave(visible, np.linalg.norm(P, axis=1),
+                                                 session.config.orb.scale_factor,
+                                                 session.config.orb.n_levels)
+            ids = guided_match(state, session.map.descriptors, visible, proj, level,
+                               cfg.guided_radius_px, session.config.orb.scale_factor,
+                               cfg.max_hamming, cfg.match_ratio)
+        if (ids >= 0).sum() < cfg.min_guided_matches:
+            # Prediction too far off (fast rotation, after a loss): search the landmarks of
+            # the newest keyframes by descriptor alone.
+            pool = session.map.local_landmarks(cfg.local_map_keyframes)
+            ids = descriptor_match(state.descriptors, session.map.descriptors[pool], pool,
+                                   cfg.max_hamming, cfg.match_ratio)
+        return ids
+
+
+class EstimatePose:
+    """PnP with RANSAC on the matches, then RGB-D motion-only bundle adjustment; when that
+    fails, relocalisation against all of the robot's keyframes."""
+
+    name = "estimate_pose"
+    side = "cloud"
+
+    def __call__(self, state: MatchedFrame, session: CloudSession) -> PosedFrame:
+        cfg = session.config.tracking
+        f = state.features
+        n = len(f.keypoints)
+        inliers = np.zeros(n, bool)
+        if not session.map.keyframes:
+            # First frame: it defines the robot's map frame.
+            return PosedFrame(state, np.eye(4), inliers, tracked=bool((f.depth > 0).sum()
+                                                                        >= cfg.min_inliers))
+        if state.repeated:
+            # A repeated image carries no new observation: keep the motion prediction.
+            return PosedFrame(state, state.T_world_camera_predicted, inliers,
+                              tracked=session.last_tracked)
+        posed = self._track(state, session)
+        if posed.tracked or not session.config.relocalisation.enabled:
+            return posed
+        found = relocalise(session, f)
+        if found is None:
+            return posed
+        session.relocalisations += 1
+        T_wc, ids, good = found
+        xyz = np.full((n, 3), np.nan)
+        xyz[ids >= 0] = session.map.xyz[ids[ids >= 0]]
+        return PosedFrame(replace(state, landmark_ids=ids, landmark_xyz=xyz), T_wc, good, True)
+
+    def _track(self, state: MatchedFrame, session: CloudSession) -> PosedFrame:
+        cfg = session.config.tracking
+        f = state.features
+        inliers = np.zeros(len(f.keypoints), bool)
+        matched = np.flatnonzero(state.landmark_ids >= 0)
+        lost = PosedFrame(state, state.T_world_camera_predicted, inliers, tracked=False)
+        if len(matched) < cfg.min_inliers:
+            return lost
+        solved = pnp_pose(session.camera, state.landmark_xyz[matched], f.uv[matched],
+                          f.depth[matched].astype(np.float64),
+                          session.config.orb.scale_factor ** f.keypoints[matched, 5],
+                          cfg.virtual_baseline_m, state.T_world_camera_predicted,
+                          cfg.ransac_iterations, cfg.ransac_reproj_px, cfg.ransac_confidence,
+                          cfg.min_inliers)
+        if solved is None:
+            return lost
+        T_wc, good = solved
+        inliers[matched[good]] = True
+        tracked = int(good.sum()) >= cfg.min_inliers
+        if tracked and cfg.track_local_map:
+            state, T_wc, inliers = track_local_map(session, state, T_wc, inliers)
+            tracked = int(inliers.sum()) >= cfg.min_inliers
+        return PosedFrame(state, T_wc if tracked else state.T_world_camera_predicted, inliers,
+                          tracked)
+
+
+def track_local_map(session: CloudSession, state: MatchedFrame, T_world_camera: np.ndarray,
+                    inliers: np.ndarray) -> tuple[MatchedFrame, np.ndarray, np.ndarray]:
+    """ORB-SLAM's TrackLocalMap: with the pose now known, project the live landmarks not yet
+    matched into the frame and search the keypoints left free within a few pixels, then
+    refine the pose on all matches. Returns (matched frame with the new associations, pose,
+    inlier mask)."""
+    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    f = state.features
+    ids = match_free_keypoints(session, f, T_world_camera,
+                               np.where(inliers, state.landmark_ids, -1),
+                               cfg.local_map_radius_px, cfg.max_hamming, cfg.match_ratio,
+                               scale_check=True)
+    matched = np.flatnonzero(ids >= 0)
+    xyz = np.full((len(ids), 3), np.nan)
+    xyz[matched] = lmap.xyz[ids[matched]]
+    scale = orb.scale_factor ** f.keypoints[matched, 5]
+    T_wc, good = optimize_pose(session.camera, T_world_camera, xyz[matched], f.uv[matched],
+                               f.depth[matched].astype(np.float64), scale,
+                               cfg.virtual_baseline_m)
+    out = np.zeros(len(ids), bool)
+    out[matched[good]] = True
+    return replace(state, landmark_ids=ids, landmark_xyz=xyz), T_wc, out
+
+
+class DecideKeyframe:
+    """The keyframe decision; a keyframe then goes to the local mapper and the loop closer
+    (both in-line, so every process computes the same poses). Also the motion bookkeeping
+    (the paper's 'Others')."""
+
+    name = "decide_keyframe"
+    side = "cloud"
+
+    def __call__(self, state: PosedFrame, session: CloudSession) -> TrackedFrame:
+        f = state.matched.features
+        is_kf = needs_keyframe(session, state)
+        if state.tracked and not state.matched.repeated and session.map.keyframes:
+            count_views(session, state)
+        if is_kf:
+            inserted = insert_keyframe(session, state)
+            # The frame is the keyframe: report its refined pose, and move the previous pose
+            # with it so the constant-velocity model keeps its velocity.
+            session.correct_motion(inserted.correction)
+            loop = close_loops(session, inserted.keyframe)
+            if loop is not None:
+                session.correct_motion(loop)
+            state = replace(state, T_world_camera=inserted.keyframe.T_world_camera.copy())
+        reference, T_reference_camera = session.reference_pose(state.T_world_camera)
+        session.record(state, f, is_kf)
+        return TrackedFrame(state, is_kf, reference, T_reference_camera)
+
+
+def needs_keyframe(session: CloudSession, state: PosedFrame) -> bool:
+    """Whether this frame becomes a keyframe (and counts a map reset when a long loss
+    forces one)."""
+    cfg = session.config.tracking
+    if not session.map.keyframes:
+        return state.tracked
+    if state.tracked and not state.matched.repeated:
+        ref = session.map.keyframes[-1]
+        T_rel = invert(ref.T_world_camera) @ state.T_world_camera
+        n_in = int(state.inliers.sum())
+        # Inliers fall against the first frame tracked after the keyframe: the view has
+        # moved on. (The keyframe's own landmark count is no reference: many of its
+        # keypoints are never matched again.)
+        reference = session.inliers_after_keyframe or n_in
+        return (n_in < cfg.keyframe_inlier_ratio * reference
+                or np.linalg.norm(T_rel[:3, 3]) > cfg.keyframe_translation_m
+                or rotation_angle_deg(T_rel[:3, :3]) > cfg.keyframe_rotation_deg
+                or (cfg.orb_slam_keyframe_policy and orb_slam_needs_keyframe(session, state)))
+    if not state.tracked and session.lost_frames + 1 >= cfg.lost_frames_before_reset:
+        # Lost for too long: continue from the prediction with fresh landmarks.
+        session.resets += 1
+        return True
+    return False
+
+
+def orb_slam_needs_keyframe(session: CloudSession, state: PosedFrame) -> bool:
+    """ORB-SLAM's keyframe test for RGB-D (with local mapping always idle, as it runs
+    in-line): the frame tracks fewer than a fraction of the landmarks the reference keyframe
+    tracks (those with enough observations to be established), or it tracks few close points
+    while many close points could be created."""
+    cfg = session.config.tracking
+    inliers = state.inliers
+    n_in = int(inliers.sum())
+    depth = state.matched.features.depth
+    close = (depth > 0) & (depth < cfg.close_depth_baselines * cfg.virtual_baseline_m)
+    need_close = (int((close & inliers).sum()) < cfg.keyframe_close_tracked
+                  and int((close & ~inliers).sum()) > cfg.keyframe_close_untracked)
+    return n_in < cfg.keyframe_reference_ratio * session.reference_tracked or need_close
+
+
+def count_views(session: CloudSession, state: PosedFrame) -> None:
+    """ORB-SLAM's visible/found counters for one tracked frame: landmarks predicted in view
+    at the estimated pose (inside the image, within their scale-invariance distance range)
+    and the landmarks matched as pose inliers."""
+    cfg, lmap = session.config.tracking, session.map
+    ids, _, P = lmap.in_view(session.camera, state.T_world_camera, cfg.min_depth_m,
+                             cfg.max_depth_m)
+    ids = ids[in_scale_range(session, ids, P)]
+    found = state.matched.landmark_ids[state.inliers]
+    lmap.count_views(ids, found[found >= 0])
