@@ -48,8 +48,17 @@ class TrackingConfig:
     # ... or when the camera moved this far from the reference keyframe.
     keyframe_translation_m: float = 0.15
     keyframe_rotation_deg: float = 12.0
-    # Landmarks from this many recent keyframes form the local map matched against.
+    # Landmarks from this many recent keyframes form the local map matched against when
+    # the prediction fails.
     local_map_keyframes: int = 6
+    # Which landmarks guided matching and fusion search: "covisible" is ORB-SLAM's local map
+    # (the newest keyframe, the keyframes sharing landmarks with it, and the recent ones), so
+    # a return to an old place is found by the loop closer, which spreads the drift along
+    # the loop; "all" matches every landmark in view (the old place snaps the pose, and the
+    # drift stays where it was).
+    local_map_scope: str = "all"
+    # Covisible keyframes of the newest keyframe in the local map (most shared first).
+    local_map_covisible: int = 20
     # Search radius (pixels, at octave 0) around a landmark's predicted position.
     guided_radius_px: float = 25.0
     # Fewer guided matches than this: match against the whole local map instead.

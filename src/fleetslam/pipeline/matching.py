@@ -130,7 +130,7 @@ def match_free_keypoints(session: "CloudSession", f: FeatureFrame, T_world_camer
     cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
     free_kp = np.flatnonzero(matched_ids < 0)
     cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
-                                 cfg.max_depth_m)
+                                 cfg.max_depth_m, ids=session.tracking_landmarks())
     unmatched = np.ones(lmap.n_landmarks, bool)
     unmatched[matched_ids[matched_ids >= 0]] = False
     keep = unmatched[cand]

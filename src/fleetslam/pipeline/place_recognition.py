@@ -27,6 +27,10 @@ import numpy as np
 from fleetslam.config import PlaceRecognitionConfig
 
 DESCRIPTOR_BITS = 256
+# One thread: a query is a few tens of ms, and faiss's OpenMP threads spin against the
+# other sessions and stages sharing the cores (measured: 55 ms alone, 0.3-1.1 s with the
+# default threads while another process held a core; 60-200 ms with one).
+faiss.omp_set_num_threads(1)
 
 
 @dataclass

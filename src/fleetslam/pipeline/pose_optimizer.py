@@ -93,10 +93,12 @@ def optimize_pose(camera: Camera, T_world_camera: np.ndarray, xyz_world: np.ndar
 def pnp_pose(camera: Camera, xyz_world: np.ndarray, uv: np.ndarray, depth: np.ndarray,
              octave_scale: np.ndarray, virtual_baseline_m: float, T_guess: np.ndarray,
              ransac_iterations: int, ransac_reproj_px: float, ransac_confidence: float,
-             min_inliers: int) -> tuple[np.ndarray, np.ndarray] | None:
+             min_inliers: int, refine_all: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
     """A camera pose from 2D-3D matches: PnP with RANSAC (SQPnP), then the RGB-D motion-only
-    refinement. Returns (T_world_camera, inlier mask over the matches), or None when fewer
-    than ``min_inliers`` agree."""
+    refinement, on all matches (tracking: few outliers) or, ``refine_all=False``, on the
+    RANSAC inliers only (relocalisation, loops: many outliers, which could pull the
+    refinement away). Returns (T_world_camera, inlier mask over the matches), or None when
+    fewer than ``min_inliers`` agree."""
     if len(xyz_world) < max(min_inliers, 4):
         return None
     T_cw = invert(T_guess)
@@ -111,5 +113,12 @@ def pnp_pose(camera: Camera, xyz_world: np.ndarray, uv: np.ndarray, depth: np.nd
     R, _ = cv2.Rodrigues(rvec)
     T_cw = np.eye(4)
     T_cw[:3, :3], T_cw[:3, 3] = R, tvec.ravel()
-    return optimize_pose(camera, invert(T_cw), xyz_world, uv, depth, octave_scale,
-                         virtual_baseline_m)
+    if refine_all:
+        return optimize_pose(camera, invert(T_cw), xyz_world, uv, depth, octave_scale,
+                             virtual_baseline_m)
+    sub = ransac_inliers.ravel()
+    T_wc, _ = optimize_pose(camera, invert(T_cw), xyz_world[sub], uv[sub], depth[sub],
+                            octave_scale[sub], virtual_baseline_m)
+    # Inliers of every match at that pose (no further iteration).
+    return optimize_pose(camera, T_wc, xyz_world, uv, depth, octave_scale, virtual_baseline_m,
+                         iterations=0, rounds=1)

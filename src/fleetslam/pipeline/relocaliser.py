@@ -35,7 +35,7 @@ def relocalise(session: CloudSession, f: FeatureFrame
         solved = pnp_pose(session.camera, lmap.xyz[ids[matched]], f.uv[matched],
                           depth[matched], scale[matched], tcfg.virtual_baseline_m,
                           kf.T_world_camera, tcfg.ransac_iterations, tcfg.ransac_reproj_px,
-                          tcfg.ransac_confidence, tcfg.min_inliers)
+                          tcfg.ransac_confidence, tcfg.min_inliers, refine_all=False)
         if solved is None:
             continue
         T_wc, good = solved

@@ -107,6 +107,24 @@ class CloudSession:
         velocity = np.linalg.solve(self.T_before_last, self.T_last)
         return self.T_last @ velocity
 
+    def tracking_landmarks(self) -> np.ndarray | None:
+        """Ids of the landmarks tracking may match (the local map), or None for all of them
+        (see ``tracking.local_map_scope``)."""
+        cfg = self.config.tracking
+        lmap = self.map
+        if cfg.local_map_scope == "all" or not lmap.keyframes:
+            return None
+        if cfg.local_map_scope != "covisible":
+            raise ValueError(f"tracking.local_map_scope {cfg.local_map_scope!r}: "
+                             f"'covisible' or 'all'")
+        newest = lmap.keyframes[-1].id
+        neighbours, _ = lmap.covisible(newest)
+        members = np.zeros(len(lmap.keyframes), bool)
+        members[neighbours[:cfg.local_map_covisible]] = True
+        members[max(newest - cfg.local_map_keyframes + 1, 0):] = True
+        ids = np.unique(lmap.obs_landmark[members[lmap.obs_keyframe]])
+        return ids[lmap.alive[ids]]
+
     def correct_motion(self, correction: np.ndarray) -> None:
         """The map moved under the camera (local BA, loop correction): move the motion
         model's poses with it, so its velocity is kept."""

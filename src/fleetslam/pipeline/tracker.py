@@ -53,7 +53,8 @@ class Match:
         if not session.lost_frames:
             # Every live landmark of the map that falls in the predicted view is a candidate:
             # returning to a place matches the old landmarks, which bounds the drift.
-            visible, proj, P = session.map.in_view(cam, T_pred, cfg.min_depth_m, cfg.max_depth_m)
+            visible, proj, P = session.map.in_view(cam, T_pred, cfg.min_depth_m, cfg.max_depth_m,
+                                                   ids=session.tracking_landmarks())
             level = session.map.predicted_octave(visible, np.linalg.norm(P, axis=1),
                                                  session.config.orb.scale_factor,
                                                  session.config.orb.n_levels)
