@@ -237,10 +237,12 @@ def summary_table(summary: dict[str, Any]) -> str:
     rows = []
     for r in summary["robots"]:
         ate = r["ate"]["rmse_m"] * 100 if r["ate"] else None
-        rows.append([r["name"], r["frames"], r["keyframes"], r["lost_frames"], ate,
+        loops = r.get("loop_closing") or {}
+        rows.append([r["name"], r["frames"], r["keyframes"], r["lost_frames"],
+                     loops.get("relocalisations"), loops.get("loops_accepted"), ate,
                      r["tracking_fps"], r["map_points"]])
-    text = format_table(["robot", "frames", "keyframes", "lost", "ATE RMSE cm", "fps",
-                         "map points"], rows)
+    text = format_table(["robot", "frames", "keyframes", "lost", "relocalised", "loops",
+                         "ATE RMSE cm", "fps", "map points"], rows)
     deployed = [r for r in summary["robots"] if "transport" in r]
     if deployed:
         trows = []

@@ -418,6 +418,8 @@ class RobotSession:
             "loop_closing": tracking.loop_summary(),
             "stage_ms": {k: 1000.0 * v / n for k, v in st.stage_seconds.items()},
             "cloud_ms_mean": float(np.mean(st.cloud_ms)) if st.cloud_ms else None,
+            "cloud_ms_median": float(np.median(st.cloud_ms)) if st.cloud_ms else None,
+            "cloud_ms_p95": float(np.percentile(st.cloud_ms, 95)) if st.cloud_ms else None,
             "cloud_s_total": float(np.sum(st.cloud_ms)) / 1000.0,
             "latency_ms_median": float(np.median(st.latency_ms)) if st.latency_ms else None,
             "latency_ms_p95": float(np.percentile(st.latency_ms, 95)) if st.latency_ms else None,
