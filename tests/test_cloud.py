@@ -38,9 +38,8 @@ def scene(tmp_path_factory):
     return small_scene(tmp_path_factory, N_FRAMES)
 
 
-@pytest.fixture(scope="module")
-def messages(scene):
-    """Per robot: the frame messages a robot offloading at K sends, and the poses the
+def robot_messages(scene, k: int) -> dict:
+    """Per robot: the frame messages a robot offloading at ``k`` sends, and the poses the
     whole pipeline gives in memory (the reference every cloud run must reproduce)."""
     out = {}
     for name, folder in zip(("r0", "r1"), scene):
@@ -50,20 +49,26 @@ def messages(scene):
         msgs, poses = [], []
         for seq_no, f in enumerate(seq):
             frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
-            state = run_stages(robot.split(K)[0], frame, robot.session)
-            msgs.append(encode_frame_message(state, K, name, seq_no, seq.camera, Config().wire))
+            state = run_stages(robot.split(k)[0], frame, robot.session)
+            msgs.append(encode_frame_message(state, k, name, seq_no, seq.camera, Config().wire))
             poses.append(reference.track(frame).T_world_camera)
         out[name] = (seq, msgs, np.array(poses))
     return out
 
 
+@pytest.fixture(scope="module")
+def messages(scene):
+    return robot_messages(scene, K)
+
+
 class FakeRobot:
     """Talks to the cloud with raw bytes on one robot's keys."""
 
-    def __init__(self, session, robot_id: str, camera) -> None:
+    def __init__(self, session, robot_id: str, camera, offload_at: int = K) -> None:
         self.z = session
         self.id = robot_id
         self.camera = camera
+        self.offload_at = offload_at
         self.feedback: queue.Queue = queue.Queue()
         self.replies: queue.Queue = queue.Queue()
         self.subs = [
@@ -86,7 +91,7 @@ class FakeRobot:
         raise AssertionError(f"no {kind} reply for {self.id}")
 
     def hello(self) -> dict:
-        message = {"type": "hello", "protocol": PROTOCOL, "offload_at": K,
+        message = {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
                    "camera": self.camera.to_dict(), "source": "test",
                    "prior_T_world_first": None}
         for _ in range(20):
@@ -137,6 +142,22 @@ def _damaged(message: bytes) -> dict[str, bytes]:
         "wrong version": bytes(wrong_version),
         "wrong checksum": bytes(flipped),
     }
+
+
+@pytest.mark.parametrize("k", [0, 1, 2])
+def test_the_cloud_runs_the_front_end_when_the_robot_offloads_early(cloud, scene, k):
+    """At points 0-2 the cloud also runs front-end stages (their state lives in the cloud
+    then): the poses are the in-memory ones."""
+    server, client = cloud
+    seq, msgs, reference = robot_messages(scene, k)["r0"]
+    robot = FakeRobot(client, "r0", seq.camera, offload_at=k)
+    robot.hello()
+    for data in msgs:
+        robot.send(data)
+    got = robot.poses(N_FRAMES)
+    assert [fb.frame_index for fb in got] == list(range(N_FRAMES))
+    np.testing.assert_array_equal(np.array([fb.T_world_camera for fb in got]), reference)
+    assert server.sessions["r0"].state.counts["errors"] == 0
 
 
 def test_bad_messages_are_rejected_and_no_session_is_harmed(cloud, messages, caplog):

@@ -23,7 +23,7 @@ from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import build_dense_map
-from fleetslam.pipeline.session import CloudSession, Session
+from fleetslam.pipeline.session import CloudSession, EdgeSession, Session
 from fleetslam.pipeline.split import StageTimer, run_stages
 from fleetslam.pipeline.stages import default_stages
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
@@ -96,6 +96,8 @@ class SessionState:
     robot_id: str
     hello: Hello
     tracking: CloudSession
+    # The front end's state, when the robot offloads before its stages end (points 0-2).
+    front_end: EdgeSession | None = None
     last_seq: int = -1
     last_index: int = -1
     rows: list[TrajectoryRow] = field(default_factory=list)
@@ -154,7 +156,11 @@ class RobotSession:
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
              publish: Publish) -> "RobotSession":
         tracking = CloudSession(config, hello.camera)
-        return RobotSession(SessionState(robot_id, hello, tracking), config, store, publish)
+        runs_front_end = hello.offload_at in CLOUD_TRACKS and any(
+            stage.side == "edge" for stage in default_stages()[hello.offload_at:])
+        front_end = EdgeSession(config, hello.camera) if runs_front_end else None
+        return RobotSession(SessionState(robot_id, hello, tracking, front_end), config, store,
+                            publish)
 
     @property
     def robot_id(self) -> str:
@@ -256,7 +262,8 @@ class RobotSession:
         start = time.perf_counter()
         if self.stages:
             timer = StageTimer()
-            out: TrackedFrame = run_stages(self.stages, state, Session(cloud=st.tracking), timer)
+            session = Session(st.front_end, st.tracking)
+            out: TrackedFrame = run_stages(self.stages, state, session, timer)
             for name, seconds in timer.seconds.items():
                 st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
         else:

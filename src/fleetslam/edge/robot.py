@@ -131,10 +131,12 @@ class Robot:
         self.show_progress = show_progress
         self.pipeline = TrackingPipeline(config, sequence.camera)
         self.robot_stages, _ = self.pipeline.split(offload_at)
-        if any(stage.side == "edge" for stage in _):
-            raise ValueError(f"offloading point {offload_at} leaves robot stages to the cloud")
-        if not any(stage.side == "cloud" for stage in self.robot_stages):
-            # The cloud owns the tracking map: the robot keeps only its own side.
+        # Each side of the session lives where its stages run: below point 6 the cloud owns
+        # the tracking map, at point 0 it also runs the front end.
+        sides = {stage.side for stage in self.robot_stages}
+        if "edge" not in sides:
+            self.pipeline.session.edge = None
+        if "cloud" not in sides:
             self.pipeline.session.cloud = None
         self.timer = StageTimer()
         self.report = RobotReport(robot_id, offload_at)
