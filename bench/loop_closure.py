@@ -42,9 +42,10 @@ from fleetslam.pipeline.place_recognition import KeyframeDatabase
 from fleetslam.pipeline.session import CloudSession
 from fleetslam.pipeline.split import TrackingPipeline
 from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.registration.metrics import transform_error
 from fleetslam.report import format_table
 from fleetslam.system import RobotRun, track_robot
-from fleetslam.transforms import invert, rotation_angle_deg
+from fleetslam.transforms import invert
 from shared_data import present_sequences
 
 # ORB-SLAM3 RGB-D, ATE RMSE on the same frames (cm).
@@ -68,12 +69,6 @@ def config_for(loop_closing: bool) -> Config:
     config.loop_closing.enabled = loop_closing
     config.relocalisation.enabled = True
     return config
-
-
-def relative_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(rotation error deg, translation error m) of one relative pose."""
-    E = invert(T_true) @ T_est
-    return rotation_angle_deg(E[:3, :3]), float(np.linalg.norm(E[:3, 3]))
 
 
 def evo_errors(poses: np.ndarray, gt: np.ndarray, timestamps: np.ndarray) -> dict[str, float]:
@@ -109,7 +104,8 @@ def label_loop_edges(run: RobotRun) -> list[dict[str, Any]]:
                 "query_frame": int(query), "candidate_frame": int(candidate),
                 "rotation_error_deg": None, "translation_error_m": None, "label": "no GT"}
             if gt is not None and np.isfinite(gt[query]).all() and np.isfinite(gt[candidate]).all():
-                rot, trans = relative_error(np.array(T), invert(gt[candidate]) @ gt[query])
+                err = transform_error(np.array(T), invert(gt[candidate]) @ gt[query])
+                rot, trans = err.rotation_deg, err.translation_m
                 record.update(rotation_error_deg=rot, translation_error_m=trans,
                               label="false" if rot > FALSE_LOOP_DEG or trans > FALSE_LOOP_M
                               else "true")
@@ -221,7 +217,8 @@ def place_recognition(name: str, folder: Path) -> dict[str, Any]:
             if detection is not None:
                 # The verified pose against ground truth, relative to the candidate keyframe.
                 T_est = invert(kfs[top.entry].T_world_camera) @ detection.T_world_query
-                rot, trans = relative_error(T_est, invert(gt_kf[top.entry]) @ gt_kf[q])
+                err = transform_error(T_est, invert(gt_kf[top.entry]) @ gt_kf[q])
+                rot, trans = err.rotation_deg, err.translation_m
                 record.update(verified=True, inliers=detection.inliers,
                               verified_rotation_error_deg=rot, verified_translation_error_m=trans)
         queries.append(record)

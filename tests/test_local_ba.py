@@ -18,6 +18,7 @@ from fleetslam.pipeline.local_ba import (
 )
 from fleetslam.pipeline.local_map import LocalMap
 from fleetslam.pipeline.pose_optimizer import CHI2_STEREO
+from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transforms import invert, make_T, rotation_angle_deg
 
 CAMERA = Camera(525.0, 525.0, 319.5, 239.5)
@@ -65,7 +66,10 @@ def build_scene(seed: int, outlier_fraction: float = 0.0, perturb_from: int = 1)
         matched = map_id[visible]
         desc = rng.integers(0, 256, (len(visible), 32), dtype=np.uint8)
         start = lmap.n_landmarks
-        lmap.add_keyframe(CAMERA, i, float(i), T_est, uv_meas, depth, desc, octave, matched)
+        keypoints = np.zeros((len(visible), 7), np.float32)
+        keypoints[:, :2], keypoints[:, 5] = uv_meas, octave
+        features = FeatureFrame(i, float(i), keypoints, desc, depth, uv_meas)
+        lmap.add_keyframe(CAMERA, features, T_est, matched)
         created = visible[matched < 0]
         map_id[created] = np.arange(start, start + len(created))
     truth_of = np.full((lmap.n_landmarks, 3), np.nan)

@@ -108,10 +108,9 @@ def kitchen_run():
 
 
 def _final_ate(seq, session, out) -> float:
-    poses = session.final_poses(np.array([o.reference_keyframe for o in out]),
-                                np.array([o.T_reference_camera if o.T_reference_camera is not None
-                                          else np.eye(4) for o in out]),
-                                np.array([o.T_world_camera for o in out]))
+    poses = session.final_poses([o.reference_keyframe for o in out],
+                                [o.T_reference_camera for o in out],
+                                [o.T_world_camera for o in out])
     return absolute_trajectory_error(poses, seq.gt_poses).rmse_m
 
 

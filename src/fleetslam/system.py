@@ -72,15 +72,14 @@ def track_robot(name: str, source: str, sequence: RgbdSequence, config: Config,
         poses.append(out.T_world_camera)
         tracked.append(out.tracked)
         refs.append(out.reference_keyframe)
-        T_refs.append(out.T_reference_camera if out.T_reference_camera is not None
-                      else np.eye(4))
+        T_refs.append(out.T_reference_camera)
         progress.update(i + 1, f"kf {len(session.map.keyframes)} "
                                f"loops {len(session.loops.edges)}")
     wall = time.perf_counter() - start
     kfs = session.map.keyframes
     run = RobotRun(
         name, source, sequence, sequence.timestamps.copy(),
-        session.final_poses(np.array(refs), np.array(T_refs), np.array(poses)),
+        session.final_poses(refs, T_refs, poses),
         np.array(tracked),
         [kf.frame_index for kf in kfs], np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4),
         pipeline.timer.mean_ms(), session.lost_total, session.loss_events,

@@ -374,10 +374,8 @@ class RobotSession:
         online = np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4)
         if self.state.hello.offload_at == ROBOT_TRACKS:
             return online
-        refs = np.array([r.reference_keyframe for r in rows], np.int64)
-        T_refs = np.array([np.eye(4) if r.T_reference_camera is None else r.T_reference_camera
-                           for r in rows]).reshape(-1, 4, 4)
-        return self.state.tracking.final_poses(refs, T_refs, online)
+        return self.state.tracking.final_poses([r.reference_keyframe for r in rows],
+                                               [r.T_reference_camera for r in rows], online)
 
     def finish(self) -> FinishedMap:
         """Write the trajectory, keyframes and dense map; return the map for the merge."""

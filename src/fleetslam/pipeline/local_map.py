@@ -37,8 +37,8 @@ class Keyframe:
     landmark_ids: np.ndarray  # landmarks observed at insertion (matched inliers + created)
     # The keyframe's own features, for place recognition, loop verification and
     # relocalisation, and the landmark each keypoint observed at insertion (-1 = none).
-    features: FeatureFrame | None = None
-    keypoint_landmark: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    features: FeatureFrame
+    keypoint_landmark: np.ndarray
 
 
 def _empty(dtype=np.float64, *shape: int) -> np.ndarray:
@@ -145,15 +145,14 @@ class LocalMap:
 
     # ------------------------------------------------------------------ updates
 
-    def add_keyframe(self, camera: Camera, frame_index: int, timestamp: float,
-                     T_world_camera: np.ndarray, uv: np.ndarray, depth: np.ndarray,
-                     descriptors: np.ndarray, octave: np.ndarray, matched_ids: np.ndarray,
-                     features: FeatureFrame | None = None) -> Keyframe:
-        """Insert a keyframe. ``matched_ids`` (N, -1 = none) are inlier matches; they become
-        observations of this keyframe and, with depth, are fused with this view. Keypoints
-        with depth and no match become new landmarks."""
+    def add_keyframe(self, camera: Camera, features: FeatureFrame, T_world_camera: np.ndarray,
+                     matched_ids: np.ndarray) -> Keyframe:
+        """Insert the frame ``features`` as a keyframe. ``matched_ids`` (N, -1 = none) are
+        inlier matches; they become observations of this keyframe and, with depth, are fused
+        with this view. Keypoints with depth and no match become new landmarks."""
         kf_id = len(self.keyframes)
-        octave = octave.astype(np.int64)
+        uv, depth, descriptors = features.uv, features.depth, features.descriptors
+        octave = features.keypoints[:, 5].astype(np.int64)
         depth64 = depth.astype(np.float64)
         has_depth = depth > 0
         local = camera.backproject(uv, depth64)
@@ -200,8 +199,8 @@ class LocalMap:
         observed = np.unique(np.concatenate([seen, new_ids]))
         keypoint_landmark = np.full(len(uv), -1, np.int64)
         keypoint_landmark[kp] = np.concatenate([seen, new_ids])
-        keyframe = Keyframe(kf_id, frame_index, timestamp, T_world_camera.copy(), observed,
-                            features, keypoint_landmark)
+        keyframe = Keyframe(kf_id, features.index, features.timestamp, T_world_camera.copy(),
+                            observed, features, keypoint_landmark)
         self.keyframes.append(keyframe)
         return keyframe
 

@@ -39,9 +39,7 @@ def insert_keyframe(session: CloudSession, state: PosedFrame) -> InsertedKeyfram
     matched_ids = np.where(state.inliers, state.matched.landmark_ids, -1)
     if cfg.fuse_at_keyframe and lmap.keyframes and state.tracked:
         matched_ids = fuse_search(session, f, state.T_world_camera, matched_ids)
-    kf = lmap.add_keyframe(session.camera, f.index, f.timestamp, state.T_world_camera,
-                           f.uv, f.depth, f.descriptors, f.keypoints[:, 5].astype(np.int64),
-                           matched_ids, features=f)
+    kf = lmap.add_keyframe(session.camera, f, state.T_world_camera, matched_ids)
     if cfg.cull_landmarks:
         session.culled_landmarks += lmap.cull_recent(
             kf.id, cfg.cull_min_found_ratio, cfg.cull_min_observation_weight,

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,8 +26,10 @@ from fleetslam.pipeline.local_map import Keyframe
 from fleetslam.pipeline.matching import descriptor_match, guided_match
 from fleetslam.pipeline.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.pipeline.pose_optimizer import optimize_pose
-from fleetslam.pipeline.session import CloudSession
 from fleetslam.transforms import invert, rotation_angle_deg
+
+if TYPE_CHECKING:
+    from fleetslam.pipeline.session import CloudSession
 
 
 @dataclass
@@ -65,14 +68,13 @@ def close_loops(session: CloudSession, kf: Keyframe) -> np.ndarray | None:
     it when a loop was closed (the tracker moves its motion model with it), else None."""
     cfg = session.config.loop_closing
     state = session.loops
-    start = time.perf_counter()
     detection = None
-    if cfg.enabled and kf.id >= cfg.min_keyframes and kf.features is not None:
+    if cfg.enabled and kf.id >= cfg.min_keyframes:
+        start = time.perf_counter()
         detection = detect(session, kf)
         state.queries += 1
-    if kf.features is not None:
-        session.places.add(kf.id, kf.features.descriptors)
-    state.query_seconds.append(time.perf_counter() - start)
+        state.query_seconds.append(time.perf_counter() - start)
+    session.places.add(kf.id, kf.features.descriptors)
     # Detections too old to be consecutive with this keyframe no longer count.
     state.detections = [d for d in state.detections
                         if kf.id - d.query < cfg.consistency_window_keyframes]
@@ -235,14 +237,14 @@ def correct(session: CloudSession, detections: list[LoopDetection]) -> bool:
         state.events.append(event)
         return False
     corrections = {k: result.poses[k] @ invert(T_old[k]) for k in range(len(T_old))}
-    for k, C in corrections.items():
+    for k in corrections:
         lmap.keyframes[k].T_world_camera = result.poses[k]
     lmap.move_landmarks_with_keyframes(corrections)
     merged = 0
-    for d, keep in zip(detections, kept):
+    for d, edge, keep in zip(detections, new_edges, kept):
         if keep:
             merged += lmap.merge_landmarks(*d.same_landmarks)
-            state.edges.append(new_edges[detections.index(d)])
+            state.edges.append(edge)
     ba_seconds = None
     if cfg.global_ba:
         tcfg = session.config.tracking

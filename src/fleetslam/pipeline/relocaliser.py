@@ -42,9 +42,10 @@ def relocalise(session: CloudSession, f: FeatureFrame
         if good.sum() < tcfg.min_inliers:
             continue
         # With a pose, every landmark in view can be searched near its projection.
-        ids = match_free_keypoints(session, f, T_wc, np.where(np.isin(
-            np.arange(len(ids)), matched[good]), ids, -1), tcfg.local_map_radius_px,
-            tcfg.max_hamming, tcfg.match_ratio, scale_check=True)
+        kept = np.full(len(ids), -1, np.int64)
+        kept[matched[good]] = ids[matched[good]]
+        ids = match_free_keypoints(session, f, T_wc, kept, tcfg.local_map_radius_px,
+                                   tcfg.max_hamming, tcfg.match_ratio, scale_check=True)
         matched = np.flatnonzero(ids >= 0)
         T_wc, good = optimize_pose(session.camera, T_wc, lmap.xyz[ids[matched]], f.uv[matched],
                                    depth[matched], scale[matched], tcfg.virtual_baseline_m)

@@ -13,7 +13,7 @@ the robot holds only its edge part and the cloud only its cloud part.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import cv2
 import numpy as np
@@ -21,11 +21,11 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.pipeline.local_map import LocalMap
+from fleetslam.pipeline.loop_closer import LoopClosingState
 from fleetslam.pipeline.place_recognition import KeyframeDatabase
 from fleetslam.pipeline.states import FeatureFrame
 
 if TYPE_CHECKING:
-    from fleetslam.pipeline.loop_closer import LoopClosingState
     from fleetslam.pipeline.states import PosedFrame
 
 
@@ -55,11 +55,6 @@ class EdgeSession:
         return state
 
 
-def _new_loop_state() -> "LoopClosingState":
-    from fleetslam.pipeline.loop_closer import LoopClosingState
-    return LoopClosingState()
-
-
 @dataclass
 class CloudSession:
     config: Config
@@ -67,7 +62,7 @@ class CloudSession:
     map: LocalMap = field(default_factory=LocalMap)
     # Place recognition over this robot's keyframes (entry i = keyframe i).
     places: KeyframeDatabase | None = None
-    loops: "LoopClosingState" = field(default_factory=_new_loop_state)
+    loops: LoopClosingState = field(default_factory=LoopClosingState)
     # Last two estimated poses, for the constant-velocity motion model.
     T_last: np.ndarray | None = None
     T_before_last: np.ndarray | None = None
@@ -150,16 +145,17 @@ class CloudSession:
         kf = self.map.keyframes[-1]
         return kf.id, np.linalg.solve(kf.T_world_camera, T_world_camera)
 
-    def final_poses(self, references: np.ndarray, T_reference_camera: np.ndarray,
-                    online: np.ndarray) -> np.ndarray:
+    def final_poses(self, references: Sequence[int],
+                    T_reference_camera: Sequence[np.ndarray | None],
+                    online: Sequence[np.ndarray]) -> np.ndarray:
         """Every frame's pose from its reference keyframe's current pose (N x 4 x 4); a frame
-        without a reference keeps its ``online`` pose."""
+        without a reference (-1, relative pose None) keeps its ``online`` pose."""
         refs = np.asarray(references, np.int64)
         out = np.array(online, dtype=np.float64).reshape(-1, 4, 4)
-        has = (refs >= 0) & (refs < len(self.map.keyframes))
-        if has.any():
-            T_ref = self.map.keyframe_poses()[refs[has]]
-            out[has] = T_ref @ np.asarray(T_reference_camera).reshape(-1, 4, 4)[has]
+        has = np.flatnonzero((refs >= 0) & (refs < len(self.map.keyframes)))
+        if len(has):
+            T_rel = np.array([T_reference_camera[i] for i in has])
+            out[has] = self.map.keyframe_poses()[refs[has]] @ T_rel
         return out
 
     def loop_summary(self) -> dict:
