@@ -34,11 +34,16 @@ class Keyframe:
     frame_index: int
     timestamp: float
     T_world_camera: np.ndarray
-    landmark_ids: np.ndarray  # landmarks observed at insertion (matched inliers + created)
     # The keyframe's own features, for place recognition, loop verification and
-    # relocalisation, and the landmark each keypoint observed at insertion (-1 = none).
+    # relocalisation, and the landmark each keypoint observes (-1 = none; matched inliers
+    # and those it created, renamed when a loop merges landmarks).
     features: FeatureFrame
     keypoint_landmark: np.ndarray
+
+    @property
+    def landmark_ids(self) -> np.ndarray:
+        """The landmarks this keyframe observes, sorted."""
+        return np.unique(self.keypoint_landmark[self.keypoint_landmark >= 0])
 
 
 def _empty(dtype=np.float64, *shape: int) -> np.ndarray:
@@ -196,11 +201,10 @@ class LocalMap:
         kp = np.concatenate([seen_kp, create])
         self._add_observations(kf_id, np.concatenate([seen, new_ids]), uv[kp],
                                np.where(has_depth[kp], depth64[kp], 0.0), octave[kp])
-        observed = np.unique(np.concatenate([seen, new_ids]))
         keypoint_landmark = np.full(len(uv), -1, np.int64)
         keypoint_landmark[kp] = np.concatenate([seen, new_ids])
         keyframe = Keyframe(kf_id, features.index, features.timestamp, T_world_camera.copy(),
-                            observed, features, keypoint_landmark)
+                            features, keypoint_landmark)
         self.keyframes.append(keyframe)
         return keyframe
 
