@@ -89,8 +89,7 @@ class Fleet:
             for rid in waiting:
                 put(self.z, keys.control(rid), json.dumps({
                     "type": "hello", "protocol": PROTOCOL, "offload_at": K,
-                    "camera": self.robots[rid][1], "source": str(SEQ),
-                    "prior_T_world_first": None}).encode())
+                    "camera": self.robots[rid][1], "source": str(SEQ)}).encode())
             deadline = time.monotonic() + 1.0
             while waiting and time.monotonic() < deadline:
                 try:

@@ -37,6 +37,7 @@ from evo.core.units import Unit
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.evaluation.fleet import run_ate
 from fleetslam.pipeline.loop_closer import verify
 from fleetslam.pipeline.place_recognition import KeyframeDatabase
 from fleetslam.pipeline.session import CloudSession
@@ -119,10 +120,11 @@ def accuracy_run(name: str, folder: Path, loop_closing: bool) -> dict[str, Any]:
     errors = evo_errors(run.poses, seq.gt_poses, run.timestamps)
     online = evo_errors(run.online_poses, seq.gt_poses, run.timestamps)
     lc = run.loop_closing or {}
+    ate = run_ate(run)
     return {
         "ate_rmse_cm": errors["ate_rmse_m"] * 100, "rpe_rmse_cm": errors["rpe_rmse_m"] * 100,
         "online_ate_rmse_cm": online["ate_rmse_m"] * 100,
-        "fleetslam_ate_rmse_cm": run.ate["rmse_m"] * 100 if run.ate else None,
+        "fleetslam_ate_rmse_cm": ate["rmse_m"] * 100 if ate else None,
         "n_poses": errors["n_poses"], "lost_frames": run.lost_frames,
         "keyframes": len(run.keyframe_indices),
         "loops_accepted": lc.get("loops_accepted", 0),

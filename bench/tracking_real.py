@@ -17,6 +17,7 @@ from pathlib import Path
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.evaluation.fleet import run_ate
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.report import format_table
 from fleetslam.system import track_robot
@@ -36,12 +37,13 @@ def main() -> None:
         seq = RgbdSequence(folder)
         run = track_robot(name, str(folder), seq, Config(), show_progress=False)
         write_tum_trajectory(out.parent / f"{name}.tum", run.timestamps, run.poses)
+        ate = run_ate(run)
         results.append({
             "sequence": name, "frames": len(run.timestamps),
             "tracked": int(run.tracked.sum()), "lost_frames": run.lost_frames,
             "keyframes": len(run.keyframe_indices), "repeated_frames": run.repeated_frames,
-            "ate_rmse_m": run.ate["rmse_m"] if run.ate else None,
-            "ate_max_m": run.ate["max_m"] if run.ate else None,
+            "ate_rmse_m": ate["rmse_m"] if ate else None,
+            "ate_max_m": ate["max_m"] if ate else None,
             "fps": len(run.timestamps) / run.wall_s, "stage_ms": run.stage_ms,
         })
     headers = ["sequence", "frames", "tracked", "lost", "kf", "ATE cm", "fps"] + \

@@ -92,8 +92,7 @@ class FakeRobot:
 
     def hello(self) -> dict:
         message = {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
-                   "camera": self.camera.to_dict(), "source": "test",
-                   "prior_T_world_first": None}
+                   "camera": self.camera.to_dict(), "source": "test"}
         for _ in range(20):
             self.z.put(keys.control(self.id), json.dumps(message).encode())
             try:
@@ -231,7 +230,7 @@ def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path
         if key == keys.reply("r0"):  # with the number of frames tracked when it was sent
             replies.append({**json.loads(data), "frames": holder[0].state.counts["frames"]})
 
-    hello = Hello(K, seq0.camera, "test", None)
+    hello = Hello(K, seq0.camera, "test")
     session = RobotSession.open("r0", hello, Config(), CloudStore(tmp_path), publish)
     holder.append(session)
     now = time.monotonic()

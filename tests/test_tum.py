@@ -77,13 +77,21 @@ def test_robot_spec_with_frame_ranges():
     (lambda r: (r / "depth.txt").write_text("0.1\n"), "depth.txt:1: expected"),
     (lambda r: (r / "depth.txt").write_text("abc depth/x.png\n"), "not a number"),
     (lambda r: (r / "rgb" / "0.200000.png").unlink(), "0.200000.png: listed in the sequence index but missing"),
-    (lambda r: (r / "groundtruth.txt").write_text("0 1 2\n"), "groundtruth.txt:1: expected 8 values"),
 ])
 def test_bad_folders_name_the_file(tmp_path, damage, message):
     root = write_tum_folder(tmp_path / "seq", [0.1, 0.2], [0.1, 0.2])
     damage(root)
     with pytest.raises(ValueError, match=message):
         RgbdSequence(root)
+
+
+def test_bad_ground_truth_is_reported_by_evaluation_only(tmp_path):
+    root = write_tum_folder(tmp_path / "seq", [0.1, 0.2], [0.1, 0.2])
+    (root / "groundtruth.txt").write_text("0 1 2\n")
+    sequence = RgbdSequence(root)  # the running system never reads ground truth
+    assert sequence[1].rgb is not None
+    with pytest.raises(ValueError, match="groundtruth.txt:1: expected 8 values"):
+        sequence.gt_poses
 
 
 def test_undecodable_image_names_the_file(tmp_path):

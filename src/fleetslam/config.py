@@ -231,10 +231,35 @@ class FsHicpConfig:
 
 @dataclass
 class MergeConfig:
-    """Initial guess for the merge (this version: ground truth plus a labelled perturbation)."""
+    """Joining robots into one global map: inter-robot place recognition, consistency, the
+    global pose graph, FS-HICP refinement and the global outputs."""
 
-    perturb_rotation_deg: float = 10.0
-    perturb_translation_m: float = 0.3
+    enabled: bool = True
+    # Place-recognition candidates verified per other robot and new keyframe.
+    candidates: int = 3
+    # Keyframe-to-keyframe 3D-3D RANSAC (depth-backed keypoints of both sides).
+    ransac_iterations: int = 300
+    ransac_inlier_m: float = 0.03
+    ransac_inlier_depth_ratio: float = 0.02
+    min_ransac_inliers: int = 30
+    # Matches left after the reprojection refinement of the query pose.
+    min_refined_inliers: int = 50
+    # Matches (from different keyframes) that must imply the same map-to-map transform
+    # before two robots join, and how closely.
+    consistent_detections: int = 2
+    consistency_rotation_deg: float = 3.0
+    consistency_translation_m: float = 0.10
+    # Global pose graph: each robot's own keyframe-to-keyframe edges, and the inter-robot
+    # edges (a single keyframe pair's alignment is looser than tracking's).
+    odometry_sigma_rotation_deg: float = 0.3
+    odometry_sigma_translation_m: float = 0.005
+    inter_sigma_rotation_deg: float = 1.0
+    inter_sigma_translation_m: float = 0.02
+    # FS-HICP refines each joined robot's dense map against the rest of its group.
+    fshicp_refine: bool = True
+    # The global OctoMap (.bt): leaf size, and how far rays from a keyframe are cast.
+    octomap_resolution_m: float = 0.05
+    octomap_max_range_m: float = 4.0
     seed: int = 7
 
 

@@ -1,6 +1,6 @@
 """The demo as a real deployment on one machine: a cloud process and one process per robot,
-talking Zenoh over loopback. The demo then asks the cloud to merge, adds each robot's ATE
-against ground truth (the cloud never sees ground truth) and writes summary.json."""
+talking Zenoh over loopback. The demo then asks the cloud to merge, scores the run against
+ground truth (the cloud never sees ground truth) and writes summary.json."""
 
 from __future__ import annotations
 
@@ -11,13 +11,13 @@ from pathlib import Path
 from typing import Any
 
 from fleetslam.datasets.tum import open_robot
+from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.launch import (
     CloudClient,
     free_endpoint,
     start_cloud,
     start_robot,
     stop,
-    trajectory_ate,
 )
 from fleetslam.progress import Progress
 
@@ -83,8 +83,8 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         if client is not None:
             client.close()
         stop(cloud)
+    score_fleet(summary, out, sequences)  # ground truth, read only now
     for robot in summary["robots"]:
-        robot["ate"] = trajectory_ate(out / robot["trajectory"], sequences[robot["name"]])
         report = out / robot["name"] / "robot_report.json"
         if report.exists():
             robot["robot"] = json.loads(report.read_text())

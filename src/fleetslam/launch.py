@@ -14,11 +14,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.evaluation.ate import absolute_trajectory_error
-from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.transport import keys
 from fleetslam.transport.zenoh_session import open_connecting, put
 
@@ -112,20 +107,3 @@ class CloudClient:
     def close(self) -> None:
         self._sub.undeclare()
         self._session.close()
-
-
-def trajectory_ate(trajectory: Path, sequence: RgbdSequence) -> dict[str, Any] | None:
-    """ATE of a written TUM trajectory against the sequence's ground truth, frames paired by
-    timestamp (the cloud's trajectory misses frames the link lost)."""
-    if not sequence.has_ground_truth:
-        return None
-    times, poses = read_tum_trajectory(trajectory)
-    if not len(times):
-        return None
-    idx = np.searchsorted(sequence.timestamps, times).clip(1, len(sequence.timestamps) - 1)
-    idx = np.where(np.abs(sequence.timestamps[idx - 1] - times)
-                   < np.abs(sequence.timestamps[idx] - times), idx - 1, idx)
-    ok = np.abs(sequence.timestamps[idx] - times) < 1e-3
-    ate = absolute_trajectory_error(poses[ok], sequence.gt_poses[idx[ok]])
-    return {"rmse_m": ate.rmse_m, "mean_m": ate.mean_m, "median_m": ate.median_m,
-            "max_m": ate.max_m, "n_poses": ate.n_poses, "alignment": "SE(3) Umeyama"}

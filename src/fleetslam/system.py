@@ -1,8 +1,9 @@
-"""The whole system on recorded data: track every robot, build its dense map, merge the
-maps with FS-HICP, write the run folder (trajectories, maps, global map, summary.json).
+"""The whole system on recorded data in one process: track every robot (taking turns frame
+by frame, each new keyframe handed to the map merger at once), build each dense map, write
+the global outputs, then score against ground truth where a sequence has it.
 
-In this version all robots run in one process, one after the other; the robot/cloud split
-is the pipeline's ``split(k)`` (see pipeline/split.py).
+The robot/cloud split is the pipeline's ``split(k)`` (see pipeline/split.py); the same work
+as separate processes is cloud/ and edge/.
 """
 
 from __future__ import annotations
@@ -17,20 +18,25 @@ import numpy as np
 
 from fleetslam.config import Config, config_to_dict
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.evaluation.ate import absolute_trajectory_error
+from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
-from fleetslam.mapping.dense_map import build_dense_map, voxel_downsample
+from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.merging.global_map import (
+    GlobalMap,
+    RobotTrack,
+    build_global_map,
+    merge_summary,
+)
+from fleetslam.merging.inter_robot import KeyframeSummary
+from fleetslam.merging.merger import MapMerger
+from fleetslam.pipeline.session import CloudSession
 from fleetslam.pipeline.split import TrackingPipeline
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
-from fleetslam.registration.fshicp import chain_transforms, register_chain
-from fleetslam.registration.metrics import transform_error
 from fleetslam.report import format_table
-from fleetslam.registration.initial_guess import perturbed_guess
-from fleetslam.transforms import invert, transform_points
 
-SUMMARY_VERSION = 1
+SUMMARY_VERSION = 3
 
 
 @dataclass
@@ -51,7 +57,9 @@ class RobotRun:
     repeated_frames: int
     resets: int
     wall_s: float
-    ate: dict[str, float] | None = None
+    # Each frame's reference keyframe (-1: none) and its pose relative to it.
+    references: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    T_reference_camera: list[np.ndarray | None] = field(default_factory=list)
     # The poses as tracking reported them frame by frame (``poses`` follow every later
     # correction of their reference keyframes).
     online_poses: np.ndarray | None = None
@@ -59,37 +67,99 @@ class RobotRun:
     map_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     map_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
 
+    def track(self) -> RobotTrack:
+        """What the global map needs of this robot."""
+        sequence = self.sequence
+
+        def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int]:
+            frame = sequence[index]
+            return frame.rgb, frame.depth_m, 1
+
+        return RobotTrack(self.name, sequence.camera, self.timestamps, self.poses,
+                          self.references, self.T_reference_camera, keyframe_image)
+
+
+class RobotTracker:
+    """One robot's tracking frame by frame (robots of a fleet take turns, so the merger
+    sees their keyframes in the order they would arrive)."""
+
+    def __init__(self, name: str, source: str, sequence: RgbdSequence, config: Config) -> None:
+        self.name, self.source, self.sequence = name, source, sequence
+        self.pipeline = TrackingPipeline(config, sequence.camera)
+        self.poses: list[np.ndarray] = []
+        self.tracked: list[bool] = []
+        self.refs: list[int] = []
+        self.T_refs: list[np.ndarray | None] = []
+        self.seconds = 0.0
+
+    @property
+    def session(self) -> CloudSession:
+        return self.pipeline.session.cloud
+
+    def step(self, i: int) -> KeyframeSummary | None:
+        """Track frame ``i``; the new keyframe's summary if it became one."""
+        frame = self.sequence[i]
+        start = time.perf_counter()
+        out = self.pipeline.track(CapturedFrame(frame.index, frame.timestamp, frame.rgb,
+                                                frame.depth_m))
+        self.seconds += time.perf_counter() - start
+        self.poses.append(out.T_world_camera)
+        self.tracked.append(out.tracked)
+        self.refs.append(out.reference_keyframe)
+        self.T_refs.append(out.T_reference_camera)
+        if not out.is_keyframe:
+            return None
+        kf = self.session.map.keyframes[-1]
+        return KeyframeSummary(self.name, kf.id, kf.frame_index, kf.timestamp, kf.features,
+                               kf.T_world_camera.copy())
+
+    def finish(self) -> RobotRun:
+        session, sequence = self.session, self.sequence
+        kfs = session.map.keyframes
+        return RobotRun(
+            self.name, self.source, sequence, sequence.timestamps.copy(),
+            session.final_poses(self.refs, self.T_refs, self.poses), np.array(self.tracked),
+            [kf.frame_index for kf in kfs],
+            np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4),
+            self.pipeline.timer.mean_ms(), session.lost_total, session.loss_events,
+            session.repeated_frames, session.resets, self.seconds,
+            references=np.array(self.refs, np.int64), T_reference_camera=list(self.T_refs),
+            online_poses=np.array(self.poses), loop_closing=session.loop_summary())
+
 
 def track_robot(name: str, source: str, sequence: RgbdSequence, config: Config,
                 show_progress: bool = True) -> RobotRun:
-    pipeline = TrackingPipeline(config, sequence.camera)
+    """One robot alone, start to end."""
+    tracker = RobotTracker(name, source, sequence, config)
     progress = Progress(f"robot {name} tracking", len(sequence), enabled=show_progress)
-    poses, tracked, refs, T_refs = [], [], [], []
-    session = pipeline.session.cloud
-    start = time.perf_counter()
-    for i, frame in enumerate(sequence):
-        out = pipeline.track(CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m))
-        poses.append(out.T_world_camera)
-        tracked.append(out.tracked)
-        refs.append(out.reference_keyframe)
-        T_refs.append(out.T_reference_camera)
-        progress.update(i + 1, f"kf {len(session.map.keyframes)} "
-                               f"loops {len(session.loops.edges)}")
-    wall = time.perf_counter() - start
-    kfs = session.map.keyframes
-    run = RobotRun(
-        name, source, sequence, sequence.timestamps.copy(),
-        session.final_poses(refs, T_refs, poses),
-        np.array(tracked),
-        [kf.frame_index for kf in kfs], np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4),
-        pipeline.timer.mean_ms(), session.lost_total, session.loss_events,
-        session.repeated_frames, session.resets, wall, online_poses=np.array(poses),
-        loop_closing=session.loop_summary())
-    if sequence.has_ground_truth:
-        ate = absolute_trajectory_error(run.poses, sequence.gt_poses)
-        run.ate = {"rmse_m": ate.rmse_m, "mean_m": ate.mean_m, "median_m": ate.median_m,
-                   "max_m": ate.max_m, "n_poses": ate.n_poses, "alignment": "SE(3) Umeyama"}
-    return run
+    for i in range(len(sequence)):
+        tracker.step(i)
+        progress.update(i + 1, f"kf {len(tracker.session.map.keyframes)} "
+                               f"loops {len(tracker.session.loops.edges)}")
+    return tracker.finish()
+
+
+def track_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config,
+                show_progress: bool = True) -> tuple[list[RobotRun], MapMerger]:
+    """Every robot tracked, taking turns frame by frame; each new keyframe goes to the
+    merger at once, so robots join as soon as they share a place (as in the cloud)."""
+    trackers = [RobotTracker(name, source, seq, config) for name, source, seq in robots]
+    merger = MapMerger(config)
+    for t in trackers:
+        merger.add_robot(t.name, t.sequence.camera)
+    total = sum(len(t.sequence) for t in trackers)
+    progress = Progress("tracking", total, enabled=show_progress)
+    done = 0
+    for i in range(max(len(t.sequence) for t in trackers)):
+        for t in trackers:
+            if i >= len(t.sequence):
+                continue
+            summary = t.step(i)
+            if summary is not None:
+                merger.add_keyframe(summary, t.session.map.keyframe_poses().copy())
+            done += 1
+        progress.update(done, f"groups {len(merger.components())}")
+    return [t.finish() for t in trackers], merger
 
 
 def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -> None:
@@ -105,109 +175,33 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
     run.map_points, run.map_colors = build_dense_map(run.sequence.camera, keyframes(), config.map)
 
 
-@dataclass
-class MergeOutcome:
-    T_global_map: list[np.ndarray]  # per robot, robot 0 defines the global frame
-    pairs: list[dict[str, Any]]
-    initial_guess: str
-
-
-def first_ground_truth_pose(run: RobotRun) -> np.ndarray | None:
-    gt = run.sequence.gt_poses
-    if gt is None or not np.isfinite(gt[0]).all():
-        return None
-    return gt[0]
-
-
-def merge_robot_maps(runs: list[RobotRun], config: Config, show_progress: bool = True
-                     ) -> MergeOutcome | None:
-    return merge_maps([r.name for r in runs], [r.map_points for r in runs],
-                      [first_ground_truth_pose(r) for r in runs], config, show_progress)
-
-
-def merge_maps(names: list[str], maps: list[np.ndarray], T_world_first: list[np.ndarray | None],
-               config: Config, show_progress: bool = True) -> MergeOutcome | None:
-    """Register every map into map 0's frame with FS-HICP, chained as the paper does:
-    map i onto map i-1 (already in the global frame). Each map frame is its robot's first
-    camera pose; the initial guess is the ground truth of those first poses plus a
-    perturbation of the configured size (a later version finds it itself). None when a
-    robot has no such prior."""
-    if any(T is None for T in T_world_first):
-        return None
-    truth = [invert(T_world_first[0]) @ T for T in T_world_first]  # T_map0_mapi
-    rng = np.random.default_rng(config.merge.seed)
-    # Truth of T_{i-1}_i (map i into map i-1), the pair FS-HICP registers.
-    truths = [invert(truth[i - 1]) @ truth[i] for i in range(1, len(maps))]
-    guesses = [perturbed_guess(T_true, points, rng, config.merge.perturb_rotation_deg,
-                               config.merge.perturb_translation_m)
-               for T_true, points in zip(truths, maps[1:])]
-    progress = Progress("merge (FS-HICP)", len(maps) - 1, "pairs", enabled=show_progress)
-    results = register_chain(maps, guesses, config.fshicp)
-    progress.update(len(maps) - 1)
-    T_global = chain_transforms([r.T_target_source for r in results])
-    pairs = []
-    for i, (result, T_guess, T_true) in enumerate(zip(results, guesses, truths), start=1):
-        err = transform_error(result.T_target_source, T_true)
-        err_guess = transform_error(T_guess, T_true)
-        global_err = transform_error(T_global[i], truth[i])
-        pairs.append({
-            "source": names[i], "target": names[i - 1],
-            "initial_rotation_error_deg": err_guess.rotation_deg,
-            "initial_translation_error_m": err_guess.translation_m,
-            "rotation_error_deg": err.rotation_deg, "translation_error_m": err.translation_m,
-            "paper_error_eq6": err.eq6,
-            "global_rotation_error_deg": global_err.rotation_deg,
-            "global_translation_error_m": global_err.translation_m,
-            "initial_fitness_m2": result.initial_fitness, "final_fitness_m2": result.final_fitness,
-            "rmse_m": result.rmse, "seconds": result.seconds,
-            "coarse_steps": result.coarse_steps, "fine_steps": result.fine_steps,
-            "T_target_source": result.T_target_source.tolist(),
-        })
-    return MergeOutcome(T_global, pairs,
-                        f"ground truth perturbed by {config.merge.perturb_rotation_deg:g} deg "
-                        f"(about the map centroid) and {config.merge.perturb_translation_m:g} m "
-                        f"(seed {config.merge.seed})")
-
-
-def write_global_map(path: Path, merge: MergeOutcome, maps: list[np.ndarray],
-                     colors: list[np.ndarray], config: Config) -> int:
-    """All maps in the global frame, voxel filtered again where they overlap, as PLY."""
-    clouds = [transform_points(T, p) for T, p in zip(merge.T_global_map, maps)]
-    points, merged_colors = voxel_downsample(np.vstack(clouds), np.vstack(colors),
-                                             config.map.voxel_m)
-    write_ply(path, points, merged_colors)
-    return len(points)
-
-
 def run_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config, out_dir: Path,
               show_progress: bool = True) -> dict[str, Any]:
-    """Track, map and merge; write everything under ``out_dir``; return the summary."""
+    """Track, map and merge; write everything under ``out_dir``; score against ground truth
+    where a sequence has it (after the run); return the summary."""
     start = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=False)
-    runs: list[RobotRun] = []
-    for name, source, sequence in robots:
-        run = track_robot(name, source, sequence, config, show_progress)
+    runs, merger = track_fleet(robots, config, show_progress)
+    for run in runs:
         build_robot_map(run, config, show_progress)
-        robot_dir = out_dir / name
+        robot_dir = out_dir / run.name
         write_tum_trajectory(robot_dir / "trajectory.tum", run.timestamps, run.poses,
-                             comment=f"fleetslam robot {name} from {source}\n"
+                             comment=f"fleetslam robot {run.name} from {run.source}\n"
                                      "T_map_camera; map frame = first camera pose")
         write_tum_trajectory(robot_dir / "keyframes.tum", run.timestamps[run.keyframe_indices],
-                             run.keyframe_poses, comment=f"fleetslam robot {name} keyframes")
+                             run.keyframe_poses, comment=f"fleetslam robot {run.name} keyframes")
         write_ply(robot_dir / "map.ply", run.map_points, run.map_colors)
-        runs.append(run)
-
-    merge = merge_robot_maps(runs, config, show_progress) if len(runs) > 1 else None
-    if merge is not None:
-        write_global_map(out_dir / "global_map.ply", merge, [r.map_points for r in runs],
-                         [r.map_colors for r in runs], config)
-    summary = make_summary(runs, merge, config, time.perf_counter() - start)
+    global_map = build_global_map(merger, [r.track() for r in runs], config, out_dir) \
+        if len(runs) > 1 else None
+    summary = make_summary(runs, merger, global_map, config, time.perf_counter() - start)
+    # Evaluation: ground truth is read only now, after every output is written.
+    score_fleet(summary, out_dir, {r.name: r.sequence for r in runs})
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
-def make_summary(runs: list[RobotRun], merge: MergeOutcome | None, config: Config,
-                 wall_s: float) -> dict[str, Any]:
+def make_summary(runs: list[RobotRun], merger: MapMerger, global_map: GlobalMap | None,
+                 config: Config, wall_s: float) -> dict[str, Any]:
     return {
         "version": SUMMARY_VERSION,
         "wall_time_s": wall_s,
@@ -216,18 +210,12 @@ def make_summary(runs: list[RobotRun], merge: MergeOutcome | None, config: Confi
             "frames": len(r.timestamps), "keyframes": len(r.keyframe_indices),
             "lost_frames": r.lost_frames, "loss_events": r.loss_events,
             "repeated_frames": r.repeated_frames, "map_resets": r.resets,
-            "ate": r.ate, "tracking_fps": len(r.timestamps) / r.wall_s,
+            "ate": None, "tracking_fps": len(r.timestamps) / r.wall_s,
             "stage_ms": r.stage_ms, "map_points": len(r.map_points),
             "loop_closing": r.loop_closing,
             "trajectory": f"{r.name}/trajectory.tum", "map": f"{r.name}/map.ply",
         } for r in runs],
-        "merge": None if merge is None else {
-            "method": "FS-HICP", "initial_guess": merge.initial_guess, "pairs": merge.pairs,
-            "global_map": "global_map.ply",
-            "T_global_map": {r.name: T.tolist() for r, T in zip(runs, merge.T_global_map)},
-        },
-        "merge_skipped_reason": None if merge is not None or len(runs) < 2 else
-        "a robot has no ground truth for its first frame, which this version's initial guess needs",
+        "merge": merge_summary(merger, global_map) if len(runs) > 1 else None,
         "config": config_to_dict(config),
     }
 
@@ -235,11 +223,11 @@ def make_summary(runs: list[RobotRun], merge: MergeOutcome | None, config: Confi
 def summary_table(summary: dict[str, Any]) -> str:
     rows = []
     for r in summary["robots"]:
-        ate = r["ate"]["rmse_m"] * 100 if r["ate"] else None
+        ate = r["ate"]["rmse_m"] * 100 if r.get("ate") else None
         loops = r.get("loop_closing") or {}
         rows.append([r["name"], r["frames"], r["keyframes"], r["lost_frames"],
                      loops.get("relocalisations"), loops.get("loops_accepted"), ate,
-                     r["tracking_fps"], r["map_points"]])
+                     r.get("tracking_fps"), r["map_points"]])
     text = format_table(["robot", "frames", "keyframes", "lost", "relocalised", "loops",
                          "ATE RMSE cm", "fps", "map points"], rows)
     deployed = [r for r in summary["robots"] if "transport" in r]
@@ -261,14 +249,39 @@ def summary_table(summary: dict[str, Any]) -> str:
              "retries", "cloud ms/frame", "cloud latency ms", "round trip ms", "p95"], trows)
     merge = summary.get("merge")
     if merge:
-        mrows = [[f"{p['source']} -> {p['target']}", p["initial_rotation_error_deg"],
-                  p["initial_translation_error_m"] * 100, p["rotation_error_deg"],
-                  p["translation_error_m"] * 100, p["final_fitness_m2"], p["seconds"]]
-                 for p in merge["pairs"]]
-        text += "\n\nmerge: FS-HICP, initial guess = " + merge["initial_guess"] + "\n"
-        text += format_table(["pair", "start rot deg", "start trans cm", "rot err deg",
-                              "trans err cm", "fitness m2", "s"], mrows)
-    elif summary.get("merge_skipped_reason"):
-        text += "\n\nmerge skipped: " + summary["merge_skipped_reason"]
+        text += "\n\n" + merge_table(merge)
     text += f"\n\nwall time {summary['wall_time_s']:.1f} s"
+    return text
+
+
+def merge_table(merge: dict[str, Any]) -> str:
+    """Which robots joined, when, with how many constraints; the errors if scored."""
+    evaluation = merge.get("evaluation") or {}
+    relative = {r["robot"]: r for r in evaluation.get("relative_poses", [])}
+    joint = evaluation.get("joint_ate")
+    rows = []
+    for name, info in merge["robots"].items():
+        joined = info.get("joined")
+        rel = relative.get(name, {})
+        rows.append([name, info["anchor"],
+                     " ".join(f"{r}:{f}" for r, f in joined["frames"].items()) if joined
+                     else None,
+                     rel.get("final_rotation_error_deg"),
+                     None if rel.get("final_translation_error_m") is None
+                     else rel["final_translation_error_m"] * 100,
+                     (merge.get("not_merged") or {}).get(name, "")])
+    text = "merge (no ground truth in the run): " + ", ".join(
+        "+".join(m) for m in merge["components"].values()) + "\n"
+    text += format_table(["robot", "group", "joined at (robot:frame)", "rel. rot err deg",
+                          "rel. trans err cm", "not merged because"], rows)
+    scored = [c for c in evaluation.get("constraints", []) if "rotation_error_deg" in c]
+    kept = [c for c in scored if c["kept"]]
+    text += (f"\ninter-robot constraints: {len(merge['constraints'])} "
+             f"({sum(c['kept'] is False for c in merge['constraints'])} rejected by GNC)")
+    if kept:
+        worst = max(kept, key=lambda c: c["rotation_error_deg"])
+        text += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
+                 f" / {max(c['translation_error_m'] for c in kept) * 100:.1f} cm")
+    if joint:
+        text += f"\njoint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm"
     return text

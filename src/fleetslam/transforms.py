@@ -72,3 +72,13 @@ def random_perturbation(rng: np.random.Generator, max_rot_deg: float, max_trans_
     direction /= np.linalg.norm(direction)
     R = Rotation.from_rotvec(axis * np.radians(max_rot_deg)).as_matrix()
     return make_T(R, direction * max_trans_m)
+
+
+def transforms_agree(A: np.ndarray, B: np.ndarray, at: np.ndarray, rotation_deg: float,
+                     translation_m: float) -> bool:
+    """Two estimates of one transform agree: the same rotation within ``rotation_deg`` and
+    the same image of the point ``at`` within ``translation_m`` (where it is used, so a
+    small rotation far from the origin is not mistaken for a large shift)."""
+    D = invert(A) @ B
+    moved = np.linalg.norm((A[:3, :3] @ at + A[:3, 3]) - (B[:3, :3] @ at + B[:3, 3]))
+    return rotation_angle_deg(D[:3, :3]) <= rotation_deg and moved <= translation_m

@@ -23,6 +23,8 @@ from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.merging.global_map import RobotTrack
+from fleetslam.merging.inter_robot import KeyframeSummary
 from fleetslam.pipeline.session import CloudSession, EdgeSession, Session
 from fleetslam.pipeline.split import StageTimer, run_stages
 from fleetslam.pipeline.stages import default_stages
@@ -55,9 +57,6 @@ class Hello:
     offload_at: int
     camera: Camera
     source: str
-    # The robot's first camera pose in the world, if its source has ground truth: this
-    # version's merge starts from it, perturbed (see system.merge_maps).
-    prior_T_world_first: np.ndarray | None
 
     @staticmethod
     def parse(message: dict[str, Any]) -> "Hello":
@@ -69,12 +68,7 @@ class Hello:
             raise ValueError(f"offloading point {k!r} not supported; use one of "
                              f"{', '.join(map(str, SUPPORTED_POINTS))}")
         camera = Camera.from_dict(message.get("camera") or {}, "hello camera")
-        prior = message.get("prior_T_world_first")
-        if prior is not None:
-            prior = np.asarray(prior, dtype=np.float64)
-            if prior.shape != (4, 4) or not np.isfinite(prior).all():
-                raise ValueError("prior_T_world_first must be a finite 4x4 matrix")
-        return Hello(int(k), camera, str(message.get("source", "")), prior)
+        return Hello(int(k), camera, str(message.get("source", "")))
 
 
 @dataclass
@@ -116,17 +110,20 @@ class FinishedMap:
     robot_id: str
     points: np.ndarray
     colors: np.ndarray
-    prior_T_world_first: np.ndarray | None
+    track: RobotTrack
     summary: dict[str, Any]
 
 
 Publish = Callable[[str, bytes], None]
+# Where a session hands each new keyframe (and its robot's latest keyframe poses): the merger.
+KeyframeSink = Callable[[KeyframeSummary, np.ndarray], None]
 
 
 class RobotSession:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
-                 publish: Publish) -> None:
+                 publish: Publish, keyframe_sink: KeyframeSink | None = None) -> None:
         self.state = state
+        self.keyframe_sink = keyframe_sink
         self.config = config
         self.store = store
         self.publish = publish
@@ -154,13 +151,13 @@ class RobotSession:
 
     @staticmethod
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
-             publish: Publish) -> "RobotSession":
+             publish: Publish, keyframe_sink: KeyframeSink | None = None) -> "RobotSession":
         tracking = CloudSession(config, hello.camera)
         runs_front_end = hello.offload_at in CLOUD_TRACKS and any(
             stage.side == "edge" for stage in default_stages()[hello.offload_at:])
         front_end = EdgeSession(config, hello.camera) if runs_front_end else None
         return RobotSession(SessionState(robot_id, hello, tracking, front_end), config, store,
-                            publish)
+                            publish, keyframe_sink)
 
     @property
     def robot_id(self) -> str:
@@ -287,6 +284,8 @@ class RobotSession:
             # on the writer thread); the keyframe's upload is acknowledged only once this
             # checkpoint is on disk, so no acknowledged keyframe is one a restart forgets.
             self._checkpoints.put((out.index, snapshot(st)))
+            if self.stages and self.keyframe_sink is not None:
+                self.keyframe_sink(*self.newest_keyframe())
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
                             out.n_inliers, out.T_world_camera, cloud_ms)
         self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
@@ -361,6 +360,20 @@ class RobotSession:
 
     # -- outputs ------------------------------------------------------------------------
 
+    def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
+        """The newest keyframe as the merger takes it, and every keyframe's current pose."""
+        lmap = self.state.tracking.map
+        kf = lmap.keyframes[-1]
+        return (KeyframeSummary(self.robot_id, kf.id, kf.frame_index, kf.timestamp,
+                                kf.features, kf.T_world_camera.copy()),
+                lmap.keyframe_poses().copy())
+
+    def all_keyframes(self) -> list[KeyframeSummary]:
+        """Every keyframe as the merger takes it (a restored session re-joins the merger)."""
+        return [KeyframeSummary(self.robot_id, kf.id, kf.frame_index, kf.timestamp,
+                                kf.features, kf.T_world_camera.copy())
+                for kf in self.state.tracking.map.keyframes]
+
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         """Final pose of every keyframe (after local BA), by frame index."""
         if self.state.hello.offload_at == ROBOT_TRACKS:
@@ -406,7 +419,20 @@ class RobotSession:
         (out_dir / "robot.json").write_text(json.dumps(summary, indent=2))
         log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
                  len(rows), len(kf_index), len(points))
-        return FinishedMap(self.robot_id, points, colors, st.hello.prior_T_world_first, summary)
+        return FinishedMap(self.robot_id, points, colors, self.track(timestamps), summary)
+
+    def track(self, timestamps: np.ndarray) -> RobotTrack:
+        """What the global map needs of this robot; keyframe images from the store."""
+        rows = self.state.rows
+        camera = self.state.hello.camera
+
+        def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int]:
+            _, upload = decode_keyframe(self.store.keyframe(self.robot_id, index))
+            return upload.rgb, camera.depth_to_metres(upload.depth_raw), upload.stride
+
+        return RobotTrack(self.robot_id, camera, timestamps, self.trajectory(),
+                          np.array([r.reference_keyframe for r in rows], np.int64),
+                          [r.T_reference_camera for r in rows], keyframe_image)
 
     def summary(self, map_points: int) -> dict[str, Any]:
         st = self.state

@@ -17,16 +17,17 @@ from typing import Any
 
 import zenoh
 
+from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.robot_session import Hello, RobotSession
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
-from fleetslam.system import merge_maps, write_global_map
+from fleetslam.merging.global_map import build_global_map, merge_summary
+from fleetslam.system import SUMMARY_VERSION
 from fleetslam.transport import keys
 from fleetslam.transport.zenoh_session import open_listening, put
 
 log = logging.getLogger("fleetslam.cloud")
 
-SUMMARY_VERSION = 2
 # Control messages are small JSON; anything bigger is not one.
 MAX_CONTROL_BYTES = 1 << 20
 
@@ -38,6 +39,7 @@ class CloudServer:
         self.endpoint = endpoint or config.transport.endpoint
         self.store = CloudStore(self.out_dir)
         self.sessions: dict[str, RobotSession] = {}
+        self.merger = MergerService(config)
         self._lock = threading.Lock()
         self._zenoh: zenoh.Session | None = None
         self._subscribers: list[Any] = []
@@ -60,6 +62,7 @@ class CloudServer:
     def close(self) -> None:
         for session in list(self.sessions.values()):
             session.close()
+        self.merger.close()
         for sub in self._subscribers:
             sub.undeclare()
         if self._zenoh is not None:
@@ -112,8 +115,14 @@ class CloudServer:
                     return None
                 if state is None:
                     return None
-                session = RobotSession(state, self.config, self.store, self.publish)
+                session = RobotSession(state, self.config, self.store, self.publish,
+                                       self.merger.submit)
                 self.sessions[robot_id] = session
+                if session.stages:
+                    self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
+                                          state.tracking.map.keyframe_poses().copy())
+                else:
+                    self.merger.add_robot(robot_id, state.hello.camera)
                 log.info("robot %s: session restored from its checkpoint (frame %d)",
                          robot_id, state.last_index)
             return session
@@ -154,8 +163,9 @@ class CloudServer:
                 return
             with self._lock:
                 session = self.sessions.get(robot_id) or RobotSession.open(
-                    robot_id, hello, self.config, self.store, self.publish)
+                    robot_id, hello, self.config, self.store, self.publish, self.merger.submit)
                 self.sessions[robot_id] = session
+                self.merger.add_robot(robot_id, hello.camera)
             log.info("robot %s: new session, offloading at %d, source %s", robot_id,
                      hello.offload_at, hello.source)
             session.welcome(resumed=False)
@@ -178,7 +188,8 @@ class CloudServer:
             self.publish(keys.CLOUD_REPLY, json.dumps(
                 {"type": "status", "robots": {r: {"frames": s.state.counts["frames"],
                                                   "finished": s.finished is not None}
-                                              for r, s in self.sessions.items()}}).encode())
+                                              for r, s in self.sessions.items()},
+                 "merge": self.merger.status()}).encode())
         else:
             log.warning("cloud control message of unknown type %r", message["type"])
 
@@ -194,34 +205,27 @@ class CloudServer:
             self.publish(keys.CLOUD_REPLY, json.dumps({"type": "error",
                                                        "reason": str(exc)}).encode())
 
-    def merge(self) -> dict[str, Any]:
-        """Register the finished maps (in robot id order), write global_map.ply and
-        summary.json; return the summary."""
+    def merge(self, timeout_s: float = 300.0) -> dict[str, Any]:
+        """Write the global outputs of the finished robots (global trajectories, map, OctoMap)
+        and summary.json; return the summary."""
         start = time.perf_counter()
+        if not self.merger.drain(timeout_s):
+            raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
+                               f"within {timeout_s:.0f} s; ask again")
         finished = sorted((s.finished for s in self.sessions.values() if s.finished),
                           key=lambda f: f.robot_id)
-        merge = None
+        global_map = None
         if len(finished) > 1:
-            merge = merge_maps([f.robot_id for f in finished], [f.points for f in finished],
-                               [f.prior_T_world_first for f in finished], self.config,
-                               show_progress=False)
-        if merge is not None:
-            write_global_map(self.out_dir / "global_map.ply", merge,
-                             [f.points for f in finished], [f.colors for f in finished],
-                             self.config)
+            global_map = self.merger.locked(lambda m: build_global_map(
+                m, [f.track for f in finished], self.config, self.out_dir))
+        merge = self.merger.locked(lambda m: merge_summary(m, global_map))
+        merge["robots"] = {k: v for k, v in merge["robots"].items()
+                           if k in {f.robot_id for f in finished}}
         summary = {
             "version": SUMMARY_VERSION,
             "wall_time_s": time.perf_counter() - start,
             "robots": [f.summary for f in finished],
-            "merge": None if merge is None else {
-                "method": "FS-HICP", "initial_guess": merge.initial_guess,
-                "pairs": merge.pairs, "global_map": "global_map.ply",
-                "T_global_map": {f.robot_id: T.tolist()
-                                 for f, T in zip(finished, merge.T_global_map)},
-            },
-            "merge_skipped_reason": None if merge is not None else (
-                "fewer than two finished robots" if len(finished) < 2 else
-                "a robot sent no first-frame prior, which this version's initial guess needs"),
+            "merge": merge if len(finished) > 1 else None,
             "config": config_to_dict(self.config),
         }
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -10,6 +10,7 @@ freiburg1/2/3 camera named by the folder (``freiburg1`` or ``fr1`` ...); the ROS
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -163,10 +164,12 @@ class RgbdSequence:
         for path in self.rgb_paths + self.depth_paths:
             if not path.is_file():
                 raise ValueError(f"{path}: listed in the sequence index but missing")
-        self.gt_poses = self._load_ground_truth()
 
-    def _load_ground_truth(self) -> np.ndarray | None:
-        """Ground-truth camera-to-world pose per frame (NaN where GT does not cover it)."""
+    @functools.cached_property
+    def gt_poses(self) -> np.ndarray | None:
+        """Ground-truth camera-to-world pose per frame (NaN where GT does not cover it), for
+        evaluation: read from groundtruth.txt on first use, which the running system never
+        makes."""
         path = self.folder / "groundtruth.txt"
         if not path.exists():
             return None

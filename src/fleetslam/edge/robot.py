@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
+from fleetslam.cloud.robot_session import PROTOCOL, ROBOT_TRACKS, SUPPORTED_POINTS
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.cloud.robot_session import PROTOCOL, ROBOT_TRACKS, SUPPORTED_POINTS
 from fleetslam.pipeline.split import StageTimer, TrackingPipeline, run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
@@ -212,11 +212,9 @@ class Robot:
         return None
 
     def _hello(self) -> dict[str, Any]:
-        gt = self.sequence.gt_poses
-        prior = gt[0].tolist() if gt is not None and np.isfinite(gt[0]).all() else None
         message = {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
                    "camera": self.sequence.camera.to_dict(), "source": self.source,
-                   "frames": len(self.sequence), "prior_T_world_first": prior}
+                   "frames": len(self.sequence)}
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
             self._send_control(message)

@@ -33,11 +33,9 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, voxel_m: flo
     return centroids, np.round(mean(colors.astype(np.float64))).astype(np.uint8)
 
 
-def keyframe_cloud(camera: Camera, rgb: np.ndarray, depth_m: np.ndarray,
-                   T_world_camera: np.ndarray, config: MapConfig, decimated_by: int = 1
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Back-project one keyframe (invalid depth dropped) into the world, voxel filtered.
-
+def _backproject(camera: Camera, rgb: np.ndarray, depth_m: np.ndarray, config: MapConfig,
+                 decimated_by: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``pixel_stride``-th pixel with valid depth, in the camera frame, with colours.
     A keyframe upload is already decimated to every ``config.pixel_stride``-th pixel
     (``decimated_by``): the same pixels, so the same points, as the full image."""
     if decimated_by not in (1, config.pixel_stride):
@@ -46,8 +44,29 @@ def keyframe_cloud(camera: Camera, rgb: np.ndarray, depth_m: np.ndarray,
     local, vu = camera.backproject_image(depth_m, stride=config.pixel_stride // decimated_by,
                                          max_depth_m=config.max_depth_m,
                                          decimated_by=decimated_by)
-    colors = rgb[vu[:, 0], vu[:, 1]]
-    return voxel_downsample(transform_points(T_world_camera, local), colors, config.voxel_m)
+    return local, rgb[vu[:, 0], vu[:, 1]]
+
+
+def keyframe_cloud(camera: Camera, rgb: np.ndarray, depth_m: np.ndarray,
+                   T_world_camera: np.ndarray, config: MapConfig, decimated_by: int = 1
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project one keyframe (invalid depth dropped) into the world, voxel filtered."""
+    local, colors = _backproject(camera, rgb, depth_m, config, decimated_by)
+    points, colors = voxel_downsample(transform_points(T_world_camera, local), colors,
+                                      config.voxel_m)
+    assert colors is not None
+    return points, colors
+
+
+def keyframe_local_cloud(camera: Camera, rgb: np.ndarray, depth_m: np.ndarray,
+                         config: MapConfig, decimated_by: int = 1
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """One keyframe's cloud in its own camera frame, voxel filtered there (kept while a
+    global map is placed and re-placed; float32 halves its memory)."""
+    local, colors = _backproject(camera, rgb, depth_m, config, decimated_by)
+    points, colors = voxel_downsample(local, colors, config.voxel_m)
+    assert colors is not None
+    return points.astype(np.float32), colors
 
 
 def build_dense_map(camera: Camera,

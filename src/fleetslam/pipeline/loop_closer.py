@@ -26,7 +26,7 @@ from fleetslam.pipeline.local_map import Keyframe
 from fleetslam.pipeline.matching import descriptor_match, guided_match
 from fleetslam.pipeline.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.pipeline.pose_optimizer import optimize_pose
-from fleetslam.transforms import invert, rotation_angle_deg
+from fleetslam.transforms import invert, rotation_angle_deg, transforms_agree
 
 if TYPE_CHECKING:
     from fleetslam.pipeline.session import CloudSession
@@ -81,7 +81,7 @@ def close_loops(session: CloudSession, kf: Keyframe) -> np.ndarray | None:
     if detection is None:
         return None
     state.detections_total += 1
-    agreeing = [d for d in state.detections if corrections_agree(
+    agreeing = [d for d in state.detections if transforms_agree(
         d.correction, detection.correction, kf.T_world_camera[:3, 3], cfg.consistency_rotation_deg,
         cfg.consistency_translation_m)]
     state.detections.append(detection)
@@ -95,15 +95,6 @@ def close_loops(session: CloudSession, kf: Keyframe) -> np.ndarray | None:
     if not accepted:
         return None
     return kf.T_world_camera @ invert(T_before)
-
-
-def corrections_agree(A: np.ndarray, B: np.ndarray, at: np.ndarray, rotation_deg: float,
-                      translation_m: float) -> bool:
-    """Two world-frame corrections agree: the same rotation within ``rotation_deg`` and the
-    same displacement of the point ``at`` within ``translation_m``."""
-    D = invert(A) @ B
-    moved = np.linalg.norm((A[:3, :3] @ at + A[:3, 3]) - (B[:3, :3] @ at + B[:3, 3]))
-    return rotation_angle_deg(D[:3, :3]) <= rotation_deg and moved <= translation_m
 
 
 def allowed_candidates(session: CloudSession, kf: Keyframe) -> np.ndarray:

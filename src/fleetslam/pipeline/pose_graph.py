@@ -26,7 +26,11 @@ class PoseEdge:
     a: int
     b: int
     T_a_b: np.ndarray  # 4 x 4: pose of b in a's frame
-    kind: str  # "odometry", "covisibility" or "loop"
+    kind: str  # "odometry", "covisibility" or "loop" (tested by GNC)
+    # (rotation rad, translation m) of this edge; None: the graph's default.
+    sigmas: tuple[float, float] | None = None
+    # A "loop" edge declared an inlier anyway (already checked by consistency).
+    trusted: bool = False
 
 
 @dataclass
@@ -42,19 +46,25 @@ def optimise_pose_graph(poses: dict[int, np.ndarray], edges: list[PoseEdge], fix
                         sigma_rotation_rad: float, sigma_translation_m: float,
                         max_iterations: int = 100) -> PoseGraphResult:
     """Optimise ``poses`` (T_world_node by node id) under ``edges``; node ``fixed`` holds
-    the frame. Loop edges are tested by GNC; the others are known inliers."""
-    sigmas = np.array([sigma_rotation_rad] * 3 + [sigma_translation_m] * 3)
-    noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+    the frame. Loop edges are tested by GNC (unless trusted); the others are known inliers.
+    ``loop_inliers`` lists every loop edge, trusted ones included."""
+
+    def noise_of(rotation_rad: float, translation_m: float) -> gtsam.noiseModel.Base:
+        return gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([rotation_rad] * 3 + [translation_m] * 3))
+
+    default_noise = noise_of(sigma_rotation_rad, sigma_translation_m)
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.PriorFactorPose3(fixed, gtsam.Pose3(poses[fixed]),
                                      gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     known, loop_factor = [0], []
     for edge in edges:
         index = graph.size()
+        noise = default_noise if edge.sigmas is None else noise_of(*edge.sigmas)
         graph.add(gtsam.BetweenFactorPose3(edge.a, edge.b, gtsam.Pose3(edge.T_a_b), noise))
         if edge.kind == "loop":
             loop_factor.append(index)
-        else:
+        if edge.kind != "loop" or edge.trusted:
             known.append(index)
     values = gtsam.Values()
     for node, T in poses.items():

@@ -1,0 +1,126 @@
+"""Robots that start anywhere, merged with no ground truth in the run; scored afterwards.
+
+    .venv/bin/python bench/merge_fleet.py [--out bench/results/merge_fleet.json] [--keep DIR]
+
+Cases (real data from ../shared/data, plus the built-in synthetic scene):
+  rk-2       redkitchen 0-299 and 400-599 (frames 500-560 revisit 272-339's places)
+  rpy-2      fr1_rpy 0-59 and 90-149
+  rk-3       redkitchen 0-199, 250-349 and 480-599
+  apart-*    robots in different places, which must never join: redkitchen 0-299 with
+             fr1_rpy 0-149, and each of them with synthetic robot 0
+Per case: which robots joined and at which frames, every inter-robot constraint against
+ground truth (false = above 5 deg or 20 cm), each robot's map frame in the global frame
+against ground truth before and after FS-HICP, the joint ATE of the concatenated global
+trajectories (one SE(3) alignment), and the global outputs (PLY, OctoMap).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
+from shared_data import SEVEN_SCENES, TUM_RPY  # noqa: E402
+
+from fleetslam.config import Config  # noqa: E402
+from fleetslam.datasets.synthetic import ensure_scene  # noqa: E402
+from fleetslam.datasets.tum import open_robot  # noqa: E402
+from fleetslam.report import format_table  # noqa: E402
+from fleetslam.system import run_fleet  # noqa: E402
+
+FALSE_ROTATION_DEG = 5.0
+FALSE_TRANSLATION_M = 0.20
+
+
+def cases(synthetic: Path) -> dict[str, list[str]]:
+    rk, rpy = str(SEVEN_SCENES), str(TUM_RPY)
+    return {
+        "rk-2": [f"{rk}:0-299", f"{rk}:400-599"],
+        "rpy-2": [f"{rpy}:0-59", f"{rpy}:90-149"],
+        "rk-3": [f"{rk}:0-199", f"{rk}:250-349", f"{rk}:480-599"],
+        "apart-rk-rpy": [f"{rk}:0-299", f"{rpy}:0-149"],
+        "apart-rk-syn": [f"{rk}:0-299", str(synthetic)],
+        "apart-rpy-syn": [f"{rpy}:0-149", str(synthetic)],
+    }
+
+
+def run_case(name: str, specs: list[str], out: Path) -> dict[str, Any]:
+    robots = [(f"r{i}", spec, open_robot(spec)) for i, spec in enumerate(specs)]
+    start = time.perf_counter()
+    summary = run_fleet(robots, Config(), out / name, show_progress=False)
+    merge = summary["merge"]
+    ev = merge.get("evaluation") or {}
+    scored = [c for c in ev.get("constraints", []) if "rotation_error_deg" in c]
+    false = [c for c in scored if c["rotation_error_deg"] > FALSE_ROTATION_DEG
+             or c["translation_error_m"] > FALSE_TRANSLATION_M]
+    unscored_kept = [c for c in ev.get("constraints", []) if "rotation_error_deg" not in c]
+    return {
+        "case": name, "sources": specs, "seconds": time.perf_counter() - start,
+        "components": merge["components"], "joins": merge["joins"],
+        "robot_ate_cm": {r["name"]: r["ate"]["rmse_m"] * 100 if r["ate"] else None
+                         for r in summary["robots"]},
+        "constraints": len(merge["constraints"]),
+        "constraints_rejected_by_gnc": sum(c["kept"] is False for c in merge["constraints"]),
+        "constraint_errors": scored,
+        "false_constraints": len(false) + len(unscored_kept),
+        "relative_poses": ev.get("relative_poses", []),
+        "joint_ate_cm": ev["joint_ate"]["rmse_m"] * 100 if ev.get("joint_ate") else None,
+        "fshicp": merge.get("fshicp"), "octomap": merge.get("octomap"),
+        "global_map_points": merge.get("global_map_points"),
+        "query_ms_median": merge.get("query_ms_median"),
+        "query_ms_p95": merge.get("query_ms_p95"),
+        "graph_ms_median": merge.get("graph_ms_median"),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "merge_fleet.json"))
+    parser.add_argument("--keep", help="write the runs here (default: a temporary folder)")
+    parser.add_argument("--only", nargs="*", help="case names to run")
+    args = parser.parse_args()
+    if not SEVEN_SCENES.exists() or not TUM_RPY.exists():
+        raise SystemExit(f"needs {SEVEN_SCENES} and {TUM_RPY}")
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = Path(args.keep) if args.keep else Path(tmp)
+        synthetic = ensure_scene(Path(tmp) / "synthetic", Config().synthetic)[0]
+        results = [run_case(name, specs, runs) for name, specs in cases(synthetic).items()
+                   if not args.only or name in args.only]
+    rows = []
+    for r in results:
+        rel = r["relative_poses"]
+        errs = r["constraint_errors"]
+        rows.append([
+            r["case"], " | ".join("+".join(m) for m in r["components"].values()),
+            "; ".join(f"{j['query_robot']}:{j['query_frame']}~{j['place_robot']}:{j['place_frame']}"
+                      for j in r["joins"]) or "-",
+            r["constraints"], r["false_constraints"],
+            max((c["rotation_error_deg"] for c in errs), default=None),
+            max((c["translation_error_m"] * 100 for c in errs), default=None),
+            " ".join(f"{p['graph_rotation_error_deg']:.2f}/{p['graph_translation_error_m'] * 100:.1f}"
+                     for p in rel if "graph_rotation_error_deg" in p) or "-",
+            " ".join(f"{p['final_rotation_error_deg']:.2f}/{p['final_translation_error_m'] * 100:.1f}"
+                     for p in rel if "final_rotation_error_deg" in p) or "-",
+            r["joint_ate_cm"],
+            " ".join(f"{v:.2f}" for v in r["robot_ate_cm"].values() if v is not None),
+            r["query_ms_median"]])
+    print(format_table(["case", "groups", "joined at", "constraints", "false",
+                        "max rot err deg", "max trans err cm",
+                        "rel. pose graph deg/cm", "after FS-HICP deg/cm", "joint ATE cm",
+                        "robot ATE cm", "query ms"], rows))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"false_constraint": {"rotation_deg": FALSE_ROTATION_DEG,
+                                                    "translation_m": FALSE_TRANSLATION_M},
+                               "cases": results}, indent=2))
+    print(f"\nwrote {out}")
+
+
+if __name__ == "__main__":
+    main()

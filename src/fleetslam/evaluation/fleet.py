@@ -1,0 +1,130 @@
+"""Scoring a finished run against ground truth: each robot's ATE in its own frame, and the
+merge (every inter-robot constraint, each robot's place in the global frame, and the joint
+ATE of all global trajectories under one alignment, as collaborative-SLAM papers score).
+
+Evaluation only: it reads the run's written outputs and the sequences' ground truth after the
+run; nothing here feeds back into the system.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.evaluation.ate import absolute_trajectory_error
+from fleetslam.io.trajectory import read_tum_trajectory
+from fleetslam.registration.metrics import transform_error
+from fleetslam.transforms import invert
+
+
+def ground_truth_at(times: np.ndarray, sequence: RgbdSequence) -> tuple[np.ndarray, np.ndarray]:
+    """(mask of ``times`` that are frames of ``sequence``, their ground-truth poses)."""
+    if not sequence.has_ground_truth or not len(times):
+        return np.zeros(len(times), bool), np.zeros((0, 4, 4))
+    stamps = sequence.timestamps
+    idx = np.searchsorted(stamps, times).clip(1, len(stamps) - 1) if len(stamps) > 1 \
+        else np.zeros(len(times), np.int64)
+    if len(stamps) > 1:
+        idx = np.where(np.abs(stamps[idx - 1] - times) < np.abs(stamps[idx] - times),
+                       idx - 1, idx)
+    ok = np.abs(stamps[idx] - times) < 1e-3
+    gt = sequence.gt_poses[idx[ok]]
+    finite = np.isfinite(gt).all(axis=(1, 2))
+    ok[np.flatnonzero(ok)[~finite]] = False
+    return ok, gt[finite]
+
+
+def ate_summary(poses: np.ndarray, gt: np.ndarray) -> dict[str, Any] | None:
+    """ATE (SE(3) alignment) over the poses whose ground truth is known; None if < 3."""
+    if np.sum(np.isfinite(gt).all(axis=(1, 2)) & np.isfinite(poses).all(axis=(1, 2))) < 3:
+        return None
+    ate = absolute_trajectory_error(poses, gt)
+    return {"rmse_m": ate.rmse_m, "mean_m": ate.mean_m, "median_m": ate.median_m,
+            "max_m": ate.max_m, "n_poses": ate.n_poses, "alignment": "SE(3) Umeyama"}
+
+
+def run_ate(run: Any) -> dict[str, Any] | None:
+    """ATE of an in-process run (``system.RobotRun``: its poses and its sequence)."""
+    gt = run.sequence.gt_poses
+    return None if gt is None else ate_summary(run.poses, gt)
+
+
+def trajectory_ate(trajectory: Path, sequence: RgbdSequence) -> dict[str, Any] | None:
+    """ATE of a written TUM trajectory against the sequence's ground truth, frames paired by
+    timestamp (a cloud's trajectory misses frames the link lost)."""
+    times, poses = read_tum_trajectory(trajectory)
+    ok, gt = ground_truth_at(times, sequence)
+    return ate_summary(poses[ok], gt)
+
+
+def _same_world(a: RgbdSequence, b: RgbdSequence) -> bool:
+    """Two robots' ground truths share a frame when they play the same recording, or
+    recordings of one generated scene (its ``scene.json`` declares one world frame)."""
+    fa, fb = a.folder.resolve(), b.folder.resolve()
+    shared = fa == fb or (fa.parent == fb.parent and (fa.parent / "scene.json").is_file())
+    return shared and a.has_ground_truth and b.has_ground_truth
+
+
+def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdSequence]
+                ) -> dict[str, Any]:
+    """Errors of the merge against ground truth (see the module docstring)."""
+    result: dict[str, Any] = {"constraints": [], "relative_poses": [], "joint_ate": None}
+    for c in merge.get("constraints", []):
+        q, p = sequences[c["query_robot"]], sequences[c["place_robot"]]
+        row = {k: c[k] for k in ("query_robot", "query_frame", "place_robot", "place_frame",
+                                 "trusted", "kept")}
+        if _same_world(q, p):
+            true = invert(p.gt_poses[c["place_frame"]]) @ q.gt_poses[c["query_frame"]]
+            err = transform_error(np.array(c["T_place_query"]), true)
+            row.update(rotation_error_deg=err.rotation_deg, translation_error_m=err.translation_m)
+        else:
+            row["note"] = "different recordings: no common ground-truth frame"
+        result["constraints"].append(row)
+    members = merge.get("members") or []
+    anchor = merge.get("anchor")
+    if len(members) < 2 or anchor is None:
+        return result
+    if anchor not in members:  # the group's frame is a robot that had not finished
+        anchor = members[0]
+    a = sequences[anchor]
+    # A map frame is its robot's first camera, so ground truth gives the true relative pose
+    # of two maps at their first frames; a robot's drift before the shared place counts.
+    for m in members:
+        if m == anchor:
+            continue
+        b = sequences[m]
+        if not _same_world(a, b):
+            result["relative_poses"].append({"robot": m, "note": "different recordings"})
+            continue
+        true = invert(a.gt_poses[0]) @ b.gt_poses[0]
+        row: dict[str, Any] = {"robot": m, "to": anchor}
+        for label, key in (("graph", "T_global_map_graph"), ("final", "T_global_map")):
+            est = invert(np.array(merge[key][anchor])) @ np.array(merge[key][m])
+            err = transform_error(est, true)
+            row[f"{label}_rotation_error_deg"] = err.rotation_deg
+            row[f"{label}_translation_error_m"] = err.translation_m
+        result["relative_poses"].append(row)
+    if all(_same_world(a, sequences[m]) for m in members):
+        est, gt = [], []
+        for m in members:
+            times, poses = read_tum_trajectory(out_dir / merge["global_trajectories"][m])
+            ok, g = ground_truth_at(times, sequences[m])
+            est.append(poses[ok])
+            gt.append(g)
+        result["joint_ate"] = ate_summary(np.concatenate(est), np.concatenate(gt))
+    return result
+
+
+def score_fleet(summary: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdSequence]
+                ) -> None:
+    """Add ground-truth scores to ``summary`` in place (robots' ATE, merge evaluation)."""
+    for robot in summary["robots"]:
+        sequence = sequences.get(robot["name"])
+        robot["ate"] = trajectory_ate(out_dir / robot["trajectory"], sequence) \
+            if sequence is not None else None
+    merge = summary.get("merge")
+    if merge is not None and all(n in sequences for n in merge.get("robots", {})):
+        merge["evaluation"] = score_merge(merge, out_dir, sequences)

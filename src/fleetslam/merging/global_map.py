@@ -1,0 +1,223 @@
+"""The global map: every merged robot's keyframes in one frame, refined by FS-HICP, and the
+outputs other tools open (TUM trajectories, a voxel-fused PLY cloud, an OctoMap .bt).
+
+The merger's pose graph places keyframes; the dense maps are rebuilt from those global
+keyframe poses (so the cloud follows every correction), then FS-HICP (the paper's
+registration) aligns each robot's dense map to the rest of its group, and the alignment is
+kept only if it lowers the fitness score. Robots outside the largest group stay in their own
+frame and are reported as not merged, with the reason.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from fleetslam.camera import Camera
+from fleetslam.config import Config
+from fleetslam.io.ply import write_ply
+from fleetslam.io.trajectory import write_tum_trajectory
+from fleetslam.mapping.dense_map import keyframe_local_cloud, voxel_downsample
+from fleetslam.mapping.octomap_export import write_octomap
+from fleetslam.merging.merger import MapMerger
+from fleetslam.registration.fshicp import fshicp
+from fleetslam.registration.metrics import transform_error
+from fleetslam.transforms import invert, transform_points
+
+log = logging.getLogger("fleetslam.merge")
+
+# (rgb, depth_m, decimated_by) of the keyframe at a frame index.
+KeyframeImage = Callable[[int], tuple[np.ndarray, np.ndarray, int]]
+
+
+@dataclass
+class RobotTrack:
+    """One robot's result as the global map needs it (its own map frame)."""
+
+    name: str
+    camera: Camera
+    timestamps: np.ndarray
+    poses: np.ndarray  # N x 4 x 4 T_map_camera (final)
+    references: np.ndarray  # N int: reference keyframe of each frame, -1 none
+    T_reference_camera: list[np.ndarray | None]
+    keyframe_image: KeyframeImage
+
+
+@dataclass
+class GlobalMap:
+    members: list[str]  # robots in the global frame (the largest joined group)
+    anchor: str  # whose map frame is the global frame
+    T_global_map: dict[str, np.ndarray]  # members only: the graph's, after FS-HICP
+    T_global_map_graph: dict[str, np.ndarray]  # before FS-HICP
+    trajectories: dict[str, np.ndarray]  # members: N x 4 x 4 T_global_camera
+    keyframe_poses: dict[str, np.ndarray]  # members: K x 4 x 4
+    fshicp: list[dict[str, Any]] = field(default_factory=list)
+    not_merged: dict[str, str] = field(default_factory=dict)
+    points: int = 0
+    octomap: dict[str, Any] | None = None
+
+
+def largest_group(merger: MapMerger, among: Iterable[str]) -> tuple[str, list[str]]:
+    """(anchor, members among ``among``) of the biggest component; on a tie, the one whose
+    anchor's id sorts first. The group's frame is its anchor's, even if the anchor is not
+    among them."""
+    among = set(among)
+    components = {a: [m for m in ms if m in among] for a, ms in merger.components().items()}
+    components = {a: ms for a, ms in components.items() if ms}
+    if not components:
+        raise ValueError("no robot to merge")
+    anchor = min(components, key=lambda a: (-len(components[a]), a))
+    return anchor, components[anchor]
+
+
+def global_trajectory(track: RobotTrack, keyframe_poses: np.ndarray,
+                      T_global_map: np.ndarray) -> np.ndarray:
+    """Every frame in the global frame: from its reference keyframe's global pose, so the
+    graph's bending reaches it; frames without one are moved rigidly."""
+    out = T_global_map @ track.poses
+    refs = track.references
+    has = np.flatnonzero((refs >= 0) & (refs < len(keyframe_poses)))
+    has = np.array([i for i in has if track.T_reference_camera[i] is not None], np.int64)
+    if len(has):
+        T_rel = np.array([track.T_reference_camera[i] for i in has])
+        out[has] = keyframe_poses[refs[has]] @ T_rel
+    return out
+
+
+def _local_clouds(track: RobotTrack, frame_indices: Iterable[int], config: Config
+                  ) -> list[tuple[np.ndarray, np.ndarray]]:
+    clouds = []
+    for i in frame_indices:
+        rgb, depth_m, decimated_by = track.keyframe_image(i)
+        clouds.append(keyframe_local_cloud(track.camera, rgb, depth_m, config.map, decimated_by))
+    return clouds
+
+
+def _place(clouds: Sequence[tuple[np.ndarray, np.ndarray]], poses: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray]:
+    if not len(clouds):
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return (np.vstack([transform_points(T, p) for (p, _), T in zip(clouds, poses)]),
+            np.vstack([c for _, c in clouds]))
+
+
+def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config,
+                     out_dir: Path) -> GlobalMap:
+    """Write ``global/<robot>.tum``, ``global_map.ply`` and ``global_map.bt`` under
+    ``out_dir`` for the largest joined group; returns what was built."""
+    by_name = {t.name: t for t in tracks}
+    anchor, members = largest_group(merger, by_name)
+    graph_poses = merger.global_keyframe_poses()
+    result = GlobalMap(members, anchor, {}, {}, {}, {})
+    for name in by_name:
+        if name in members and len(members) > 1:
+            continue
+        if name not in merger.robots or not merger.robots[name].keyframes:
+            result.not_merged[name] = "no keyframe features reached the merger (a robot " \
+                                      "that tracks itself sends none)"
+        elif len(members) > 1:
+            result.not_merged[name] = "shares no verified place with " + ", ".join(members)
+        else:
+            result.not_merged[name] = "no robot shares a verified place with another"
+    kf_poses = {m: graph_poses[m].copy() for m in members}
+    result.T_global_map_graph = {m: merger.T_global_map(m) for m in members}
+    clouds = {m: _local_clouds(by_name[m], [k.frame_index for k in merger.robots[m].keyframes],
+                               config) for m in members}
+    correction = {m: np.eye(4) for m in members}
+    if config.merge.fshicp_refine and len(members) > 1:
+        placed = {m: voxel_downsample(*_place(clouds[m], kf_poses[m]), config.map.voxel_m)[0]
+                  for m in members}
+        for m in members[1:]:
+            target = np.vstack([placed[o] for o in members if o != m])
+            fit = fshicp(placed[m], target, np.eye(4), config.fshicp)
+            improved = fit.final_fitness < fit.initial_fitness
+            moved = transform_error(fit.T_target_source, np.eye(4))
+            result.fshicp.append({
+                "robot": m, "initial_fitness_m2": fit.initial_fitness,
+                "final_fitness_m2": fit.final_fitness, "kept": bool(improved),
+                "rotation_deg": moved.rotation_deg, "translation_m": moved.translation_m,
+                "seconds": fit.seconds, "coarse_steps": fit.coarse_steps,
+                "fine_steps": fit.fine_steps})
+            if improved:
+                correction[m] = fit.T_target_source
+                kf_poses[m] = fit.T_target_source @ kf_poses[m]
+                placed[m] = transform_points(fit.T_target_source, placed[m])
+    for m in members:
+        result.T_global_map[m] = correction[m] @ result.T_global_map_graph[m]
+        result.keyframe_poses[m] = kf_poses[m]
+        track = by_name[m]
+        result.trajectories[m] = global_trajectory(track, kf_poses[m], result.T_global_map[m])
+        write_tum_trajectory(out_dir / "global" / f"{m}.tum", track.timestamps,
+                             result.trajectories[m],
+                             comment=f"fleetslam robot {m} in the global frame "
+                                     f"(robot {anchor}'s first camera)")
+    all_points, all_colors, origins = [], [], []
+    for m in members:
+        p, c = _place(clouds[m], kf_poses[m])
+        all_points.append(p)
+        all_colors.append(c)
+    points, colors = voxel_downsample(np.vstack(all_points), np.vstack(all_colors),
+                                      config.map.voxel_m)
+    assert colors is not None
+    write_ply(out_dir / "global_map.ply", points, colors)
+    result.points = len(points)
+    start = time.perf_counter()
+    scans = [(transform_points(T, p), T[:3, 3]) for m in members
+             for (p, _), T in zip(clouds[m], kf_poses[m])]
+    origins = [o for _, o in scans]
+    stats = write_octomap(out_dir / "global_map.bt", scans, config.merge.octomap_resolution_m,
+                          config.merge.octomap_max_range_m)
+    stats["seconds"] = time.perf_counter() - start
+    stats["scans"] = len(origins)
+    result.octomap = stats
+    log.info("global map: %s in %s's frame, %d points, octomap %d occupied / %d free leaves",
+             ", ".join(members), anchor, len(points), stats["occupied"], stats["free"])
+    return result
+
+
+def relative_pose(global_map: GlobalMap, a: str, b: str) -> np.ndarray:
+    """T_mapA_mapB as the global map has it."""
+    return invert(global_map.T_global_map[a]) @ global_map.T_global_map[b]
+
+
+def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, Any]:
+    """The merge as summary.json records it (the same schema in and out of the cloud)."""
+    status = merger.status()
+    constraints = [{
+        "query_robot": c.match.query.robot, "query_frame": c.match.query.frame_index,
+        "place_robot": c.match.place.robot, "place_frame": c.match.place.frame_index,
+        "inliers": c.match.inliers, "ransac_inliers": c.match.ransac_inliers,
+        "score": c.match.score, "trusted": c.trusted, "kept": c.kept,
+        "T_place_query": c.match.T_place_query.tolist(),
+    } for c in merger.constraints]
+
+    def ms(values: list[float]) -> float | None:
+        return 1000.0 * float(np.median(values)) if values else None
+
+    out: dict[str, Any] = {
+        "method": "inter-robot place recognition, global pose graph (GNC), FS-HICP refinement",
+        "components": status["components"], "joins": status["events"],
+        "robots": status["robots"], "constraints": constraints,
+        "query_ms_median": ms(merger.query_seconds),
+        "query_ms_p95": 1000.0 * float(np.percentile(merger.query_seconds, 95))
+        if merger.query_seconds else None,
+        "graph_ms_median": ms(merger.graph_seconds),
+    }
+    if global_map is not None:
+        out.update({
+            "members": global_map.members, "anchor": global_map.anchor,
+            "not_merged": global_map.not_merged,
+            "T_global_map": {m: T.tolist() for m, T in global_map.T_global_map.items()},
+            "T_global_map_graph": {m: T.tolist()
+                                   for m, T in global_map.T_global_map_graph.items()},
+            "fshicp": global_map.fshicp,
+            "global_trajectories": {m: f"global/{m}.tum" for m in global_map.members},
+            "global_map": "global_map.ply", "global_map_points": global_map.points,
+            "octomap": global_map.octomap,
+        })
+    return out

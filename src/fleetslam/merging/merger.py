@@ -1,0 +1,312 @@
+"""The map merger: joins robots whose keyframes show the same places into one global frame,
+while they run, and keeps one robust pose graph over all their keyframes.
+
+Each robot starts alone, in its own map frame (its first camera). Every new keyframe is
+queried against the other robots' keyframe databases and verified (inter_robot.py). A
+verified match implies a transform between the two robots' map frames; two robots join
+only when ``merge.consistent_detections`` matches from different keyframes imply the same
+transform (pairwise consistency, as PCM checks it). Weak or lone matches never join
+anything; robots that share no place stay apart and are retried as keyframes arrive.
+
+A joined group (component) lives in the map frame of its member whose id sorts first. Its pose graph has one
+node per keyframe of every member: odometry edges from each robot's own latest keyframe
+poses (known inliers) and one edge per inter-robot match. The matches that justified a
+join are trusted; every later one is tested by GNC, so a wrong match is dropped, not merged.
+
+No ground truth is read here: the merger sees only what robots' sessions computed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fleetslam.camera import Camera
+from fleetslam.config import Config
+from fleetslam.merging.inter_robot import KeyframeSummary, PlaceMatch, verify_places
+from fleetslam.pipeline.place_recognition import KeyframeDatabase
+from fleetslam.pipeline.pose_graph import PoseEdge, optimise_pose_graph
+from fleetslam.transforms import invert, transforms_agree
+
+log = logging.getLogger("fleetslam.merge")
+
+# Graph node of keyframe k of the robot added i-th.
+NODE_STRIDE = 1_000_000
+
+
+@dataclass
+class RobotRecord:
+    name: str
+    order: int  # position in arrival order (the graph's node block)
+    camera: Camera
+    keyframes: list[KeyframeSummary] = field(default_factory=list)
+    poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_map_keyframe
+    places: KeyframeDatabase | None = None
+    # The component (by its anchor robot) and this robot's map frame in the anchor's frame.
+    anchor: str = ""
+    T_anchor_map: np.ndarray = field(default_factory=lambda: np.eye(4))
+    joined: dict[str, Any] | None = None  # how and when it joined its component
+
+
+@dataclass
+class Constraint:
+    """An inter-robot match as a graph edge."""
+
+    match: PlaceMatch
+    trusted: bool  # one of the consistent set that joined two components
+    kept: bool | None = None  # GNC's verdict at the last optimisation (trusted: True)
+
+
+def _node(record: RobotRecord, keyframe: int) -> int:
+    return record.order * NODE_STRIDE + keyframe
+
+
+class MapMerger:
+    def __init__(self, config: Config) -> None:
+        self.config = config
+        self.robots: dict[str, RobotRecord] = {}
+        # Verified matches not (yet) part of a join, per unordered robot pair.
+        self.pending: dict[tuple[str, str], list[PlaceMatch]] = {}
+        self.constraints: list[Constraint] = []
+        self.events: list[dict[str, Any]] = []
+        self.query_seconds: list[float] = []
+        self.graph_seconds: list[float] = []
+        # Global keyframe poses per robot from the last optimisation (None: stale).
+        self._global: dict[str, np.ndarray] | None = None
+
+    # -- input ----------------------------------------------------------------------------
+
+    def add_robot(self, name: str, camera: Camera) -> None:
+        if name in self.robots:
+            return
+        self.robots[name] = RobotRecord(name, len(self.robots), camera,
+                                        places=KeyframeDatabase(self.config.place_recognition),
+                                        anchor=name)
+
+    def update_poses(self, robot: str, poses: np.ndarray) -> None:
+        """The robot's latest keyframe poses (local BA and loop closing move them)."""
+        record = self.robots[robot]
+        record.poses = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
+        self._global = None
+
+    def add_keyframe(self, summary: KeyframeSummary, poses: np.ndarray) -> list[dict[str, Any]]:
+        """Take a robot's new keyframe (and its latest keyframe poses); look for it in the
+        other robots' maps. Returns the join events it caused."""
+        record = self.robots[summary.robot]
+        if summary.keyframe != len(record.keyframes):
+            raise ValueError(f"robot {summary.robot}: keyframe {summary.keyframe} arrived, "
+                             f"expected {len(record.keyframes)}")
+        record.keyframes.append(summary)
+        self.update_poses(summary.robot, poses)
+        events: list[dict[str, Any]] = []
+        if self.config.merge.enabled:
+            start = time.perf_counter()
+            matches = [m for other in self.robots.values() if other.name != summary.robot
+                       if (m := self._find_place(summary, record, other)) is not None]
+            self.query_seconds.append(time.perf_counter() - start)
+            for match in matches:
+                event = self._consider(match)
+                if event is not None:
+                    events.append(event)
+        assert record.places is not None
+        record.places.add(summary.keyframe, summary.features.descriptors)
+        return events
+
+    def _find_place(self, query: KeyframeSummary, query_record: RobotRecord,
+                    other: RobotRecord) -> PlaceMatch | None:
+        assert other.places is not None
+        if not len(other.places):
+            return None
+        cfg = self.config.merge
+        for candidate in other.places.query(query.features.descriptors, top_k=cfg.candidates):
+            match = verify_places(query, query_record.camera, other.keyframes[candidate.key],
+                                  other.camera, candidate.score, self.config)
+            if match is not None:
+                return match
+        return None
+
+    # -- joining ----------------------------------------------------------------------------
+
+    def implied(self, match: PlaceMatch) -> np.ndarray:
+        """T_mapPlace_mapQuery the match implies, from the robots' current keyframe poses."""
+        q, p = self.robots[match.query.robot], self.robots[match.place.robot]
+        return p.poses[match.place.keyframe] @ match.T_place_query @ invert(
+            q.poses[match.query.keyframe])
+
+    def _consider(self, match: PlaceMatch) -> dict[str, Any] | None:
+        q, p = self.robots[match.query.robot], self.robots[match.place.robot]
+        if q.anchor == p.anchor:
+            # Already one frame: a further constraint, tested by GNC on the graph.
+            self.constraints.append(Constraint(match, trusted=False))
+            self._global = None
+            return None
+        pair = tuple(sorted((q.name, p.name)))
+        found = self.pending.setdefault(pair, [])  # type: ignore[arg-type]
+        found.append(match)
+        agreeing = self._consistent_set(found)
+        if len(agreeing) < self.config.merge.consistent_detections:
+            return None
+        return self._join(agreeing, found)
+
+    def _as_pair_transform(self, match: PlaceMatch, first: str) -> tuple[np.ndarray, np.ndarray]:
+        """(T_mapFirst_mapOther implied by ``match``, the point where it was seen, in the
+        other robot's map)."""
+        T = self.implied(match)  # T_mapPlace_mapQuery
+        if match.place.robot == first:
+            at = self.robots[match.query.robot].poses[match.query.keyframe][:3, 3]
+            return T, at
+        at = self.robots[match.place.robot].poses[match.place.keyframe][:3, 3]
+        return invert(T), at
+
+    def _consistent_set(self, matches: list[PlaceMatch]) -> list[PlaceMatch]:
+        """The largest group of matches (distinct query keyframes) that all imply the same
+        transform between the two maps, found greedily from the best-supported one."""
+        cfg = self.config.merge
+        first = min(matches[0].query.robot, matches[0].place.robot)
+        implied = [self._as_pair_transform(m, first) for m in matches]
+
+        def agree(i: int, j: int) -> bool:
+            return transforms_agree(implied[i][0], implied[j][0], implied[j][1],
+                                    cfg.consistency_rotation_deg,
+                                    cfg.consistency_translation_m) and \
+                transforms_agree(implied[i][0], implied[j][0], implied[i][1],
+                                 cfg.consistency_rotation_deg, cfg.consistency_translation_m)
+
+        n = len(matches)
+        support = [[j for j in range(n) if agree(i, j)] for i in range(n)]
+        best: list[int] = []
+        for i in sorted(range(n), key=lambda i: -len(support[i])):
+            group = [i]
+            for j in support[i]:
+                if j != i and all(agree(j, g) for g in group):
+                    group.append(j)
+            # One vote per query keyframe: a keyframe matched twice is one observation.
+            keys = {(matches[g].query.robot, matches[g].query.keyframe) for g in group}
+            if len(keys) > len(best):
+                best = group
+                best_keys = keys
+                if len(best_keys) == n:
+                    break
+        return [matches[g] for g in best]
+
+    def _join(self, agreeing: list[PlaceMatch], found: list[PlaceMatch]) -> dict[str, Any]:
+        newest = agreeing[-1]
+        q, p = self.robots[newest.query.robot], self.robots[newest.place.robot]
+        # The group that keeps its frame: the one whose anchor's id sorts first (not the
+        # first to arrive, so the global frame does not depend on network timing).
+        keep, absorb = (p, q) if p.anchor <= q.anchor else (q, p)
+        T_place_query = self.implied(newest)
+        T_keep_absorb = T_place_query if keep is p else invert(T_place_query)  # map to map
+        # absorbed robot's map -> keeping robot's map -> keeping anchor; and every member of
+        # the absorbed component through its own anchor.
+        T_anchorK_anchorZ = keep.T_anchor_map @ T_keep_absorb @ invert(absorb.T_anchor_map)
+        old_anchor = absorb.anchor
+        members = [r for r in self.robots.values() if r.anchor == old_anchor]
+        for r in members:
+            r.T_anchor_map = T_anchorK_anchorZ @ r.T_anchor_map
+            r.anchor = keep.anchor
+        for m in agreeing:
+            self.constraints.append(Constraint(m, trusted=True, kept=True))
+        found[:] = [m for m in found if m not in agreeing]
+        event = {
+            "type": "join", "robots": sorted([q.name, p.name]),
+            "anchor": keep.anchor, "absorbed": sorted(r.name for r in members),
+            "matches": len(agreeing),
+            "query_robot": q.name, "query_frame": newest.query.frame_index,
+            "place_robot": p.name, "place_frame": newest.place.frame_index,
+            "keyframes": {q.name: len(q.keyframes), p.name: len(p.keyframes)},
+        }
+        # Every robot that was alone until now records the join that brought it in.
+        for r in self.robots.values():
+            if r.anchor == keep.anchor and r.joined is None:
+                r.joined = {"component": keep.anchor, "via": event["robots"],
+                            "frames": {q.name: newest.query.frame_index,
+                                       p.name: newest.place.frame_index},
+                            "matches": len(agreeing)}
+        self.events.append(event)
+        self._global = None
+        log.info("robots %s and %s joined (%d consistent matches; %s frame %d sees %s frame %d)",
+                 q.name, p.name, len(agreeing), q.name, newest.query.frame_index, p.name,
+                 newest.place.frame_index)
+        return event
+
+    # -- the global pose graph ------------------------------------------------------------------
+
+    def components(self) -> dict[str, list[str]]:
+        """Anchor -> members (by id)."""
+        out: dict[str, list[str]] = {}
+        for r in sorted(self.robots.values(), key=lambda r: r.name):
+            out.setdefault(r.anchor, []).append(r.name)
+        return out
+
+    def global_keyframe_poses(self) -> dict[str, np.ndarray]:
+        """Every robot's keyframe poses in its component's frame (K x 4 x 4), from the pose
+        graph (re-optimised if anything changed since)."""
+        if self._global is None:
+            self._global = self._optimise()
+        return self._global
+
+    def _optimise(self) -> dict[str, np.ndarray]:
+        cfg = self.config.merge
+        out = {r.name: r.T_anchor_map @ r.poses for r in self.robots.values()}
+        for anchor, members in self.components().items():
+            if len(members) < 2:
+                continue
+            start = time.perf_counter()
+            records = [self.robots[m] for m in members]
+            values: dict[int, np.ndarray] = {}
+            edges: list[PoseEdge] = []
+            odometry = (np.deg2rad(cfg.odometry_sigma_rotation_deg),
+                        cfg.odometry_sigma_translation_m)
+            for r in records:
+                T = out[r.name]
+                for k in range(len(T)):
+                    values[_node(r, k)] = T[k]
+                    if k:
+                        edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
+                                              invert(r.poses[k - 1]) @ r.poses[k], "odometry",
+                                              odometry))
+            inter = (np.deg2rad(cfg.inter_sigma_rotation_deg), cfg.inter_sigma_translation_m)
+            used = [c for c in self.constraints
+                    if self.robots[c.match.query.robot].anchor == anchor]
+            for c in used:
+                m = c.match
+                edges.append(PoseEdge(_node(self.robots[m.place.robot], m.place.keyframe),
+                                      _node(self.robots[m.query.robot], m.query.keyframe),
+                                      m.T_place_query, "loop", inter, trusted=c.trusted))
+            result = optimise_pose_graph(values, edges, fixed=_node(self.robots[anchor], 0),
+                                         sigma_rotation_rad=odometry[0],
+                                         sigma_translation_m=odometry[1])
+            for c, kept in zip(used, result.loop_inliers):
+                c.kept = kept
+            for r in records:
+                out[r.name] = np.array([result.poses[_node(r, k)]
+                                        for k in range(len(r.poses))]).reshape(-1, 4, 4)
+            self.graph_seconds.append(time.perf_counter() - start)
+        return out
+
+    def T_global_map(self, robot: str) -> np.ndarray:
+        """Where the graph puts the robot's map frame (its first keyframe's camera, as the
+        map frame is the first camera) in its component's frame."""
+        r = self.robots[robot]
+        poses = self.global_keyframe_poses()[robot]
+        if not len(poses):
+            return r.T_anchor_map.copy()
+        return poses[0] @ invert(r.poses[0])
+
+    def status(self) -> dict[str, Any]:
+        """Per robot: keyframes, its component (anchor), whether and how it joined."""
+        return {
+            "components": self.components(),
+            "robots": {r.name: {"keyframes": len(r.keyframes), "anchor": r.anchor,
+                                "joined": r.joined}
+                       for r in self.robots.values()},
+            "constraints": len(self.constraints),
+            "constraints_rejected": sum(c.kept is False for c in self.constraints),
+            "pending_matches": {f"{a}+{b}": len(v) for (a, b), v in self.pending.items()},
+            "events": self.events,
+        }

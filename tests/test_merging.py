@@ -1,0 +1,147 @@
+"""Joining robots' maps with no ground truth in the run: the consistency rule, GNC against a
+wrong inter-robot edge, real robots that share a place (and ones that do not), the same
+outputs with ground truth deleted, and the OctoMap written."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import SEVEN_SCENES, TUM_RPY, require
+from fleetslam.camera import Camera
+from fleetslam.config import Config
+from fleetslam.datasets.tum import open_robot
+from fleetslam.io.trajectory import read_tum_trajectory
+from fleetslam.mapping.octomap_export import read_octomap
+from fleetslam.merging.inter_robot import KeyframeSummary, PlaceMatch
+from fleetslam.merging.merger import MapMerger
+from fleetslam.pipeline.states import FeatureFrame
+from fleetslam.system import run_fleet
+from fleetslam.transforms import invert, make_T, random_perturbation, rotation_angle_deg
+
+CAMERA = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)
+
+
+def _path(n: int, rng: np.random.Generator, step: float = 0.1) -> np.ndarray:
+    """A smooth-ish camera path of n keyframe poses (the robot's own map frame)."""
+    poses = [np.eye(4)]
+    for _ in range(n - 1):
+        poses.append(poses[-1] @ random_perturbation(rng, 3.0, step))
+    return np.array(poses)
+
+
+def _summary(robot: str, k: int, T: np.ndarray) -> KeyframeSummary:
+    empty = FeatureFrame(k, float(k), np.zeros((0, 7), np.float32), np.zeros((0, 32), np.uint8),
+                         np.zeros(0, np.float32), np.zeros((0, 2)))
+    return KeyframeSummary(robot, k, k, float(k), empty, T)
+
+
+def _merger_with_two_robots(seed: int = 0):
+    """Two robots (keyframes only, no features) whose map frames are ``T_a_b`` apart."""
+    rng = np.random.default_rng(seed)
+    merger = MapMerger(Config())
+    poses = {"a": _path(12, rng), "b": _path(12, rng)}
+    for name in poses:
+        merger.add_robot(name, CAMERA)
+        merger.robots[name].keyframes = [_summary(name, k, T) for k, T in enumerate(poses[name])]
+        merger.update_poses(name, poses[name])
+    T_a_b = random_perturbation(rng, 40.0, 2.0)
+    return merger, poses, T_a_b
+
+
+def _match(merger, poses, T_a_b, qa: int, pb: int, noise: np.ndarray | None = None):
+    """Robot b's keyframe qa seen in robot a's keyframe pb, exactly (or spoiled by noise)."""
+    T_place_query = invert(poses["a"][pb]) @ T_a_b @ poses["b"][qa]
+    if noise is not None:
+        T_place_query = T_place_query @ noise
+    return PlaceMatch(merger.robots["b"].keyframes[qa], merger.robots["a"].keyframes[pb],
+                      T_place_query, 1.0, 80, 80)
+
+
+def test_robots_join_only_when_two_matches_agree():
+    merger, poses, T_a_b = _merger_with_two_robots()
+    assert merger._consider(_match(merger, poses, T_a_b, 3, 5)) is None  # one match: no join
+    assert merger.robots["b"].anchor == "b"
+    # A second match that implies another transform (8 deg off): still no join.
+    wrong = make_T(random_perturbation(np.random.default_rng(1), 8.0, 0.0)[:3, :3], [0, 0, 0])
+    assert merger._consider(_match(merger, poses, T_a_b, 4, 6, wrong)) is None
+    assert merger.robots["b"].anchor == "b"
+    event = merger._consider(_match(merger, poses, T_a_b, 6, 7))
+    assert event is not None and event["anchor"] == "a" and event["matches"] == 2
+    found = invert(merger.T_global_map("a")) @ merger.T_global_map("b")
+    assert rotation_angle_deg(found[:3, :3].T @ T_a_b[:3, :3]) < 1e-3
+    assert np.linalg.norm(found[:3, 3] - T_a_b[:3, 3]) < 1e-5
+    assert merger.status()["robots"]["b"]["joined"]["frames"] == {"b": 6, "a": 7}
+
+
+def test_a_wrong_inter_robot_edge_after_the_join_is_rejected_by_gnc():
+    merger, poses, T_a_b = _merger_with_two_robots(seed=3)
+    merger._consider(_match(merger, poses, T_a_b, 3, 5))
+    merger._consider(_match(merger, poses, T_a_b, 6, 7))
+    before = invert(merger.T_global_map("a")) @ merger.T_global_map("b")
+    wrong = random_perturbation(np.random.default_rng(4), 25.0, 0.5)
+    merger._consider(_match(merger, poses, T_a_b, 9, 2, wrong))
+    after = invert(merger.T_global_map("a")) @ merger.T_global_map("b")
+    assert [c.kept for c in merger.constraints] == [True, True, False]
+    assert rotation_angle_deg(after[:3, :3].T @ before[:3, :3]) < 0.05
+    assert np.linalg.norm(after[:3, 3] - before[:3, 3]) < 0.002
+
+
+def _copy_without_ground_truth(folder, to):
+    to.mkdir()
+    for item in folder.iterdir():
+        if item.name != "groundtruth.txt":
+            (to / item.name).symlink_to(item)
+    return to
+
+
+@pytest.mark.realdata
+def test_two_robots_on_one_real_sequence_join_and_ground_truth_changes_nothing(tmp_path):
+    folder = require(SEVEN_SCENES)
+    blind = _copy_without_ground_truth(folder, tmp_path / "no_gt")
+    runs = {}
+    for label, source in (("gt", folder), ("blind", blind)):
+        robots = [(f"r{i}", f"{source}:{r}", open_robot(f"{source}:{r}"))
+                  for i, r in enumerate(("0-59", "30-89"))]
+        runs[label] = (tmp_path / label, run_fleet(robots, Config(), tmp_path / label, False))
+    out, summary = runs["gt"]
+    merge = summary["merge"]
+    assert merge["members"] == ["r0", "r1"] and not merge["not_merged"]
+    rel = merge["evaluation"]["relative_poses"][0]
+    assert rel["final_rotation_error_deg"] < 3.0 and rel["final_translation_error_m"] < 0.06
+    assert merge["evaluation"]["joint_ate"]["rmse_m"] < 0.04
+    for c in merge["evaluation"]["constraints"]:
+        assert c["rotation_error_deg"] < 5.0 and c["translation_error_m"] < 0.2
+    # The run never read ground truth: without it, the same joins and the same outputs.
+    blind_out, blind_summary = runs["blind"]
+    assert blind_summary["merge"]["joins"] == merge["joins"]
+    assert blind_summary["merge"]["evaluation"]["joint_ate"] is None  # nothing to score
+    for name in ("r0", "r1"):
+        t1, p1 = read_tum_trajectory(out / "global" / f"{name}.tum")
+        t2, p2 = read_tum_trajectory(blind_out / "global" / f"{name}.tum")
+        np.testing.assert_array_equal(t1, t2)
+        np.testing.assert_allclose(p1, p2, atol=1e-9)
+    assert (out / "global_map.ply").stat().st_size == (blind_out / "global_map.ply").stat().st_size
+    tree = read_octomap(out / "global_map.bt")
+    assert tree.getResolution() == pytest.approx(Config().merge.octomap_resolution_m)
+    assert merge["octomap"]["occupied"] > 1000 and merge["octomap"]["free"] > 1000
+    assert json.loads((out / "summary.json").read_text())["merge"]["members"] == ["r0", "r1"]
+
+
+@pytest.mark.realdata
+def test_robots_in_different_places_never_join(tmp_path):
+    kitchen, office = require(SEVEN_SCENES), require(TUM_RPY)
+    robots = [("r0", "kitchen", open_robot(f"{kitchen}:0-79")),
+              ("r1", "office", open_robot(f"{office}:0-79"))]
+    summary = run_fleet(robots, Config(), tmp_path / "run", False)
+    merge = summary["merge"]
+    assert merge["components"] == {"r0": ["r0"], "r1": ["r1"]}
+    assert merge["joins"] == [] and set(merge["not_merged"]) == {"r0", "r1"}
+    assert not (tmp_path / "run" / "global" / "r1.tum").exists()
+
+
+def test_octomap_reports_a_missing_file(tmp_path):
+    with pytest.raises(ValueError, match="no such OctoMap file"):
+        read_octomap(tmp_path / "nowhere.bt")
