@@ -104,6 +104,13 @@ def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, tmp_path)
         time.sleep(0.5)  # the robot streams on into the void
         cloud = start_cloud(endpoint, out, tmp_path / "cloud-b.log")
         _finish(robot, tmp_path / "r1.log")
+        # The restarted cloud's merger was rebuilt from the restored session: it holds
+        # every keyframe of the robot's map.
+        fresh = CloudClient(endpoint)
+        try:
+            merged = fresh.status(timeout=30.0)["merge"]["robots"]["r1"]["keyframes"]
+        finally:
+            fresh.close()
     finally:
         client.close()
         stop(robot, 2.0)
@@ -116,6 +123,7 @@ def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, tmp_path)
     stamps = RgbdSequence(scene[1]).timestamps
     kf_index = {int(np.argmin(np.abs(stamps - t))) for t in kf_times}
     assert stored_before <= kf_index == stored_after
+    assert merged == len(kf_times)
     times, _ = read_tum_trajectory(out / "r1" / "trajectory.tum")
     assert times[-1] == pytest.approx(stamps[-1])  # tracking went on to the last frame
     assert (out / "r1" / "map.ply").stat().st_size > 1000

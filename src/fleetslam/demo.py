@@ -60,8 +60,10 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
                     raise RuntimeError(f"robot {name} failed (exit {p.returncode}):\n"
                                        + _tail(logs / f"{name}.log"))
             try:
-                status = client.status(timeout=5.0)["robots"]
-                progress.update(sum(r["frames"] for r in status.values()))
+                status = client.status(timeout=5.0)
+                groups = (status.get("merge") or {}).get("components", {})
+                progress.update(sum(r["frames"] for r in status["robots"].values()),
+                                "groups " + " | ".join("+".join(m) for m in groups.values()))
             except TimeoutError:
                 pass
             time.sleep(0.5)

@@ -28,7 +28,7 @@ from fleetslam.merging.global_map import (
     build_global_map,
     merge_summary,
 )
-from fleetslam.merging.inter_robot import KeyframeSummary
+from fleetslam.merging.inter_robot import KeyframeSummary, keyframe_summary
 from fleetslam.merging.merger import MapMerger
 from fleetslam.pipeline.session import CloudSession
 from fleetslam.pipeline.split import TrackingPipeline
@@ -109,9 +109,7 @@ class RobotTracker:
         self.T_refs.append(out.T_reference_camera)
         if not out.is_keyframe:
             return None
-        kf = self.session.map.keyframes[-1]
-        return KeyframeSummary(self.name, kf.id, kf.frame_index, kf.timestamp, kf.features,
-                               kf.T_world_camera.copy())
+        return keyframe_summary(self.name, self.session.map.keyframes[-1])
 
     def finish(self) -> RobotRun:
         session, sequence = self.session, self.sequence

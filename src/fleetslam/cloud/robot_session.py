@@ -24,7 +24,7 @@ from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.merging.global_map import RobotTrack
-from fleetslam.merging.inter_robot import KeyframeSummary
+from fleetslam.merging.inter_robot import KeyframeSummary, keyframe_summary
 from fleetslam.pipeline.session import CloudSession, EdgeSession, Session
 from fleetslam.pipeline.split import StageTimer, run_stages
 from fleetslam.pipeline.stages import default_stages
@@ -363,16 +363,13 @@ class RobotSession:
     def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
         """The newest keyframe as the merger takes it, and every keyframe's current pose."""
         lmap = self.state.tracking.map
-        kf = lmap.keyframes[-1]
-        return (KeyframeSummary(self.robot_id, kf.id, kf.frame_index, kf.timestamp,
-                                kf.features, kf.T_world_camera.copy()),
-                lmap.keyframe_poses().copy())
+        return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
+            lmap.keyframe_poses().copy()
 
     def all_keyframes(self) -> list[KeyframeSummary]:
         """Every keyframe as the merger takes it (a restored session re-joins the merger)."""
-        return [KeyframeSummary(self.robot_id, kf.id, kf.frame_index, kf.timestamp,
-                                kf.features, kf.T_world_camera.copy())
-                for kf in self.state.tracking.map.keyframes]
+        lmap = self.state.tracking.map
+        return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         """Final pose of every keyframe (after local BA), by frame index."""

@@ -20,6 +20,7 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.pipeline.geometric_verification import ransac_rigid
+from fleetslam.pipeline.local_map import Keyframe
 from fleetslam.pipeline.matching import descriptor_match
 from fleetslam.pipeline.pose_optimizer import optimize_pose
 from fleetslam.pipeline.states import FeatureFrame
@@ -35,6 +36,12 @@ class KeyframeSummary:
     timestamp: float
     features: FeatureFrame
     T_map_keyframe: np.ndarray  # 4 x 4, the robot's map frame
+
+
+def keyframe_summary(robot: str, keyframe: Keyframe) -> KeyframeSummary:
+    """What the merger takes of one keyframe of a robot's map, as the map has it now."""
+    return KeyframeSummary(robot, keyframe.id, keyframe.frame_index, keyframe.timestamp,
+                           keyframe.features, keyframe.T_world_camera.copy())
 
 
 @dataclass
