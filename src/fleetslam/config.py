@@ -237,18 +237,12 @@ class MergeConfig:
     enabled: bool = True
     # Place-recognition candidates verified per other robot and new keyframe.
     candidates: int = 3
-    # Keyframe-to-keyframe 3D-3D RANSAC (depth-backed keypoints of both sides).
-    ransac_iterations: int = 300
-    ransac_inlier_m: float = 0.03
-    ransac_inlier_depth_ratio: float = 0.02
-    min_ransac_inliers: int = 30
-    # Matches left after the reprojection refinement of the query pose.
+    # A candidate is verified like a loop (loop_closing's RANSAC settings, keyframe to
+    # keyframe); matches left after the reprojection refinement of the query pose:
     min_refined_inliers: int = 50
-    # Matches (from different keyframes) that must imply the same map-to-map transform
-    # before two robots join, and how closely.
+    # Matches (from different keyframes) that must imply the same map-to-map transform,
+    # within loop_closing's consistency bounds, before two robots join.
     consistent_detections: int = 2
-    consistency_rotation_deg: float = 3.0
-    consistency_translation_m: float = 0.10
     # Global pose graph: each robot's own keyframe-to-keyframe edges, and the inter-robot
     # edges (a single keyframe pair's alignment is looser than tracking's).
     odometry_sigma_rotation_deg: float = 0.3

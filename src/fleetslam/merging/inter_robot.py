@@ -63,22 +63,23 @@ def _depth_backed(features: FeatureFrame) -> np.ndarray:
 def verify_places(query: KeyframeSummary, query_camera: Camera, place: KeyframeSummary,
                   place_camera: Camera, score: float, config: Config) -> PlaceMatch | None:
     """Geometric check of ``query`` against ``place``; None when too few matches agree."""
-    cfg, tcfg = config.merge, config.tracking
+    cfg, lcfg, tcfg = config.merge, config.loop_closing, config.tracking
     qf, pf = query.features, place.features
     q_idx, p_idx = _depth_backed(qf), _depth_backed(pf)
-    if min(len(q_idx), len(p_idx)) < cfg.min_ransac_inliers:
+    if min(len(q_idx), len(p_idx)) < lcfg.min_ransac_inliers:
         return None
     ids = descriptor_match(qf.descriptors[q_idx], pf.descriptors[p_idx], p_idx,
                            tcfg.max_hamming, tcfg.match_ratio)
     kp, pp = q_idx[ids >= 0], ids[ids >= 0]
-    if len(kp) < cfg.min_ransac_inliers:
+    if len(kp) < lcfg.min_ransac_inliers:
         return None
     q_depth = qf.depth[kp].astype(np.float64)
     src = query_camera.backproject(qf.uv[kp], q_depth)
     dst = place_camera.backproject(pf.uv[pp], pf.depth[pp].astype(np.float64))
-    threshold = np.maximum(cfg.ransac_inlier_m, cfg.ransac_inlier_depth_ratio * q_depth)
+    threshold = np.maximum(lcfg.ransac_inlier_m, lcfg.ransac_inlier_depth_ratio * q_depth)
     rng = np.random.default_rng(cfg.seed + query.keyframe)
-    rigid = ransac_rigid(src, dst, threshold, cfg.ransac_iterations, cfg.min_ransac_inliers, rng)
+    rigid = ransac_rigid(src, dst, threshold, lcfg.ransac_iterations, lcfg.min_ransac_inliers,
+                         rng)
     if rigid is None:
         return None
     # Reprojection refinement over every descriptor match (the RANSAC outliers get another

@@ -165,7 +165,7 @@ class MapMerger:
     def _consistent_set(self, matches: list[PlaceMatch]) -> list[PlaceMatch]:
         """The largest group of matches (distinct query keyframes) that all imply the same
         transform between the two maps, found greedily from the best-supported one."""
-        cfg = self.config.merge
+        cfg = self.config.loop_closing
         first = min(matches[0].query.robot, matches[0].place.robot)
         implied = [self._as_pair_transform(m, first) for m in matches]
 
