@@ -30,8 +30,9 @@ def _finish(summary: dict, out: Path) -> None:
     from fleetslam.system import summary_table
 
     print(summary_table(summary))
+    merged = (summary.get("merge") or {}).get("members")
     print(f"\noutputs in {out}/ (summary.json, <robot>/trajectory.tum, <robot>/map.ply"
-          + (", global_map.ply)" if summary.get("merge") else ")"))
+          + (", global/<robot>.tum, global_map.ply, global_map.bt)" if merged else ")"))
 
 
 def cmd_generate(args: argparse.Namespace, config: Config) -> int:

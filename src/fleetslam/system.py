@@ -258,7 +258,7 @@ def merge_table(merge: dict[str, Any]) -> str:
     relative = {r["robot"]: r for r in evaluation.get("relative_poses", [])}
     joint = evaluation.get("joint_ate")
     rows = []
-    for name, info in merge["robots"].items():
+    for name, info in sorted(merge["robots"].items()):
         joined = info.get("joined")
         rel = relative.get(name, {})
         rows.append([name, info["anchor"],
