@@ -1,4 +1,4 @@
-"""The ``fleetslam`` command: demo, run, generate."""
+"""The ``fleetslam`` command: demo, run, cloud, robot, merge, plan, generate."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from pathlib import Path
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config, load_config
+from fleetslam.planner.model import OBJECTIVES
+from fleetslam.planner.plan import SWEEP_MBPS
 
 
 def _default_out(kind: str) -> Path:
@@ -181,6 +183,50 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def cmd_plan(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.cloud.robot_session import SUPPORTED_POINTS
+    from fleetslam.planner.model import Link
+    from fleetslam.planner.plan import plan, report, write_plan
+    from fleetslam.planner.profile import Profile, measure_profile, paper_profile
+    from fleetslam.progress import Progress
+
+    cfg = config.planner
+    offered: tuple[int, ...] | None = SUPPORTED_POINTS
+    if args.paper:
+        if args.profile or args.source:
+            raise ValueError("--paper plans with the paper's numbers: no --profile / --source")
+        profile = paper_profile()
+        cfg.c_total_g = 1.0  # the paper's Table "Parameter values"
+        offered = None  # the paper's seven candidates
+    elif args.profile:
+        profile = Profile.load(Path(args.profile))
+    else:
+        from fleetslam.datasets.synthetic import ensure_scene
+        from fleetslam.datasets.tum import open_robot
+
+        if args.source:
+            source = args.source
+        else:
+            scene = ensure_scene(_scene_dir(config), config.synthetic)
+            source = str(scene[0])
+        sequence = open_robot(source)
+        frames = args.frames or cfg.profile_frames
+        progress = Progress(f"profile {source}", min(frames, len(sequence)),
+                            enabled=not args.quiet)
+        profile = measure_profile(sequence, source, config, frames, progress.update)
+        if args.save_profile:
+            profile.save(Path(args.save_profile))
+    latency = cfg.latency_ms if args.latency_ms is None else args.latency_ms
+    bandwidths = SWEEP_MBPS if args.sweep else (args.bandwidth_mbps or cfg.bandwidth_mbps,)
+    result = plan(profile, [Link(b, latency) for b in bandwidths], cfg, offered, args.objective)
+    out = Path(args.out) if args.out else _default_out("plan")
+    paths = write_plan(result, out)
+    print(f"profile: {profile.source} ({profile.label}, {profile.frames} frames)")
+    print(report(result, cfg))
+    print("\nwrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
@@ -241,6 +287,28 @@ def build_parser() -> argparse.ArgumentParser:
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")
     merge.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
     merge.set_defaults(func=cmd_merge)
+
+    planner = sub.add_parser("plan", help="choose the offloading point: the paper's energy "
+                             "model and a time model on measured (or the paper's) costs")
+    planner.add_argument("--paper", action="store_true",
+                         help="the paper's own stage times, payloads and parameters")
+    planner.add_argument("--profile", help="a saved profile (JSON) to plan with")
+    planner.add_argument("--source", metavar="DIR[:FIRST-LAST]",
+                         help="measure a profile on this sequence (default: the built-in "
+                         "synthetic scene)")
+    planner.add_argument("--frames", type=int, help="frames to measure (default from config)")
+    planner.add_argument("--save-profile", help="write the measured profile here (JSON)")
+    planner.add_argument("--bandwidth-mbps", type=float,
+                         help="link bandwidth (default from config: 10)")
+    planner.add_argument("--latency-ms", type=float, help="one-way link latency")
+    planner.add_argument("--sweep", action="store_true",
+                         help=f"every bandwidth of {', '.join(f'{b:g}' for b in SWEEP_MBPS)} "
+                         "Mbit/s")
+    planner.add_argument("--objective", choices=OBJECTIVES,
+                         help="what to minimise / maximise (default from config: energy)")
+    planner.add_argument("--out", help="folder for plan.json and the plots (default "
+                         "runs/plan-<time>)")
+    planner.set_defaults(func=cmd_plan)
 
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")

@@ -258,6 +258,35 @@ class MergeConfig:
 
 
 @dataclass
+class PlannerConfig:
+    """The offloading planner: the paper's energy model (eq. 10-16, 31; its Table "Parameter
+    values" as defaults), the time model and the objective."""
+
+    # Power (W) of the robot's CPU, the cloud's CPU and the robot's radio while sending.
+    p_local_w: float = 0.9
+    p_cloud_w: float = 0.3
+    p_tr_w: float = 1.3
+    # CPU speeds (G cycles/s); their ratio is how much slower the robot runs a stage than
+    # this host (the cloud) unless a profile measured the robot itself.
+    u_local_gps: float = 1.2
+    u_cloud_gps: float = 3.3
+    # Computation of the whole pipeline per energy unit (G cycles); None: from the measured
+    # stage times (host seconds x u_cloud_gps x frames_per_unit).
+    c_total_g: float | None = None
+    # The paper tabulates energy and transmission time per 10 frames.
+    frames_per_unit: int = 10
+    # "energy", "latency", "fps" (highest sustainable frame rate) or "mix" (weighted sum of
+    # energy and latency, each relative to its best candidate).
+    objective: str = "energy"
+    mix_energy_weight: float = 0.5
+    # The link when nothing measured one: bandwidth (Mbit/s) and one-way latency (ms).
+    bandwidth_mbps: float = 10.0
+    latency_ms: float = 0.0
+    # Frames measured for a profile.
+    profile_frames: int = 60
+
+
+@dataclass
 class SyntheticConfig:
     """The built-in synthetic multi-robot scene."""
 
@@ -334,6 +363,7 @@ class Config:
     map: MapConfig = field(default_factory=MapConfig)
     fshicp: FsHicpConfig = field(default_factory=FsHicpConfig)
     merge: MergeConfig = field(default_factory=MergeConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     wire: WireConfig = field(default_factory=WireConfig)
     link: LinkConfig = field(default_factory=LinkConfig)

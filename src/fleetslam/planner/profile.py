@@ -1,0 +1,148 @@
+"""What the planner weighs: each stage's time and the bytes each split point sends, measured
+on real frames (or the paper's own numbers), saved as JSON and reused.
+
+The robot's slower CPU is either measured (stage times taken on the robot, e.g. under a CPU
+limit, in ``robot_stage_ms``) or scaled from this host's by the planner's speed ratio.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.pipeline.split import TrackingPipeline
+from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.wire.frames import encode_frame_message
+from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
+
+PROFILE_VERSION = 1
+
+# What crosses the link at each split point k (the robot ran stages[:k]).
+SENDS = (
+    "RGB-D frame",
+    "keypoints, grey image, depth image",
+    "keypoints, descriptors, depth image",
+    "features with a depth per keypoint",
+    "features, their map matches",
+    "features, matches, pose",
+    "the tracked frame",
+)
+
+# The paper's Table "Time using of each part" (s per frame) and its stated total.
+PAPER_STAGE_S = (0.0154, 0.0124, 0.0062, 0.0236, 0.0022, 0.011)
+PAPER_TOTAL_S = 0.0702
+# The paper's Table "Data to be offloaded": MB per 10 frames at each point.
+PAPER_MB_PER_10 = (6.3, 6.3, 3.8, 2.9, 3.7, 4.0, 4.2)
+PAPER_SENDS = (
+    "RGB + depth images",
+    "RGB + depth images (keypoints found)",
+    "features + depth image",
+    "features + depth value per keypoint",
+    "+ rotation matrix (pose)",
+    "+ undistort",
+    "+ keyframe",
+)
+
+
+@dataclass
+class Profile:
+    source: str
+    label: str  # "measured" or "paper"
+    frames: int
+    stages: list[str]
+    stage_ms: list[float]  # median per frame, on this host
+    stage_ms_p95: list[float]
+    frame_bytes: list[float]  # mean bytes of the frame message at points 0..len(stages)
+    keyframe_bytes: float  # mean bytes of one keyframe upload
+    keyframe_fraction: float  # keyframes per frame
+    sends: list[str] = field(default_factory=lambda: list(SENDS))
+    keypoints_mean: float | None = None
+    # Stage times measured on the robot itself; None: scaled from the host's.
+    robot_stage_ms: list[float] | None = None
+    # The paper's eta divides by its stated total, not the sum of its stages.
+    stated_total_ms: float | None = None
+    host: str = ""
+    version: int = PROFILE_VERSION
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(asdict(self), indent=2))
+
+    @staticmethod
+    def load(path: Path) -> "Profile":
+        try:
+            data: dict[str, Any] = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path}: not a readable profile: {exc}") from exc
+        if data.get("version") != PROFILE_VERSION:
+            raise ValueError(f"{path}: profile version {data.get('version')!r}, this "
+                             f"fleetslam reads {PROFILE_VERSION}")
+        try:
+            profile = Profile(**data)
+        except TypeError as exc:
+            raise ValueError(f"{path}: not a profile: {exc}") from exc
+        n = len(profile.stages)
+        if len(profile.stage_ms) != n or len(profile.frame_bytes) != n + 1:
+            raise ValueError(f"{path}: {n} stages need {n} stage times and {n + 1} payloads")
+        return profile
+
+
+def paper_profile() -> Profile:
+    """The paper's own stage times and payloads (keyframes are inside its point-1 payload)."""
+    return Profile(
+        source="paper (Tables 'Time using of each part', 'Data to be offloaded')",
+        label="paper", frames=10,
+        stages=["extractor", "descriptor", "compute stereo", "feature match", "pnp", "others"],
+        stage_ms=[1000 * s for s in PAPER_STAGE_S], stage_ms_p95=[1000 * s for s in PAPER_STAGE_S],
+        frame_bytes=[mb * 1e6 / 10 for mb in PAPER_MB_PER_10], keyframe_bytes=0.0,
+        keyframe_fraction=0.0, sends=list(PAPER_SENDS), stated_total_ms=1000 * PAPER_TOTAL_S)
+
+
+def measure_profile(sequence: RgbdSequence, source: str, config: Config, frames: int,
+                    progress: Callable[[int], None] | None = None) -> Profile:
+    """Run the whole pipeline on the first ``frames`` frames, timing each stage and encoding
+    the state at every split point (and each keyframe's upload) as the wire would."""
+    pipeline = TrackingPipeline(config, sequence.camera)
+    n = min(frames, len(sequence))
+    if n < 2:
+        raise ValueError(f"{source}: a profile needs at least 2 frames, the source has {n}")
+    stage_s: list[list[float]] = [[] for _ in pipeline.stages]
+    sizes: list[list[int]] = [[] for _ in range(len(pipeline.stages) + 1)]
+    keyframe_sizes: list[int] = []
+    keypoints: list[int] = []
+    camera, wire = sequence.camera, config.wire
+    for i in range(n):
+        frame = sequence[i]
+        state: Any = CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m)
+        sizes[0].append(len(encode_frame_message(state, 0, "profile", i, camera, wire)))
+        for k, stage in enumerate(pipeline.stages):
+            start = time.perf_counter()
+            state = stage(state, pipeline.session.part(stage.side))
+            stage_s[k].append(time.perf_counter() - start)
+            sizes[k + 1].append(len(encode_frame_message(state, k + 1, "profile", i, camera,
+                                                         wire)))
+        keypoints.append(len(state.posed.matched.features.keypoints))
+        if state.is_keyframe:
+            upload = KeyframeUpload.from_frame(frame.index, frame.timestamp, frame.rgb,
+                                               frame.depth_raw, config.map.pixel_stride)
+            keyframe_sizes.append(len(encode_keyframe("profile", i, upload, wire)))
+        if progress is not None:
+            progress(i + 1)
+    # The first frame only builds the map: its times say nothing of tracking.
+    times = [np.array(s[1:]) * 1000 for s in stage_s]
+    return Profile(
+        source=source, label="measured", frames=n, stages=pipeline.stage_names,
+        stage_ms=[float(np.median(t)) for t in times],
+        stage_ms_p95=[float(np.percentile(t, 95)) for t in times],
+        frame_bytes=[float(np.mean(s)) for s in sizes],
+        keyframe_bytes=float(np.mean(keyframe_sizes)) if keyframe_sizes else 0.0,
+        keyframe_fraction=len(keyframe_sizes) / n, keypoints_mean=float(np.mean(keypoints)),
+        host=f"{platform.machine()} {platform.processor() or ''}".strip())

@@ -1,0 +1,83 @@
+"""The offloading planner: the paper's own numbers give the paper's choice and energies; the
+objectives choose what they say; a measured profile round-trips through JSON."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from conftest import small_scene
+from fleetslam.cli import main
+from fleetslam.config import Config, PlannerConfig
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.planner.model import Link, candidates, choose, offloading_ratios
+from fleetslam.planner.profile import Profile, measure_profile, paper_profile
+
+PAPER_ENERGY = [6.64, 6.79, 4.30, 3.43, 4.48, 4.81, 5.12]
+PAPER_T_TR = [5.04, 5.04, 3.04, 2.32, 2.96, 3.20, 3.36]
+
+
+def _paper_config() -> PlannerConfig:
+    cfg = PlannerConfig()
+    cfg.c_total_g = 1.0
+    return cfg
+
+
+def test_the_papers_numbers_choose_eta_0484_with_the_papers_energies():
+    cands = candidates(paper_profile(), Link(10.0), _paper_config())
+    assert [round(c.energy_j, 2) for c in cands] == PAPER_ENERGY
+    assert [round(c.t_tr_unit_s, 2) for c in cands] == PAPER_T_TR
+    chosen = choose(cands, _paper_config())
+    assert chosen.k == 3 and round(chosen.eta, 3) == 0.484
+    # eq. 31 with the paper's stated total: its printed candidates.
+    assert [round(e, 2) for e in offloading_ratios(paper_profile())] == \
+        [0.0, 0.22, 0.4, 0.48, 0.82, 0.85, 1.0]
+
+
+def test_objectives_choose_what_they_say():
+    cfg = _paper_config()
+    cands = candidates(paper_profile(), Link(10.0, latency_ms=5.0), cfg)
+    assert choose(cands, cfg, "latency").latency_s == min(c.latency_s for c in cands)
+    assert choose(cands, cfg, "fps").fps == max(c.fps for c in cands)
+    # A point the system does not offer is never chosen, however cheap.
+    limited = candidates(paper_profile(), Link(10.0), cfg, offered=(0, 1, 6))
+    assert choose(limited, cfg).k == 6
+    with pytest.raises(ValueError, match="objective"):
+        choose(cands, cfg, "cheapest")
+    with pytest.raises(ValueError, match="bandwidth"):
+        Link(0.0)
+
+
+def test_a_faster_link_never_costs_more_energy():
+    cfg = _paper_config()
+    slow = candidates(paper_profile(), Link(1.0), cfg)
+    fast = candidates(paper_profile(), Link(100.0), cfg)
+    assert all(f.energy_j < s.energy_j for f, s in zip(fast, slow))
+    # With almost free transmission (10 Gbit/s) the robot's own computation dominates:
+    # offload it all.
+    assert choose(candidates(paper_profile(), Link(10_000.0), cfg), cfg).k == 0
+
+
+def test_a_measured_profile_round_trips_and_a_bad_one_is_named(tmp_path_factory, tmp_path):
+    folder = small_scene(tmp_path_factory, 12)[0]
+    profile = measure_profile(RgbdSequence(folder), str(folder), Config(), 12)
+    assert len(profile.stage_ms) == 6 and len(profile.frame_bytes) == 7
+    assert profile.frame_bytes[0] > profile.frame_bytes[3] > 0
+    assert profile.keyframe_bytes > 0 and 0 < profile.keyframe_fraction <= 1
+    path = tmp_path / "profile.json"
+    profile.save(path)
+    assert Profile.load(path) == profile
+    path.write_text(json.dumps({"version": 1, "stages": []}))
+    with pytest.raises(ValueError, match="profile.json: not a profile"):
+        Profile.load(path)
+
+
+def test_cli_plan_paper_writes_the_plan_and_plots(tmp_path, capsys):
+    assert main(["--quiet", "plan", "--paper", "--out", str(tmp_path / "plan")]) == 0
+    out = capsys.readouterr().out
+    assert "choice: k = 3, eta = 0.484" in out and "3.43" in out
+    plan = json.loads((tmp_path / "plan" / "plan.json").read_text())
+    assert plan["links"][0]["chosen_k"] == 3
+    for name in ("energy.png", "transmission_time.png"):
+        assert (tmp_path / "plan" / name).stat().st_size > 1000
