@@ -114,3 +114,25 @@ class TrackedFrame:
     @property
     def n_inliers(self) -> int:
         return int(self.posed.inliers.sum())
+
+    def pose_only(self) -> "TrackedPose":
+        """What a robot that tracks itself sends (point 6): the result, not its features."""
+        return TrackedPose(self.index, self.timestamp, self.T_world_camera.copy(), self.tracked,
+                           self.is_keyframe, self.n_inliers, self.reference_keyframe,
+                           None if self.T_reference_camera is None
+                           else self.T_reference_camera.copy())
+
+
+@dataclass
+class TrackedPose:
+    """A tracked frame's result alone, as the cloud receives it from a robot that tracks
+    itself: the fields of TrackedFrame the cloud records, without the features."""
+
+    index: int
+    timestamp: float
+    T_world_camera: np.ndarray
+    tracked: bool
+    is_keyframe: bool
+    n_inliers: int
+    reference_keyframe: int = -1
+    T_reference_camera: np.ndarray | None = None

@@ -33,7 +33,7 @@ SENDS = (
     "features with a depth per keypoint",
     "features, their map matches",
     "features, matches, pose",
-    "the tracked frame",
+    "its pose and flags (the robot tracks)",
 )
 
 # The paper's Table "Time using of each part" (s per frame) and its stated total.

@@ -22,6 +22,9 @@ is reproduced bit for bit:
   sends uv as float64 if it differs).
 - descriptors as raw bytes; landmark ids (int32 if in range), their float64 world points for
   the matched rows, float64 poses, inlier bits and flags as they are.
+- k=6 (the robot tracked): only the result (``TrackedPose``: pose, flags, inlier count,
+  reference keyframe and the pose relative to it); no stage runs after it, and the cloud
+  needs nothing else. The robot's TrackedFrame goes in, a TrackedPose comes out.
 
 Quantised or dropped, as no stage after Describe reads them (k>=2 only):
 - ``angle``: uint8 steps of 360/256 degrees (1.4 deg);
@@ -56,6 +59,7 @@ from fleetslam.pipeline.states import (
     MatchedFrame,
     PosedFrame,
     TrackedFrame,
+    TrackedPose,
 )
 from fleetslam.wire.binary import (
     Reader,
@@ -502,8 +506,9 @@ def _get_posed(r: Reader, index: int, timestamp: float, camera: Camera) -> Posed
 
 
 def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig) -> None:
-    _put_posed(w, s.posed, camera, config)
-    w.pack("B", bool(s.is_keyframe))
+    _put_pose(w, s.T_world_camera, "pose")
+    _require(0 <= s.n_inliers < 2**32, f"inlier count {s.n_inliers}")
+    w.pack("BBI", bool(s.tracked), bool(s.is_keyframe), s.n_inliers)
     # The reference keyframe (-1: none) and, with one, the pose relative to it.
     _require(-1 <= s.reference_keyframe < 2**31, f"reference keyframe {s.reference_keyframe}")
     w.pack("i", int(s.reference_keyframe))
@@ -511,15 +516,30 @@ def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig)
         _put_pose(w, s.T_reference_camera, "pose relative to the reference keyframe")
 
 
-def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera) -> TrackedFrame:
-    posed = _get_posed(r, index, timestamp, camera)
+def _rigid_pose(r: Reader, what: str) -> np.ndarray:
+    """A pose the cloud will record as is: it must be a finite rigid transform."""
+    T = _get_pose(r, what)
+    if not np.isfinite(T).all():
+        raise WireError(f"{what} is not finite")
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9 or \
+            np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() > 1e-6 or \
+            np.linalg.det(T[:3, :3]) < 0:
+        raise WireError(f"{what} is not a rigid transform")
+    return T
+
+
+def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera) -> TrackedPose:
+    T = _rigid_pose(r, "pose")
+    tracked = r.flag("tracked flag")
     is_keyframe = r.flag("keyframe flag")
+    (n_inliers,) = r.unpack("I", "inlier count")
     (reference,) = r.unpack("i", "reference keyframe")
     if reference < -1:
         raise WireError(f"reference keyframe {reference} < -1")
-    T_reference = _get_pose(r, "pose relative to the reference keyframe") \
+    T_reference = _rigid_pose(r, "pose relative to the reference keyframe") \
         if reference >= 0 else None
-    return TrackedFrame(posed, is_keyframe, reference, T_reference)
+    return TrackedPose(index, timestamp, T, tracked, is_keyframe, int(n_inliers), reference,
+                       T_reference)
 
 
 _ENCODERS: tuple[Callable[[Writer, Any, Camera, WireConfig], None], ...] = (
