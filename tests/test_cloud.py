@@ -64,8 +64,10 @@ def messages(scene):
 class FakeRobot:
     """Talks to the cloud with raw bytes on one robot's keys."""
 
-    def __init__(self, session, robot_id: str, camera, offload_at: int = K) -> None:
+    def __init__(self, session, robot_id: str, camera, offload_at: int = K,
+                 adaptive: bool = False) -> None:
         self.z = session
+        self.adaptive = adaptive
         self.id = robot_id
         self.camera = camera
         self.offload_at = offload_at
@@ -92,7 +94,8 @@ class FakeRobot:
 
     def hello(self) -> dict:
         message = {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
-                   "camera": self.camera.to_dict(), "source": "test"}
+                   "camera": self.camera.to_dict(), "source": "test",
+                   "adaptive": self.adaptive}
         for _ in range(20):
             self.z.put(keys.control(self.id), json.dumps(message).encode())
             try:
@@ -157,6 +160,29 @@ def test_the_cloud_runs_the_front_end_when_the_robot_offloads_early(cloud, scene
     assert [fb.frame_index for fb in got] == list(range(N_FRAMES))
     np.testing.assert_array_equal(np.array([fb.T_world_camera for fb in got]), reference)
     assert server.sessions["r0"].state.counts["errors"] == 0
+
+
+def test_an_adaptive_robot_switches_points_frame_by_frame(cloud, scene):
+    """A robot that re-plans sends each frame at the point it chose then (0-3): the cloud
+    tracks every frame, and as the front end keeps no state that matters here, the poses are
+    the in-memory ones. A robot that did not say it adapts is held to its point."""
+    server, client = cloud
+    by_k = {k: robot_messages(scene, k)["r0"] for k in (0, 1, 3)}
+    seq, _, reference = by_k[3]
+    robot = FakeRobot(client, "r0", seq.camera, offload_at=3, adaptive=True)
+    robot.hello()
+    plan = [3, 3, 1, 1, 0, 3, 3, 1, 0, 0, 3, 3][:N_FRAMES]
+    for i, k in enumerate(plan):
+        robot.send(by_k[k][1][i])
+    got = robot.poses(N_FRAMES)
+    assert [fb.frame_index for fb in got] == list(range(N_FRAMES))
+    np.testing.assert_array_equal(np.array([fb.T_world_camera for fb in got]), reference)
+    assert server.sessions["r0"].state.counts["errors"] == 0
+    fixed = FakeRobot(client, "r1", seq.camera, offload_at=3)
+    fixed.hello()
+    fixed.send(by_k[1][1][0])
+    time.sleep(0.5)
+    assert server.sessions["r1"].state.counts["rejected frame"] == 1
 
 
 def test_bad_messages_are_rejected_and_no_session_is_harmed(cloud, messages, caplog):

@@ -7,11 +7,13 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config, load_config
 from fleetslam.planner.model import OBJECTIVES
 from fleetslam.planner.plan import SWEEP_MBPS
+from fleetslam.transport.link import parse_link_trace
 
 
 def _default_out(kind: str) -> Path:
@@ -122,6 +124,25 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> Any:
+    """The adaptive robot's planner, from a saved profile or one measured on its own first
+    frames (this machine's stage times, the bytes of every point)."""
+    import copy
+
+    from fleetslam.planner.online import OnlinePlanner, Setting
+    from fleetslam.planner.profile import Profile, measure_profile
+
+    cfg = config.planner
+    n = config.orb.n_features
+    cfg.feature_options = (n, *[f for f in cfg.feature_options if f < n])
+    if args.plan_profile:
+        profile = Profile.load(Path(args.plan_profile))
+    else:
+        profile = measure_profile(sequence, args.source, copy.deepcopy(config),
+                                  min(cfg.profile_frames, len(sequence)))
+    return OnlinePlanner(profile, cfg, Setting(3, n, 1))
+
+
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.tum import open_robot
     from fleetslam.edge.robot import Robot, parse_offload_point
@@ -134,12 +155,23 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
             setattr(config.link, name, value)
     if args.link_seed is not None:
         config.link.seed = args.link_seed
-    k = parse_offload_point(args.offload_at, [s.name for s in default_stages()])
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
     sequence = open_robot(args.source, camera)
+    trace = parse_link_trace(args.link_trace) if args.link_trace else None
+    if trace:
+        if trace[0][0] != 0:
+            raise ValueError("--link-trace must start at frame 0")
+        config.link.bandwidth_mbps = trace[0][1]
+    planner = None
+    if args.offload_at == "auto":
+        k = 3
+        planner = _online_planner(args, config, sequence)
+    else:
+        k = parse_offload_point(args.offload_at, [s.name for s in default_stages()])
     robot = Robot(args.id, sequence, args.source, k, config, args.connect, args.rate,
                   show_progress=not args.quiet,
-                  paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None)
+                  paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None,
+                  planner=planner, link_trace=trace)
     report = robot.run()
     if args.report:
         Path(args.report).parent.mkdir(parents=True, exist_ok=True)
@@ -273,7 +305,13 @@ def build_parser() -> argparse.ArgumentParser:
     robot.add_argument("--camera", help="camera.json overriding the detected camera")
     robot.add_argument("--offload-at", default="paper",
                        help="split point: 0-3 (cloud tracks) or 6 (robot tracks), 'paper' "
-                       "(3), or the first cloud stage's name (e.g. match)")
+                       "(3), the first cloud stage's name (e.g. match), or 'auto' (re-plan "
+                       "point, ORB features and frame step from the measured link)")
+    robot.add_argument("--plan-profile", help="with --offload-at auto: a saved profile "
+                       "(fleetslam plan --save-profile); default: measured at start")
+    robot.add_argument("--link-trace", metavar="FRAME:MBPS,...",
+                       help="change the emulated bandwidth at these frames, e.g. "
+                       "0:10,300:1,700:10")
     robot.add_argument("--rate", default="max",
                        help="'max' (as fast as stages and link allow), 'recorded' (at the "
                        "recording's timestamps) or frames per second")

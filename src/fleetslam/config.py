@@ -284,6 +284,18 @@ class PlannerConfig:
     latency_ms: float = 0.0
     # Frames measured for a profile.
     profile_frames: int = 60
+    # Online (a robot with --offload-at auto): re-plan every this many frames, among the
+    # points the cloud can switch between frame by frame, lowering the ORB features or
+    # sending every n-th frame only when no point keeps up with the camera (target_fps).
+    replan_frames: int = 30
+    online_points: tuple[int, ...] = (0, 1, 2, 3)
+    feature_options: tuple[int, ...] = (1000, 700, 500)
+    frame_step_options: tuple[int, ...] = (1, 2)
+    target_fps: float = 30.0
+    # A new setting must promise this much more throughput to replace the current one.
+    switch_gain: float = 1.15
+    # Seconds of sending the link estimate looks back over.
+    link_window_s: float = 3.0
 
 
 @dataclass

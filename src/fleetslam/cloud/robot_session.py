@@ -57,6 +57,9 @@ class Hello:
     offload_at: int
     camera: Camera
     source: str
+    # The robot re-plans while it runs: its frames may come at any point the cloud tracks
+    # at (0-3), frame by frame (the session holds the map at all of them).
+    adaptive: bool = False
 
     @staticmethod
     def parse(message: dict[str, Any]) -> "Hello":
@@ -68,7 +71,13 @@ class Hello:
             raise ValueError(f"offloading point {k!r} not supported; use one of "
                              f"{', '.join(map(str, SUPPORTED_POINTS))}")
         camera = Camera.from_dict(message.get("camera") or {}, "hello camera")
-        return Hello(int(k), camera, str(message.get("source", "")))
+        adaptive = message.get("adaptive", False)
+        if not isinstance(adaptive, bool):
+            raise ValueError(f"adaptive must be true or false, got {adaptive!r}")
+        if adaptive and k not in CLOUD_TRACKS:
+            raise ValueError(f"an adaptive robot switches among points "
+                             f"{', '.join(map(str, CLOUD_TRACKS))}; it cannot start at {k}")
+        return Hello(int(k), camera, str(message.get("source", "")), adaptive)
 
 
 @dataclass
@@ -248,7 +257,8 @@ class RobotSession:
         if header.robot_id != self.robot_id:
             return self._reject("frame", f"header names robot {header.robot_id!r}, "
                                          f"sent on {self.robot_id!r}'s key")
-        if header.split_point != st.hello.offload_at:
+        switching = st.hello.adaptive and header.split_point in CLOUD_TRACKS
+        if header.split_point != st.hello.offload_at and not switching:
             return self._reject("frame", f"split point {header.split_point}, but the session "
                                          f"offloads at {st.hello.offload_at} (send a hello)")
         if header.seq <= st.last_seq:
@@ -257,10 +267,13 @@ class RobotSession:
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             st.counts["frames lost in transit"] += header.seq - st.last_seq - 1
         start = time.perf_counter()
-        if self.stages:
+        stages = self._stages_from(header.split_point)
+        if stages:
             timer = StageTimer()
+            if st.front_end is None and any(s.side == "edge" for s in stages):
+                st.front_end = EdgeSession(self.config, st.hello.camera)  # switched below 3
             session = Session(st.front_end, st.tracking)
-            out: TrackedFrame = run_stages(self.stages, state, session, timer)
+            out: TrackedFrame = run_stages(stages, state, session, timer)
             for name, seconds in timer.seconds.items():
                 st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
         else:
@@ -291,6 +304,12 @@ class RobotSession:
         self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
                                                                    feedback))
         st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
+
+    def _stages_from(self, k: int) -> list:
+        """The cloud's stages for a frame sent at point k (an adaptive robot switches)."""
+        if k == self.state.hello.offload_at:
+            return self.stages
+        return default_stages()[k:] if k in CLOUD_TRACKS else []
 
     def _store_captured_keyframe(self, frame: CapturedFrame, seq: int) -> None:
         depth_raw = self.state.hello.camera.metres_to_depth(frame.depth_m)

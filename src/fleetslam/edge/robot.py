@@ -27,6 +27,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.pipeline.split import StageTimer, TrackingPipeline, run_stages
 from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.planner.online import OnlinePlanner
 from fleetslam.progress import Progress
 from fleetslam.transport import keys
 from fleetslam.transport.link import EmulatedLink
@@ -102,6 +103,11 @@ class RobotReport:
     total_s: float = 0.0  # first frame sent -> the cloud's "ended" (map built)
     resumed_at: int | None = None
     cloud_summary: dict[str, Any] | None = None
+    # An adaptive robot: every re-plan (measured link, chosen point / features / step) and
+    # how many frames went at each point; frames it skipped by its frame step.
+    plan_history: list[dict[str, Any]] = field(default_factory=list)
+    frames_per_point: dict[str, int] = field(default_factory=dict)
+    frames_skipped: int = 0
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
@@ -110,7 +116,9 @@ class RobotReport:
 class Robot:
     def __init__(self, robot_id: str, sequence: RgbdSequence, source: str, offload_at: int,
                  config: Config, endpoint: str | None = None, rate: str = "max",
-                 show_progress: bool = True, paper_yaml_dir: Path | None = None) -> None:
+                 show_progress: bool = True, paper_yaml_dir: Path | None = None,
+                 planner: OnlinePlanner | None = None,
+                 link_trace: list[tuple[int, float]] | None = None) -> None:
         self.robot_id = keys.check_robot_id(robot_id)
         if offload_at not in SUPPORTED_POINTS:
             raise ValueError(f"offloading point {offload_at} not supported "
@@ -129,11 +137,20 @@ class Robot:
         self.config = config
         self.endpoint = endpoint or config.transport.endpoint
         self.show_progress = show_progress
+        # An adaptive robot re-plans its point (among those the cloud switches between frame
+        # by frame), its ORB features and its frame step while it runs.
+        self.planner = planner
+        if planner is not None and offload_at not in planner.cfg.online_points:
+            raise ValueError(f"an adaptive robot starts at one of "
+                             f"{', '.join(map(str, planner.cfg.online_points))}")
+        self.link_trace = dict(link_trace or [])
         self.pipeline = TrackingPipeline(config, sequence.camera)
         self.robot_stages, _ = self.pipeline.split(offload_at)
         # Each side of the session lives where its stages run: below point 6 the cloud owns
         # the tracking map, at point 0 it also runs the front end.
         sides = {stage.side for stage in self.robot_stages}
+        if planner is not None:
+            sides = {"edge"}  # it may run the front end at any moment, never the back-end
         if "edge" not in sides:
             self.pipeline.session.edge = None
         if "cloud" not in sides:
@@ -151,6 +168,8 @@ class Robot:
         self._last_feedback = 0.0
         self._need_hello = threading.Event()
         self._upload_error: str | None = None
+        # The point each recent frame went at (an adaptive robot switches).
+        self._point_of: OrderedDict[int, int] = OrderedDict()
 
     # -- Zenoh callbacks ------------------------------------------------------------------
 
@@ -166,9 +185,12 @@ class Robot:
         sent = self._sent_at.pop(header.seq, None)
         if sent is not None:
             self._round_trips.append(1000.0 * (now - sent))
+            if self.planner is not None:
+                self.planner.meter.round_trip(now - sent)
         if fb.is_keyframe:
             self.report.keyframes += 1
-            if self.offload_at > 0:  # at point 0 the cloud already has the images
+            # A frame sent at point 0 gave the cloud its images already.
+            if self._point_of.get(fb.frame_index, self.offload_at) > 0:
                 self._queue_upload(fb.frame_index)
 
     def _on_reply(self, sample: Any) -> None:
@@ -213,6 +235,7 @@ class Robot:
 
     def _hello(self) -> dict[str, Any]:
         message = {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
+                   "adaptive": self.planner is not None,
                    "camera": self.sequence.camera.to_dict(), "source": self.source,
                    "frames": len(self.sequence)}
         cfg = self.config.transport
@@ -252,7 +275,7 @@ class Robot:
         for attempt in range(cfg.max_attempts):
             if attempt:
                 self.report.upload_retries += 1
-            self.link.send(keys.keyframe(self.robot_id), data)
+            self._send_measured(keys.keyframe(self.robot_id), data)
             self.report.keyframe_uploads += 1
             self.report.keyframe_bytes += len(data)
             if event.wait(cfg.ack_timeout_s):
@@ -319,7 +342,18 @@ class Robot:
         sender = threading.Thread(target=self._sender, args=(outbox,),
                                   name=f"robot-{self.robot_id}-send", daemon=True)
         sender.start()
+        k, step = self.offload_at, 1
         for i, frame in zip(range(start_index, n), self._read_ahead(start_index)):
+            if i in self.link_trace:  # the emulated link changes (a recorded trace)
+                self.link.set_bandwidth(self.link_trace[i])
+            if self.planner is not None and i > start_index \
+                    and (i - start_index) % self.planner.cfg.replan_frames == 0:
+                setting = self.planner.replan(i)
+                k, step = setting.k, setting.frame_step
+                self.config.orb.n_features = setting.features  # read by Extract per frame
+            if step > 1 and (i - start_index) % step and i != n - 1:
+                self.report.frames_skipped += 1
+                continue
             if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
                 outbox.join()
                 seq = max(seq, int(self._hello()["next_seq"]))
@@ -331,16 +365,21 @@ class Robot:
                 if wait > 0:
                     time.sleep(wait)
             start = time.perf_counter()
-            state = run_stages(self.robot_stages,
+            stages = self.robot_stages if self.planner is None else self.pipeline.stages[:k]
+            state = run_stages(stages,
                                CapturedFrame(frame.index, frame.timestamp, frame.rgb,
                                              frame.depth_m),
                                self.pipeline.session, self.timer)
-            data = encode_frame_message(state, self.offload_at, self.robot_id, seq,
+            data = encode_frame_message(state, k, self.robot_id, seq,
                                         self.sequence.camera, self.config.wire)
             self.report.robot_compute_s += time.perf_counter() - start
             if self.paper_yaml_dir is not None:
                 write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
-            if self.offload_at > 0:
+            self._point_of[frame.index] = k
+            while len(self._point_of) > self.config.transport.keyframe_buffer_frames:
+                self._point_of.popitem(last=False)
+            self.report.frames_per_point[str(k)] = self.report.frames_per_point.get(str(k), 0) + 1
+            if k > 0:
                 with self._buffer_lock:
                     self._buffer[frame.index] = KeyframeUpload.from_frame(
                         frame.index, frame.timestamp, frame.rgb, frame.depth_raw, stride)
@@ -351,16 +390,26 @@ class Robot:
             self.report.frames += 1
             self.report.frame_bytes += len(data)
             seq += 1
-            progress.update(i + 1 - start_index, f"kf {self.report.keyframes}")
+            progress.update(i + 1 - start_index, f"kf {self.report.keyframes}"
+                            + (f" k={k} f={self.config.orb.n_features} step={step}"
+                               if self.planner is not None else ""))
         outbox.put(None)
         sender.join()
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
 
+    def _send_measured(self, key: str, data: bytes) -> bool:
+        """Send on the link; an adaptive robot learns its link from how long sends take."""
+        start = time.monotonic()
+        delivered = self.link.send(key, data)
+        if self.planner is not None:
+            self.planner.meter.sent(len(data), start, time.monotonic())
+        return delivered
+
     def _sender(self, outbox: queue.Queue) -> None:
         while (item := outbox.get()) is not None:
             seq, data = item
-            if not self.link.send(keys.frame(self.robot_id), data):
+            if not self._send_measured(keys.frame(self.robot_id), data):
                 self.report.frames_lost_on_link += 1
                 self._sent_at.pop(seq, None)
             outbox.task_done()
@@ -424,3 +473,5 @@ class Robot:
             r.round_trip_ms_median = float(np.median(self._round_trips))
             r.round_trip_ms_p95 = float(np.percentile(self._round_trips, 95))
         r.cloud_summary = answer.get("summary")
+        if self.planner is not None:
+            r.plan_history = self.planner.history

@@ -45,6 +45,24 @@ def validate_link_config(config: LinkConfig) -> None:
         raise ValueError(f"link.loss must be in [0, 1), got {config.loss}")
 
 
+def parse_link_trace(text: str) -> list[tuple[int, float]]:
+    """``"0:10,300:1,700:10"``: from frame 0 on 10 Mbit/s, from frame 300 on 1, ... as
+    (first frame, Mbit/s) pairs in frame order."""
+    trace = []
+    for part in text.split(","):
+        try:
+            frame, mbps = part.split(":")
+            trace.append((int(frame), float(mbps)))
+        except ValueError as exc:
+            raise ValueError(f"link trace {text!r}: each part is FRAME:MBPS, got {part!r}") \
+                from exc
+    if any(f < 0 or not (math.isfinite(b) and b > 0) for f, b in trace):
+        raise ValueError(f"link trace {text!r}: frames >= 0 and bandwidths > 0")
+    if [f for f, _ in trace] != sorted({f for f, _ in trace}):
+        raise ValueError(f"link trace {text!r}: frames must rise")
+    return trace
+
+
 class EmulatedLink:
     def __init__(self, config: LinkConfig, deliver: Callable[[str, bytes], None],
                  clock: Callable[[], float] = time.monotonic,
@@ -108,6 +126,13 @@ class EmulatedLink:
                 self._changed.notify_all()
         self._sleep_until(finish)
         return not lost
+
+    def set_bandwidth(self, mbps: float) -> None:
+        """Change the bandwidth from the next message on (a link trace; 0 = unlimited)."""
+        if not math.isfinite(mbps) or mbps < 0:
+            raise ValueError(f"bandwidth must be >= 0 Mbit/s, got {mbps}")
+        with self._lock:
+            self._bits_per_s = mbps * 1e6
 
     def flush(self, timeout: float | None = None) -> None:
         """Wait until every message sent so far is delivered (or lost).
