@@ -81,3 +81,19 @@ def test_cli_plan_paper_writes_the_plan_and_plots(tmp_path, capsys):
     assert plan["links"][0]["chosen_k"] == 3
     for name in ("energy.png", "transmission_time.png"):
         assert (tmp_path / "plan" / name).stat().st_size > 1000
+
+
+def test_whole_system_energy_is_power_times_measured_time():
+    from fleetslam.planner.energy_report import whole_system, whole_system_table
+
+    cfg = PlannerConfig()
+    summary = {"wall_time_s": 100.0, "merge_wall_time_s": 10.0, "robots": [
+        {"name": "r0", "offload_at": 3, "cloud_s_total": 20.0,
+         "robot": {"robot_compute_s": 12.0, "link_busy_s": 30.0}}]}
+    w = whole_system(summary, cfg)
+    robot_s = 12.0 * 3.3 / 1.2  # the robot's slower CPU
+    assert w["E_localization"] == pytest.approx(0.9 * robot_s + 1.3 * 30.0 + 0.3 * 20.0)
+    assert w["E_mapping"] == pytest.approx(3.0) and w["T_total_s"] == 100.0
+    assert "540.35" in whole_system_table({"run": w})  # the paper's row beside ours
+    with pytest.raises(ValueError, match="no robot report"):
+        whole_system({"wall_time_s": 1.0, "robots": [{"name": "r0"}]}, cfg)
