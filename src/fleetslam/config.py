@@ -294,7 +294,9 @@ class PlannerConfig:
     target_fps: float = 30.0
     # A new setting must promise this much more throughput to replace the current one.
     switch_gain: float = 1.15
-    # Seconds of sending the link estimate looks back over.
+    # The link estimate looks back over the last this many sends, at most this many seconds
+    # (a count, so that it follows a link that got faster within a few frames).
+    link_window_sends: int = 20
     link_window_s: float = 3.0
 
 

@@ -41,12 +41,13 @@ class Prediction:
 
 
 class LinkMeter:
-    """The link as the robot sees it, over a window: the bytes it put out over the time the
+    """The link as the robot sees it, over its last sends: the bytes it put out over the time the
     link was busy with them (the union of its send calls: a send blocks while its bytes go
     out, and queued sends overlap), and the feedback round trips."""
 
-    def __init__(self, window_s: float) -> None:
+    def __init__(self, window_s: float, window_sends: int = 20) -> None:
         self.window_s = window_s
+        self.window_sends = window_sends
         self._sends: deque[tuple[float, float, int]] = deque()  # (start, end, bytes)
         self._round_trips: deque[tuple[float, float]] = deque()
         self._lock = threading.Lock()
@@ -54,7 +55,8 @@ class LinkMeter:
     def sent(self, size: int, start: float, end: float) -> None:
         with self._lock:
             self._sends.append((start, end, size))
-            while end - self._sends[0][1] > self.window_s:
+            while end - self._sends[0][1] > self.window_s or \
+                    len(self._sends) > self.window_sends:
                 self._sends.popleft()
 
     def round_trip(self, seconds: float) -> None:
@@ -108,7 +110,7 @@ class OnlinePlanner:
         self.profile = profile
         self.cfg = cfg
         self.current = start
-        self.meter = LinkMeter(cfg.link_window_s)
+        self.meter = LinkMeter(cfg.link_window_s, cfg.link_window_sends)
         self.history: list[dict[str, Any]] = []
 
     def settings(self) -> list[Setting]:
