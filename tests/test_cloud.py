@@ -10,10 +10,10 @@ import logging
 import queue
 import struct
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from conftest import small_scene
 
 from fleetslam.cloud.robot_session import PROTOCOL
@@ -274,3 +274,63 @@ def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path
     session.close()
     # Keyframe uploads are still missing, so the cloud asks for them — after all frames.
     assert replies[-1]["type"] == "need" and replies[-1]["frames"] == N_FRAMES
+
+
+def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes_on(cloud,
+                                                                                   scene):
+    """Messages that are well formed but carry what no camera produces: each is rejected
+    before any stage runs, the robot hears why, and its good frames track as before."""
+    server, client = cloud
+    seq = RgbdSequence(scene[0])
+    camera, config = seq.camera, Config()
+    robot_side, reference = TrackingPipeline(config, camera), TrackingPipeline(config, camera)
+    states, expected = [], []
+    for f in seq:
+        frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
+        states.append(run_stages(robot_side.split(K)[0], frame, robot_side.session))
+        expected.append(reference.track(frame).T_world_camera)
+    good = states[1]
+    n = len(good.keypoints)
+    nan_kp = good.keypoints.copy()
+    nan_kp[0, 0] = np.nan
+    outside = good.keypoints.copy()
+    outside[:, 0] += camera.width
+    many = 50
+    hostile = {
+        "NaN keypoints": replace(good, keypoints=nan_kp),
+        "keypoints outside": replace(good, keypoints=outside),
+        "uv disagrees": replace(good, uv=good.uv + [300.0, 0.0]),
+        "too many keypoints": replace(
+            good, keypoints=np.tile(good.keypoints, (many, 1)),
+            descriptors=np.tile(good.descriptors, (many, 1)), depth=np.tile(good.depth, many),
+            uv=np.tile(good.uv, (many, 1))),
+    }
+    assert many * n > 20_000
+    robot = FakeRobot(client, "r0", camera)
+    robot.hello()
+    robot.send(encode_frame_message(states[0], K, "r0", 0, camera, config.wire))
+    seq_no = 1
+    for name, state in hostile.items():
+        robot.send(encode_frame_message(state, K, "r0", seq_no, camera, config.wire))
+        reason = robot.reply("error", timeout=5.0)["reason"]
+        assert reason.startswith("frame rejected"), (name, reason)
+        seq_no += 1
+        time.sleep(1.05)  # the cloud tells a robot why at most once a second
+    # A far-future seq, and a frame from the past: rejected too.
+    robot.send(encode_frame_message(states[1], K, "r0", 2**63, camera, config.wire))
+    assert "seq jumps" in robot.reply("error", timeout=5.0)["reason"]
+    time.sleep(1.05)
+    for i in range(1, N_FRAMES):
+        robot.send(encode_frame_message(states[i], K, "r0", seq_no, camera, config.wire))
+        seq_no += 1
+        if i == 3:
+            time.sleep(0.3)  # let frame 3 be tracked before its stale twin arrives
+            robot.send(encode_frame_message(states[2], K, "r0", seq_no, camera, config.wire))
+            seq_no += 1
+    got = robot.poses(N_FRAMES)
+    assert [fb.frame_index for fb in got] == list(range(N_FRAMES))
+    np.testing.assert_array_equal(np.array([fb.T_world_camera for fb in got]),
+                                  np.array(expected))
+    counts = server.sessions["r0"].state.counts
+    assert counts["rejected frame"] == len(hostile) + 2 and counts["errors"] == 0
+    assert "is not after" in robot.reply("error", timeout=5.0)["reason"]

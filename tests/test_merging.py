@@ -21,7 +21,7 @@ from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.system import run_fleet
 from fleetslam.transforms import invert, make_T, random_perturbation, rotation_angle_deg
 
-CAMERA = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)
+CAMERA = Camera(525.0, 525.0, 319.5, 239.5)
 
 
 def _path(n: int, rng: np.random.Generator, step: float = 0.1) -> np.ndarray:

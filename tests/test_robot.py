@@ -40,3 +40,13 @@ def test_robot_ids_are_one_key_chunk():
             keys.check_robot_id(bad)
     with pytest.raises(ValueError):
         keys.robot_of("other/r1/frame")
+
+
+def test_a_robot_with_no_cloud_says_so_and_gives_up_at_its_deadline(caplog):
+    from fleetslam.launch import free_endpoint
+    from fleetslam.transport.zenoh_session import wait_until_reachable
+
+    endpoint = free_endpoint()
+    with pytest.raises(RuntimeError, match="nothing answers at .* is the cloud running"):
+        wait_until_reachable(endpoint, deadline_s=1.5, attempt_s=0.5)
+    assert "retrying" in caplog.text

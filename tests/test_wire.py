@@ -434,3 +434,23 @@ def test_a_robots_own_pose_must_be_a_finite_rigid_transform():
         with pytest.raises(WireError, match=reason):
             decode_frame_message(encode_frame_message(wrong, 6, ROBOT, 0, camera, WireConfig()),
                                  camera)
+
+
+@pytest.mark.parametrize("h, w, what", [(1, 1, "rgb image is 1 x 1"),
+                                        (2, 640, "rgb image is 640 x 2"),
+                                        (480, 320, "rgb image is 320 x 480")])
+def test_images_of_another_size_than_the_camera_are_refused(h, w, what):
+    camera = Camera(525.0, 525.0, 319.5, 239.5)
+    frame = CapturedFrame(0, 0.5, np.zeros((h, w, 3), np.uint8), np.zeros((h, w), np.float32))
+    data = encode_frame_message(frame, 0, ROBOT, 0, camera, WireConfig())
+    with pytest.raises(WireError, match=what):
+        decode_frame_message(data, camera)
+
+
+def test_depth_of_another_size_than_the_colour_image_is_refused():
+    camera = Camera(525.0, 525.0, 319.5, 239.5)
+    frame = CapturedFrame(0, 0.5, np.zeros((480, 640, 3), np.uint8),
+                          np.zeros((240, 320), np.float32))
+    with pytest.raises(WireError, match="depth image is 320 x 240"):
+        decode_frame_message(encode_frame_message(frame, 0, ROBOT, 0, camera, WireConfig()),
+                             camera)

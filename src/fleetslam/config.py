@@ -360,6 +360,8 @@ class TransportConfig:
     max_attempts: int = 30
     # A robot waits this long for the cloud to answer its hello before retrying.
     connect_timeout_s: float = 2.0
+    # How long a robot or client waits for anything to answer at the cloud's endpoint.
+    reach_deadline_s: float = 600.0
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
     end_grace_s: float = 2.0

@@ -48,6 +48,10 @@ CLOUD_TRACKS = (0, 1, 2, 3)
 ROBOT_TRACKS = 6
 SUPPORTED_POINTS = (*CLOUD_TRACKS, ROBOT_TRACKS)
 PROTOCOL = 1
+# A robot's seq may skip frames lost on the link, but not this many at once.
+MAX_SEQ_JUMP = 100_000
+# A robot is told why a message was rejected at most this often.
+REJECTION_REPLY_INTERVAL_S = 1.0
 
 
 @dataclass
@@ -139,6 +143,7 @@ class RobotSession:
         self.stages = default_stages()[state.hello.offload_at:] \
             if state.hello.offload_at in CLOUD_TRACKS else []
         self.finished: FinishedMap | None = None
+        self._last_rejection_reply = -float("inf")
         self._frames: queue.Queue = queue.Queue()
         self._keyframes: queue.Queue = queue.Queue()
         self._checkpoints: queue.Queue = queue.Queue()
@@ -235,6 +240,13 @@ class RobotSession:
     def _reject(self, what: str, reason: str) -> None:
         self.state.counts[f"rejected {what}"] += 1
         log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
+        # The robot hears why, at most once per interval (a flood of bad messages must not
+        # become a flood of replies).
+        now = time.monotonic()
+        if now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S:
+            self._last_rejection_reply = now
+            self._reply({"type": "error", "reason": f"{what} rejected: {reason}",
+                         "rejected": what})
 
     def _reply(self, message: dict[str, Any]) -> None:
         self.publish(keys.reply(self.robot_id), json.dumps(message).encode())
@@ -264,6 +276,13 @@ class RobotSession:
         if header.seq <= st.last_seq:
             what = "duplicate" if header.seq == st.last_seq else "out of order"
             return self._reject("frame", f"{what}: seq {header.seq} after {st.last_seq}")
+        if st.last_seq >= 0 and header.seq > st.last_seq + MAX_SEQ_JUMP:
+            # A forged far-future seq would make every later real frame "out of order".
+            return self._reject("frame", f"seq jumps from {st.last_seq} to {header.seq} "
+                                         f"(more than {MAX_SEQ_JUMP} frames lost?)")
+        if st.rows and header.timestamp <= st.rows[-1].timestamp:
+            return self._reject("frame", f"timestamp {header.timestamp:.6f} is not after the "
+                                         f"last frame's {st.rows[-1].timestamp:.6f}")
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             st.counts["frames lost in transit"] += header.seq - st.last_seq - 1
         start = time.perf_counter()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 
 import zenoh
 
@@ -32,8 +33,37 @@ def open_listening(endpoint: str) -> zenoh.Session:
         raise RuntimeError(f"cannot listen on {endpoint}: {exc}") from exc
 
 
-def open_connecting(endpoint: str) -> zenoh.Session:
-    """Connect to ``endpoint``; blocks until the cloud is reachable, and reconnects after."""
+def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.0) -> None:
+    """Block until something answers at ``endpoint``, saying so on every failed attempt;
+    RuntimeError after ``deadline_s`` seconds."""
+    probe = _base_config()
+    probe.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    probe.insert_json5("connect/exit_on_failure", "true")
+    probe.insert_json5("connect/timeout_ms", str(int(attempt_s * 1000)))
+    probe.insert_json5("listen/endpoints", "[]")
+    start = time.monotonic()
+    attempt = 0
+    while True:
+        attempt += 1
+        try:
+            zenoh.open(probe).close()
+            if attempt > 1:
+                log.warning("%s answers now (attempt %d)", endpoint, attempt)
+            return
+        except zenoh.ZError:
+            waited = time.monotonic() - start
+            if waited >= deadline_s:
+                raise RuntimeError(f"nothing answers at {endpoint} after {waited:.0f} s "
+                                   f"({attempt} attempts): is the cloud running there?") \
+                    from None
+            log.warning("nothing answers at %s yet (attempt %d, %.0f s of %.0f); retrying",
+                        endpoint, attempt, waited, deadline_s)
+
+
+def open_connecting(endpoint: str, deadline_s: float = 600.0) -> zenoh.Session:
+    """Connect to ``endpoint`` once something answers there (saying so while it waits, up to
+    ``deadline_s``); the session then reconnects by itself if the cloud restarts."""
+    wait_until_reachable(endpoint, deadline_s)
     config = _base_config()
     config.insert_json5("connect/endpoints", json.dumps([endpoint]))
     config.insert_json5("connect/exit_on_failure", "false")

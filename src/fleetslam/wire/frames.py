@@ -584,8 +584,64 @@ def encode_state(state: State, split_point: int, camera: Camera, config: WireCon
     return _write_state(state, split_point, camera, config).getvalue()
 
 
+# Content limits a decoded frame must meet before any stage reads it (a message that decodes
+# cleanly can still be hostile: NaN keypoints, images of another size, uv far from its
+# keypoint). More keypoints than this is no ORB frame of a camera.
+MAX_FRAME_KEYPOINTS = 20_000
+# uv sent explicitly must be where undistorting its keypoint puts it, within this (pixels).
+UV_TOLERANCE_PX = 1.0
+# Depth per keypoint above this (metres) is no measurement of an RGB-D camera.
+MAX_KEYPOINT_DEPTH_M = 100.0
+
+
+def _check_image(image: np.ndarray, camera: Camera, what: str) -> None:
+    if image.shape[:2] != (camera.height, camera.width):
+        raise WireError(f"{what} is {image.shape[1]} x {image.shape[0]}, the camera's is "
+                        f"{camera.width} x {camera.height}")
+
+
+def _check_keypoint_content(kp: np.ndarray, camera: Camera) -> None:
+    if len(kp) > MAX_FRAME_KEYPOINTS:
+        raise WireError(f"{len(kp)} keypoints (at most {MAX_FRAME_KEYPOINTS} in a frame)")
+    if not np.isfinite(kp).all():
+        raise WireError("keypoints hold NaN or infinite values")
+    x, y = kp[:, 0], kp[:, 1]
+    if ((x < 0) | (y < 0) | (x >= camera.width) | (y >= camera.height)).any():
+        raise WireError(f"keypoints outside the {camera.width} x {camera.height} image")
+    octave = kp[:, 5]
+    if ((octave < 0) | (octave > 31) | (octave != np.round(octave))).any():
+        raise WireError("keypoint octaves are not pyramid levels 0-31")
+
+
+def _check_content(state: State, camera: Camera) -> None:
+    """Sizes against the camera, finite values, plausible counts: what the stages assume."""
+    if isinstance(state, PosedFrame):
+        state = state.matched
+    if isinstance(state, MatchedFrame):
+        state = state.features
+    if isinstance(state, CapturedFrame):
+        _check_image(state.rgb, camera, "rgb image")
+    if isinstance(state, DetectedFrame):
+        _check_image(state.gray, camera, "grey image")
+    if isinstance(state, (CapturedFrame, DetectedFrame, DescribedFrame)):
+        _check_image(state.depth_m, camera, "depth image")
+        if not np.isfinite(state.depth_m).all():
+            raise WireError("depth image holds NaN or infinite values")
+    if isinstance(state, (DetectedFrame, DescribedFrame, FeatureFrame)):
+        _check_keypoint_content(state.keypoints, camera)
+    if isinstance(state, FeatureFrame):
+        depth = state.depth
+        if not np.isfinite(depth).all() or (depth < 0).any() \
+                or (depth > MAX_KEYPOINT_DEPTH_M).any():
+            raise WireError(f"keypoint depths outside 0-{MAX_KEYPOINT_DEPTH_M:g} m")
+        if len(state.uv) and np.abs(state.uv - _undistort(state.keypoints, camera)).max() \
+                > UV_TOLERANCE_PX:
+            raise WireError("uv disagrees with the keypoints it belongs to")
+
+
 def decode_state(payload: bytes, split_point: int, camera: Camera) -> State:
-    """The state :func:`encode_state` encoded. Raises WireError on any inconsistency."""
+    """The state :func:`encode_state` encoded. Raises WireError on any inconsistency, and on
+    content the stages cannot take (sizes, values, counts: :func:`_check_content`)."""
     if not 0 <= split_point < N_SPLIT_POINTS:
         raise WireError(f"split point {split_point} outside 0..{N_SPLIT_POINTS - 1}")
     r = Reader(payload, f"frame payload (split point {split_point})")
@@ -595,6 +651,7 @@ def decode_state(payload: bytes, split_point: int, camera: Camera) -> State:
                         "depth scale): keypoints and depth would be rebuilt wrongly")
     state = _DECODERS[split_point](r, index, timestamp, camera)
     r.finish()
+    _check_content(state, camera)
     return state
 
 
