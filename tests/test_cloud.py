@@ -334,3 +334,44 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
     counts = server.sessions["r0"].state.counts
     assert counts["rejected frame"] == len(hostile) + 2 and counts["errors"] == 0
     assert "is not after" in robot.reply("error", timeout=5.0)["reason"]
+
+
+def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
+    from fleetslam.cloud.robot_session import WorkQueue
+
+    q = WorkQueue(max_frames=3)
+    for i in range(3):
+        q.put(("frame", i, 0.0))
+    q.put(("control", "end", 0.0))
+    q.put(("frame", 3, 0.0))
+    q.put(("frame", 4, 0.0))
+    got = [q.get()[1] for _ in range(4)]
+    assert got == [2, "end", 3, 4] and q.dropped == 2
+
+
+def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scene):
+    config = Config()
+    config.transport.max_sessions = 1
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    client = open_connecting(endpoint)
+    try:
+        camera = RgbdSequence(scene[0]).camera
+        first = FakeRobot(client, "r0", camera)
+        first.hello()
+        second = FakeRobot(client, "r1", camera)
+        second.z.put(keys.control("r1"), json.dumps(
+            {"type": "hello", "protocol": PROTOCOL, "offload_at": K,
+             "camera": camera.to_dict()}).encode())
+        assert "at most 1 robots" in second.reply("error")["reason"]
+        bad = {**camera.to_dict(), "fx": "abc"}
+        first.z.put(keys.control("r2"), json.dumps(
+            {"type": "hello", "protocol": PROTOCOL, "offload_at": K, "camera": bad}).encode())
+        deep = ("[" * 100_000 + "]" * 100_000).encode()
+        first.z.put(keys.control("r0"), deep)
+        time.sleep(0.5)
+        assert set(server.sessions) == {"r0"}
+        first.hello()  # the cloud still answers
+    finally:
+        client.close()
+        server.close()

@@ -134,3 +134,19 @@ def test_real_seven_scenes_camera_depth_scale_and_invalid_values():
     # The ground truth of frame 0 is the 4x4 of frame-000000.pose.txt.
     pose = np.loadtxt(SEVEN_SCENES / "frame-000000.pose.txt")
     np.testing.assert_allclose(seq.gt_poses[0][:3, 3], pose[:3, 3], atol=1e-5)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"fx": "abc"}, "fx must be a finite number > 0"),
+    ({"fy": -1.0}, "fy must be a finite number > 0"),
+    ({"width": 0}, "width must be a whole number"),
+    ({"height": 480.5}, "height must be a whole number"),
+    ({"distortion": [0.1, 0.2]}, "distortion must be 0, 4, 5 or 8"),
+])
+def test_a_camera_that_would_fail_every_frame_is_refused_naming_the_field(change, message):
+    from fleetslam.camera import Camera
+
+    good = Camera(525.0, 525.0, 319.5, 239.5).to_dict()
+    assert Camera.from_dict(good) == Camera(525.0, 525.0, 319.5, 239.5)
+    with pytest.raises(ValueError, match=f"hello camera: {message}"):
+        Camera.from_dict({**good, **change}, "hello camera")

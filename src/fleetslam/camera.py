@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -103,13 +104,31 @@ class Camera:
 
     @staticmethod
     def from_dict(values: dict, where: str = "camera") -> "Camera":
+        """A camera from plain values (JSON, a hello), every field checked: a camera that
+        would make every frame fail later is refused here, naming the field."""
         try:
             values = dict(values)
-            values["distortion"] = tuple(values.get("distortion", ()))
-            values["invalid_depth"] = tuple(values.get("invalid_depth", (0,)))
-            return Camera(**values)
+            values["distortion"] = tuple(float(v) for v in values.get("distortion", ()))
+            values["invalid_depth"] = tuple(int(v) for v in values.get("invalid_depth", (0,)))
+            camera = Camera(**values)
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{where}: not a valid camera: {exc}") from exc
+        for name in ("fx", "fy", "cx", "cy", "depth_scale"):
+            value = getattr(camera, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not math.isfinite(value) or (name != "cx" and name != "cy"
+                                                     and value <= 0):
+                raise ValueError(f"{where}: {name} must be a finite number"
+                                 f"{'' if name in ('cx', 'cy') else ' > 0'}, got {value!r}")
+        for name in ("width", "height"):
+            value = getattr(camera, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 < value <= 16384:
+                raise ValueError(f"{where}: {name} must be a whole number of pixels in "
+                                 f"1-16384, got {value!r}")
+        if len(camera.distortion) not in (0, 4, 5, 8) or \
+                not all(math.isfinite(v) for v in camera.distortion):
+            raise ValueError(f"{where}: distortion must be 0, 4, 5 or 8 finite coefficients")
+        return camera
 
     @staticmethod
     def from_json(path: Path) -> "Camera":

@@ -362,6 +362,10 @@ class TransportConfig:
     connect_timeout_s: float = 2.0
     # How long a robot or client waits for anything to answer at the cloud's endpoint.
     reach_deadline_s: float = 600.0
+    # The cloud's bounds: robots it serves at once, and frames waiting per robot (the
+    # oldest is dropped beyond it: frames are best effort, keyframes are not).
+    max_sessions: int = 64
+    max_queued_frames: int = 256
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
     end_grace_s: float = 2.0

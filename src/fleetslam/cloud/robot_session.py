@@ -10,7 +10,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -127,6 +127,40 @@ class FinishedMap:
     summary: dict[str, Any]
 
 
+class WorkQueue:
+    """A session's inbox: frames and control messages in arrival order, at most ``max_frames``
+    frames. Frames are best effort, so when a robot sends faster than its session tracks, the
+    oldest waiting frame is dropped (and counted); control messages are never dropped."""
+
+    def __init__(self, max_frames: int) -> None:
+        self.max_frames = max_frames
+        self.dropped = 0
+        self._items: deque[Any] = deque()
+        self._frames = 0
+        self._ready = threading.Condition()
+
+    def put(self, item: Any) -> None:
+        with self._ready:
+            if item is not None and item[0] == "frame":
+                if self._frames >= self.max_frames:
+                    oldest = next(i for i, x in enumerate(self._items)
+                                  if x is not None and x[0] == "frame")
+                    del self._items[oldest]
+                    self._frames -= 1
+                    self.dropped += 1
+                self._frames += 1
+            self._items.append(item)
+            self._ready.notify()
+
+    def get(self) -> Any:
+        with self._ready:
+            self._ready.wait_for(lambda: bool(self._items))
+            item = self._items.popleft()
+            if item is not None and item[0] == "frame":
+                self._frames -= 1
+            return item
+
+
 Publish = Callable[[str, bytes], None]
 # Where a session hands each new keyframe (and its robot's latest keyframe poses): the merger.
 KeyframeSink = Callable[[KeyframeSummary, np.ndarray], None]
@@ -144,7 +178,7 @@ class RobotSession:
             if state.hello.offload_at in CLOUD_TRACKS else []
         self.finished: FinishedMap | None = None
         self._last_rejection_reply = -float("inf")
-        self._frames: queue.Queue = queue.Queue()
+        self._frames = WorkQueue(config.transport.max_queued_frames)
         self._keyframes: queue.Queue = queue.Queue()
         self._checkpoints: queue.Queue = queue.Queue()
         # Newest frame index covered by a checkpoint on disk (a restored session: all of it).
@@ -203,7 +237,8 @@ class RobotSession:
 
     # -- workers --------------------------------------------------------------------------
 
-    def _serve(self, q: queue.Queue, handle: Callable[[str, Any, float], None]) -> None:
+    def _serve(self, q: queue.Queue | WorkQueue, handle: Callable[[str, Any, float], None]
+               ) -> None:
         while True:
             item = q.get()
             if item is None:
@@ -490,6 +525,7 @@ class RobotSession:
             "latency_ms_median": float(np.median(st.latency_ms)) if st.latency_ms else None,
             "latency_ms_p95": float(np.percentile(st.latency_ms, 95)) if st.latency_ms else None,
             "tracking_fps": len(st.rows) / span if span > 0 else None,
-            "transport": dict(st.counts),
+            "transport": {**st.counts,
+                          "frames dropped (session busy)": self._frames.dropped},
             "trajectory": f"{self.robot_id}/trajectory.tum", "map": f"{self.robot_id}/map.ply",
         }

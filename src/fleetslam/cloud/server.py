@@ -135,6 +135,8 @@ class CloudServer:
             message = json.loads(data)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ValueError(f"control message is not JSON: {exc}") from exc
+        except RecursionError:
+            raise ValueError("control message is nested too deeply") from None
         if not isinstance(message, dict) or "type" not in message:
             raise ValueError("control message must be a JSON object with a 'type'")
         return message
@@ -162,6 +164,14 @@ class CloudServer:
                     {"type": "error", "reason": "no session: send a hello first"}).encode())
                 return
             with self._lock:
+                if robot_id not in self.sessions and \
+                        len(self.sessions) >= self.config.transport.max_sessions:
+                    reason = (f"the cloud serves at most {self.config.transport.max_sessions} "
+                              f"robots at once (transport.max_sessions)")
+                    log.warning("robot %s: refused: %s", robot_id, reason)
+                    self.publish(keys.reply(robot_id), json.dumps(
+                        {"type": "error", "reason": reason}).encode())
+                    return
                 session = self.sessions.get(robot_id) or RobotSession.open(
                     robot_id, hello, self.config, self.store, self.publish, self.merger.submit)
                 self.sessions[robot_id] = session
