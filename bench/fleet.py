@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from shared_data import SEVEN_SCENES
 
-from fleetslam.cloud.robot_session import PROTOCOL
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.launch import free_endpoint, start_cloud, stop
@@ -35,10 +35,10 @@ from fleetslam.pipeline.split import TrackingPipeline, run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.report import format_table
 from fleetslam.transport import keys
+from fleetslam.transport.protocol import PROTOCOL
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.messages import decode_feedback
-from shared_data import SEVEN_SCENES
 
 SEQ = SEVEN_SCENES
 K = 3

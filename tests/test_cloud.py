@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 from conftest import small_scene
 
-from fleetslam.cloud.robot_session import PROTOCOL
 from fleetslam.cloud.server import CloudServer
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
@@ -24,6 +23,7 @@ from fleetslam.launch import free_endpoint
 from fleetslam.pipeline.split import TrackingPipeline, run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import keys
+from fleetslam.transport.protocol import PROTOCOL
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import FORMAT_VERSION
 from fleetslam.wire.frames import encode_frame_message
@@ -245,8 +245,9 @@ def test_frames_without_a_session_and_bad_control_get_a_clear_error(cloud, messa
 
 
 def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path):
-    from fleetslam.cloud.robot_session import Hello, RobotSession
+    from fleetslam.cloud.robot_session import RobotSession
     from fleetslam.cloud.store import CloudStore
+    from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, _ = messages["r0"]
     replies: list[dict] = []
@@ -375,3 +376,33 @@ def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scen
     finally:
         client.close()
         server.close()
+
+
+def test_a_resent_merge_request_merges_once_and_replies_carry_its_id(cloud):
+    """A client resends its request until answered; the cloud merges once per request id
+    and sends the same reply again to a resend that comes after the merge."""
+    from fleetslam.launch import CloudClient
+    from fleetslam.transport import protocol
+
+    server, _ = cloud
+    calls = []
+    real_merge = server.merge
+
+    def slow_merge():
+        calls.append(time.monotonic())
+        time.sleep(0.5)
+        return real_merge()
+
+    server.merge = slow_merge
+    client = CloudClient(server.endpoint, reach_deadline_s=10.0)
+    try:
+        request = protocol.request("merge")
+        first = client.request(request, "merged", timeout=30.0, resend_s=0.1)
+        again = client.request(request, "merged", timeout=30.0, resend_s=0.1)
+        assert first == again and first["id"] == request["id"] and len(calls) == 1
+        assert client.status(timeout=10.0)["type"] == "status"
+        # An unknown request is an error naming it, with the request's id.
+        with pytest.raises(RuntimeError, match="unknown request 'dance'"):
+            client.request({"type": "dance", "id": "x1"}, "danced", timeout=10.0)
+    finally:
+        client.close()

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import pytest
 
-from fleetslam.cloud.robot_session import Hello
 from fleetslam.config import PlannerConfig
 from fleetslam.planner.online import LinkMeter, OnlinePlanner, Setting
 from fleetslam.planner.profile import Profile
 from fleetslam.transport.link import parse_link_trace
+from fleetslam.transport.protocol import Hello
 
 
 def _profile() -> Profile:

@@ -216,11 +216,11 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
 
 
 def cmd_plan(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.cloud.robot_session import SUPPORTED_POINTS
     from fleetslam.planner.model import Link
     from fleetslam.planner.plan import plan, report, write_plan
     from fleetslam.planner.profile import Profile, measure_profile, paper_profile
     from fleetslam.progress import Progress
+    from fleetslam.transport.protocol import SUPPORTED_POINTS
 
     cfg = config.planner
     offered: tuple[int, ...] | None = SUPPORTED_POINTS

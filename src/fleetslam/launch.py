@@ -4,6 +4,7 @@ what ``fleetslam demo``, the tests and the benchmarks share."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import queue
 import signal
@@ -14,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fleetslam.transport import keys
+from fleetslam.transport import keys, protocol
 from fleetslam.transport.zenoh_session import open_connecting, put
 
 
@@ -73,36 +74,44 @@ def stop(process: subprocess.Popen, timeout: float = 20.0) -> int:
 class CloudClient:
     """Ask a running cloud something over its control key (status, merge)."""
 
-    def __init__(self, endpoint: str) -> None:
-        self._session = open_connecting(endpoint)
+    def __init__(self, endpoint: str, reach_deadline_s: float = 600.0) -> None:
+        self.endpoint = endpoint
+        self._session = open_connecting(endpoint, reach_deadline_s)
         self._replies: queue.Queue = queue.Queue()
         self._sub = self._session.declare_subscriber(
             keys.CLOUD_REPLY, lambda s: self._replies.put(s.payload.to_bytes()))
 
     def request(self, message: dict[str, Any], reply_type: str, timeout: float,
                 resend_s: float = 1.0) -> dict[str, Any]:
+        """Send ``message`` (a protocol request with an id) until the cloud's reply to that
+        id arrives; replies to other requests (other clients') are ignored."""
+        rid = message["id"]
         deadline = time.monotonic() + timeout
-        sent = 0.0
+        sent = -math.inf
         while time.monotonic() < deadline:
             if time.monotonic() - sent > resend_s:
-                put(self._session, keys.CLOUD_CONTROL, json.dumps(message).encode())
+                put(self._session, keys.CLOUD_CONTROL, protocol.encode(message))
                 sent = time.monotonic()
             try:
                 reply = json.loads(self._replies.get(timeout=0.2))
             except queue.Empty:
                 continue
+            if reply.get("id") != rid:
+                continue
             if reply.get("type") == reply_type:
                 return reply
             if reply.get("type") == "error":
                 raise RuntimeError(f"cloud: {reply.get('reason')}")
-        raise TimeoutError(f"no '{reply_type}' from the cloud within {timeout:.0f} s")
+        raise TimeoutError(f"no '{reply_type}' from the cloud at {self.endpoint} within "
+                           f"{timeout:.0f} s")
 
     def status(self, timeout: float = 30.0) -> dict[str, Any]:
-        return self.request({"type": "status"}, "status", timeout)
+        return self.request(protocol.request("status"), "status", timeout)
 
     def merge(self, timeout: float = 600.0) -> dict[str, Any]:
-        # A merge takes seconds: ask once, then only wait.
-        return self.request({"type": "merge"}, "merged", timeout, resend_s=timeout)["summary"]
+        # Resent with the same id until answered: the cloud merges once per id.
+        return self.request(protocol.request("merge"), "merged", timeout,
+                            resend_s=2.0)["summary"]
 
     def close(self) -> None:
         self._sub.undeclare()

@@ -17,7 +17,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fleetslam.camera import Camera
 from fleetslam.cloud.store import CloudStore, snapshot
 from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
@@ -29,7 +28,8 @@ from fleetslam.pipeline.session import CloudSession, EdgeSession, Session
 from fleetslam.pipeline.split import StageTimer, run_stages
 from fleetslam.pipeline.stages import default_stages
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
-from fleetslam.transport import keys
+from fleetslam.transport import keys, protocol
+from fleetslam.transport.protocol import CLOUD_TRACKS, ROBOT_TRACKS, Hello
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.frames import decode_frame_message
 from fleetslam.wire.messages import (
@@ -42,46 +42,10 @@ from fleetslam.wire.messages import (
 
 log = logging.getLogger("fleetslam.cloud")
 
-# Offloading points a distributed run supports. At 4 and 5 the robot would match against a
-# tracking map that the cloud's later stages update: the map would have to live on both.
-CLOUD_TRACKS = (0, 1, 2, 3)
-ROBOT_TRACKS = 6
-SUPPORTED_POINTS = (*CLOUD_TRACKS, ROBOT_TRACKS)
-PROTOCOL = 1
 # A robot's seq may skip frames lost on the link, but not this many at once.
 MAX_SEQ_JUMP = 100_000
 # A robot is told why a message was rejected at most this often.
 REJECTION_REPLY_INTERVAL_S = 1.0
-
-
-@dataclass
-class Hello:
-    """A robot opening (or resuming) its session."""
-
-    offload_at: int
-    camera: Camera
-    source: str
-    # The robot re-plans while it runs: its frames may come at any point the cloud tracks
-    # at (0-3), frame by frame (the session holds the map at all of them).
-    adaptive: bool = False
-
-    @staticmethod
-    def parse(message: dict[str, Any]) -> "Hello":
-        if message.get("protocol") != PROTOCOL:
-            raise ValueError(f"protocol {message.get('protocol')!r} not supported "
-                             f"(this cloud speaks {PROTOCOL})")
-        k = message.get("offload_at")
-        if k not in SUPPORTED_POINTS:
-            raise ValueError(f"offloading point {k!r} not supported; use one of "
-                             f"{', '.join(map(str, SUPPORTED_POINTS))}")
-        camera = Camera.from_dict(message.get("camera") or {}, "hello camera")
-        adaptive = message.get("adaptive", False)
-        if not isinstance(adaptive, bool):
-            raise ValueError(f"adaptive must be true or false, got {adaptive!r}")
-        if adaptive and k not in CLOUD_TRACKS:
-            raise ValueError(f"an adaptive robot switches among points "
-                             f"{', '.join(map(str, CLOUD_TRACKS))}; it cannot start at {k}")
-        return Hello(int(k), camera, str(message.get("source", "")), adaptive)
 
 
 @dataclass
@@ -280,11 +244,11 @@ class RobotSession:
         now = time.monotonic()
         if now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S:
             self._last_rejection_reply = now
-            self._reply({"type": "error", "reason": f"{what} rejected: {reason}",
-                         "rejected": what})
+            self._reply(protocol.error(protocol.Code.REJECTED, f"{what} rejected: {reason}",
+                                       rejected=what))
 
     def _reply(self, message: dict[str, Any]) -> None:
-        self.publish(keys.reply(self.robot_id), json.dumps(message).encode())
+        self.publish(keys.reply(self.robot_id), protocol.encode(message))
 
     def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
         if kind == "frame":
@@ -394,15 +358,14 @@ class RobotSession:
         if not self._await_checkpoint(upload.frame_index):
             return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
                                             f"covers it yet (not acknowledged; resend)")
-        self._reply({"type": "ack", "frame_index": upload.frame_index})
+        self._reply(protocol.ack(upload.frame_index))
 
     # -- control ------------------------------------------------------------------------
 
     def welcome(self, resumed: bool) -> None:
         st = self.state
-        self._reply({"type": "welcome", "resumed": resumed, "next_index": st.last_index + 1,
-                     "next_seq": st.last_seq + 1,
-                     "keyframes_stored": len(self.store.keyframe_indices(self.robot_id))})
+        self._reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
+                                     len(self.store.keyframe_indices(self.robot_id))))
 
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")
@@ -421,15 +384,17 @@ class RobotSession:
                 for index, T in poses.items():
                     self.state.robot_keyframe_poses[int(index)] = np.asarray(T, float).reshape(4, 4)
             except (TypeError, ValueError) as exc:
-                return self._reply({"type": "error", "reason": f"bad keyframe poses: {exc}"})
+                return self._reply(protocol.error(protocol.Code.BAD_MESSAGE,
+                                                  f"bad keyframe poses: {exc}"))
             missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
                 self.robot_id, i)]
             if missing:
-                return self._reply({"type": "need", "frames": missing})
+                return self._reply(protocol.need(missing))
             self.finished = self.finish()
-            self._reply({"type": "ended", "summary": self.finished.summary})
+            self._reply(protocol.ended(self.finished.summary))
         else:
-            self._reply({"type": "error", "reason": f"unknown control message {kind!r}"})
+            self._reply(protocol.error(protocol.Code.UNKNOWN_TYPE,
+                                       f"unknown control message {kind!r}"))
 
     # -- outputs ------------------------------------------------------------------------
 

@@ -18,18 +18,21 @@ from typing import Any
 import zenoh
 
 from fleetslam.cloud.merger_service import MergerService
-from fleetslam.cloud.robot_session import Hello, RobotSession
+from fleetslam.cloud.robot_session import RobotSession
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
 from fleetslam.merging.global_map import build_global_map, merge_summary
 from fleetslam.system import SUMMARY_VERSION
-from fleetslam.transport import keys
+from fleetslam.transport import keys, protocol
+from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_listening, put
 
 log = logging.getLogger("fleetslam.cloud")
 
-# Control messages are small JSON; anything bigger is not one.
-MAX_CONTROL_BYTES = 1 << 20
+# A merge request still running, and how many answered merge requests are remembered (so
+# a resent request gets the reply again instead of a second merge).
+MERGE_RUNNING = b""
+MERGES_REMEMBERED = 16
 
 
 class CloudServer:
@@ -39,6 +42,7 @@ class CloudServer:
         self.endpoint = endpoint or config.transport.endpoint
         self.store = CloudStore(self.out_dir)
         self.sessions: dict[str, RobotSession] = {}
+        self._merges: dict[str, bytes] = {}
         self.merger = MergerService(config)
         self._lock = threading.Lock()
         self._zenoh: zenoh.Session | None = None
@@ -88,8 +92,8 @@ class CloudServer:
                 return self._on_robot_control(robot_id, data, arrival)
             session = self._session(robot_id)
             if session is None:
-                self.publish(keys.reply(robot_id), json.dumps(
-                    {"type": "error", "reason": "no session: send a hello first"}).encode())
+                self._error(keys.reply(robot_id), protocol.Code.NO_SESSION,
+                            "no session: send a hello first")
                 log.warning("robot %s: %s rejected: no session (no hello yet)", robot_id, kind)
                 return
             if kind == "frame":
@@ -127,51 +131,34 @@ class CloudServer:
                          robot_id, state.last_index)
             return session
 
-    @staticmethod
-    def _parse_json(data: bytes) -> dict[str, Any]:
-        if len(data) > MAX_CONTROL_BYTES:
-            raise ValueError(f"control message of {len(data)} bytes (limit {MAX_CONTROL_BYTES})")
-        try:
-            message = json.loads(data)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"control message is not JSON: {exc}") from exc
-        except RecursionError:
-            raise ValueError("control message is nested too deeply") from None
-        if not isinstance(message, dict) or "type" not in message:
-            raise ValueError("control message must be a JSON object with a 'type'")
-        return message
+    def _error(self, key: str, code: protocol.Code, reason: str, **extra: Any) -> None:
+        self.publish(key, protocol.encode(protocol.error(code, reason, **extra)))
 
     def _on_robot_control(self, robot_id: str, data: bytes, arrival: float) -> None:
+        reply = keys.reply(robot_id)
         try:
-            message = self._parse_json(data)
+            message = protocol.parse_control(data)
             hello = Hello.parse(message) if message["type"] == "hello" else None
         except ValueError as exc:
             log.warning("robot %s: control message rejected: %s", robot_id, exc)
-            self.publish(keys.reply(robot_id), json.dumps(
-                {"type": "error", "reason": str(exc)}).encode())
-            return
+            return self._error(reply, protocol.Code.BAD_MESSAGE, str(exc))
         session = self._session(robot_id)
         if hello is not None and session is not None \
                 and session.state.hello.offload_at != hello.offload_at:
-            reason = (f"session offloads at {session.state.hello.offload_at}; a robot cannot "
-                      f"change its offloading point within a session")
-            self.publish(keys.reply(robot_id), json.dumps(
-                {"type": "error", "reason": reason}).encode())
-            return
+            return self._error(reply, protocol.Code.REFUSED,
+                               f"session offloads at {session.state.hello.offload_at}; a robot "
+                               f"cannot change its offloading point within a session")
         if session is None:
             if hello is None:
-                self.publish(keys.reply(robot_id), json.dumps(
-                    {"type": "error", "reason": "no session: send a hello first"}).encode())
-                return
+                return self._error(reply, protocol.Code.NO_SESSION,
+                                   "no session: send a hello first")
             with self._lock:
                 if robot_id not in self.sessions and \
                         len(self.sessions) >= self.config.transport.max_sessions:
                     reason = (f"the cloud serves at most {self.config.transport.max_sessions} "
                               f"robots at once (transport.max_sessions)")
                     log.warning("robot %s: refused: %s", robot_id, reason)
-                    self.publish(keys.reply(robot_id), json.dumps(
-                        {"type": "error", "reason": reason}).encode())
-                    return
+                    return self._error(reply, protocol.Code.REFUSED, reason)
                 session = self.sessions.get(robot_id) or RobotSession.open(
                     robot_id, hello, self.config, self.store, self.publish, self.merger.submit)
                 self.sessions[robot_id] = session
@@ -182,38 +169,58 @@ class CloudServer:
             return
         if message["type"] == "end":
             # Heard at once; the answer (need / ended) comes when its frames are done.
-            self.publish(keys.reply(robot_id), json.dumps({"type": "ending"}).encode())
+            self.publish(reply, protocol.encode(protocol.ending()))
         session.submit_control(message, arrival)
 
     def _on_cloud_control(self, data: bytes) -> None:
         try:
-            message = self._parse_json(data)
+            message = protocol.parse_control(data)
         except ValueError as exc:
             log.warning("cloud control message rejected: %s", exc)
-            return
+            return self._error(keys.CLOUD_REPLY, protocol.Code.BAD_MESSAGE, str(exc))
+        rid = protocol.request_id(message)
         if message["type"] == "merge":
-            # Merging takes seconds: not on Zenoh's callback thread.
-            threading.Thread(target=self._merge_and_reply, daemon=True).start()
+            self._request_merge(rid)
         elif message["type"] == "status":
-            self.publish(keys.CLOUD_REPLY, json.dumps(
-                {"type": "status", "robots": {r: {"frames": s.state.counts["frames"],
-                                                  "finished": s.finished is not None}
-                                              for r, s in self.sessions.items()},
-                 "merge": self.merger.status()}).encode())
+            robots = {r: {"frames": s.state.counts["frames"], "finished": s.finished is not None}
+                      for r, s in list(self.sessions.items())}
+            self.publish(keys.CLOUD_REPLY, protocol.encode(
+                protocol.status(rid, robots, self.merger.status())))
         else:
             log.warning("cloud control message of unknown type %r", message["type"])
+            self._error(keys.CLOUD_REPLY, protocol.Code.UNKNOWN_TYPE,
+                        f"unknown request {message['type']!r}", id=rid)
 
     # -- merge and outputs ----------------------------------------------------------------
 
-    def _merge_and_reply(self) -> None:
+    def _request_merge(self, rid: str | None) -> None:
+        """Start a merge, unless this request id already did: a client resends its request
+        until the reply arrives, and a resent merge must not merge again."""
+        with self._lock:
+            known = self._merges.get(rid) if rid is not None else None
+            if known is None and rid is not None:
+                self._merges[rid] = MERGE_RUNNING
+                while len(self._merges) > MERGES_REMEMBERED:
+                    self._merges.pop(next(iter(self._merges)))
+        if known == MERGE_RUNNING:
+            return  # its reply comes when it is done
+        if known is not None:
+            self.publish(keys.CLOUD_REPLY, known)  # the reply was lost: send it again
+            return
+        # Merging takes seconds: not on Zenoh's callback thread.
+        threading.Thread(target=self._merge_and_reply, args=(rid,), daemon=True).start()
+
+    def _merge_and_reply(self, rid: str | None) -> None:
         try:
-            summary = self.merge()
-            self.publish(keys.CLOUD_REPLY, json.dumps({"type": "merged",
-                                                       "summary": summary}).encode())
+            reply = protocol.encode(protocol.merged(rid, self.merge()))
         except Exception as exc:
             log.exception("merge failed")
-            self.publish(keys.CLOUD_REPLY, json.dumps({"type": "error",
-                                                       "reason": str(exc)}).encode())
+            reply = protocol.encode(protocol.error(protocol.Code.FAILED, f"merge failed: {exc}",
+                                                   id=rid))
+        if rid is not None:
+            with self._lock:
+                self._merges[rid] = reply
+        self.publish(keys.CLOUD_REPLY, reply)
 
     def merge(self, timeout_s: float = 300.0) -> dict[str, Any]:
         """Write the global outputs of the finished robots (global trajectories, map, OctoMap)

@@ -22,15 +22,15 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.cloud.robot_session import PROTOCOL, ROBOT_TRACKS, SUPPORTED_POINTS
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.pipeline.split import StageTimer, TrackingPipeline, run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.planner.online import OnlinePlanner
 from fleetslam.progress import Progress
-from fleetslam.transport import keys
+from fleetslam.transport import keys, protocol
 from fleetslam.transport.link import EmulatedLink
+from fleetslam.transport.protocol import ROBOT_TRACKS, SUPPORTED_POINTS, Hello
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.frames import encode_frame_message
@@ -216,7 +216,7 @@ class Robot:
     # -- sending --------------------------------------------------------------------------
 
     def _send_control(self, message: dict[str, Any]) -> None:
-        data = json.dumps(message).encode()
+        data = protocol.encode(message)
         self.report.control_bytes += len(data)
         self.link.send(keys.control(self.robot_id), data)
 
@@ -234,10 +234,8 @@ class Robot:
         return None
 
     def _hello(self) -> dict[str, Any]:
-        message = {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
-                   "adaptive": self.planner is not None,
-                   "camera": self.sequence.camera.to_dict(), "source": self.source,
-                   "frames": len(self.sequence)}
+        message = Hello(self.offload_at, self.sequence.camera, self.source,
+                        self.planner is not None).message(len(self.sequence))
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
             self._send_control(message)
@@ -438,11 +436,10 @@ class Robot:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
         for its 'ended' (trajectory and map written)."""
         self._uploads.join()
-        message: dict[str, Any] = {"type": "end", "last_seq": self._last_seq}
-        if self.offload_at == ROBOT_TRACKS:
-            message["keyframe_poses"] = {
-                str(kf.frame_index): kf.T_world_camera.tolist()
-                for kf in self.pipeline.session.cloud.map.keyframes}
+        message = protocol.end(self._last_seq, {
+            str(kf.frame_index): kf.T_world_camera.tolist()
+            for kf in self.pipeline.session.cloud.map.keyframes}
+            if self.offload_at == ROBOT_TRACKS else None)
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
             if self._upload_error:

@@ -1,0 +1,161 @@
+"""The control protocol between robots, the cloud and command-line clients: every JSON
+control message, its builder and its parser, in one place (binary frame and keyframe
+messages are wire/).
+
+Robot <-> cloud, on ``fleet/<robot>/control`` and ``fleet/<robot>/reply``:
+    hello -> welcome | error;  end -> ending, then need (resend these keyframes) | ended;
+    each keyframe upload -> ack;  a rejected message -> error (with a code and a reason).
+Client <-> cloud, on ``fleet/cloud/control`` and ``fleet/cloud/reply``:
+    status -> status;  merge -> merged | error.  A client request carries an ``id`` that its
+    reply repeats; the client resends the same request until the reply comes (a lost request
+    costs one resend interval, never a hang), and the cloud answers a repeated merge id from
+    the merge already running or done instead of merging again.
+"""
+
+from __future__ import annotations
+
+import json
+import uuid
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any
+
+from fleetslam.camera import Camera
+
+PROTOCOL = 1
+# Offloading points a distributed run supports. At 4 and 5 the robot would match against a
+# tracking map that the cloud's later stages update: the map would have to live on both.
+CLOUD_TRACKS = (0, 1, 2, 3)
+ROBOT_TRACKS = 6
+SUPPORTED_POINTS = (*CLOUD_TRACKS, ROBOT_TRACKS)
+# Control messages are small JSON; anything bigger is not one.
+MAX_CONTROL_BYTES = 1 << 20
+
+
+class Code(str, Enum):
+    """Why the cloud said no (``error`` replies carry one)."""
+
+    BAD_MESSAGE = "bad_message"  # not a valid control message
+    NO_SESSION = "no_session"  # send a hello first
+    REFUSED = "refused"  # valid, but the cloud will not (limits, a changed point)
+    REJECTED = "rejected"  # a frame or keyframe message was dropped, with the reason
+    UNKNOWN_TYPE = "unknown_type"
+    FAILED = "failed"  # the cloud tried and failed (e.g. a merge)
+
+
+def encode(message: dict[str, Any]) -> bytes:
+    return json.dumps(message).encode()
+
+
+def parse_control(data: bytes) -> dict[str, Any]:
+    """A control message as a dict with a string ``type``; ValueError saying what is wrong."""
+    if len(data) > MAX_CONTROL_BYTES:
+        raise ValueError(f"control message of {len(data)} bytes (limit {MAX_CONTROL_BYTES})")
+    try:
+        message = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"control message is not JSON: {exc}") from exc
+    except RecursionError:
+        raise ValueError("control message is nested too deeply") from None
+    if not isinstance(message, dict) or not isinstance(message.get("type"), str):
+        raise ValueError("control message must be a JSON object with a string 'type'")
+    return message
+
+
+@dataclass
+class Hello:
+    """A robot opening (or resuming) its session."""
+
+    offload_at: int
+    camera: Camera
+    source: str
+    # The robot re-plans while it runs: its frames may come at any point the cloud tracks
+    # at (0-3), frame by frame (the session holds the map at all of them).
+    adaptive: bool = False
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> "Hello":
+        if message.get("protocol") != PROTOCOL:
+            raise ValueError(f"protocol {message.get('protocol')!r} not supported "
+                             f"(this cloud speaks {PROTOCOL})")
+        k = message.get("offload_at")
+        if isinstance(k, bool) or k not in SUPPORTED_POINTS:
+            raise ValueError(f"offloading point {k!r} not supported; use one of "
+                             f"{', '.join(map(str, SUPPORTED_POINTS))}")
+        camera = message.get("camera")
+        if not isinstance(camera, dict):
+            raise ValueError("hello camera must be an object")
+        camera = Camera.from_dict(camera, "hello camera")
+        adaptive = message.get("adaptive", False)
+        if not isinstance(adaptive, bool):
+            raise ValueError(f"adaptive must be true or false, got {adaptive!r}")
+        if adaptive and k not in CLOUD_TRACKS:
+            raise ValueError(f"an adaptive robot switches among points "
+                             f"{', '.join(map(str, CLOUD_TRACKS))}; it cannot start at {k}")
+        source = message.get("source", "")
+        if not isinstance(source, str):
+            raise ValueError("hello source must be a string")
+        return Hello(int(k), camera, source, adaptive)
+
+    def message(self, frames: int) -> dict[str, Any]:
+        return {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
+                "adaptive": self.adaptive, "camera": self.camera.to_dict(),
+                "source": self.source, "frames": frames}
+
+
+# -- robot <-> cloud ------------------------------------------------------------------------
+
+def welcome(resumed: bool, next_index: int, next_seq: int, keyframes_stored: int
+            ) -> dict[str, Any]:
+    return {"type": "welcome", "resumed": resumed, "next_index": next_index,
+            "next_seq": next_seq, "keyframes_stored": keyframes_stored}
+
+
+def end(last_seq: int, keyframe_poses: dict[str, list] | None = None) -> dict[str, Any]:
+    message: dict[str, Any] = {"type": "end", "last_seq": last_seq}
+    if keyframe_poses is not None:
+        message["keyframe_poses"] = keyframe_poses
+    return message
+
+
+def ending() -> dict[str, Any]:
+    return {"type": "ending"}
+
+
+def need(frames: list[int]) -> dict[str, Any]:
+    return {"type": "need", "frames": frames}
+
+
+def ended(summary: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "ended", "summary": summary}
+
+
+def ack(frame_index: int) -> dict[str, Any]:
+    return {"type": "ack", "frame_index": frame_index}
+
+
+def error(code: Code, reason: str, **extra: Any) -> dict[str, Any]:
+    return {"type": "error", "code": code.value, "reason": reason, **extra}
+
+
+# -- client <-> cloud -----------------------------------------------------------------------
+
+def request(kind: str, request_id: str | None = None) -> dict[str, Any]:
+    """A client's ``status`` or ``merge`` request, with a fresh id unless one is given."""
+    if kind not in ("status", "merge"):
+        raise ValueError(f"unknown request {kind!r}")
+    return {"type": kind, "id": request_id or uuid.uuid4().hex}
+
+
+def request_id(message: dict[str, Any]) -> str | None:
+    rid = message.get("id")
+    return rid if isinstance(rid, str) and 0 < len(rid) <= 64 else None
+
+
+def status(request_id: str | None, robots: dict[str, Any], merge: dict[str, Any]
+           ) -> dict[str, Any]:
+    return {"type": "status", "id": request_id, "robots": robots, "merge": merge}
+
+
+def merged(request_id: str | None, summary: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "merged", "id": request_id, "summary": summary}
