@@ -406,3 +406,39 @@ def test_a_resent_merge_request_merges_once_and_replies_carry_its_id(cloud):
             client.request({"type": "dance", "id": "x1"}, "danced", timeout=10.0)
     finally:
         client.close()
+
+
+def test_a_busy_session_still_waits_for_the_last_frame_after_the_end(messages, tmp_path):
+    """The race of a quiet run that lost its last pose: the end had waited behind a backlog
+    longer than the grace period, so the cloud gave up on a frame that was just arriving.
+    The grace now runs from when the session gets to the end."""
+    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.cloud.store import CloudStore
+    from fleetslam.transport.protocol import Hello
+
+    seq0, msgs0, _ = messages["r0"]
+    config = Config()
+    config.transport.end_grace_s = 0.5
+    replies: list[dict] = []
+    holder: list[RobotSession] = []
+
+    def publish(key: str, data: bytes) -> None:
+        if key == keys.reply("r0"):
+            replies.append({**json.loads(data), "frames": holder[0].state.counts["frames"]})
+
+    session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), config,
+                                CloudStore(tmp_path), publish)
+    holder.append(session)
+    for data in msgs0[:-1]:
+        session.submit_frame(data, time.monotonic())
+    # The end arrived long ago as far as its arrival time goes (a backlog held it up).
+    session.submit_control({"type": "end", "last_seq": N_FRAMES - 1}, time.monotonic() - 10)
+    session.drain()
+    time.sleep(0.1)
+    session.submit_frame(msgs0[-1], time.monotonic())
+    deadline = time.monotonic() + 30
+    while not any(r["type"] in ("need", "ended") for r in replies):
+        assert time.monotonic() < deadline, replies
+        time.sleep(0.05)
+    session.close()
+    assert replies[-1]["frames"] == N_FRAMES

@@ -373,8 +373,12 @@ class RobotSession:
             self.welcome(resumed=True)
         elif kind == "end":
             last_seq = message.get("last_seq")
+            # The grace period runs from when this session first got to the end (behind any
+            # backlog of frames), not from its arrival: a busy session must not give up on
+            # a last frame that arrived while it was still working through earlier ones.
+            first_handled = message.setdefault("_handled_at", time.monotonic())
             if (isinstance(last_seq, int) and last_seq > self.state.last_seq
-                    and time.monotonic() - arrival < self.config.transport.end_grace_s):
+                    and time.monotonic() - first_handled < self.config.transport.end_grace_s):
                 # Frames travel on another key than control messages and may arrive after
                 # the end that follows them: look again once those in flight are in.
                 threading.Timer(0.05, self.submit_control, (message, arrival)).start()
