@@ -3,7 +3,8 @@
 Layout under the cloud's output folder:
 
     <robot>/keyframes/<frame index>.fskf   KEYFRAME messages as received (checksummed)
-    <robot>/session.pkl                    checkpoint of the robot's cloud session
+    <robot>/session.ckpt                   checkpoint of the robot's cloud session (data:
+                                           JSON + arrays, versioned; see checkpoint.py)
 
 Every write is atomic and durable (temporary file, fsync, rename, fsync of the folder)
 before anyone is told it happened: the cloud acknowledges a keyframe only after this.
@@ -12,12 +13,16 @@ before anyone is told it happened: the cloud acknowledges a keyframe only after 
 from __future__ import annotations
 
 import os
-import pickle
 import re
 from pathlib import Path
 from typing import Any
 
+from fleetslam.cloud import checkpoint
+
 _KEYFRAME_FILE = re.compile(r"^(\d+)\.fskf$")
+CHECKPOINT = "session.ckpt"
+# What earlier versions wrote: a pickle, which can run code when loaded, so it never is.
+OLD_PICKLE_CHECKPOINT = "session.pkl"
 
 
 def write_durably(path: Path, data: bytes) -> None:
@@ -37,7 +42,7 @@ def write_durably(path: Path, data: bytes) -> None:
 
 def snapshot(state: Any) -> bytes:
     """The state as it is now, as bytes a later load_checkpoint turns back into it."""
-    return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+    return checkpoint.dumps(state)
 
 
 class CloudStore:
@@ -71,16 +76,20 @@ class CloudStore:
         self.write_checkpoint(robot_id, snapshot(state))
 
     def write_checkpoint(self, robot_id: str, blob: bytes) -> None:
-        write_durably(self.robot_dir(robot_id) / "session.pkl", blob)
+        write_durably(self.robot_dir(robot_id) / CHECKPOINT, blob)
 
     def load_checkpoint(self, robot_id: str) -> Any | None:
-        path = self.robot_dir(robot_id) / "session.pkl"
+        """The robot's last checkpoint, None if it has none; ValueError naming the file if
+        it cannot be restored (damaged, another format version, an old pickle)."""
+        path = self.robot_dir(robot_id) / CHECKPOINT
         if not path.exists():
+            old = self.robot_dir(robot_id) / OLD_PICKLE_CHECKPOINT
+            if old.exists():
+                raise ValueError(f"{old}: a checkpoint pickled by an older fleetslam; it is "
+                                 f"never loaded (a pickle can run code). Move it away to "
+                                 f"start robot {robot_id}'s session afresh")
             return None
-        try:
-            return pickle.loads(path.read_bytes())
-        except Exception as exc:  # a checkpoint from another version, or damaged
-            raise ValueError(f"{path}: cannot load the session checkpoint: {exc}") from exc
+        return checkpoint.loads(path.read_bytes(), str(path))
 
     def robots_with_checkpoints(self) -> list[str]:
-        return sorted(p.parent.name for p in self.root.glob("*/session.pkl"))
+        return sorted(p.parent.name for p in self.root.glob(f"*/{CHECKPOINT}"))

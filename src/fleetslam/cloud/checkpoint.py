@@ -1,0 +1,128 @@
+"""Session checkpoints as data, never code: one versioned ``.npz`` file holding the object
+tree as JSON and every numpy array as an array (loaded with ``allow_pickle=False``).
+
+Only the classes a session is made of (listed in ``_CLASSES``) are rebuilt, and they are
+rebuilt by setting their saved attributes, never by running code named in the file; anything
+else in a file is refused. So whoever can write the cloud's output folder cannot make the
+cloud run code, and a checkpoint of another format version is refused with a message that
+names the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import zipfile
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+FORMAT = "fleetslam-session-checkpoint"
+VERSION = 1
+_TREE = "__tree__"
+
+
+def _classes() -> dict[str, type]:
+    # Imported here: the classes live in modules that import this package's neighbours.
+    from fleetslam import config
+    from fleetslam.camera import Camera
+    from fleetslam.cloud.robot_session import SessionState, TrajectoryRow
+    from fleetslam.pipeline.local_map import Keyframe, LocalMap
+    from fleetslam.pipeline.loop_closer import LoopClosingState, LoopDetection
+    from fleetslam.pipeline.place_recognition import KeyframeDatabase
+    from fleetslam.pipeline.pose_graph import PoseEdge
+    from fleetslam.pipeline.session import CloudSession, EdgeSession
+    from fleetslam.pipeline.states import FeatureFrame
+    from fleetslam.transport.protocol import Hello
+
+    configs = [c for c in vars(config).values()
+               if isinstance(c, type) and dataclasses.is_dataclass(c)
+               and c.__module__ == config.__name__]
+    return {c.__name__: c for c in (
+        SessionState, TrajectoryRow, Hello, Camera, CloudSession, EdgeSession, LocalMap,
+        Keyframe, FeatureFrame, KeyframeDatabase, LoopClosingState, LoopDetection, PoseEdge,
+        *configs)}
+
+
+def dumps(state: Any) -> bytes:
+    classes = _classes()
+    arrays: dict[str, np.ndarray] = {}
+
+    def enc(v: Any) -> Any:
+        if v is None or isinstance(v, (bool, str, int, float)):
+            return v
+        if isinstance(v, bytes):
+            return {"__bytes__": v.hex()}
+        if isinstance(v, np.generic):
+            return enc(v.item())
+        if isinstance(v, np.ndarray):
+            if v.dtype.hasobject:
+                raise TypeError("an object array cannot be checkpointed as data")
+            key = f"a{len(arrays)}"
+            arrays[key] = v
+            return {"__nd__": key}
+        if isinstance(v, Counter):
+            return {"__counter__": [[enc(k), enc(x)] for k, x in v.items()]}
+        if isinstance(v, dict):
+            return {"__dict__": [[enc(k), enc(x)] for k, x in v.items()]}
+        if isinstance(v, tuple):
+            return {"__tuple__": [enc(x) for x in v]}
+        if isinstance(v, list):
+            return [enc(x) for x in v]
+        name = type(v).__name__
+        if classes.get(name) is type(v):
+            # A class may leave out what cannot be saved (EdgeSession's ORB extractor).
+            attributes = v.__getstate__() or {}
+            return {"__obj__": name, "attributes": {k: enc(x) for k, x in attributes.items()}}
+        raise TypeError(f"a {type(v).__module__}.{name} cannot be checkpointed")
+
+    tree = json.dumps({"format": FORMAT, "version": VERSION, "state": enc(state)})
+    buffer = io.BytesIO()
+    np.savez(buffer, **{_TREE: np.frombuffer(tree.encode(), np.uint8)}, **arrays)
+    return buffer.getvalue()
+
+
+def loads(data: bytes, where: str) -> Any:
+    """The state :func:`dumps` saved; ValueError naming ``where`` for anything else."""
+    classes = _classes()
+    try:
+        files = np.load(io.BytesIO(data), allow_pickle=False)
+        tree = json.loads(bytes(files[_TREE]).decode())
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
+        raise ValueError(f"{where}: not a fleetslam session checkpoint ({exc})") from None
+    if not isinstance(tree, dict) or tree.get("format") != FORMAT:
+        raise ValueError(f"{where}: not a fleetslam session checkpoint")
+    if tree.get("version") != VERSION:
+        raise ValueError(f"{where}: checkpoint format version {tree.get('version')!r}; this "
+                         f"fleetslam reads version {VERSION}: not restored")
+
+    def dec(v: Any) -> Any:
+        if isinstance(v, list):
+            return [dec(x) for x in v]
+        if not isinstance(v, dict):
+            return v
+        if "__nd__" in v:
+            return np.array(files[v["__nd__"]])
+        if "__bytes__" in v:
+            return bytes.fromhex(v["__bytes__"])
+        if "__counter__" in v:
+            return Counter({dec(k): dec(x) for k, x in v["__counter__"]})
+        if "__dict__" in v:
+            return {dec(k): dec(x) for k, x in v["__dict__"]}
+        if "__tuple__" in v:
+            return tuple(dec(x) for x in v["__tuple__"])
+        if "__obj__" in v:
+            cls = classes.get(v["__obj__"])
+            if cls is None:
+                raise ValueError(f"{where}: a {v['__obj__']!r} is not part of a session")
+            obj = cls.__new__(cls)
+            obj.__dict__.update({k: dec(x) for k, x in v["attributes"].items()})
+            return obj
+        raise ValueError(f"{where}: unexpected object in the checkpoint")
+
+    try:
+        return dec(tree.get("state"))
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{where}: damaged checkpoint ({exc})") from None

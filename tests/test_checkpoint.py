@@ -1,0 +1,87 @@
+"""Session checkpoints are data: a restored session tracks on exactly as the original, and
+a file that is not a checkpoint of this version (a pickle, another version, a class that is
+no part of a session, garbage) is refused with a message naming the file."""
+
+from __future__ import annotations
+
+import io
+import json
+import pickle
+
+import numpy as np
+import pytest
+
+from conftest import small_scene
+from fleetslam.camera import Camera
+from fleetslam.cloud import checkpoint
+from fleetslam.cloud.robot_session import SessionState, TrajectoryRow
+from fleetslam.cloud.store import CloudStore
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.pipeline.split import TrackingPipeline
+from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.transport.protocol import Hello
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    seq = RgbdSequence(small_scene(tmp_path_factory, 16)[0])
+    return seq.camera, [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
+
+
+def test_a_restored_session_tracks_on_exactly_as_the_original(frames, tmp_path):
+    camera, captured = frames
+    original = TrackingPipeline(Config(), camera)
+    rows = []
+    for frame in captured[:10]:
+        out = original.track(frame)
+        rows.append(TrajectoryRow(out.index, out.timestamp, out.T_world_camera, out.tracked,
+                                  out.is_keyframe, out.reference_keyframe,
+                                  out.T_reference_camera))
+    state = SessionState("r0", Hello(3, camera, "test"), original.session.cloud,
+                         original.session.edge, 9, 9, rows)
+    store = CloudStore(tmp_path)
+    store.save_checkpoint("r0", state)
+    assert store.robots_with_checkpoints() == ["r0"]
+    restored = store.load_checkpoint("r0")
+    assert restored.hello == state.hello and len(restored.rows) == 10
+    again = TrackingPipeline(Config(), camera)
+    again.session.cloud, again.session.edge = restored.tracking, restored.front_end
+    for frame in captured[10:]:
+        a, b = original.track(frame), again.track(frame)
+        assert a.T_world_camera.tobytes() == b.T_world_camera.tobytes()
+        assert a.is_keyframe == b.is_keyframe
+
+
+def _tree(blob: bytes) -> dict:
+    return json.loads(bytes(np.load(io.BytesIO(blob))["__tree__"]).decode())
+
+
+def _with_tree(tree: dict) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, __tree__=np.frombuffer(json.dumps(tree).encode(), np.uint8))
+    return buffer.getvalue()
+
+
+def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp_path):
+    hello = Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "s")
+    tree = _tree(checkpoint.dumps(hello))
+    assert checkpoint.loads(_with_tree(tree), "f") == hello
+    cases = {
+        "checkpoint format version 2": {**tree, "version": 2},
+        "'Popen' is not part of a session": {**tree, "state": {"__obj__": "Popen",
+                                                               "attributes": {}}},
+        "not a fleetslam session checkpoint": {"format": "other"},
+    }
+    for message, bad in cases.items():
+        with pytest.raises(ValueError, match=f"where.ckpt: .*{message}"):
+            checkpoint.loads(_with_tree(bad), "where.ckpt")
+    with pytest.raises(ValueError, match="where.ckpt: not a fleetslam session checkpoint"):
+        checkpoint.loads(b"garbage", "where.ckpt")
+    with pytest.raises(TypeError, match="cannot be checkpointed"):
+        checkpoint.dumps(object())
+    # A pickle left by an older version is never loaded.
+    (tmp_path / "r0").mkdir()
+    (tmp_path / "r0" / "session.pkl").write_bytes(pickle.dumps({"x": 1}))
+    with pytest.raises(ValueError, match="session.pkl: a checkpoint pickled by an older"):
+        CloudStore(tmp_path).load_checkpoint("r0")
