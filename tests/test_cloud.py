@@ -442,3 +442,38 @@ def test_a_busy_session_still_waits_for_the_last_frame_after_the_end(messages, t
         time.sleep(0.05)
     session.close()
     assert replies[-1]["frames"] == N_FRAMES
+
+
+def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(messages,
+                                                                               tmp_path):
+    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.cloud.store import CloudStore
+    from fleetslam.transport.protocol import Hello
+    from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
+
+    seq0, msgs0, _ = messages["r0"]
+    replies: list[dict] = []
+    session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), Config(),
+                                CloudStore(tmp_path), lambda k, d: replies.append(json.loads(d))
+                                if k == keys.reply("r0") else None)
+    for data in msgs0:
+        session.submit_frame(data, time.monotonic())
+    session.drain()
+    rows = session.state.rows
+    keyframe = next(r.index for r in rows if r.is_keyframe)
+    other = next(r.index for r in rows if not r.is_keyframe)
+    frame = seq0[other]
+    stride = Config().map.pixel_stride
+    forged = KeyframeUpload.from_frame(other, frame.timestamp, frame.rgb, frame.depth_raw, stride)
+    session.submit_keyframe(encode_keyframe("r0", 0, forged, Config().wire), time.monotonic())
+    time.sleep(0.3)
+    assert "is not a keyframe of this session" in replies[-1]["reason"]
+    time.sleep(1.0)  # one rejection reason per second
+    small = KeyframeUpload(keyframe, frame.timestamp, stride, frame.rgb[:10, :10],
+                           frame.depth_raw[:10, :10])
+    session.submit_keyframe(encode_keyframe("r0", 1, small, Config().wire), time.monotonic())
+    time.sleep(0.3)
+    session.close()
+    assert "the camera decimated by 2 gives" in replies[-1]["reason"]
+    assert session.state.counts["rejected keyframe"] == 2
+    assert not CloudStore(tmp_path).keyframe_indices("r0")

@@ -366,6 +366,8 @@ class TransportConfig:
     # oldest is dropped beyond it: frames are best effort, keyframes are not).
     max_sessions: int = 64
     max_queued_frames: int = 256
+    # Keyframe uploads the cloud stores per robot (about 0.2 MB each at the map's stride).
+    max_keyframes: int = 20_000
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
     end_grace_s: float = 2.0

@@ -323,6 +323,11 @@ class RobotSession:
                                                                    feedback))
         st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
 
+    def _keyframe_frames(self) -> set[int]:
+        """Frame indices this session took as keyframes (a robot at point 6 says which)."""
+        rows = list(self.state.rows)
+        return {r.index for r in rows if r.is_keyframe}
+
     def _stages_from(self, k: int) -> list:
         """The cloud's stages for a frame sent at point k (an adaptive robot switches)."""
         if k == self.state.hello.offload_at:
@@ -348,8 +353,22 @@ class RobotSession:
         if upload.stride not in (1, self.config.map.pixel_stride):
             return self._reject("keyframe", f"decimated by {upload.stride}, the map samples "
                                             f"every {self.config.map.pixel_stride} pixels")
+        camera = self.state.hello.camera
+        expected = (-(-camera.height // upload.stride), -(-camera.width // upload.stride))
+        if upload.rgb.shape[:2] != expected or upload.depth_raw.shape != expected:
+            return self._reject("keyframe", f"frame {upload.frame_index}: images of "
+                                            f"{upload.rgb.shape[:2]} / {upload.depth_raw.shape}, "
+                                            f"the camera decimated by {upload.stride} gives "
+                                            f"{expected}")
+        if upload.frame_index not in self._keyframe_frames():
+            return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
+                                            f"this session")
         if self.store.has_keyframe(self.robot_id, upload.frame_index):
             self.state.counts["duplicate keyframe uploads"] += 1
+        elif self.state.counts["keyframes stored"] >= self.config.transport.max_keyframes:
+            return self._reject("keyframe", f"the session stores at most "
+                                            f"{self.config.transport.max_keyframes} keyframes "
+                                            f"(transport.max_keyframes)")
         else:
             self.store.put_keyframe(self.robot_id, upload.frame_index, data)
             self.state.counts["keyframes stored"] += 1
