@@ -477,3 +477,29 @@ def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(m
     assert "the camera decimated by 2 gives" in replies[-1]["reason"]
     assert session.state.counts["rejected keyframe"] == 2
     assert not CloudStore(tmp_path).keyframe_indices("r0")
+
+
+def test_the_cloud_starts_from_a_labs_zenoh_config_file(tmp_path):
+    """A lab's own Zenoh settings (here: the cloud as a Zenoh router) come from a config
+    file; robots and clients reach it as before. A file Zenoh cannot read is named."""
+    from fleetslam.launch import CloudClient
+    from fleetslam.transport.zenoh_session import open_listening
+
+    router = tmp_path / "cloud.json5"
+    router.write_text('{ mode: "router", scouting: { multicast: { enabled: false } } }')
+    config = Config()
+    config.transport.zenoh_config = str(router)
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    try:
+        client = CloudClient(endpoint, reach_deadline_s=10.0)
+        try:
+            assert client.status(timeout=10.0)["type"] == "status"
+        finally:
+            client.close()
+    finally:
+        server.close()
+    broken = tmp_path / "broken.json5"
+    broken.write_text("{ mode: ")
+    with pytest.raises(ValueError, match="broken.json5: not a Zenoh config file"):
+        open_listening(free_endpoint(), str(broken))

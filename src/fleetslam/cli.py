@@ -76,7 +76,8 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
         summary = run_fleet(robots, config, out, show_progress=not args.quiet)
     else:
         summary = run_demo([str(f) for f in folders], out, args.offload_at, args.config,
-                           link_args=_link_args(args), show_progress=not args.quiet)
+                           link_args=_link_args(args), show_progress=not args.quiet,
+                           zenoh_config=config.transport.zenoh_config or None)
     _finish(summary, out)
     return 0
 
@@ -186,7 +187,8 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
 def cmd_merge(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.launch import CloudClient
 
-    client = CloudClient(args.connect)
+    client = CloudClient(args.connect, config.transport.reach_deadline_s,
+                         config.transport.zenoh_config or None)
     try:
         summary = client.merge()
     finally:
@@ -265,6 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
         "FS-HICP map merging.")
     parser.add_argument("--config", help="TOML file overriding the defaults of config.py")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    parser.add_argument("--zenoh-config", metavar="FILE",
+                        help="a Zenoh config file (JSON5) to start from: TLS, authentication, "
+                        "access control, routers (also [transport] zenoh_config)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="run >= 2 robots on the built-in synthetic scene")
@@ -362,6 +367,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         config = load_config(args.config)
+        if args.zenoh_config:
+            if not Path(args.zenoh_config).is_file():
+                raise ValueError(f"{args.zenoh_config}: no such Zenoh config file")
+            config.transport.zenoh_config = args.zenoh_config
         return args.func(args, config)
     except (ValueError, FileExistsError, RuntimeError, TimeoutError) as exc:
         print(f"fleetslam: error: {exc}", file=sys.stderr)

@@ -354,6 +354,9 @@ class TransportConfig:
     """Zenoh endpoints and the reliability of keyframe uploads and the robot's handshake."""
 
     endpoint: str = "tcp/127.0.0.1:7447"
+    # A Zenoh config file (JSON5) every fleetslam process starts from: a lab's TLS,
+    # authentication, access control and routers. Empty: peer mode, no multicast.
+    zenoh_config: str = ""
     # Wait this long for a keyframe upload's acknowledgement before sending it again ...
     ack_timeout_s: float = 2.0
     # ... and give up (an error, never a silent loss) after this many attempts.

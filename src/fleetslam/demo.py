@@ -31,22 +31,23 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
              link_args: list[str] | None = None, show_progress: bool = True,
-             timeout_s: float = 1800.0) -> dict[str, Any]:
+             timeout_s: float = 1800.0, zenoh_config: str | None = None) -> dict[str, Any]:
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=False)
     endpoint = free_endpoint()
     logs = out / "logs"
-    cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path)
+    cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path,
+                        zenoh_config=zenoh_config)
     robots: dict[str, Any] = {}
     client = None
     try:
-        client = CloudClient(endpoint)
+        client = CloudClient(endpoint, zenoh_config=zenoh_config)
         client.status(timeout=60.0)  # the cloud is up and answering
         names = [f"r{i}" for i in range(len(sources))]
         for name, source in zip(names, sources):
             robots[name] = start_robot(endpoint, name, source, offload_at, logs / f"{name}.log",
                                        out / name / "robot_report.json", config_path,
-                                       link_args)
+                                       link_args, zenoh_config)
         sequences = {name: open_robot(source) for name, source in zip(names, sources)}
         total = sum(len(s) for s in sequences.values())
         progress = Progress(f"cloud tracking {len(names)} robots ({endpoint})", total,

@@ -26,27 +26,30 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
-def _python(config_path: str | None) -> list[str]:
+def _python(config_path: str | None, zenoh_config: str | None = None) -> list[str]:
     cmd = [sys.executable, "-m", "fleetslam.cli"]
-    return cmd + (["--config", str(config_path)] if config_path else [])
+    cmd += ["--config", str(config_path)] if config_path else []
+    return cmd + (["--zenoh-config", str(zenoh_config)] if zenoh_config else [])
 
 
 def start_cloud(endpoint: str, out_dir: Path, log_path: Path, config_path: str | None = None,
-                extra: list[str] | None = None) -> subprocess.Popen:
+                extra: list[str] | None = None, zenoh_config: str | None = None
+                ) -> subprocess.Popen:
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    cmd = _python(config_path) + ["cloud", "--listen", endpoint, "--out", str(out_dir),
-                                  *(extra or [])]
+    cmd = _python(config_path, zenoh_config) + ["cloud", "--listen", endpoint, "--out",
+                                                str(out_dir), *(extra or [])]
     return subprocess.Popen(cmd, stdout=open(log_path, "ab"), stderr=subprocess.STDOUT,
                             env=_env())
 
 
 def start_robot(endpoint: str, robot_id: str, source: str, offload_at: int | str,
                 log_path: Path, report_path: Path | None = None,
-                config_path: str | None = None, extra: list[str] | None = None
-                ) -> subprocess.Popen:
+                config_path: str | None = None, extra: list[str] | None = None,
+                zenoh_config: str | None = None) -> subprocess.Popen:
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    cmd = _python(config_path) + ["--quiet", "robot", "--connect", endpoint, "--id", robot_id,
-                                  "--source", source, "--offload-at", str(offload_at)]
+    cmd = _python(config_path, zenoh_config) + [
+        "--quiet", "robot", "--connect", endpoint, "--id", robot_id, "--source", source,
+        "--offload-at", str(offload_at)]
     if report_path is not None:
         cmd += ["--report", str(report_path)]
     return subprocess.Popen(cmd + (extra or []), stdout=open(log_path, "ab"),
@@ -74,9 +77,10 @@ def stop(process: subprocess.Popen, timeout: float = 20.0) -> int:
 class CloudClient:
     """Ask a running cloud something over its control key (status, merge)."""
 
-    def __init__(self, endpoint: str, reach_deadline_s: float = 600.0) -> None:
+    def __init__(self, endpoint: str, reach_deadline_s: float = 600.0,
+                 zenoh_config: str | None = None) -> None:
         self.endpoint = endpoint
-        self._session = open_connecting(endpoint, reach_deadline_s)
+        self._session = open_connecting(endpoint, reach_deadline_s, zenoh_config)
         self._replies: queue.Queue = queue.Queue()
         self._sub = self._session.declare_subscriber(
             keys.CLOUD_REPLY, lambda s: self._replies.put(s.payload.to_bytes()))

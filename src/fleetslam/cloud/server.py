@@ -53,7 +53,7 @@ class CloudServer:
     # -- lifecycle ----------------------------------------------------------------------
 
     def start(self) -> "CloudServer":
-        self._zenoh = open_listening(self.endpoint)
+        self._zenoh = open_listening(self.endpoint, self.config.transport.zenoh_config or None)
         z = self._zenoh
         self._subscribers = [
             z.declare_subscriber(keys.ALL_FRAMES, lambda s: self._route(s, "frame")),

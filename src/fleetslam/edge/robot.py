@@ -294,7 +294,8 @@ class Robot:
     # -- the run --------------------------------------------------------------------------
 
     def run(self) -> RobotReport:
-        zs = open_connecting(self.endpoint, self.config.transport.reach_deadline_s)
+        zs = open_connecting(self.endpoint, self.config.transport.reach_deadline_s,
+                             self.config.transport.zenoh_config or None)
         self.link = EmulatedLink(self.config.link, lambda key, data: put(zs, key, data))
         subs = [zs.declare_subscriber(keys.feedback(self.robot_id), self._on_feedback),
                 zs.declare_subscriber(keys.reply(self.robot_id), self._on_reply)]

@@ -15,7 +15,14 @@ log = logging.getLogger("fleetslam.transport")
 _RETRY = "{period_init_ms: 200, period_max_ms: 1000, period_increase_factor: 2}"
 
 
-def _base_config() -> zenoh.Config:
+def _base_config(path: str | None = None) -> zenoh.Config:
+    """Zenoh's settings: a lab's own Zenoh config file (TLS, authentication, access control,
+    routers) when given, else fleetslam's defaults. The endpoint is fleetslam's to set."""
+    if path:
+        try:
+            return zenoh.Config.from_file(str(path))
+        except zenoh.ZError as exc:
+            raise ValueError(f"{path}: not a Zenoh config file: {exc}") from None
     config = zenoh.Config()
     config.insert_json5("mode", '"peer"')
     # Robots find the cloud through the configured endpoint, never by multicast: a lab
@@ -24,8 +31,8 @@ def _base_config() -> zenoh.Config:
     return config
 
 
-def open_listening(endpoint: str) -> zenoh.Session:
-    config = _base_config()
+def open_listening(endpoint: str, zenoh_config: str | None = None) -> zenoh.Session:
+    config = _base_config(zenoh_config)
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
     try:
         return zenoh.open(config)
@@ -33,10 +40,11 @@ def open_listening(endpoint: str) -> zenoh.Session:
         raise RuntimeError(f"cannot listen on {endpoint}: {exc}") from exc
 
 
-def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.0) -> None:
+def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.0,
+                         zenoh_config: str | None = None) -> None:
     """Block until something answers at ``endpoint``, saying so on every failed attempt;
     RuntimeError after ``deadline_s`` seconds."""
-    probe = _base_config()
+    probe = _base_config(zenoh_config)
     probe.insert_json5("connect/endpoints", json.dumps([endpoint]))
     probe.insert_json5("connect/exit_on_failure", "true")
     probe.insert_json5("connect/timeout_ms", str(int(attempt_s * 1000)))
@@ -60,11 +68,12 @@ def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.
                         endpoint, attempt, waited, deadline_s)
 
 
-def open_connecting(endpoint: str, deadline_s: float = 600.0) -> zenoh.Session:
+def open_connecting(endpoint: str, deadline_s: float = 600.0,
+                    zenoh_config: str | None = None) -> zenoh.Session:
     """Connect to ``endpoint`` once something answers there (saying so while it waits, up to
     ``deadline_s``); the session then reconnects by itself if the cloud restarts."""
-    wait_until_reachable(endpoint, deadline_s)
-    config = _base_config()
+    wait_until_reachable(endpoint, deadline_s, zenoh_config=zenoh_config)
+    config = _base_config(zenoh_config)
     config.insert_json5("connect/endpoints", json.dumps([endpoint]))
     config.insert_json5("connect/exit_on_failure", "false")
     config.insert_json5("connect/timeout_ms", "-1")
