@@ -201,7 +201,7 @@ def test_bad_messages_are_rejected_and_no_session_is_harmed(cloud, messages, cap
         if i == 1:
             for data in bad.values():
                 r0.send(data)
-            client.put(keys.frame("r1"), msgs0[1])
+            put(client, keys.frame("r1"), msgs0[1])  # BLOCK: Zenoh must not drop it
         r0.send(msgs0[i])
         if i == 3:
             r0.send(msgs0[3])  # duplicate
@@ -503,3 +503,30 @@ def test_the_cloud_starts_from_a_labs_zenoh_config_file(tmp_path):
     broken.write_text("{ mode: ")
     with pytest.raises(ValueError, match="broken.json5: not a Zenoh config file"):
         open_listening(free_endpoint(), str(broken))
+
+
+def test_a_tls_cloud_refuses_clients_without_the_labs_ca(tmp_path, capsys):
+    """`fleetslam certs` makes a lab; its cloud speaks TLS: a client with the lab's CA is
+    answered, one without it or with another lab's CA never reaches it."""
+    from fleetslam.cli import main
+    from fleetslam.launch import CloudClient
+
+    assert main(["certs", "--out", str(tmp_path / "lab"), "--robot", "r1"]) == 0
+    assert "robot r1:" in capsys.readouterr().out
+    assert main(["certs", "--out", str(tmp_path / "lab")]) == 2  # one CA per lab
+    assert main(["certs", "--out", str(tmp_path / "other")]) == 0
+    config = Config()
+    config.transport.zenoh_config = str(tmp_path / "lab" / "cloud.json5")
+    endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    try:
+        client = CloudClient(endpoint, 10.0, str(tmp_path / "lab" / "robot-r1.json5"))
+        try:
+            assert client.status(timeout=10.0)["type"] == "status"
+        finally:
+            client.close()
+        for outsider in (None, str(tmp_path / "other" / "client.json5")):
+            with pytest.raises(RuntimeError, match="nothing answers"):
+                CloudClient(endpoint, 1.0, outsider)
+    finally:
+        server.close()

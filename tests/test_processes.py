@@ -165,6 +165,7 @@ def test_demo_runs_cloud_and_robots_as_processes(scene, tmp_path, capsys):
                  str(Path(scene[0]).parent), "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["deployment"]["processes"] == 3
+    assert summary["deployment"]["tls"] and summary["deployment"]["endpoint"].startswith("tls/")
     for robot in summary["robots"]:
         assert robot["frames"] == N_FRAMES and robot["lost_frames"] == 0
         assert robot["ate"]["rmse_m"] < 0.02

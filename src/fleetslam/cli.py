@@ -13,6 +13,7 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config, load_config
 from fleetslam.planner.model import OBJECTIVES
 from fleetslam.planner.plan import SWEEP_MBPS
+from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
 
 
@@ -77,7 +78,8 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     else:
         summary = run_demo([str(f) for f in folders], out, args.offload_at, args.config,
                            link_args=_link_args(args), show_progress=not args.quiet,
-                           zenoh_config=config.transport.zenoh_config or None)
+                           zenoh_config=config.transport.zenoh_config or None,
+                           secure=not args.insecure)
     _finish(summary, out)
     return 0
 
@@ -261,6 +263,21 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def cmd_certs(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.transport.certs import make_lab
+
+    for robot in args.robot:
+        keys_check(robot)
+    files = make_lab(Path(args.out), args.host or ["localhost", "127.0.0.1"], args.robot)
+    print(f"lab CA and certificates in {args.out}/ (keep ca.key off the robots)")
+    print(f"cloud:   fleetslam --zenoh-config {files['cloud']} cloud --listen tls/HOST:7447 ...")
+    print(f"clients: fleetslam --zenoh-config {files['client']} merge --connect tls/HOST:7447")
+    for robot in args.robot:
+        print(f"robot {robot}: fleetslam --zenoh-config {files[robot]} robot --id {robot} "
+              f"--connect tls/HOST:7447 ...")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
@@ -283,6 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
                       "cloud stage's name")
     demo.add_argument("--in-process", action="store_true",
                       help="track, map and merge in this one process (no network)")
+    demo.add_argument("--insecure", action="store_true",
+                      help="plain TCP instead of TLS between the demo's processes")
     _add_link_options(demo)
     demo.set_defaults(func=cmd_demo)
 
@@ -352,6 +371,15 @@ def build_parser() -> argparse.ArgumentParser:
     planner.add_argument("--out", help="folder for plan.json and the plots (default "
                          "runs/plan-<time>)")
     planner.set_defaults(func=cmd_plan)
+
+    certs = sub.add_parser("certs", help="make a lab's TLS material: a CA, the cloud's and "
+                           "each robot's certificate, and the Zenoh config files using them")
+    certs.add_argument("--out", required=True, help="folder to create (keep ca.key safe)")
+    certs.add_argument("--host", action="append",
+                       help="a name or address the robots reach the cloud by (repeat; "
+                       "default localhost and 127.0.0.1)")
+    certs.add_argument("--robot", action="append", default=[], help="a robot id (repeat)")
+    certs.set_defaults(func=cmd_certs)
 
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")

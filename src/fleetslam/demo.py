@@ -20,6 +20,7 @@ from fleetslam.launch import (
     stop,
 )
 from fleetslam.progress import Progress
+from fleetslam.transport.certs import make_lab
 
 
 def _tail(path: Path, lines: int = 15) -> str:
@@ -31,23 +32,31 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
              link_args: list[str] | None = None, show_progress: bool = True,
-             timeout_s: float = 1800.0, zenoh_config: str | None = None) -> dict[str, Any]:
+             timeout_s: float = 1800.0, zenoh_config: str | None = None,
+             secure: bool = True) -> dict[str, Any]:
+    """Cloud and robots as processes on loopback. ``secure``: over TLS, with a lab made for
+    this run in ``out/tls`` (unless a Zenoh config file says how to connect)."""
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=False)
     endpoint = free_endpoint()
+    names = [f"r{i}" for i in range(len(sources))]
+    configs = {name: zenoh_config for name in ["cloud", "client", *names]}
+    if secure and zenoh_config is None:
+        lab = make_lab(out / "tls", ["localhost", "127.0.0.1"], names)
+        endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
+        configs = {name: str(path) for name, path in lab.items()}
     logs = out / "logs"
     cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path,
-                        zenoh_config=zenoh_config)
+                        zenoh_config=configs["cloud"])
     robots: dict[str, Any] = {}
     client = None
     try:
-        client = CloudClient(endpoint, zenoh_config=zenoh_config)
+        client = CloudClient(endpoint, zenoh_config=configs["client"])
         client.status(timeout=60.0)  # the cloud is up and answering
-        names = [f"r{i}" for i in range(len(sources))]
         for name, source in zip(names, sources):
             robots[name] = start_robot(endpoint, name, source, offload_at, logs / f"{name}.log",
                                        out / name / "robot_report.json", config_path,
-                                       link_args, zenoh_config)
+                                       link_args, configs[name])
         sequences = {name: open_robot(source) for name, source in zip(names, sources)}
         total = sum(len(s) for s in sequences.values())
         progress = Progress(f"cloud tracking {len(names)} robots ({endpoint})", total,
@@ -94,7 +103,8 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
             robot["robot"].pop("cloud_summary", None)
     summary["merge_wall_time_s"] = summary["wall_time_s"]
     summary["wall_time_s"] = time.perf_counter() - started
-    summary["deployment"] = {"endpoint": endpoint, "processes": 1 + len(robots),
+    summary["deployment"] = {"endpoint": endpoint, "tls": endpoint.startswith("tls/"),
+                             "processes": 1 + len(robots),
                              "offload_at": offload_at, "link": link_args or []}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

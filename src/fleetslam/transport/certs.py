@@ -1,0 +1,117 @@
+"""A lab's TLS material in one command (``fleetslam certs``): a certificate authority, a
+certificate for the cloud (its host names), one per robot (its id as the common name, for
+mutual TLS), and the Zenoh config files that use them, for the cloud and for the robots.
+
+Keys are EC P-256, written owner-readable only. The CA's key stays in the output folder and
+is what signs more robots later; keep it off the robots.
+"""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import json
+import os
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+VALID_DAYS = 825
+
+
+def _key() -> ec.EllipticCurvePrivateKey:
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+    path.write_bytes(key.private_bytes(serialization.Encoding.PEM,
+                                       serialization.PrivateFormat.PKCS8,
+                                       serialization.NoEncryption()))
+    os.chmod(path, 0o600)
+
+
+def _write_cert(path: Path, cert: x509.Certificate) -> None:
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+
+
+def _name(common_name: str) -> x509.Name:
+    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "fleetslam lab"),
+                      x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+
+
+def _issue(subject: str, key: ec.EllipticCurvePrivateKey, ca_key: ec.EllipticCurvePrivateKey,
+           ca_name: x509.Name, hosts: list[str], usage: list[x509.ObjectIdentifier]
+           ) -> x509.Certificate:
+    now = datetime.datetime.now(datetime.timezone.utc)
+    builder = (x509.CertificateBuilder().subject_name(_name(subject)).issuer_name(ca_name)
+               .public_key(key.public_key()).serial_number(x509.random_serial_number())
+               .not_valid_before(now - datetime.timedelta(minutes=5))
+               .not_valid_after(now + datetime.timedelta(days=VALID_DAYS))
+               .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+               .add_extension(x509.ExtendedKeyUsage(usage), critical=False))
+    if hosts:
+        names: list[x509.GeneralName] = []
+        for host in hosts:
+            try:
+                names.append(x509.IPAddress(ipaddress.ip_address(host)))
+            except ValueError:
+                names.append(x509.DNSName(host))
+        builder = builder.add_extension(x509.SubjectAlternativeName(names), critical=False)
+    return builder.sign(ca_key, hashes.SHA256())
+
+
+def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
+    """Write ca.pem/ca.key, cloud.pem/cloud.key, <robot>.pem/<robot>.key, and the Zenoh
+    configs cloud.json5 (TLS listener) and robot-<id>.json5 / client.json5; returns them."""
+    if not hosts:
+        raise ValueError("the cloud's certificate needs at least one host name or address")
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / "ca.key").exists():
+        raise FileExistsError(f"{out / 'ca.key'} exists: a lab has one CA (use another folder)")
+    now = datetime.datetime.now(datetime.timezone.utc)
+    ca_key = _key()
+    ca_name = _name("fleetslam lab CA")
+    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name)
+          .public_key(ca_key.public_key()).serial_number(x509.random_serial_number())
+          .not_valid_before(now - datetime.timedelta(minutes=5))
+          .not_valid_after(now + datetime.timedelta(days=VALID_DAYS))
+          .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+          .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True,
+                                       crl_sign=True, content_commitment=False,
+                                       key_encipherment=False, data_encipherment=False,
+                                       key_agreement=False, encipher_only=False,
+                                       decipher_only=False), critical=True)
+          .sign(ca_key, hashes.SHA256()))
+    _write_key(out / "ca.key", ca_key)
+    _write_cert(out / "ca.pem", ca)
+    files = {"ca": out / "ca.pem"}
+    cloud_key = _key()
+    _write_key(out / "cloud.key", cloud_key)
+    _write_cert(out / "cloud.pem", _issue("fleetslam cloud", cloud_key, ca_key, ca_name, hosts,
+                                          [ExtendedKeyUsageOID.SERVER_AUTH]))
+    tls_cloud = {"root_ca_certificate": str((out / "ca.pem").resolve()),
+                 "listen_private_key": str((out / "cloud.key").resolve()),
+                 "listen_certificate": str((out / "cloud.pem").resolve())}
+    files["cloud"] = _config(out / "cloud.json5", tls_cloud)
+    files["client"] = _config(out / "client.json5",
+                              {"root_ca_certificate": str((out / "ca.pem").resolve())})
+    for robot in robots:
+        key = _key()
+        _write_key(out / f"{robot}.key", key)
+        _write_cert(out / f"{robot}.pem", _issue(robot, key, ca_key, ca_name, [],
+                                                 [ExtendedKeyUsageOID.CLIENT_AUTH]))
+        files[robot] = _config(out / f"robot-{robot}.json5", {
+            "root_ca_certificate": str((out / "ca.pem").resolve()),
+            "connect_private_key": str((out / f"{robot}.key").resolve()),
+            "connect_certificate": str((out / f"{robot}.pem").resolve())})
+    return files
+
+
+def _config(path: Path, tls: dict[str, str]) -> Path:
+    config = {"mode": "peer", "scouting": {"multicast": {"enabled": False}},
+              "transport": {"link": {"tls": tls}}}
+    path.write_text(json.dumps(config, indent=2) + "\n")
+    return path
