@@ -506,8 +506,9 @@ def test_the_cloud_starts_from_a_labs_zenoh_config_file(tmp_path):
 
 
 def test_a_tls_cloud_refuses_clients_without_the_labs_ca(tmp_path, capsys):
-    """`fleetslam certs` makes a lab; its cloud speaks TLS: a client with the lab's CA is
-    answered, one without it or with another lab's CA never reaches it."""
+    """`fleetslam certs` makes a lab; its cloud speaks mutual TLS: a robot or the operator
+    with a certificate of the lab is answered; a client without TLS, with another lab's
+    certificate, or with the lab's CA but no certificate of its own never reaches it."""
     from fleetslam.cli import main
     from fleetslam.launch import CloudClient
 
@@ -525,7 +526,12 @@ def test_a_tls_cloud_refuses_clients_without_the_labs_ca(tmp_path, capsys):
             assert client.status(timeout=10.0)["type"] == "status"
         finally:
             client.close()
-        for outsider in (None, str(tmp_path / "other" / "client.json5")):
+        client = CloudClient(endpoint, 10.0, str(tmp_path / "lab" / "client.json5"))
+        client.close()
+        ca_only = tmp_path / "ca_only.json5"
+        ca_only.write_text(json.dumps({"mode": "peer", "transport": {"link": {"tls": {
+            "root_ca_certificate": str(tmp_path / "lab" / "ca.pem")}}}}))
+        for outsider in (None, str(tmp_path / "other" / "client.json5"), str(ca_only)):
             with pytest.raises(RuntimeError, match="nothing answers"):
                 CloudClient(endpoint, 1.0, outsider)
     finally:

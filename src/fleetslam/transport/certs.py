@@ -1,6 +1,7 @@
 """A lab's TLS material in one command (``fleetslam certs``): a certificate authority, a
-certificate for the cloud (its host names), one per robot (its id as the common name, for
-mutual TLS), and the Zenoh config files that use them, for the cloud and for the robots.
+certificate for the cloud (its host names), one per robot (its id as the common name) and
+one for the operator's tools, and the Zenoh config files that use them. TLS is mutual: the
+cloud accepts only peers holding a certificate of the lab (Zenoh's ``enable_mtls``).
 
 Keys are EC P-256, written owner-readable only. The CA's key stays in the output folder and
 is what signs more robots later; keep it off the robots.
@@ -94,23 +95,25 @@ def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
                                           [ExtendedKeyUsageOID.SERVER_AUTH]))
     tls_cloud = {"root_ca_certificate": str((out / "ca.pem").resolve()),
                  "listen_private_key": str((out / "cloud.key").resolve()),
-                 "listen_certificate": str((out / "cloud.pem").resolve())}
+                 "listen_certificate": str((out / "cloud.pem").resolve()),
+                 "enable_mtls": True}
     files["cloud"] = _config(out / "cloud.json5", tls_cloud)
-    files["client"] = _config(out / "client.json5",
-                              {"root_ca_certificate": str((out / "ca.pem").resolve())})
-    for robot in robots:
+    # The operator's tools (merge, status) and each robot: a client certificate each.
+    for name, config in (("operator", "client.json5"),
+                         *((robot, f"robot-{robot}.json5") for robot in robots)):
         key = _key()
-        _write_key(out / f"{robot}.key", key)
-        _write_cert(out / f"{robot}.pem", _issue(robot, key, ca_key, ca_name, [],
-                                                 [ExtendedKeyUsageOID.CLIENT_AUTH]))
-        files[robot] = _config(out / f"robot-{robot}.json5", {
+        _write_key(out / f"{name}.key", key)
+        _write_cert(out / f"{name}.pem", _issue(name, key, ca_key, ca_name, [],
+                                                [ExtendedKeyUsageOID.CLIENT_AUTH]))
+        files["client" if name == "operator" else name] = _config(out / config, {
             "root_ca_certificate": str((out / "ca.pem").resolve()),
-            "connect_private_key": str((out / f"{robot}.key").resolve()),
-            "connect_certificate": str((out / f"{robot}.pem").resolve())})
+            "connect_private_key": str((out / f"{name}.key").resolve()),
+            "connect_certificate": str((out / f"{name}.pem").resolve()),
+            "enable_mtls": True})
     return files
 
 
-def _config(path: Path, tls: dict[str, str]) -> Path:
+def _config(path: Path, tls: dict[str, str | bool]) -> Path:
     config = {"mode": "peer", "scouting": {"multicast": {"enabled": False}},
               "transport": {"link": {"tls": tls}}}
     path.write_text(json.dumps(config, indent=2) + "\n")
