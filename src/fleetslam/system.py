@@ -117,8 +117,7 @@ class RobotTracker:
         return RobotRun(
             self.name, self.source, sequence, sequence.timestamps.copy(),
             session.final_poses(self.refs, self.T_refs, self.poses), np.array(self.tracked),
-            [kf.frame_index for kf in kfs],
-            np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4),
+            [kf.frame_index for kf in kfs], session.map.keyframe_poses(),
             self.pipeline.timer.mean_ms(), session.lost_total, session.loss_events,
             session.repeated_frames, session.resets, self.seconds,
             references=np.array(self.refs, np.int64), T_reference_camera=list(self.T_refs),
@@ -154,7 +153,7 @@ def track_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config,
                 continue
             summary = t.step(i)
             if summary is not None:
-                merger.add_keyframe(summary, t.session.map.keyframe_poses().copy())
+                merger.add_keyframe(summary, t.session.map.keyframe_poses())
             done += 1
         progress.update(done, f"groups {len(merger.components())}")
     return [t.finish() for t in trackers], merger

@@ -164,12 +164,9 @@ class RobotSession:
     @staticmethod
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
              publish: Publish, keyframe_sink: KeyframeSink | None = None) -> "RobotSession":
-        tracking = CloudSession(config, hello.camera)
-        runs_front_end = hello.offload_at in CLOUD_TRACKS and any(
-            stage.side == "edge" for stage in default_stages()[hello.offload_at:])
-        front_end = EdgeSession(config, hello.camera) if runs_front_end else None
-        return RobotSession(SessionState(robot_id, hello, tracking, front_end), config, store,
-                            publish, keyframe_sink)
+        # The front end's state is made by the first frame that needs it (_on_frame).
+        return RobotSession(SessionState(robot_id, hello, CloudSession(config, hello.camera)),
+                            config, store, publish, keyframe_sink)
 
     @property
     def robot_id(self) -> str:
@@ -289,7 +286,9 @@ class RobotSession:
         if stages:
             timer = StageTimer()
             if st.front_end is None and any(s.side == "edge" for s in stages):
-                st.front_end = EdgeSession(self.config, st.hello.camera)  # switched below 3
+                # The robot offloads before its front end ends (points 0-2, or an adaptive
+                # robot that switched there): the cloud holds the front end's state.
+                st.front_end = EdgeSession(self.config, st.hello.camera)
             session = Session(st.front_end, st.tracking)
             out: TrackedFrame = run_stages(stages, state, session, timer)
             for name, seconds in timer.seconds.items():
@@ -425,7 +424,7 @@ class RobotSession:
         """The newest keyframe as the merger takes it, and every keyframe's current pose."""
         lmap = self.state.tracking.map
         return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
-            lmap.keyframe_poses().copy()
+            lmap.keyframe_poses()
 
     def all_keyframes(self) -> list[KeyframeSummary]:
         """Every keyframe as the merger takes it (a restored session re-joins the merger)."""

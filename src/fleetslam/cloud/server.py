@@ -122,11 +122,10 @@ class CloudServer:
                 session = RobotSession(state, self.config, self.store, self.publish,
                                        self.merger.submit)
                 self.sessions[robot_id] = session
-                if session.stages:
-                    self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
-                                          state.tracking.map.keyframe_poses().copy())
-                else:
-                    self.merger.add_robot(robot_id, state.hello.camera)
+                # The merger is rebuilt from the keyframes the session already has (none for
+                # a robot that tracks itself).
+                self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
+                                      state.tracking.map.keyframe_poses())
                 log.info("robot %s: session restored from its checkpoint (frame %d)",
                          robot_id, state.last_index)
             return session

@@ -25,9 +25,9 @@ def ground_truth_at(times: np.ndarray, sequence: RgbdSequence) -> tuple[np.ndarr
     if not sequence.has_ground_truth or not len(times):
         return np.zeros(len(times), bool), np.zeros((0, 4, 4))
     stamps = sequence.timestamps
-    idx = np.searchsorted(stamps, times).clip(1, len(stamps) - 1) if len(stamps) > 1 \
-        else np.zeros(len(times), np.int64)
-    if len(stamps) > 1:
+    idx = np.zeros(len(times), np.int64)
+    if len(stamps) > 1:  # the nearer of the two frames around each time
+        idx = np.searchsorted(stamps, times).clip(1, len(stamps) - 1)
         idx = np.where(np.abs(stamps[idx - 1] - times) < np.abs(stamps[idx] - times),
                        idx - 1, idx)
     ok = np.abs(stamps[idx] - times) < 1e-3

@@ -25,9 +25,10 @@ from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import keyframe_local_cloud, voxel_downsample
 from fleetslam.mapping.octomap_export import write_octomap
 from fleetslam.merging.merger import MapMerger
+from fleetslam.pipeline.session import poses_from_references
 from fleetslam.registration.fshicp import fshicp
 from fleetslam.registration.metrics import transform_error
-from fleetslam.transforms import invert, transform_points
+from fleetslam.transforms import transform_points
 
 log = logging.getLogger("fleetslam.merge")
 
@@ -79,14 +80,8 @@ def global_trajectory(track: RobotTrack, keyframe_poses: np.ndarray,
                       T_global_map: np.ndarray) -> np.ndarray:
     """Every frame in the global frame: from its reference keyframe's global pose, so the
     graph's bending reaches it; frames without one are moved rigidly."""
-    out = T_global_map @ track.poses
-    refs = track.references
-    has = np.flatnonzero((refs >= 0) & (refs < len(keyframe_poses)))
-    has = np.array([i for i in has if track.T_reference_camera[i] is not None], np.int64)
-    if len(has):
-        T_rel = np.array([track.T_reference_camera[i] for i in has])
-        out[has] = keyframe_poses[refs[has]] @ T_rel
-    return out
+    return poses_from_references(keyframe_poses, track.references, track.T_reference_camera,
+                                 T_global_map @ track.poses)
 
 
 def _local_clouds(track: RobotTrack, frame_indices: Iterable[int], config: Config
@@ -99,11 +94,9 @@ def _local_clouds(track: RobotTrack, frame_indices: Iterable[int], config: Confi
 
 
 def _place(clouds: Sequence[tuple[np.ndarray, np.ndarray]], poses: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray]:
-    if not len(clouds):
-        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
-    return (np.vstack([transform_points(T, p) for (p, _), T in zip(clouds, poses)]),
-            np.vstack([c for _, c in clouds]))
+           ) -> list[np.ndarray]:
+    """Each keyframe's points in the frame its pose maps them to."""
+    return [transform_points(T, p) for (p, _), T in zip(clouds, poses)]
 
 
 def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config,
@@ -130,8 +123,8 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
                                config) for m in members}
     correction = {m: np.eye(4) for m in members}
     if config.merge.fshicp_refine and len(members) > 1:
-        placed = {m: voxel_downsample(*_place(clouds[m], kf_poses[m]), config.map.voxel_m)[0]
-                  for m in members}
+        placed = {m: voxel_downsample(np.vstack(_place(clouds[m], kf_poses[m])), None,
+                                      config.map.voxel_m)[0] for m in members}
         for m in members[1:]:
             target = np.vstack([placed[o] for o in members if o != m])
             fit = fshicp(placed[m], target, np.eye(4), config.fshicp)
@@ -156,33 +149,26 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
                              result.trajectories[m],
                              comment=f"fleetslam robot {m} in the global frame "
                                      f"(robot {anchor}'s first camera)")
-    all_points, all_colors, origins = [], [], []
-    for m in members:
-        p, c = _place(clouds[m], kf_poses[m])
-        all_points.append(p)
-        all_colors.append(c)
-    points, colors = voxel_downsample(np.vstack(all_points), np.vstack(all_colors),
+    # Every keyframe placed once, for the point cloud and the octree's scans.
+    placed_points = [p for m in members for p in _place(clouds[m], kf_poses[m])]
+    origins = [T[:3, 3] for m in members for T in kf_poses[m]]
+    colors_in = [c for m in members for _, c in clouds[m]]
+    if not placed_points:  # a lone robot whose keyframes never reached the merger
+        placed_points, colors_in = [np.zeros((0, 3))], [np.zeros((0, 3), np.uint8)]
+    points, colors = voxel_downsample(np.vstack(placed_points), np.vstack(colors_in),
                                       config.map.voxel_m)
     assert colors is not None
     write_ply(out_dir / "global_map.ply", points, colors)
     result.points = len(points)
     start = time.perf_counter()
-    scans = [(transform_points(T, p), T[:3, 3]) for m in members
-             for (p, _), T in zip(clouds[m], kf_poses[m])]
-    origins = [o for _, o in scans]
-    stats = write_octomap(out_dir / "global_map.bt", scans, config.merge.octomap_resolution_m,
-                          config.merge.octomap_max_range_m)
+    stats = write_octomap(out_dir / "global_map.bt", zip(placed_points, origins),
+                          config.merge.octomap_resolution_m, config.merge.octomap_max_range_m)
     stats["seconds"] = time.perf_counter() - start
     stats["scans"] = len(origins)
     result.octomap = stats
     log.info("global map: %s in %s's frame, %d points, octomap %d occupied / %d free leaves",
              ", ".join(members), anchor, len(points), stats["occupied"], stats["free"])
     return result
-
-
-def relative_pose(global_map: GlobalMap, a: str, b: str) -> np.ndarray:
-    """T_mapA_mapB as the global map has it."""
-    return invert(global_map.T_global_map[a]) @ global_map.T_global_map[b]
 
 
 def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, Any]:

@@ -163,8 +163,10 @@ class MapMerger:
         return invert(T), at
 
     def _consistent_set(self, matches: list[PlaceMatch]) -> list[PlaceMatch]:
-        """The largest group of matches (distinct query keyframes) that all imply the same
-        transform between the two maps, found greedily from the best-supported one."""
+        """The largest group of matches that all imply the same transform between the two
+        maps, found greedily from the best-supported one. Each match comes from a different
+        query keyframe (a keyframe queries each other robot once), so every member is an
+        observation of its own."""
         cfg = self.config.loop_closing
         first = min(matches[0].query.robot, matches[0].place.robot)
         implied = [self._as_pair_transform(m, first) for m in matches]
@@ -184,12 +186,9 @@ class MapMerger:
             for j in support[i]:
                 if j != i and all(agree(j, g) for g in group):
                     group.append(j)
-            # One vote per query keyframe: a keyframe matched twice is one observation.
-            keys = {(matches[g].query.robot, matches[g].query.keyframe) for g in group}
-            if len(keys) > len(best):
+            if len(group) > len(best):
                 best = group
-                best_keys = keys
-                if len(best_keys) == n:
+                if len(best) == n:
                     break
         return [matches[g] for g in best]
 

@@ -150,13 +150,8 @@ class CloudSession:
                     online: Sequence[np.ndarray]) -> np.ndarray:
         """Every frame's pose from its reference keyframe's current pose (N x 4 x 4); a frame
         without a reference (-1, relative pose None) keeps its ``online`` pose."""
-        refs = np.asarray(references, np.int64)
-        out = np.array(online, dtype=np.float64).reshape(-1, 4, 4)
-        has = np.flatnonzero((refs >= 0) & (refs < len(self.map.keyframes)))
-        if len(has):
-            T_rel = np.array([T_reference_camera[i] for i in has])
-            out[has] = self.map.keyframe_poses()[refs[has]] @ T_rel
-        return out
+        return poses_from_references(self.map.keyframe_poses(), references, T_reference_camera,
+                                     online)
 
     def loop_summary(self) -> dict:
         """Loop closing and relocalisation counts and times, for summary.json."""
@@ -202,6 +197,22 @@ class CloudSession:
         self.T_before_last = self.T_last
         self.T_last = posed.T_world_camera.copy()
         self._last_features = features
+
+
+def poses_from_references(keyframe_poses: np.ndarray, references: Sequence[int],
+                          T_reference_camera: Sequence[np.ndarray | None],
+                          otherwise: Sequence[np.ndarray] | np.ndarray) -> np.ndarray:
+    """Frames' poses as keyframe_poses[reference] @ T_reference_camera (N x 4 x 4), so they
+    follow every later move of their keyframes; a frame without a reference (or beyond
+    ``keyframe_poses``) keeps its pose from ``otherwise``."""
+    refs = np.asarray(references, np.int64)
+    out = np.array(otherwise, dtype=np.float64).reshape(-1, 4, 4)
+    has = [i for i in np.flatnonzero((refs >= 0) & (refs < len(keyframe_poses)))
+           if T_reference_camera[i] is not None]
+    if has:
+        T_rel = np.array([T_reference_camera[i] for i in has])
+        out[has] = keyframe_poses[refs[has]] @ T_rel
+    return out
 
 
 @dataclass

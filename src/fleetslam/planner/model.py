@@ -85,9 +85,12 @@ def energy(eta: float, t_tr_unit_s: float, c_total_g: float, cfg: PlannerConfig)
 
 
 def candidates(profile: Profile, link: Link, cfg: PlannerConfig,
-               offered: tuple[int, ...] | None = None) -> list[Candidate]:
+               offered: tuple[int, ...] | None = None, feature_scale: float = 1.0
+               ) -> list[Candidate]:
     """Every split point k = 0..n under ``link``; ``offered`` are the points the system can
-    run (None: all)."""
+    run (None: all). ``feature_scale``: the share of the profile's ORB features the robot
+    keeps; from point 2 on, the message and the robot's stages scale with it (the
+    per-feature parts dominate them)."""
     etas = offloading_ratios(profile)
     robot_ms = np.concatenate([[0.0], np.cumsum(robot_stage_ms(profile, cfg))])
     host_ms = np.asarray(profile.stage_ms, float)
@@ -95,12 +98,13 @@ def candidates(profile: Profile, link: Link, cfg: PlannerConfig,
     c_total = computation_g(profile, cfg)
     out = []
     for k, eta in enumerate(etas):
+        scale = feature_scale if k >= 2 else 1.0
         # Keyframe uploads ride on every point but total offloading (the cloud has the frame).
         uploads = profile.keyframe_bytes * profile.keyframe_fraction if k > 0 else 0.0
-        per_frame = profile.frame_bytes[k] + uploads
+        per_frame = profile.frame_bytes[k] * scale + uploads
         t_send = per_frame * 8 / (link.bandwidth_mbps * 1e6)
         t_tr = t_send + link.latency_ms / 1000.0
-        t_robot, t_cloud = robot_ms[k] / 1000.0, cloud_ms[k] / 1000.0
+        t_robot, t_cloud = robot_ms[k] * scale / 1000.0, cloud_ms[k] / 1000.0
         t_tr_unit = t_send * cfg.frames_per_unit
         is_offered = offered is None or k in offered
         out.append(Candidate(

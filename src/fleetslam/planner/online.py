@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from fleetslam.config import PlannerConfig
-from fleetslam.planner.model import computation_g, energy, offloading_ratios, robot_stage_ms
+from fleetslam.planner.model import Link, candidates
 from fleetslam.planner.profile import Profile
 
 
@@ -88,21 +88,12 @@ class LinkMeter:
 
 def predict(profile: Profile, cfg: PlannerConfig, setting: Setting, bandwidth_mbps: float
             ) -> Prediction:
-    """Time model of one setting: the point's message scaled by the feature count (the
-    per-feature parts dominate from point 2 on), keyframe uploads, pipelined stages."""
-    full = cfg.feature_options[0]
-    k = setting.k
-    frame = profile.frame_bytes[k] * (setting.features / full if k >= 2 else 1.0)
-    uploads = profile.keyframe_bytes * profile.keyframe_fraction if k > 0 else 0.0
-    per_frame = frame + uploads
-    scale = setting.features / full
-    robot_ms = float(np.sum(robot_stage_ms(profile, cfg)[:k])) * (scale if k >= 2 else 1.0)
-    cloud_ms = float(np.sum(profile.stage_ms[k:]))
-    send_s = per_frame * 8 / (bandwidth_mbps * 1e6)
-    fps = 1.0 / max(robot_ms / 1000, cloud_ms / 1000, send_s, 1e-6)
-    e = energy(float(offloading_ratios(profile)[k]), send_s * cfg.frames_per_unit,
-               computation_g(profile, cfg), cfg)
-    return Prediction(setting, per_frame, min(fps, cfg.target_fps) * setting.frame_step, e)
+    """The planner's model (``model.candidates``) of one setting: its point at its share of
+    the features; the frame step multiplies the camera frames the stream covers."""
+    c = candidates(profile, Link(bandwidth_mbps), cfg,
+                   feature_scale=setting.features / cfg.feature_options[0])[setting.k]
+    return Prediction(setting, c.bytes_per_frame,
+                      min(c.fps, cfg.target_fps) * setting.frame_step, c.energy_j)
 
 
 class OnlinePlanner:
