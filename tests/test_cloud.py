@@ -378,6 +378,40 @@ def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scen
         server.close()
 
 
+def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(messages,
+                                                                                tmp_path):
+    """A robot that goes quiet frees its session's threads and memory; nothing it sent is
+    lost: its next frame restores the session from the checkpoint and tracking goes on with
+    the same poses as a session that never closed."""
+    seq0, msgs0, poses0 = messages["r0"]
+    config = Config()
+    config.transport.idle_session_s = 0.4
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    client = open_connecting(endpoint)
+    robot = FakeRobot(client, "r0", seq0.camera)
+    try:
+        robot.hello()
+        half = len(msgs0) // 2
+        for m in msgs0[:half]:
+            robot.send(m)
+        first = robot.poses(half)
+        deadline = time.monotonic() + 10.0
+        while "r0" in server.sessions and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "r0" not in server.sessions, "the idle session was not closed"
+        assert (tmp_path / "cloud" / "r0" / "session.ckpt").is_file()
+        for m in msgs0[half:]:
+            robot.send(m)
+        rest = robot.poses(len(msgs0) - half)
+        assert np.array_equal(np.array([f.T_world_camera for f in first + rest]), poses0)
+        assert server.sessions["r0"].counts()["frames"] == len(msgs0)
+    finally:
+        robot.close()
+        client.close()
+        server.close()
+
+
 def test_a_resent_merge_request_merges_once_and_replies_carry_its_id(cloud):
     """A client resends its request until answered; the cloud merges once per request id
     and sends the same reply again to a resend that comes after the merge."""
@@ -506,33 +540,87 @@ def test_the_cloud_starts_from_a_labs_zenoh_config_file(tmp_path):
 
 
 def test_a_tls_cloud_refuses_clients_without_the_labs_ca(tmp_path, capsys):
-    """`fleetslam certs` makes a lab; its cloud speaks mutual TLS: a robot or the operator
-    with a certificate of the lab is answered; a client without TLS, with another lab's
-    certificate, or with the lab's CA but no certificate of its own never reaches it."""
+    """`fleetslam certs` makes a lab (and adds robots to it); its cloud speaks mutual TLS:
+    the operator with a certificate of the lab is answered; a client without TLS, with
+    another lab's certificate, or with the lab's CA but no certificate of its own never
+    reaches it; a robot's certificate does not let it ask for the status."""
     from fleetslam.cli import main
     from fleetslam.launch import CloudClient
 
-    assert main(["certs", "--out", str(tmp_path / "lab"), "--robot", "r1"]) == 0
+    lab = tmp_path / "lab"
+    assert main(["certs", "--out", str(lab), "--robot", "r1"]) == 0
     assert "robot r1:" in capsys.readouterr().out
-    assert main(["certs", "--out", str(tmp_path / "lab")]) == 2  # one CA per lab
+    assert main(["certs", "--out", str(lab)]) == 2  # one CA per lab
+    assert main(["certs", "--out", str(lab), "--robot", "r1"]) == 2  # r1 is in it
+    assert main(["certs", "--out", str(lab), "--robot", "r2"]) == 0  # added with its CA
+    assert json.loads((lab / "lab.json").read_text())["robots"] == ["r1", "r2"]
     assert main(["certs", "--out", str(tmp_path / "other")]) == 0
     config = Config()
-    config.transport.zenoh_config = str(tmp_path / "lab" / "cloud.json5")
+    config.transport.zenoh_config = str(lab / "cloud.json5")
     endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     try:
-        client = CloudClient(endpoint, 10.0, str(tmp_path / "lab" / "robot-r1.json5"))
+        client = CloudClient(endpoint, 10.0, str(lab / "client.json5"))
         try:
             assert client.status(timeout=10.0)["type"] == "status"
         finally:
             client.close()
-        client = CloudClient(endpoint, 10.0, str(tmp_path / "lab" / "client.json5"))
-        client.close()
+        client = CloudClient(endpoint, 10.0, str(lab / "robot-r2.json5"))
+        try:
+            with pytest.raises(TimeoutError):  # the ACL: only the operator asks
+                client.status(timeout=2.0)
+        finally:
+            client.close()
         ca_only = tmp_path / "ca_only.json5"
         ca_only.write_text(json.dumps({"mode": "peer", "transport": {"link": {"tls": {
-            "root_ca_certificate": str(tmp_path / "lab" / "ca.pem")}}}}))
+            "root_ca_certificate": str(lab / "ca.pem")}}}}))
         for outsider in (None, str(tmp_path / "other" / "client.json5"), str(ca_only)):
             with pytest.raises(RuntimeError, match="nothing answers"):
                 CloudClient(endpoint, 1.0, outsider)
     finally:
+        server.close()
+
+
+def test_a_robot_can_use_only_its_own_keys(messages, tmp_path):
+    """Access control by certificate: r2, authenticated, forges an end, frames and keyframe
+    uploads for r1 and listens to r1's poses. None of it reaches the cloud or r2: r1 tracks
+    every frame with the poses of a quiet run, and r2 still has its own session."""
+    from fleetslam.transport.certs import make_lab
+
+    seq1, r1_msgs, poses1 = messages["r1"]
+    lab = make_lab(tmp_path / "lab", ["localhost"], ["r1", "r2"])
+    config = Config()
+    config.transport.zenoh_config = str(lab["cloud"])
+    endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    z1 = open_connecting(endpoint, 10.0, str(lab["r1"]))
+    z2 = open_connecting(endpoint, 10.0, str(lab["r2"]))
+    overheard: list[str] = []
+    spy = z2.declare_subscriber("fleet/**", lambda s: overheard.append(str(s.key_expr)))
+    try:
+        r1 = FakeRobot(z1, "r1", seq1.camera)
+        r1.hello()
+        r2 = FakeRobot(z2, "r2", seq1.camera)
+        r2.hello()
+        for m in r1_msgs:
+            put(z2, keys.control("r1"), json.dumps({"type": "end", "last_seq": 0}).encode())
+            put(z2, keys.frame("r1"), r1_msgs[-1])
+            put(z2, keys.keyframe("r1"), b"FSKF" + bytes(100))
+            r1.send(m)
+        got = r1.poses(len(r1_msgs))
+        assert np.array_equal(np.array([f.T_world_camera for f in got]), poses1)
+        counts = server.sessions["r1"].counts()
+        assert counts["frames"] == len(r1_msgs) and not any(
+            k.startswith("rejected") for k in counts)
+        assert server.sessions["r1"].finished is None and server.unrouted == 0
+        # (r2's session hears its own forgeries locally; never what the cloud sends r1.)
+        assert keys.feedback("r1") not in overheard and keys.reply("r1") not in overheard
+        assert keys.reply("r2") in overheard  # the spy works: it hears r2's welcome
+        r2.hello()  # r2's own keys still work
+        r1.close()
+        r2.close()
+    finally:
+        spy.undeclare()
+        z1.close()
+        z2.close()
         server.close()

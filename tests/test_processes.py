@@ -60,7 +60,9 @@ def _finish(robot, log: Path, timeout: float = 120.0) -> None:
         raise
 
 
-def test_killed_robot_resumes_its_session(scene, tmp_path):
+def test_killed_robot_resumes_its_session(scene, tmp_path, capsys):
+    from fleetslam.cli import main
+
     endpoint, out = free_endpoint(), tmp_path / "cloud"
     cloud = start_cloud(endpoint, out, tmp_path / "cloud.log")
     client = CloudClient(endpoint)
@@ -73,6 +75,13 @@ def test_killed_robot_resumes_its_session(scene, tmp_path):
         report = tmp_path / "r0-b.json"
         second = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-b.log", report)
         _finish(second, tmp_path / "r0-b.log")
+        # The operator's commands against the running cloud.
+        capsys.readouterr()
+        assert main(["--quiet", "status", "--connect", endpoint]) == 0
+        assert f"r0{'':<10} {N_FRAMES:>7}       yes" in capsys.readouterr().out
+        assert main(["--quiet", "merge", "--connect", endpoint]) == 0
+        assert "r0" in capsys.readouterr().out
+        assert json.loads((out / "summary.json").read_text())["robots"][0]["name"] == "r0"
     finally:
         client.close()
         stop(cloud)

@@ -201,6 +201,27 @@ def cmd_merge(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def cmd_status(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.launch import CloudClient
+
+    client = CloudClient(args.connect, config.transport.reach_deadline_s,
+                         config.transport.zenoh_config or None)
+    try:
+        status = client.status()
+    finally:
+        client.close()
+    merge = status.get("merge") or {}
+    merged = merge.get("robots", {})
+    print(f"{'robot':<12} {'frames':>7} {'finished':>9} {'keyframes':>10} {'joined to':>10}")
+    for robot, s in sorted(status["robots"].items()):
+        m = merged.get(robot, {})
+        print(f"{robot:<12} {s['frames']:>7} {'yes' if s['finished'] else 'no':>9} "
+              f"{m.get('keyframes', 0):>10} {m.get('anchor', '-'):>10}")
+    print(f"map groups: {merge.get('components', {})}; inter-robot constraints: "
+          f"{merge.get('constraints', 0)} ({merge.get('constraints_rejected', 0)} rejected)")
+    return 0
+
+
 def cmd_run(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.tum import open_robot
     from fleetslam.system import run_fleet
@@ -264,12 +285,14 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
 
 
 def cmd_certs(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.transport.certs import make_lab
+    from fleetslam.transport.certs import lab_robots, make_lab
 
     for robot in args.robot:
         keys_check(robot)
     files = make_lab(Path(args.out), args.host or ["localhost", "127.0.0.1"], args.robot)
-    print(f"lab CA and certificates in {args.out}/ (keep ca.key off the robots)")
+    print(f"lab CA and certificates in {args.out}/ (keep ca.key off the robots); "
+          f"robots admitted by the cloud's access control: "
+          f"{', '.join(lab_robots(Path(args.out))) or 'none'}")
     print(f"cloud:   fleetslam --zenoh-config {files['cloud']} cloud --listen tls/HOST:7447 ...")
     print(f"clients: fleetslam --zenoh-config {files['client']} merge --connect tls/HOST:7447")
     for robot in args.robot:
@@ -350,6 +373,11 @@ def build_parser() -> argparse.ArgumentParser:
     merge.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
     merge.set_defaults(func=cmd_merge)
 
+    status = sub.add_parser("status", help="ask a running cloud which robots it serves and "
+                            "how their maps are joined")
+    status.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    status.set_defaults(func=cmd_status)
+
     planner = sub.add_parser("plan", help="choose the offloading point: the paper's energy "
                              "model and a time model on measured (or the paper's) costs")
     planner.add_argument("--paper", action="store_true",
@@ -378,7 +406,9 @@ def build_parser() -> argparse.ArgumentParser:
     certs.add_argument("--host", action="append",
                        help="a name or address the robots reach the cloud by (repeat; "
                        "default localhost and 127.0.0.1)")
-    certs.add_argument("--robot", action="append", default=[], help="a robot id (repeat)")
+    certs.add_argument("--robot", action="append", default=[],
+                       help="a robot id (repeat); in an existing lab, adds the robot (then "
+                       "restart the cloud: its access control admits the lab's robots)")
     certs.set_defaults(func=cmd_certs)
 
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")

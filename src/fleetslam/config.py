@@ -369,6 +369,9 @@ class TransportConfig:
     # oldest is dropped beyond it: frames are best effort, keyframes are not).
     max_sessions: int = 64
     max_queued_frames: int = 256
+    # An unfinished session that hears nothing from its robot this long is checkpointed and
+    # closed (its threads and memory freed); the robot's next message restores it.
+    idle_session_s: float = 900.0
     # Keyframe uploads the cloud stores per robot (about 0.2 MB each at the map's stride).
     max_keyframes: int = 20_000
     # When a robot says it ended, frames it sent before may still be on their way (they

@@ -142,6 +142,9 @@ class RobotSession:
             if state.hello.offload_at in CLOUD_TRACKS else []
         self.finished: FinishedMap | None = None
         self._last_rejection_reply = -float("inf")
+        # The frame and keyframe threads both count, and status reads the counts.
+        self._counts_lock = threading.Lock()
+        self.last_heard = time.monotonic()
         self._frames = WorkQueue(config.transport.max_queued_frames)
         self._keyframes: queue.Queue = queue.Queue()
         self._checkpoints: queue.Queue = queue.Queue()
@@ -175,20 +178,39 @@ class RobotSession:
     # -- entry points (called from Zenoh callbacks: only enqueue) -----------------------
 
     def submit_frame(self, data: bytes, arrival: float) -> None:
+        self.last_heard = time.monotonic()
         self._frames.put(("frame", data, arrival))
 
     def submit_control(self, message: dict[str, Any], arrival: float) -> None:
+        self.last_heard = time.monotonic()
         self._frames.put(("control", message, arrival))
 
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
+        self.last_heard = time.monotonic()
         self._keyframes.put(("keyframe", data, arrival))
 
-    def close(self, timeout: float = 5.0) -> None:
+    def count(self, name: str, n: int = 1) -> None:
+        with self._counts_lock:
+            self.state.counts[name] += n
+
+    def counts(self) -> Counter:
+        with self._counts_lock:
+            return Counter(self.state.counts)
+
+    def close(self, timeout: float = 5.0, final_checkpoint: bool = False) -> None:
+        """Stop the session's threads once the work already queued is done; with
+        ``final_checkpoint``, the state as it is then goes to disk first (an idle session
+        is closed this way and restored from it when its robot speaks again)."""
         self._frames.put(None)
         self._keyframes.put(None)
-        self._checkpoints.put(None)
-        for t in self._threads:
+        for t in self._threads[:2]:
             t.join(timeout)
+        if final_checkpoint:
+            with self._counts_lock:
+                self._checkpoints.put((self.state.last_index, snapshot(self.state)))
+        # Only now: the frame thread may still have queued a keyframe's checkpoint.
+        self._checkpoints.put(None)
+        self._threads[2].join(timeout)
 
     def drain(self, timeout: float = 60.0) -> None:
         """Wait until everything submitted so far is processed (tests, shutdown)."""
@@ -208,7 +230,7 @@ class RobotSession:
             try:
                 handle(kind, payload, arrival)
             except Exception:  # a bug on one message must not end the robot's session
-                self.state.counts["errors"] += 1
+                self.count("errors")
                 log.exception("robot %s: %s message failed", self.robot_id, kind)
 
     def _write_checkpoints(self) -> None:
@@ -234,13 +256,16 @@ class RobotSession:
             return self._durable.wait_for(lambda: self._durable_index >= frame_index, timeout)
 
     def _reject(self, what: str, reason: str) -> None:
-        self.state.counts[f"rejected {what}"] += 1
+        self.count(f"rejected {what}")
         log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
         # The robot hears why, at most once per interval (a flood of bad messages must not
         # become a flood of replies).
         now = time.monotonic()
-        if now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S:
-            self._last_rejection_reply = now
+        with self._counts_lock:  # the frame and keyframe threads both reject
+            due = now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S
+            if due:
+                self._last_rejection_reply = now
+        if due:
             self._reply(protocol.error(protocol.Code.REJECTED, f"{what} rejected: {reason}",
                                        rejected=what))
 
@@ -280,7 +305,7 @@ class RobotSession:
             return self._reject("frame", f"timestamp {header.timestamp:.6f} is not after the "
                                          f"last frame's {st.rows[-1].timestamp:.6f}")
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
-            st.counts["frames lost in transit"] += header.seq - st.last_seq - 1
+            self.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
         stages = self._stages_from(header.split_point)
         if stages:
@@ -298,7 +323,7 @@ class RobotSession:
         cloud_ms = 1000.0 * (time.perf_counter() - start)
         st.last_seq = header.seq
         st.last_index = out.index
-        st.counts["frames"] += 1
+        self.count("frames")
         st.rows.append(TrajectoryRow(out.index, out.timestamp, out.T_world_camera.copy(),
                                      out.tracked, out.is_keyframe, out.reference_keyframe,
                                      out.T_reference_camera))
@@ -313,7 +338,9 @@ class RobotSession:
             # Checkpoint the session as it is now (the snapshot here, the slow durable write
             # on the writer thread); the keyframe's upload is acknowledged only once this
             # checkpoint is on disk, so no acknowledged keyframe is one a restart forgets.
-            self._checkpoints.put((out.index, snapshot(st)))
+            with self._counts_lock:  # the keyframe thread counts while this copies
+                blob = snapshot(st)
+            self._checkpoints.put((out.index, blob))
             if self.stages and self.keyframe_sink is not None:
                 self.keyframe_sink(*self.newest_keyframe())
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
@@ -363,14 +390,14 @@ class RobotSession:
             return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
                                             f"this session")
         if self.store.has_keyframe(self.robot_id, upload.frame_index):
-            self.state.counts["duplicate keyframe uploads"] += 1
-        elif self.state.counts["keyframes stored"] >= self.config.transport.max_keyframes:
+            self.count("duplicate keyframe uploads")
+        elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:
             return self._reject("keyframe", f"the session stores at most "
                                             f"{self.config.transport.max_keyframes} keyframes "
                                             f"(transport.max_keyframes)")
         else:
             self.store.put_keyframe(self.robot_id, upload.frame_index, data)
-            self.state.counts["keyframes stored"] += 1
+            self.count("keyframes stored")
         # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
         # (a resent one is acknowledged again).
         if not self._await_checkpoint(upload.frame_index):
@@ -512,7 +539,7 @@ class RobotSession:
             "latency_ms_median": float(np.median(st.latency_ms)) if st.latency_ms else None,
             "latency_ms_p95": float(np.percentile(st.latency_ms, 95)) if st.latency_ms else None,
             "tracking_fps": len(st.rows) / span if span > 0 else None,
-            "transport": {**st.counts,
+            "transport": {**self.counts(),
                           "frames dropped (session busy)": self._frames.dropped},
             "trajectory": f"{self.robot_id}/trajectory.tum", "map": f"{self.robot_id}/map.ply",
         }

@@ -49,6 +49,8 @@ class CloudServer:
         self._subscribers: list[Any] = []
         self.stopped = threading.Event()
         self.unrouted = 0  # messages on keys that name no valid robot
+        self._reaper = threading.Thread(target=self._close_idle_sessions, name="cloud-idle",
+                                        daemon=True)
 
     # -- lifecycle ----------------------------------------------------------------------
 
@@ -60,11 +62,17 @@ class CloudServer:
             z.declare_subscriber(keys.ALL_KEYFRAMES, lambda s: self._route(s, "keyframe")),
             z.declare_subscriber(keys.ALL_CONTROL, lambda s: self._route(s, "control")),
         ]
+        self._reaper.start()
         log.info("cloud listening on %s, writing to %s", self.endpoint, self.out_dir)
         return self
 
     def close(self) -> None:
-        for session in list(self.sessions.values()):
+        self.stopped.set()
+        if self._reaper.is_alive():
+            self._reaper.join(30.0)
+        with self._lock:
+            sessions = list(self.sessions.values())
+        for session in sessions:
             session.close()
         self.merger.close()
         for sub in self._subscribers:
@@ -72,7 +80,6 @@ class CloudServer:
         if self._zenoh is not None:
             self._zenoh.close()
             self._zenoh = None
-        self.stopped.set()
 
     def publish(self, key: str, data: bytes) -> None:
         if self._zenoh is not None:
@@ -101,11 +108,34 @@ class CloudServer:
             else:
                 session.submit_keyframe(data, arrival)
         except ValueError as exc:
-            self.unrouted += 1
+            self._count_unrouted()
             log.warning("message on %s rejected: %s", sample.key_expr, exc)
         except Exception:
-            self.unrouted += 1
+            self._count_unrouted()
             log.exception("message on %s failed", sample.key_expr)
+
+    def _count_unrouted(self) -> None:
+        with self._lock:  # Zenoh calls back on several threads
+            self.unrouted += 1
+
+    def _close_idle_sessions(self) -> None:
+        """Checkpoint and close every unfinished session that has heard nothing from its
+        robot for ``transport.idle_session_s``: its threads and memory are freed, and its
+        robot's next message restores it from that checkpoint. A finished session stays: its
+        map waits for the merge."""
+        idle_s = self.config.transport.idle_session_s
+        while not self.stopped.wait(min(idle_s / 4.0, 5.0)):
+            now = time.monotonic()
+            # Under the lock: a message arriving meanwhile must find either the live session
+            # or the checkpoint written here, never an older one.
+            with self._lock:
+                for robot_id, session in list(self.sessions.items()):
+                    if session.finished is None and now - session.last_heard > idle_s:
+                        del self.sessions[robot_id]
+                        session.close(final_checkpoint=True)
+                        log.info("robot %s: session closed after %.0f s without a message "
+                                 "(checkpointed; its next message restores it)", robot_id,
+                                 now - session.last_heard)
 
     def _session(self, robot_id: str) -> RobotSession | None:
         """The live session, or the one restored from its checkpoint after a restart."""
@@ -181,8 +211,10 @@ class CloudServer:
         if message["type"] == "merge":
             self._request_merge(rid)
         elif message["type"] == "status":
-            robots = {r: {"frames": s.state.counts["frames"], "finished": s.finished is not None}
-                      for r, s in list(self.sessions.items())}
+            with self._lock:
+                sessions = list(self.sessions.items())
+            robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None}
+                      for r, s in sessions}
             self.publish(keys.CLOUD_REPLY, protocol.encode(
                 protocol.status(rid, robots, self.merger.status())))
         else:
@@ -228,7 +260,9 @@ class CloudServer:
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
                                f"within {timeout_s:.0f} s; ask again")
-        finished = sorted((s.finished for s in self.sessions.values() if s.finished),
+        with self._lock:
+            sessions = list(self.sessions.values())
+        finished = sorted((s.finished for s in sessions if s.finished),
                           key=lambda f: f.robot_id)
         global_map = None
         if len(finished) > 1:

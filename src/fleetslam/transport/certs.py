@@ -1,7 +1,9 @@
 """A lab's TLS material in one command (``fleetslam certs``): a certificate authority, a
 certificate for the cloud (its host names), one per robot (its id as the common name) and
 one for the operator's tools, and the Zenoh config files that use them. TLS is mutual: the
-cloud accepts only peers holding a certificate of the lab (Zenoh's ``enable_mtls``).
+cloud accepts only peers holding a certificate of the lab (Zenoh's ``enable_mtls``), and its
+access control lets each certificate use only its own keys (``access_control.py``). The
+same command adds robots to an existing lab.
 
 Keys are EC P-256, written owner-readable only. The CA's key stays in the output folder and
 is what signs more robots later; keep it off the robots.
@@ -20,7 +22,10 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from fleetslam.transport.access_control import OPERATOR, fleet_acl
+
 VALID_DAYS = 825
+MANIFEST = "lab.json"  # the lab's hosts and robots: what the cloud's ACL admits
 
 
 def _key() -> ec.EllipticCurvePrivateKey:
@@ -65,13 +70,19 @@ def _issue(subject: str, key: ec.EllipticCurvePrivateKey, ca_key: ec.EllipticCur
 
 
 def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
-    """Write ca.pem/ca.key, cloud.pem/cloud.key, <robot>.pem/<robot>.key, and the Zenoh
-    configs cloud.json5 (TLS listener) and robot-<id>.json5 / client.json5; returns them."""
+    """Write ca.pem/ca.key, cloud.pem/cloud.key, operator.pem/.key, <robot>.pem/.key, lab.json
+    and the Zenoh configs: cloud.json5 (the router: TLS listener and access control),
+    client.json5 (the operator's tools) and robot-<id>.json5. In an existing lab, issue only
+    the new robots' certificates (with its CA) and rewrite cloud.json5 to admit them.
+    Returns the config files (and the CA) by name."""
+    if (out / "ca.key").exists():
+        if not robots:
+            raise FileExistsError(f"{out / 'ca.key'} exists: a lab has one CA (use another "
+                                  f"folder, or name robots to add to this lab)")
+        return _add_robots(out, robots)
     if not hosts:
         raise ValueError("the cloud's certificate needs at least one host name or address")
     out.mkdir(parents=True, exist_ok=True)
-    if (out / "ca.key").exists():
-        raise FileExistsError(f"{out / 'ca.key'} exists: a lab has one CA (use another folder)")
     now = datetime.datetime.now(datetime.timezone.utc)
     ca_key = _key()
     ca_name = _name("fleetslam lab CA")
@@ -88,33 +99,71 @@ def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
           .sign(ca_key, hashes.SHA256()))
     _write_key(out / "ca.key", ca_key)
     _write_cert(out / "ca.pem", ca)
-    files = {"ca": out / "ca.pem"}
     cloud_key = _key()
     _write_key(out / "cloud.key", cloud_key)
     _write_cert(out / "cloud.pem", _issue("fleetslam cloud", cloud_key, ca_key, ca_name, hosts,
                                           [ExtendedKeyUsageOID.SERVER_AUTH]))
+    _client(out, OPERATOR, "client.json5", ca_key, ca_name)
+    _write_manifest(out, {"hosts": hosts, "robots": []})
+    return _add_robots(out, robots)
+
+
+def _add_robots(out: Path, robots: list[str]) -> dict[str, Path]:
+    manifest = json.loads((out / MANIFEST).read_text())
+    ca_key = serialization.load_pem_private_key((out / "ca.key").read_bytes(), None)
+    if not isinstance(ca_key, ec.EllipticCurvePrivateKey):
+        raise ValueError(f"{out / 'ca.key'}: not the EC key of a fleetslam lab")
+    ca_name = x509.load_pem_x509_certificate((out / "ca.pem").read_bytes()).subject
+    for robot in robots:
+        if robot == OPERATOR:
+            raise ValueError(f"robot id '{OPERATOR}' is the operator's identity")
+        if robot in manifest["robots"]:
+            raise FileExistsError(f"robot {robot} is already in the lab {out}")
+        _client(out, robot, f"robot-{robot}.json5", ca_key, ca_name)
+        manifest["robots"].append(robot)
+    _write_manifest(out, manifest)
     tls_cloud = {"root_ca_certificate": str((out / "ca.pem").resolve()),
                  "listen_private_key": str((out / "cloud.key").resolve()),
                  "listen_certificate": str((out / "cloud.pem").resolve()),
                  "enable_mtls": True}
-    files["cloud"] = _config(out / "cloud.json5", tls_cloud)
-    # The operator's tools (merge, status) and each robot: a client certificate each.
-    for name, config in (("operator", "client.json5"),
-                         *((robot, f"robot-{robot}.json5") for robot in robots)):
-        key = _key()
-        _write_key(out / f"{name}.key", key)
-        _write_cert(out / f"{name}.pem", _issue(name, key, ca_key, ca_name, [],
-                                                [ExtendedKeyUsageOID.CLIENT_AUTH]))
-        files["client" if name == "operator" else name] = _config(out / config, {
-            "root_ca_certificate": str((out / "ca.pem").resolve()),
-            "connect_private_key": str((out / f"{name}.key").resolve()),
-            "connect_certificate": str((out / f"{name}.pem").resolve()),
-            "enable_mtls": True})
+    # The cloud is the router all clients go through, so its ACL sees every message.
+    files = {"ca": out / "ca.pem",
+             "cloud": _config(out / "cloud.json5", "router", tls_cloud,
+                              fleet_acl(manifest["robots"])),
+             "client": out / "client.json5"}
+    files.update({robot: out / f"robot-{robot}.json5" for robot in manifest["robots"]})
     return files
 
 
-def _config(path: Path, tls: dict[str, str | bool]) -> Path:
-    config = {"mode": "peer", "scouting": {"multicast": {"enabled": False}},
-              "transport": {"link": {"tls": tls}}}
+def _client(out: Path, name: str, config: str, ca_key: ec.EllipticCurvePrivateKey,
+            ca_name: x509.Name) -> None:
+    """A client certificate whose common name is the identity the ACL knows, and its
+    Zenoh config."""
+    key = _key()
+    _write_key(out / f"{name}.key", key)
+    _write_cert(out / f"{name}.pem", _issue(name, key, ca_key, ca_name, [],
+                                            [ExtendedKeyUsageOID.CLIENT_AUTH]))
+    _config(out / config, "client", {
+        "root_ca_certificate": str((out / "ca.pem").resolve()),
+        "connect_private_key": str((out / f"{name}.key").resolve()),
+        "connect_certificate": str((out / f"{name}.pem").resolve()),
+        "enable_mtls": True})
+
+
+def lab_robots(out: Path) -> list[str]:
+    """The robots of the lab in ``out`` (those its cloud's access control admits)."""
+    return list(json.loads((out / MANIFEST).read_text())["robots"])
+
+
+def _write_manifest(out: Path, manifest: dict) -> None:
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+
+
+def _config(path: Path, mode: str, tls: dict[str, str | bool],
+            access_control: dict | None = None) -> Path:
+    config: dict = {"mode": mode, "scouting": {"multicast": {"enabled": False}},
+                    "transport": {"link": {"tls": tls}}}
+    if access_control is not None:
+        config["access_control"] = access_control
     path.write_text(json.dumps(config, indent=2) + "\n")
     return path
