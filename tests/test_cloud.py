@@ -502,6 +502,8 @@ def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(m
     session.submit_keyframe(encode_keyframe("r0", 0, forged, Config().wire), time.monotonic())
     time.sleep(0.3)
     assert "is not a keyframe of this session" in replies[-1]["reason"]
+    # Said so that the robot stops resending it (its own test: test_robot.py).
+    assert replies[-1]["code"] == "not_a_keyframe" and replies[-1]["frame_index"] == other
     time.sleep(1.0)  # one rejection reason per second
     small = KeyframeUpload(keyframe, frame.timestamp, stride, frame.rgb[:10, :10],
                            frame.depth_raw[:10, :10])

@@ -50,3 +50,32 @@ def test_a_robot_with_no_cloud_says_so_and_gives_up_at_its_deadline(caplog):
     with pytest.raises(RuntimeError, match="nothing answers at .* is the cloud running"):
         wait_until_reachable(endpoint, deadline_s=1.5, attempt_s=0.5)
     assert "retrying" in caplog.text
+
+
+def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
+    """A cloud restarted from a checkpoint older than a keyframe's feedback lost that
+    keyframe: it says so (not_a_keyframe) and the robot's upload ends there instead of being
+    resent until the robot gives up."""
+    import json
+    from types import SimpleNamespace
+
+    from conftest import small_scene
+
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.transport import protocol
+
+    folder = small_scene(tmp_path_factory, 2)[0]
+    robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
+    robot._queue_upload(14)
+
+    def reply(message: dict) -> None:
+        data = json.dumps(message).encode()
+        robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+
+    reply(protocol.error(protocol.Code.REJECTED, "keyframe rejected: too big", frame_index=14))
+    assert not robot._acks[14].is_set()  # another reason: resending may help
+    reply(protocol.error(protocol.Code.NOT_A_KEYFRAME, "keyframe rejected: frame 14 is not a "
+                         "keyframe of this session", frame_index=14))
+    assert robot._acks[14].is_set() and robot.report.uploads_not_needed == 1

@@ -255,7 +255,8 @@ class RobotSession:
         with self._durable:
             return self._durable.wait_for(lambda: self._durable_index >= frame_index, timeout)
 
-    def _reject(self, what: str, reason: str) -> None:
+    def _reject(self, what: str, reason: str,
+                code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
         self.count(f"rejected {what}")
         log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
         # The robot hears why, at most once per interval (a flood of bad messages must not
@@ -266,8 +267,8 @@ class RobotSession:
             if due:
                 self._last_rejection_reply = now
         if due:
-            self._reply(protocol.error(protocol.Code.REJECTED, f"{what} rejected: {reason}",
-                                       rejected=what))
+            self._reply(protocol.error(code, f"{what} rejected: {reason}", rejected=what,
+                                       **extra))
 
     def _reply(self, message: dict[str, Any]) -> None:
         self.publish(keys.reply(self.robot_id), protocol.encode(message))
@@ -388,7 +389,8 @@ class RobotSession:
                                             f"{expected}")
         if upload.frame_index not in self._keyframe_frames():
             return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
-                                            f"this session")
+                                            f"this session", protocol.Code.NOT_A_KEYFRAME,
+                                frame_index=upload.frame_index)
         if self.store.has_keyframe(self.robot_id, upload.frame_index):
             self.count("duplicate keyframe uploads")
         elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:

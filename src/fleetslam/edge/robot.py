@@ -91,6 +91,8 @@ class RobotReport:
     keyframe_uploads: int = 0
     keyframe_bytes: int = 0
     upload_retries: int = 0
+    # Uploads the cloud said it no longer needs (keyframes a restarted cloud lost).
+    uploads_not_needed: int = 0
     feedback: int = 0
     keyframes: int = 0
     robot_compute_s: float = 0.0
@@ -207,11 +209,22 @@ class Robot:
                 event.set()
         elif kind == "error":
             log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
+            if message.get("code") == protocol.Code.NOT_A_KEYFRAME.value:
+                return self._keyframe_not_needed(message.get("frame_index"))
             if "send a hello" in str(message.get("reason")):
                 self._need_hello.set()
             self._replies.put(message)
         else:
             self._replies.put(message)
+
+    def _keyframe_not_needed(self, index: Any) -> None:
+        """The cloud's session does not hold this frame as a keyframe (a cloud restarted from
+        an older checkpoint lost it): resending cannot help, so its upload ends here."""
+        with self._acks_lock:
+            event = self._acks.get(index) if isinstance(index, int) else None
+        if event is not None and not event.is_set():
+            self.report.uploads_not_needed += 1
+            event.set()
 
     # -- sending --------------------------------------------------------------------------
 

@@ -39,6 +39,9 @@ class Code(str, Enum):
     NO_SESSION = "no_session"  # send a hello first
     REFUSED = "refused"  # valid, but the cloud will not (limits, a changed point)
     REJECTED = "rejected"  # a frame or keyframe message was dropped, with the reason
+    # An upload of a frame the session does not hold as a keyframe (a cloud restarted from
+    # a checkpoint older than it): it never will, so the robot stops resending it.
+    NOT_A_KEYFRAME = "not_a_keyframe"
     UNKNOWN_TYPE = "unknown_type"
     FAILED = "failed"  # the cloud tried and failed (e.g. a merge)
 
