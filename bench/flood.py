@@ -25,6 +25,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -105,7 +106,7 @@ def attack_messages(folder: Path) -> list[tuple[str, bytes, str]]:
 
 
 def flood(endpoint: str, lab: dict[str, str], rate: float, seconds: float,
-          messages: list[tuple[str, bytes, str]], result: "mp.Queue") -> None:
+          messages: list[tuple[str, bytes, str]], result: Any) -> None:
     """The attacker's process: r2's certificate, and an outsider without one."""
     import zenoh
 
@@ -157,13 +158,14 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
     cloud = start_cloud(endpoint, out, out / "cloud.log", zenoh_config=lab["cloud"])
     samples: list[tuple[float, float]] = []
     attacker = None
-    result: mp.Queue = mp.Queue()
+    ctx = mp.get_context("spawn")
+    result = ctx.Queue()
     t0 = time.monotonic()
     try:
         client = CloudClient(endpoint, 60.0, lab["client"])
         client.status(timeout=60.0)
         if flood_args is not None:
-            attacker = mp.get_context("spawn").Process(
+            attacker = ctx.Process(
                 target=flood, args=(endpoint, lab, flood_args["rate"], flood_args["seconds"],
                                     flood_args["messages"], result), daemon=True)
             attacker.start()

@@ -8,7 +8,9 @@ from __future__ import annotations
 import json
 import logging
 import queue
+import socket
 import struct
+import threading
 import time
 from dataclasses import replace
 
@@ -626,3 +628,86 @@ def test_a_robot_can_use_only_its_own_keys(messages, tmp_path):
         z1.close()
         z2.close()
         server.close()
+
+
+class Relay:
+    """A TCP relay on loopback that records every byte both ways: a packet capture's view of
+    the link between a client and the cloud."""
+
+    def __init__(self, target_port: int) -> None:
+        self.captured = bytearray()
+        self.first_bytes = b""
+        self._server = socket.socket()
+        self._server.bind(("127.0.0.1", 0))
+        self._server.listen()
+        self.port = self._server.getsockname()[1]
+        self._target = target_port
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self._server.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(("127.0.0.1", self._target))
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    def _pump(self, src, dst) -> None:
+        while True:
+            try:
+                data = src.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            if not self.captured:
+                self.first_bytes = data[:8]
+            self.captured.extend(data)
+            try:
+                dst.sendall(data)
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self._server.close()
+
+
+@pytest.mark.parametrize("secure", [True, False])
+def test_the_link_is_encrypted(messages, tmp_path, secure):
+    """What a capture on the wire sees: with the lab's TLS, neither the robot's hello (its
+    id, its source) nor a frame's header or key appears in the bytes; over plain TCP all of
+    them do (so the capture would see them if they were there)."""
+    from fleetslam.transport.certs import make_lab
+
+    seq1, msgs1, poses1 = messages["r1"]
+    config, robot_config = Config(), None
+    port = int(free_endpoint().rsplit(":", 1)[1])
+    if secure:
+        lab = make_lab(tmp_path / "lab", ["localhost"], ["r1"])
+        config.transport.zenoh_config, robot_config = str(lab["cloud"]), str(lab["r1"])
+    scheme = "tls/localhost" if secure else "tcp/127.0.0.1"
+    server = CloudServer(config, tmp_path / "cloud", f"{scheme}:{port}").start()
+    relay = Relay(port)
+    z = open_connecting(f"{scheme}:{relay.port}", 10.0, robot_config)
+    marker = "plaintext-marker-7f3a9c"
+    try:
+        robot = FakeRobot(z, "r1", seq1.camera)
+        hello = {"type": "hello", "protocol": PROTOCOL, "offload_at": K,
+                 "camera": seq1.camera.to_dict(), "source": marker}
+        put(z, keys.control("r1"), json.dumps(hello).encode())
+        robot.reply("welcome")
+        robot.send(msgs1[0])
+        assert len(robot.poses(1)) == 1
+        robot.close()
+    finally:
+        z.close()
+        relay.close()
+        server.close()
+    wire = bytes(relay.captured)
+    seen = [s for s in (marker.encode(), b"fleet/r1", b"FSLM") if s in wire]
+    if secure:
+        assert relay.first_bytes[:1] == b"\x16" and not seen  # a TLS handshake, then ciphertext
+    else:
+        assert len(seen) == 3

@@ -1,6 +1,7 @@
 """Cloud and robots as separate processes over Zenoh: a killed robot resumes its session, a
 killed cloud comes back from its checkpoints with every acknowledged keyframe, and frames
-lost on the link do not lose keyframes."""
+lost on the link do not lose keyframes. Secure as deployed: a lab's mutual TLS, the cloud
+as the Zenoh router with access control, each robot with its own certificate."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.wire.paper_yaml import read_paper_yaml
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop
+from fleetslam.transport.certs import make_lab
 
 N_FRAMES = 60
 
@@ -25,6 +27,16 @@ N_FRAMES = 60
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     return small_scene(tmp_path_factory, N_FRAMES)
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory) -> dict[str, str]:
+    files = make_lab(tmp_path_factory.mktemp("lab") / "lab", ["localhost"], ["r0", "r1"])
+    return {name: str(path) for name, path in files.items()}
+
+
+def secure_endpoint() -> str:
+    return free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
 
 
 def _wait(predicate, timeout: float, what: str, interval: float = 0.1):
@@ -60,26 +72,28 @@ def _finish(robot, log: Path, timeout: float = 120.0) -> None:
         raise
 
 
-def test_killed_robot_resumes_its_session(scene, tmp_path, capsys):
+def test_killed_robot_resumes_its_session(scene, lab, tmp_path, capsys):
     from fleetslam.cli import main
 
-    endpoint, out = free_endpoint(), tmp_path / "cloud"
-    cloud = start_cloud(endpoint, out, tmp_path / "cloud.log")
-    client = CloudClient(endpoint)
+    endpoint, out = secure_endpoint(), tmp_path / "cloud"
+    cloud = start_cloud(endpoint, out, tmp_path / "cloud.log", zenoh_config=lab["cloud"])
+    client = CloudClient(endpoint, zenoh_config=lab["client"])
     try:
         first = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-a.log",
-                            extra=["--rate", "recorded"])
+                            extra=["--rate", "recorded"], zenoh_config=lab["r0"])
         _wait(lambda: _frames(client, "r0") >= 20, 60, "20 frames tracked")
         first.send_signal(signal.SIGKILL)
         first.wait()
         report = tmp_path / "r0-b.json"
-        second = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-b.log", report)
+        second = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-b.log", report,
+                             zenoh_config=lab["r0"])
         _finish(second, tmp_path / "r0-b.log")
         # The operator's commands against the running cloud.
         capsys.readouterr()
-        assert main(["--quiet", "status", "--connect", endpoint]) == 0
+        operator = ["--quiet", "--zenoh-config", lab["client"]]
+        assert main([*operator, "status", "--connect", endpoint]) == 0
         assert f"r0{'':<10} {N_FRAMES:>7}       yes" in capsys.readouterr().out
-        assert main(["--quiet", "merge", "--connect", endpoint]) == 0
+        assert main([*operator, "merge", "--connect", endpoint]) == 0
         assert "r0" in capsys.readouterr().out
         assert json.loads((out / "summary.json").read_text())["robots"][0]["name"] == "r0"
     finally:
@@ -97,13 +111,13 @@ def test_killed_robot_resumes_its_session(scene, tmp_path, capsys):
     assert len(_keyframe_files(out, "r0")) == len(kf_times) >= 2
 
 
-def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, tmp_path):
-    endpoint, out = free_endpoint(), tmp_path / "cloud"
-    cloud = start_cloud(endpoint, out, tmp_path / "cloud-a.log")
-    client = CloudClient(endpoint)
+def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, lab, tmp_path):
+    endpoint, out = secure_endpoint(), tmp_path / "cloud"
+    cloud = start_cloud(endpoint, out, tmp_path / "cloud-a.log", zenoh_config=lab["cloud"])
+    client = CloudClient(endpoint, zenoh_config=lab["client"])
     report = tmp_path / "r1.json"
     robot = start_robot(endpoint, "r1", str(scene[1]), 3, tmp_path / "r1.log", report,
-                        extra=["--rate", "10"])
+                        extra=["--rate", "10"], zenoh_config=lab["r1"])
     try:
         _wait(lambda: _frames(client, "r1") >= 15 and len(_keyframe_files(out, "r1")) >= 2,
               60, "15 frames and 2 stored keyframes")
@@ -111,11 +125,11 @@ def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, tmp_path)
         cloud.wait()
         stored_before = _keyframe_files(out, "r1")
         time.sleep(0.5)  # the robot streams on into the void
-        cloud = start_cloud(endpoint, out, tmp_path / "cloud-b.log")
+        cloud = start_cloud(endpoint, out, tmp_path / "cloud-b.log", zenoh_config=lab["cloud"])
         _finish(robot, tmp_path / "r1.log")
         # The restarted cloud's merger was rebuilt from the restored session: it holds
         # every keyframe of the robot's map.
-        fresh = CloudClient(endpoint)
+        fresh = CloudClient(endpoint, zenoh_config=lab["client"])
         try:
             merged = fresh.status(timeout=30.0)["merge"]["robots"]["r1"]["keyframes"]
         finally:
@@ -138,15 +152,16 @@ def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, tmp_path)
     assert (out / "r1" / "map.ply").stat().st_size > 1000
 
 
-def test_lossy_slow_link_loses_frames_but_no_keyframe(scene, tmp_path):
-    endpoint, out = free_endpoint(), tmp_path / "cloud"
-    cloud = start_cloud(endpoint, out, tmp_path / "cloud.log")
+def test_lossy_slow_link_loses_frames_but_no_keyframe(scene, lab, tmp_path):
+    endpoint, out = secure_endpoint(), tmp_path / "cloud"
+    cloud = start_cloud(endpoint, out, tmp_path / "cloud.log", zenoh_config=lab["cloud"])
     report = tmp_path / "r0.json"
     try:
         robot = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0.log", report,
                             extra=["--bandwidth-mbps", "20", "--latency-ms", "20",
                                    "--loss", "0.2", "--link-seed", "3",
-                                   "--paper-yaml", str(tmp_path / "yaml")])
+                                   "--paper-yaml", str(tmp_path / "yaml")],
+                            zenoh_config=lab["r0"])
         _finish(robot, tmp_path / "r0.log")
     finally:
         stop(cloud)
