@@ -48,3 +48,37 @@ def test_requests_carry_ids_and_errors_carry_codes():
     assert (e["code"], e["reason"], e["id"]) == ("refused", "full", "x")
     with pytest.raises(ValueError):
         protocol.request("dance")
+
+
+
+# Found by bench/fuzz_wire.py (replay control:0:155 and control:0:105): these escaped as
+# OverflowError / AttributeError, which the cloud's handlers do not catch as a bad message.
+@pytest.mark.parametrize("field, value, reason", [
+    ("fx", 10**400, "fx must be a finite number"),
+    ("cx", -10**400, "cx must be a finite number"),
+    ("distortion", [10**400, 0, 0, 0], "not a valid camera"),
+    ("invalid_depth", [float("inf")], "not a valid camera"),
+])
+def test_a_hello_camera_with_numbers_no_float_holds_is_refused(field, value, reason):
+    message = Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "s").message(1)
+    message["camera"][field] = value
+    with pytest.raises(ValueError, match=reason):
+        Hello.parse(protocol.parse_control(protocol.encode(message)))
+
+
+@pytest.mark.parametrize("poses, reason", [
+    ([[1.0] * 16], "not an object"),
+    ({"3": [10**400] * 16}, "bad keyframe poses"),
+    ({"3": [1.0] * 15}, "bad keyframe poses"),
+    ({"x": [1.0] * 16}, "bad keyframe poses"),
+    ({"3": [float("nan")] * 16}, "not finite"),
+])
+def test_bad_keyframe_poses_of_an_end_are_refused(poses, reason):
+    with pytest.raises(ValueError, match=reason):
+        protocol.keyframe_poses(protocol.parse_control(protocol.encode(protocol.end(9, poses))))
+
+
+def test_keyframe_poses_of_an_end_parse():
+    poses = protocol.keyframe_poses(protocol.end(9, {"3": [[1.0, 0, 0, 0]] * 4}))
+    assert list(poses) == [3] and poses[3].shape == (4, 4)
+    assert protocol.keyframe_poses(protocol.end(9)) == {}

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 import struct
+import time
+import zlib
 from dataclasses import replace
 
 import cv2
@@ -26,6 +28,7 @@ from fleetslam.pipeline.states import (
     PosedFrame,
     TrackedFrame,
 )
+from fleetslam.wire.binary import Reader, get_image
 from fleetslam.wire.envelope import (
     FLAG_ZSTD,
     FORMAT_VERSION,
@@ -39,6 +42,7 @@ from fleetslam.wire.envelope import (
     seal,
 )
 from fleetslam.wire.frames import (
+    MAX_FRAME_KEYPOINTS,
     decode_frame_message,
     decode_state,
     encode_frame_message,
@@ -414,6 +418,85 @@ def test_corrupted_payloads_raise_only_wire_errors():
     huge[20:24] = struct.pack("<I", 0xFFFFFFFF)  # keypoint count, after the frame header
     with pytest.raises(WireError, match="keypoint count"):
         decode_state(bytes(huge), 3, DISTORTED)
+
+
+# ---------------------------------------------------------------------------------------
+# Found by bench/fuzz_wire.py: each took the decoder far longer than the message is worth
+# (the replay command is bench/fuzz_wire.py --replay FAMILY:SEED:INDEX)
+# ---------------------------------------------------------------------------------------
+
+
+def image_field(data: bytes, codec: int, h: int, w: int, channels: int = 3) -> Reader:
+    """A payload holding one image as put_image writes it (codec 0 PNG, 1 JPEG)."""
+    return Reader(struct.pack("<BHHBBI", codec, h, w, channels, 1, len(data)) + data, "test")
+
+
+def small_jpeg(progressive: bool = False) -> bytes:
+    rgb, _ = textured_rgbd(48, 64)
+    ok, buf = cv2.imencode(".jpg", rgb, [cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)])
+    return buf.tobytes()
+
+
+def test_jpeg_size_probe_is_bounded():
+    # image_bomb:0:117: millions of 4-byte segments before the size kept the probe's Python
+    # loop busy for 2.6 s.
+    jpeg = small_jpeg()
+    assert get_image(image_field(jpeg, 1, 48, 64), "image")[0].shape == (48, 64, 3)
+    sof = jpeg.index(b"\xff\xc0")
+    for filler in (b"\xff\xfe\x00\x02", b"\xff"):
+        bomb = jpeg[:sof] + filler * 2_000_000 + jpeg[sof:]
+        start = time.perf_counter()
+        with pytest.raises(WireError, match="not a 64x48 jpeg image"):
+            get_image(image_field(bomb, 1, 48, 64), "image")
+        assert time.perf_counter() - start < 0.25
+
+
+def test_jpeg_scans_are_bounded():
+    # image_bomb:0:157: a 36 kB frame message, a progressive 4096 x 4096 JPEG with its scans
+    # repeated: libjpeg took 28 s.
+    jpeg = small_jpeg(progressive=True)
+    assert get_image(image_field(jpeg, 1, 48, 64), "image")[0].shape == (48, 64, 3)
+    first, end = jpeg.index(b"\xff\xda"), jpeg.rindex(b"\xff\xd9")
+    bomb = jpeg[:first] + jpeg[first:end] * 7 + jpeg[end:]
+    with pytest.raises(WireError, match="more than 64 JPEG scans"):
+        get_image(image_field(bomb, 1, 48, 64), "image")
+
+
+def test_png_chunks_are_bounded():
+    # image_bomb:1:1221: 930k tiny iTXt chunks (150 kB with zstd) took libpng 2.4 s.
+    rgb, _ = textured_rgbd(48, 64)
+    png = cv2.imencode(".png", rgb)[1].tobytes()
+    assert get_image(image_field(png, 0, 48, 64), "image")[0].shape == (48, 64, 3)
+    chunk = struct.pack(">I", 3) + b"iTXtk\0v" + struct.pack(">I", zlib.crc32(b"iTXtk\0v"))
+    bomb = png[:33] + chunk * 100_000 + png[33:]  # after the signature and IHDR
+    with pytest.raises(WireError, match="PNG chunk per kB"):
+        get_image(image_field(bomb, 0, 48, 64), "image")
+
+
+def test_images_are_checked_against_the_camera_before_decoding(monkeypatch):
+    # The JPEG and PNG bombs above claimed 16 Mpixels; the camera says what size to expect.
+    camera = Camera(525.0, 525.0, 319.5, 239.5)
+    frame = CapturedFrame(0, 0.5, np.zeros((600, 800, 3), np.uint8),
+                          np.zeros((600, 800), np.float32))
+    data = encode_frame_message(frame, 0, ROBOT, 0, camera, WireConfig())
+    kf = KeyframeUpload.from_frame(1, 0.5, frame.rgb, np.zeros((600, 800), np.uint16), 2)
+    upload = encode_keyframe(ROBOT, 1, kf, WireConfig())
+    decoded = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *args: decoded.append(args))
+    with pytest.raises(WireError, match="rgb image is 800 x 600, expected 640 x 480"):
+        decode_frame_message(data, camera)
+    with pytest.raises(WireError, match="keyframe colour is 400 x 300, expected 320 x 240"):
+        decode_keyframe(upload, camera)
+    assert not decoded
+
+
+def test_keypoint_count_is_refused_before_the_keypoints_are_read():
+    # zstd_bomb:0:82: 2^20 keypoints of zeros in a 64 MB payload (a few kB with zstd) were
+    # read, with their 32 MB of descriptors, before the content check refused them (0.25 s).
+    payload = bytearray(encode_state(orb_features(), 3, DISTORTED, WireConfig()))
+    payload[20:24] = struct.pack("<I", MAX_FRAME_KEYPOINTS + 1)
+    with pytest.raises(WireError, match=f"keypoint count {MAX_FRAME_KEYPOINTS + 1} exceeds"):
+        decode_state(bytes(payload), 3, DISTORTED)
 
 
 def test_a_robots_own_pose_must_be_a_finite_rigid_transform():

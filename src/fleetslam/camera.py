@@ -11,6 +11,13 @@ import cv2
 import numpy as np
 
 
+def _finite(value: int | float) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer too large for a float (JSON allows 10**400)
+        return False
+
+
 @dataclass(frozen=True)
 class Camera:
     fx: float
@@ -111,12 +118,12 @@ class Camera:
             values["distortion"] = tuple(float(v) for v in values.get("distortion", ()))
             values["invalid_depth"] = tuple(int(v) for v in values.get("invalid_depth", (0,)))
             camera = Camera(**values)
-        except (ValueError, TypeError) as exc:
+        except (ValueError, TypeError, OverflowError) as exc:  # float(10**400), int(inf)
             raise ValueError(f"{where}: not a valid camera: {exc}") from exc
         for name in ("fx", "fy", "cx", "cy", "depth_scale"):
             value = getattr(camera, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value) or (name != "cx" and name != "cy"
+                    or not _finite(value) or (name != "cx" and name != "cy"
                                                      and value <= 0):
                 raise ValueError(f"{where}: {name} must be a finite number"
                                  f"{'' if name in ('cx', 'cy') else ' > 0'}, got {value!r}")

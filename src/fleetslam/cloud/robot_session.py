@@ -372,7 +372,7 @@ class RobotSession:
 
     def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
         try:
-            header, upload = decode_keyframe(data)
+            header, upload = decode_keyframe(data, self.state.hello.camera)
         except WireError as exc:
             return self._reject("keyframe", str(exc))
         if header.robot_id != self.robot_id:
@@ -430,13 +430,11 @@ class RobotSession:
                 # the end that follows them: look again once those in flight are in.
                 threading.Timer(0.05, self.submit_control, (message, arrival)).start()
                 return
-            poses = message.get("keyframe_poses") or {}
             try:
-                for index, T in poses.items():
-                    self.state.robot_keyframe_poses[int(index)] = np.asarray(T, float).reshape(4, 4)
-            except (TypeError, ValueError) as exc:
-                return self._reply(protocol.error(protocol.Code.BAD_MESSAGE,
-                                                  f"bad keyframe poses: {exc}"))
+                poses = protocol.keyframe_poses(message)
+            except ValueError as exc:
+                return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
+            self.state.robot_keyframe_poses.update(poses)
             missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
                 self.robot_id, i)]
             if missing:

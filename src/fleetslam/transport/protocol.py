@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
+import numpy as np
+
 from fleetslam.camera import Camera
 
 PROTOCOL = 1
@@ -119,6 +121,24 @@ def end(last_seq: int, keyframe_poses: dict[str, list] | None = None) -> dict[st
     if keyframe_poses is not None:
         message["keyframe_poses"] = keyframe_poses
     return message
+
+
+def keyframe_poses(message: dict[str, Any]) -> dict[int, np.ndarray]:
+    """An ``end`` message's keyframe poses (frame index -> 4 x 4); ValueError saying what is
+    wrong."""
+    poses = message.get("keyframe_poses") or {}
+    if not isinstance(poses, dict):  # a list has no .items(): AttributeError otherwise
+        raise ValueError("bad keyframe poses: not an object of frame index -> pose")
+    out: dict[int, np.ndarray] = {}
+    try:
+        for index, T in poses.items():
+            out[int(index)] = np.asarray(T, float).reshape(4, 4)
+    except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: 1e400-digit ints
+        raise ValueError(f"bad keyframe poses: {exc}") from None
+    # Recorded as the robot's own poses, as they are: like a frame's (wire/frames.py).
+    if not all(np.isfinite(T).all() for T in out.values()):
+        raise ValueError("bad keyframe poses: not finite")
+    return out
 
 
 def ending() -> dict[str, Any]:

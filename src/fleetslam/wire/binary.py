@@ -165,6 +165,19 @@ _CODEC_IDS = {"png": 0, "jpeg": 1}
 _CODEC_NAMES = {v: k for k, v in _CODEC_IDS.items()}
 # JPEG start-of-frame markers (baseline, progressive, ...): they carry the image size.
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+# Markers (and fill bytes) walked before the size is found: a real JPEG has a handful (APPn,
+# DQT, COM); a payload of millions of 4-byte segments would keep this Python loop busy for
+# seconds (bench/fuzz_wire.py).
+_JPEG_MAX_MARKERS = 1024
+# Scans (SOS markers) a JPEG may have: libjpeg's progressive scripts use at most 10. Every
+# scan is a pass over the whole image, so thousands of tiny scans take libjpeg seconds at
+# MAX_IMAGE_PIXELS (a 36 kB message: 28 s). Entropy-coded data stuffs 0xFF as FF 00, so
+# counting FF DA overcounts at most (a thumbnail in an APP segment).
+MAX_JPEG_SCANS = 64
+# PNG chunks allowed per kB of image: OpenCV's libpng writes 8 kB IDAT chunks, but libpng
+# spends microseconds on every chunk however small, so 14 MB of 15-byte iTXt chunks (a 150 kB
+# message once zstd-compressed) took it 2.4 s (bench/fuzz_wire.py).
+_PNG_CHUNKS_PER_KB = 1
 
 
 def check_codec(codec: str) -> None:
@@ -193,8 +206,8 @@ def _coded_size(data: bytes, codec: str) -> tuple[int, int] | None:
     if data[:2] != b"\xff\xd8":
         return None
     i = 2
-    while i + 9 <= len(data):
-        if data[i] != 0xFF:
+    for _ in range(_JPEG_MAX_MARKERS):
+        if i + 9 > len(data) or data[i] != 0xFF:
             return None
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
@@ -206,6 +219,17 @@ def _coded_size(data: bytes, codec: str) -> tuple[int, int] | None:
         (length,) = struct.unpack(">H", data[i + 2:i + 4])
         i += 2 + length
     return None
+
+
+def _png_chunks_bounded(data: bytes) -> bool:
+    """At most 16 chunks plus _PNG_CHUNKS_PER_KB per kB (a walk of at most that many steps)."""
+    i = 8
+    for _ in range(16 + _PNG_CHUNKS_PER_KB * len(data) // 1024):
+        if i + 8 > len(data):
+            return True
+        (length,) = struct.unpack_from(">I", data, i)
+        i += 12 + length
+    return i + 8 > len(data)
 
 
 def put_image(w: Writer, image: np.ndarray, codec: str, jpeg_quality: int = 90) -> None:
@@ -226,8 +250,11 @@ def put_image(w: Writer, image: np.ndarray, codec: str, jpeg_quality: int = 90) 
     w.blob(_encode(image, codec, jpeg_quality))
 
 
-def get_image(r: Reader, what: str) -> tuple[np.ndarray, str]:
-    """The image put by :func:`put_image` and its codec; checks size, channels and type."""
+def get_image(r: Reader, what: str, size: tuple[int, int] | None = None
+              ) -> tuple[np.ndarray, str]:
+    """The image put by :func:`put_image` and its codec; checks size, channels and type.
+    With ``size`` (height, width), an image of another size is refused before decoding:
+    decoding is the expensive part, and a small message can claim a huge image."""
     codec_id, h, width, channels, itemsize = r.unpack("BHHBB", f"{what} header")
     data = r.blob(what)
     if codec_id not in _CODEC_NAMES:
@@ -238,8 +265,14 @@ def get_image(r: Reader, what: str) -> tuple[np.ndarray, str]:
         raise WireError(f"{what}: {channels} channels of {itemsize} bytes not supported")
     if h * width > MAX_IMAGE_PIXELS:
         raise WireError(f"{what}: {width}x{h} pixels exceed the limit of {MAX_IMAGE_PIXELS}")
+    if size is not None and (h, width) != tuple(size):
+        raise WireError(f"{what} is {width} x {h}, expected {size[1]} x {size[0]}")
     if _coded_size(data, codec) != (width, h):
         raise WireError(f"{what}: not a {width}x{h} {codec} image")
+    if codec == "jpeg" and data.count(b"\xff\xda") > MAX_JPEG_SCANS:
+        raise WireError(f"{what}: more than {MAX_JPEG_SCANS} JPEG scans")
+    if codec == "png" and not _png_chunks_bounded(data):
+        raise WireError(f"{what}: more than {_PNG_CHUNKS_PER_KB} PNG chunk per kB")
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     dtype = np.uint8 if itemsize == 1 else np.uint16
     expected = (h, width) if channels == 1 else (h, width, 3)

@@ -130,7 +130,7 @@ def _put_depth_image(w: Writer, depth_m: np.ndarray, camera: Camera) -> None:
 def _get_depth_image(r: Reader, camera: Camera) -> np.ndarray:
     (mode,) = r.unpack("B", "depth image mode")
     if mode == _DEPTH_PNG:
-        raw, _ = get_image(r, "depth image")
+        raw, _ = get_image(r, "depth image", (camera.height, camera.width))
         if raw.dtype != np.uint16 or raw.ndim != 2:
             raise WireError(f"depth image is {raw.shape} {raw.dtype}, expected 16-bit grey")
         return camera.depth_to_metres(raw)
@@ -181,8 +181,10 @@ def _check_keypoints(kp: np.ndarray) -> None:
 
 def _keypoint_count(r: Reader) -> int:
     (n,) = r.unpack("I", "keypoint count")
-    if n > MAX_KEYPOINTS:
-        raise WireError(f"keypoint count {n} exceeds the limit of {MAX_KEYPOINTS}")
+    # _check_content refuses more than MAX_FRAME_KEYPOINTS anyway: refusing them here saves
+    # reading up to 60 MB of keypoints and descriptors a zstd bomb can declare (~0.3 s).
+    if n > MAX_FRAME_KEYPOINTS:
+        raise WireError(f"keypoint count {n} exceeds the limit of {MAX_FRAME_KEYPOINTS}")
     return n
 
 
@@ -366,7 +368,7 @@ def _put_captured(w: Writer, s: CapturedFrame, camera: Camera, config: WireConfi
 
 
 def _get_captured(r: Reader, index: int, timestamp: float, camera: Camera) -> CapturedFrame:
-    rgb, _ = get_image(r, "rgb image")
+    rgb, _ = get_image(r, "rgb image", (camera.height, camera.width))
     if rgb.ndim != 3:
         raise WireError(f"rgb image has shape {rgb.shape}")
     return CapturedFrame(index, timestamp, rgb, _get_depth_image(r, camera))
@@ -381,7 +383,7 @@ def _put_detected(w: Writer, s: DetectedFrame, camera: Camera, config: WireConfi
 
 
 def _get_detected(r: Reader, index: int, timestamp: float, camera: Camera) -> DetectedFrame:
-    gray, _ = get_image(r, "grey image")
+    gray, _ = get_image(r, "grey image", (camera.height, camera.width))
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise WireError(f"grey image is {gray.shape} {gray.dtype}")
     depth = _get_depth_image(r, camera)

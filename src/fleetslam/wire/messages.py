@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fleetslam.camera import Camera
 from fleetslam.config import WireConfig
 from fleetslam.wire.binary import Reader, Writer, get_image, put_image
 from fleetslam.wire.envelope import Header, Kind, WireError, open_message, seal
@@ -105,19 +106,22 @@ def encode_keyframe(robot_id: str, seq: int, kf: KeyframeUpload, config: WireCon
                 compress=config.compress, level=config.zstd_level)
 
 
-def decode_keyframe(data: bytes) -> tuple[Header, KeyframeUpload]:
+def decode_keyframe(data: bytes, camera: Camera | None = None) -> tuple[Header, KeyframeUpload]:
+    """With ``camera`` (the sender's), images of another size than the camera's decimated by
+    the stride are refused before they are decoded (a small message can claim a huge one)."""
     header, payload = _open(data, Kind.KEYFRAME)
     r = Reader(payload, "keyframe payload")
     index, timestamp, stride = r.unpack("qdH", "keyframe header")
-    rgb, _ = get_image(r, "keyframe colour")
-    depth, codec = get_image(r, "keyframe depth")
+    if stride < 1:
+        raise WireError("keyframe stride 0")
+    size = None if camera is None else (-(-camera.height // stride), -(-camera.width // stride))
+    rgb, _ = get_image(r, "keyframe colour", size)
+    depth, codec = get_image(r, "keyframe depth", size)
     r.finish()
     if rgb.ndim != 3 or depth.ndim != 2 or depth.dtype != np.uint16 or codec != "png":
         raise WireError(f"keyframe colour {rgb.shape} / depth {depth.shape} {depth.dtype} "
                         f"({codec}) are not h x w x 3 and a 16-bit PNG")
     if rgb.shape[:2] != depth.shape:
         raise WireError(f"keyframe colour {rgb.shape[:2]} and depth {depth.shape} differ in size")
-    if stride < 1:
-        raise WireError("keyframe stride 0")
     _check_timestamp(header, timestamp)
     return header, KeyframeUpload(index, timestamp, stride, rgb, depth)
