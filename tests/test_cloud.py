@@ -414,6 +414,44 @@ def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(m
         server.close()
 
 
+def test_a_robot_flooding_bad_frames_is_paused_and_then_heard_again(messages, tmp_path):
+    """Hundreds of rejected frames in a second: the session stops reading the robot's frames
+    for a while (cheap drops instead of decoding), says so once, and tracks its good frames
+    once the pause is over."""
+    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.cloud.store import CloudStore
+    from fleetslam.transport.protocol import Hello
+
+    seq0, msgs0, poses0 = messages["r0"]
+    config = Config()
+    config.transport.max_rejections_per_s = 20
+    config.transport.misbehaving_pause_s = 0.5
+    replies: list[dict] = []
+    session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), config,
+                                CloudStore(tmp_path), lambda k, d: replies.append(json.loads(d))
+                                if k == keys.reply("r0") else None)
+    try:
+        for _ in range(30):  # decoded and rejected: trips the pause
+            session.submit_frame(msgs0[0][: len(msgs0[0]) // 2], time.monotonic())
+        session.drain()
+        for _ in range(200):  # dropped unread
+            session.submit_frame(msgs0[0][: len(msgs0[0]) // 2], time.monotonic())
+        session.drain()
+        counts = session.counts()
+        assert counts["pauses (too many rejected)"] == 1
+        assert counts["dropped unread (too many rejected)"] == 200
+        assert counts["rejected frame"] == 30 and len(replies) == 1  # one reason per second
+        time.sleep(0.6)
+        for data in msgs0:
+            session.submit_frame(data, time.monotonic())
+        session.drain()
+        assert session.counts()["frames"] == len(msgs0)
+        np.testing.assert_array_equal(np.array([r.T_world_camera for r in session.state.rows]),
+                                      poses0)
+    finally:
+        session.close()
+
+
 def test_a_resent_merge_request_merges_once_and_replies_carry_its_id(cloud):
     """A client resends its request until answered; the cloud merges once per request id
     and sends the same reply again to a resend that comes after the merge."""

@@ -372,6 +372,10 @@ class TransportConfig:
     # An unfinished session that hears nothing from its robot this long is checkpointed and
     # closed (its threads and memory freed); the robot's next message restores it.
     idle_session_s: float = 900.0
+    # A robot rejected more often than this (a broken or hostile client) has its frames and
+    # uploads dropped unread for a while, so its flood cannot starve the other sessions.
+    max_rejections_per_s: float = 50.0
+    misbehaving_pause_s: float = 2.0
     # Keyframe uploads the cloud stores per robot (about 0.2 MB each at the map's stride).
     max_keyframes: int = 20_000
     # When a robot says it ended, frames it sent before may still be on their way (they

@@ -142,6 +142,8 @@ class RobotSession:
             if state.hello.offload_at in CLOUD_TRACKS else []
         self.finished: FinishedMap | None = None
         self._last_rejection_reply = -float("inf")
+        self._rejected_since_reply = 0
+        self._paused_until = -float("inf")
         # The frame and keyframe threads both count, and status reads the counts.
         self._counts_lock = threading.Lock()
         self.last_heard = time.monotonic()
@@ -179,7 +181,8 @@ class RobotSession:
 
     def submit_frame(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
-        self._frames.put(("frame", data, arrival))
+        if not self._paused():
+            self._frames.put(("frame", data, arrival))
 
     def submit_control(self, message: dict[str, Any], arrival: float) -> None:
         self.last_heard = time.monotonic()
@@ -187,7 +190,17 @@ class RobotSession:
 
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
-        self._keyframes.put(("keyframe", data, arrival))
+        if not self._paused():
+            self._keyframes.put(("keyframe", data, arrival))
+
+    def _paused(self) -> bool:
+        """A robot whose messages keep being rejected (a broken or hostile client) has its
+        frames and uploads dropped unread for a while: decoding them would take the CPU
+        the other robots' sessions need. Control messages still pass."""
+        if time.monotonic() >= self._paused_until:
+            return False
+        self.count("dropped unread (too many rejected)")
+        return True
 
     def count(self, name: str, n: int = 1) -> None:
         with self._counts_lock:
@@ -257,18 +270,36 @@ class RobotSession:
 
     def _reject(self, what: str, reason: str,
                 code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
-        self.count(f"rejected {what}")
-        log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
-        # The robot hears why, at most once per interval (a flood of bad messages must not
-        # become a flood of replies).
+        # The robot hears why, and the log says so, at most once per interval (a flood of
+        # bad messages must not become a flood of replies or log lines).
+        cfg = self.config.transport
         now = time.monotonic()
         with self._counts_lock:  # the frame and keyframe threads both reject
+            self.state.counts[f"rejected {what}"] += 1
             due = now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S
             if due:
+                burst, self._rejected_since_reply = self._rejected_since_reply, 0
                 self._last_rejection_reply = now
-        if due:
-            self._reply(protocol.error(code, f"{what} rejected: {reason}", rejected=what,
-                                       **extra))
+            else:
+                # Counted since the last reason, so within one interval.
+                self._rejected_since_reply += 1
+                if self._rejected_since_reply >= \
+                        cfg.max_rejections_per_s * REJECTION_REPLY_INTERVAL_S:
+                    self._rejected_since_reply = 0
+                    paused = now < self._paused_until  # (its backlog is still rejected)
+                    self._paused_until = now + cfg.misbehaving_pause_s
+                    if not paused:
+                        self.state.counts["pauses (too many rejected)"] += 1
+                        log.warning("robot %s: over %.0f rejected messages per second: "
+                                    "its frames and uploads are dropped unread for %.1f s",
+                                    self.robot_id, cfg.max_rejections_per_s,
+                                    cfg.misbehaving_pause_s)
+        if not due:
+            return
+        more = f" ({burst} more rejected since the last reason)" if burst else ""
+        log.warning("robot %s: %s rejected: %s%s", self.robot_id, what, reason, more)
+        self._reply(protocol.error(code, f"{what} rejected: {reason}{more}", rejected=what,
+                                   **extra))
 
     def _reply(self, message: dict[str, Any]) -> None:
         self.publish(keys.reply(self.robot_id), protocol.encode(message))

@@ -18,7 +18,7 @@ from typing import Any
 import zenoh
 
 from fleetslam.cloud.merger_service import MergerService
-from fleetslam.cloud.robot_session import RobotSession
+from fleetslam.cloud.robot_session import REJECTION_REPLY_INTERVAL_S, RobotSession
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
 from fleetslam.merging.global_map import build_global_map, merge_summary
@@ -35,6 +35,30 @@ MERGE_RUNNING = b""
 MERGES_REMEMBERED = 16
 
 
+class Throttle:
+    """Says whether something keyed (a reply key, a log topic) is due again: at most once
+    per interval per key. The table forgets old keys, so a flood of made-up ids cannot grow
+    it without bound."""
+
+    MAX_KEYS = 4096
+
+    def __init__(self, interval_s: float) -> None:
+        self.interval_s = interval_s
+        self._last: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def due(self, key: str) -> bool:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -float("inf")) < self.interval_s:
+                return False
+            if len(self._last) >= self.MAX_KEYS:
+                self._last = {k: t for k, t in self._last.items()
+                              if now - t < self.interval_s}
+            self._last[key] = now
+            return True
+
+
 class CloudServer:
     def __init__(self, config: Config, out_dir: Path, endpoint: str | None = None) -> None:
         self.config = config
@@ -49,6 +73,7 @@ class CloudServer:
         self._subscribers: list[Any] = []
         self.stopped = threading.Event()
         self.unrouted = 0  # messages on keys that name no valid robot
+        self._throttle = Throttle(REJECTION_REPLY_INTERVAL_S)
         self._reaper = threading.Thread(target=self._close_idle_sessions, name="cloud-idle",
                                         daemon=True)
 
@@ -100,8 +125,7 @@ class CloudServer:
             session = self._session(robot_id)
             if session is None:
                 self._error(keys.reply(robot_id), protocol.Code.NO_SESSION,
-                            "no session: send a hello first")
-                log.warning("robot %s: %s rejected: no session (no hello yet)", robot_id, kind)
+                            f"{kind} rejected: no session: send a hello first")
                 return
             if kind == "frame":
                 session.submit_frame(data, arrival)
@@ -109,7 +133,8 @@ class CloudServer:
                 session.submit_keyframe(data, arrival)
         except ValueError as exc:
             self._count_unrouted()
-            log.warning("message on %s rejected: %s", sample.key_expr, exc)
+            if self._throttle.due("unrouted"):
+                log.warning("message on %s rejected: %s", sample.key_expr, exc)
         except Exception:
             self._count_unrouted()
             log.exception("message on %s failed", sample.key_expr)
@@ -161,6 +186,12 @@ class CloudServer:
             return session
 
     def _error(self, key: str, code: protocol.Code, reason: str, **extra: Any) -> None:
+        """Tell the sender on ``key`` why, and log it. A flood of bad messages must not become
+        a flood of replies and log lines: at most one per interval per key, except replies
+        to a request id (a client waits for those)."""
+        if "id" not in extra and not self._throttle.due(key):
+            return
+        log.warning("%s: %s", key, reason)
         self.publish(key, protocol.encode(protocol.error(code, reason, **extra)))
 
     def _on_robot_control(self, robot_id: str, data: bytes, arrival: float) -> None:
@@ -169,8 +200,8 @@ class CloudServer:
             message = protocol.parse_control(data)
             hello = Hello.parse(message) if message["type"] == "hello" else None
         except ValueError as exc:
-            log.warning("robot %s: control message rejected: %s", robot_id, exc)
-            return self._error(reply, protocol.Code.BAD_MESSAGE, str(exc))
+            return self._error(reply, protocol.Code.BAD_MESSAGE,
+                               f"control message rejected: {exc}")
         session = self._session(robot_id)
         if hello is not None and session is not None \
                 and session.state.hello.offload_at != hello.offload_at:
@@ -186,7 +217,6 @@ class CloudServer:
                         len(self.sessions) >= self.config.transport.max_sessions:
                     reason = (f"the cloud serves at most {self.config.transport.max_sessions} "
                               f"robots at once (transport.max_sessions)")
-                    log.warning("robot %s: refused: %s", robot_id, reason)
                     return self._error(reply, protocol.Code.REFUSED, reason)
                 session = self.sessions.get(robot_id) or RobotSession.open(
                     robot_id, hello, self.config, self.store, self.publish, self.merger.submit)
@@ -205,8 +235,8 @@ class CloudServer:
         try:
             message = protocol.parse_control(data)
         except ValueError as exc:
-            log.warning("cloud control message rejected: %s", exc)
-            return self._error(keys.CLOUD_REPLY, protocol.Code.BAD_MESSAGE, str(exc))
+            return self._error(keys.CLOUD_REPLY, protocol.Code.BAD_MESSAGE,
+                               f"control message rejected: {exc}")
         rid = protocol.request_id(message)
         if message["type"] == "merge":
             self._request_merge(rid)
@@ -218,7 +248,6 @@ class CloudServer:
             self.publish(keys.CLOUD_REPLY, protocol.encode(
                 protocol.status(rid, robots, self.merger.status())))
         else:
-            log.warning("cloud control message of unknown type %r", message["type"])
             self._error(keys.CLOUD_REPLY, protocol.Code.UNKNOWN_TYPE,
                         f"unknown request {message['type']!r}", id=rid)
 
