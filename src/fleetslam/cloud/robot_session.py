@@ -270,12 +270,15 @@ class RobotSession:
 
     def _reject(self, what: str, reason: str,
                 code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
-        # The robot hears why, and the log says so, at most once per interval (a flood of
-        # bad messages must not become a flood of replies or log lines).
+        # The log gives every reason, except while the robot is paused for flooding; the
+        # robot hears why at most once per interval (a flood of bad messages must not
+        # become a flood of replies).
         cfg = self.config.transport
         now = time.monotonic()
         with self._counts_lock:  # the frame and keyframe threads both reject
             self.state.counts[f"rejected {what}"] += 1
+            if now >= self._paused_until:
+                log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
             due = now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S
             if due:
                 burst, self._rejected_since_reply = self._rejected_since_reply, 0
@@ -297,7 +300,6 @@ class RobotSession:
         if not due:
             return
         more = f" ({burst} more rejected since the last reason)" if burst else ""
-        log.warning("robot %s: %s rejected: %s%s", self.robot_id, what, reason, more)
         self._reply(protocol.error(code, f"{what} rejected: {reason}{more}", rejected=what,
                                    **extra))
 

@@ -186,10 +186,10 @@ class CloudServer:
             return session
 
     def _error(self, key: str, code: protocol.Code, reason: str, **extra: Any) -> None:
-        """Tell the sender on ``key`` why, and log it. A flood of bad messages must not become
-        a flood of replies and log lines: at most one per interval per key, except replies
-        to a request id (a client waits for those)."""
-        if "id" not in extra and not self._throttle.due(key):
+        """Tell the sender on ``key`` why, and log it. A flood of the same bad message must
+        not become a flood of replies and log lines: the same reason at most once per
+        interval per key; replies to a request id always go (a client waits for those)."""
+        if "id" not in extra and not self._throttle.due(f"{key} {reason}"):
             return
         log.warning("%s: %s", key, reason)
         self.publish(key, protocol.encode(protocol.error(code, reason, **extra)))
