@@ -1,11 +1,13 @@
 """Request / reply with a running cloud: fresh client sessions, each asking `status` at once.
 
-    .venv/bin/python bench/control_requests.py [--clients 200] [--out bench/results/control_requests.json]
+    .venv/bin/python bench/control_requests.py [--clients 200] [--secure] [--out FILE.json]
 
 A real cloud process listens on loopback; each client opens its own Zenoh session (as
 `fleetslam merge --connect` does), asks `status` immediately, and closes. A request that is
 lost is resent (same id) every second until its reply arrives; the table gives the latency
-from the first send to the reply, and how many were answered within the deadline.
+from the first send to the reply, and how many were answered within the deadline. With
+``--secure``, as a lab deploys it: mutual TLS, the cloud as the Zenoh router with access
+control, the clients holding the operator's certificate.
 """
 
 from __future__ import annotations
@@ -19,23 +21,31 @@ import numpy as np
 
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, stop
 from fleetslam.report import format_table
+from fleetslam.transport.certs import make_lab
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clients", type=int, default=200)
     parser.add_argument("--deadline-s", type=float, default=30.0)
-    parser.add_argument("--out", default=str(Path(__file__).parent / "results" /
-                                             "control_requests.json"))
+    parser.add_argument("--secure", action="store_true")
+    parser.add_argument("--out")
     args = parser.parse_args()
+    name = "control_requests_secure" if args.secure else "control_requests"
+    args.out = args.out or str(Path(__file__).parent / "results" / f"{name}.json")
     endpoint = free_endpoint()
     runs = Path("/tmp") / f"fleetslam-control-{time.strftime('%Y%m%d-%H%M%S')}"
-    cloud = start_cloud(endpoint, runs / "cloud", runs / "cloud.log")
+    cloud_config = client_config = None
+    if args.secure:
+        lab = make_lab(runs / "lab", ["localhost"], [])
+        cloud_config, client_config = str(lab["cloud"]), str(lab["client"])
+        endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
+    cloud = start_cloud(endpoint, runs / "cloud", runs / "cloud.log", zenoh_config=cloud_config)
     latencies, open_s, failures = [], [], []
     try:
         for i in range(args.clients):
             start = time.perf_counter()
-            client = CloudClient(endpoint, reach_deadline_s=args.deadline_s)
+            client = CloudClient(endpoint, args.deadline_s, client_config)
             opened = time.perf_counter()
             try:
                 client.status(timeout=args.deadline_s)
