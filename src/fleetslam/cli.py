@@ -186,30 +186,27 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
-def cmd_merge(args: argparse.Namespace, config: Config) -> int:
+def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[str, Any]:
+    """One request (merge, status) to the running cloud at ``--connect``, as the operator."""
     from fleetslam.launch import CloudClient
 
     client = CloudClient(args.connect, config.transport.reach_deadline_s,
                          config.transport.zenoh_config or None)
     try:
-        summary = client.merge()
+        return client.merge() if request == "merge" else client.status()
     finally:
         client.close()
+
+
+def cmd_merge(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.system import summary_table
 
-    print(summary_table(summary))
+    print(summary_table(_ask_cloud(args, config, "merge")))
     return 0
 
 
 def cmd_status(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.launch import CloudClient
-
-    client = CloudClient(args.connect, config.transport.reach_deadline_s,
-                         config.transport.zenoh_config or None)
-    try:
-        status = client.status()
-    finally:
-        client.close()
+    status = _ask_cloud(args, config, "status")
     merge = status.get("merge") or {}
     merged = merge.get("robots", {})
     print(f"{'robot':<12} {'frames':>7} {'finished':>9} {'keyframes':>10} {'joined to':>10}")
