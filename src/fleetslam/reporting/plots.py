@@ -53,14 +53,28 @@ Plot = Callable[[RunData, Path], "Figure | str"]
 # -- geometry ----------------------------------------------------------------------------
 
 
+def _up(R: np.ndarray) -> np.ndarray:
+    """The up direction of cameras (N, 3, 3) held without roll, as hand-held and robot
+    cameras are: every camera's x axis is then horizontal, so up is the direction
+    orthogonal to all of them (their covariance's least eigenvector), which a camera
+    looking down does not tilt. Cameras that barely turned leave that direction open in
+    the plane across their x axis: there, the mean -y of the cameras (pitch tilts it)."""
+    x = R[:, :, 0]
+    mean_up = -R[:, :, 1].mean(axis=0)
+    w, v = np.linalg.eigh(x.T @ x / len(x))  # ascending eigenvalues
+    if w[1] > 0.02:  # x axes spread over more than about 8 degrees of heading
+        up = v[:, 0] * (1.0 if v[:, 0] @ mean_up >= 0 else -1.0)
+    else:
+        up = mean_up - (mean_up @ v[:, 2]) * v[:, 2]
+    norm = np.linalg.norm(up)
+    return up / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])
+
+
 def view_basis(poses: np.ndarray, spread: np.ndarray | None = None) -> np.ndarray:
     """Rows: horizontal axis 1 (the main direction of ``spread``: points (N, 3), default
     the camera positions), horizontal axis 2, up (the cameras' mean up vector)."""
     finite = poses[np.isfinite(poses).all(axis=(1, 2))]
-    up = -finite[:, :3, 1].mean(axis=0) if len(finite) else np.array([0.0, 0.0, 1.0])
-    if np.linalg.norm(up) < 1e-6:  # cameras looking every way: no better guess than z
-        up = np.array([0.0, 0.0, 1.0])
-    up = up / np.linalg.norm(up)
+    up = _up(finite[:, :3, :3]) if len(finite) else np.array([0.0, 0.0, 1.0])
     if spread is None:
         spread = finite[:, :3, 3] if len(finite) else np.eye(3)
     p = spread - spread.mean(axis=0)
