@@ -78,6 +78,11 @@ def test_report_of_a_merged_run_with_ground_truth(run_dir, capsys):
     assert (run_dir / "report" / "overview.png").is_file()
     text = page.read_text()
     assert "Ground truth (evaluation only" in text and "joint ATE" in text
+    # The cloud's report of the same folder: no ground truth read, the rest all there.
+    images = check_page(write_report(run_dir, ground_truth=False))
+    assert "error_over_time.png" not in images and "global_map.png" in images
+    assert not (run_dir / "report" / "error_over_time.png").exists()
+    assert "Ground truth: not read" in page.read_text()
 
 
 def test_report_without_ground_truth(run_dir, tmp_path):

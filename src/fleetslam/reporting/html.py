@@ -37,6 +37,10 @@ def _table(headers: list[str], rows: list[list[Any]]) -> str:
 
 
 def _ground_truth_line(run: RunData) -> str:
+    if not run.ground_truth_read:
+        return ("Ground truth: not read for this report (the cloud's own report: the cloud "
+                "never reads it), so the plots that need it are left out; `fleetslam report` "
+                "on this folder adds them where the robots' sequences are.")
     with_gt = [r.name for r in run.robots if r.own is not None and r.own.has_gt]
     if not with_gt:
         return ("Ground truth: none for this run, so the plots that need it (error over time, "

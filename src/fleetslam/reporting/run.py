@@ -67,6 +67,7 @@ class RunData:
     robots: list[RobotData]
     map_points: np.ndarray | None = None  # global_map.ply, (N, 3) in the global frame
     map_colors: np.ndarray | None = None  # (N, 3) uint8
+    ground_truth_read: bool = True  # False: made without ground truth (the cloud's report)
     joint_gt: bool = False  # the merged robots share one ground-truth world
     bandwidth_mbps: float | None = None  # the emulated link, if limited
     notes: list[str] = field(default_factory=list)
@@ -92,11 +93,8 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
         summary = json.loads(path.read_text())
     except ValueError as exc:
         raise ValueError(f"{path}: not JSON: {exc}") from exc
-    run = RunData(folder, summary, [])
+    run = RunData(folder, summary, [], ground_truth_read=ground_truth)
     sequences: dict[str, RgbdSequence] = {}
-    if not ground_truth:
-        run.notes.append("made without ground truth (the cloud never reads it); "
-                         "`fleetslam report` on this folder adds it where the sequences are")
     merge = summary.get("merge") or {}
     global_files = merge.get("global_trajectories") or {}
     for r in summary.get("robots", []):
