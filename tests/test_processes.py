@@ -203,4 +203,13 @@ def test_demo_runs_cloud_and_robots_as_processes(scene, tmp_path, capsys):
         assert (out / "global" / f"{name}.tum").exists()
     assert (out / "global_map.ply").exists() and (out / "global_map.bt").exists()
     assert (out / "logs" / "cloud.log").exists()
-    assert "joint ATE of the global trajectories" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "joint ATE of the global trajectories" in printed
+    # The report: rebuilt by the demo with ground truth over the cloud's own (without it);
+    # each robot's record of what it put on its link gives the link plot.
+    assert f"report: {out / 'report' / 'report.html'}" in printed
+    for name in ("link.png", "error_over_time.png", "global_map.png", "overview.png"):
+        assert (out / "report" / name).is_file(), name
+    sends = json.loads((out / "r0" / "robot_report.json").read_text())["sends"]
+    assert sum(kind == "frame" for _, _, _, kind, _ in sends) == N_FRAMES
+    assert "sends" not in summary["robots"][0]["robot"]  # summary.json stays small

@@ -1,4 +1,4 @@
-"""The ``fleetslam`` command: demo, run, cloud, robot, merge, plan, generate."""
+"""The ``fleetslam`` command: demo, run, cloud, robot, merge, plan, report, generate."""
 
 from __future__ import annotations
 
@@ -31,13 +31,23 @@ def _scene_dir(config: Config) -> Path:
     return _cache_dir() / f"synthetic-seed{s.seed}-r{s.n_robots}-f{s.frames_per_robot}"
 
 
-def _finish(summary: dict, out: Path) -> None:
+def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
+    from fleetslam.reporting import write_report
     from fleetslam.system import summary_table
 
+    page = write_report(out, show_progress=not quiet)
     print(summary_table(summary))
     merged = (summary.get("merge") or {}).get("members")
     print(f"\noutputs in {out}/ (summary.json, <robot>/trajectory.tum, <robot>/map.ply"
           + (", global/<robot>.tum, global_map.ply, global_map.bt)" if merged else ")"))
+    print(f"report: {page}")
+
+
+def cmd_report(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.reporting import write_report
+
+    print(write_report(Path(args.run_dir), show_progress=not args.quiet))
+    return 0
 
 
 def cmd_generate(args: argparse.Namespace, config: Config) -> int:
@@ -80,7 +90,7 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
                            link_args=_link_args(args), show_progress=not args.quiet,
                            zenoh_config=config.transport.zenoh_config or None,
                            secure=not args.insecure)
-    _finish(summary, out)
+    _finish(summary, out, args.quiet)
     return 0
 
 
@@ -233,7 +243,7 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
         robots.append((name, spec, open_robot(spec, camera)))
     out = Path(args.out) if args.out else _default_out("run")
     summary = run_fleet(robots, config, out, show_progress=not args.quiet)
-    _finish(summary, out)
+    _finish(summary, out, args.quiet)
     return 0
 
 
@@ -407,6 +417,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="a robot id (repeat); in an existing lab, adds the robot (then "
                        "restart the cloud: its access control admits the lab's robots)")
     certs.set_defaults(func=cmd_certs)
+
+    report = sub.add_parser("report", help="(re)build a finished run's report/ (PNG plots "
+                            "and report.html); prints the page's path")
+    report.add_argument("run_dir", metavar="RUN_DIR", help="a run folder with summary.json")
+    report.set_defaults(func=cmd_report)
 
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")

@@ -101,6 +101,7 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         if report.exists():
             robot["robot"] = json.loads(report.read_text())
             robot["robot"].pop("cloud_summary", None)
+            robot["robot"].pop("sends", None)  # per message: robot_report.json keeps it
     summary["merge_wall_time_s"] = summary["wall_time_s"]
     summary["wall_time_s"] = time.perf_counter() - started
     summary["deployment"] = {"endpoint": endpoint, "tls": endpoint.startswith("tls/"),

@@ -217,7 +217,11 @@ def make_summary(runs: list[RobotRun], merger: MapMerger, global_map: GlobalMap 
     }
 
 
-def summary_table(summary: dict[str, Any]) -> str:
+Table = tuple[list[str], list[list[Any]]]  # headers, rows (the text and the HTML report)
+
+
+def robot_table(summary: dict[str, Any]) -> Table:
+    """One row per robot: frames, losses, loops, ATE (if scored), speed, map size."""
     rows = []
     for r in summary["robots"]:
         ate = r["ate"]["rmse_m"] * 100 if r.get("ate") else None
@@ -225,25 +229,36 @@ def summary_table(summary: dict[str, Any]) -> str:
         rows.append([r["name"], r["frames"], r["keyframes"], r["lost_frames"],
                      loops.get("relocalisations"), loops.get("loops_accepted"), ate,
                      r.get("tracking_fps"), r["map_points"]])
-    text = format_table(["robot", "frames", "keyframes", "lost", "relocalised", "loops",
-                         "ATE RMSE cm", "fps", "map points"], rows)
+    return (["robot", "frames", "keyframes", "lost", "relocalised", "loops", "ATE RMSE cm",
+             "fps", "map points"], rows)
+
+
+def transport_table(summary: dict[str, Any]) -> Table | None:
+    """Robot -> cloud traffic and timing of a deployed run (None in one process)."""
     deployed = [r for r in summary["robots"] if "transport" in r]
-    if deployed:
-        trows = []
-        for r in deployed:
-            robot = r.get("robot") or {}
-            counts = r["transport"]
-            trows.append([
-                r["name"], r["offload_at"],
-                robot["frame_bytes"] / max(robot["frames"], 1) / 1000 if robot else None,
-                robot.get("frames_lost_on_link"),
-                sum(v for k, v in counts.items() if k.startswith("rejected")),
-                robot.get("keyframe_uploads"), robot.get("upload_retries"),
-                r["cloud_ms_mean"], r["latency_ms_median"], robot.get("round_trip_ms_median"),
-                robot.get("round_trip_ms_p95")])
-        text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + format_table(
-            ["robot", "offload at", "kB/frame", "lost on link", "rejected", "KF uploads",
+    if not deployed:
+        return None
+    trows = []
+    for r in deployed:
+        robot = r.get("robot") or {}
+        counts = r["transport"]
+        trows.append([
+            r["name"], r["offload_at"],
+            robot["frame_bytes"] / max(robot["frames"], 1) / 1000 if robot else None,
+            robot.get("frames_lost_on_link"),
+            sum(v for k, v in counts.items() if k.startswith("rejected")),
+            robot.get("keyframe_uploads"), robot.get("upload_retries"),
+            r["cloud_ms_mean"], r["latency_ms_median"], robot.get("round_trip_ms_median"),
+            robot.get("round_trip_ms_p95")])
+    return (["robot", "offload at", "kB/frame", "lost on link", "rejected", "KF uploads",
              "retries", "cloud ms/frame", "cloud latency ms", "round trip ms", "p95"], trows)
+
+
+def summary_table(summary: dict[str, Any]) -> str:
+    text = format_table(*robot_table(summary))
+    transport = transport_table(summary)
+    if transport:
+        text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + format_table(*transport)
     merge = summary.get("merge")
     if merge:
         text += "\n\n" + merge_table(merge)
@@ -251,11 +266,10 @@ def summary_table(summary: dict[str, Any]) -> str:
     return text
 
 
-def merge_table(merge: dict[str, Any]) -> str:
-    """Which robots joined, when, with how many constraints; the errors if scored."""
+def merge_robot_table(merge: dict[str, Any]) -> Table:
+    """Per robot: its group, the frames it joined at, its errors if scored."""
     evaluation = merge.get("evaluation") or {}
     relative = {r["robot"]: r for r in evaluation.get("relative_poses", [])}
-    joint = evaluation.get("joint_ate")
     rows = []
     for name, info in sorted(merge["robots"].items()):
         joined = info.get("joined")
@@ -267,18 +281,31 @@ def merge_table(merge: dict[str, Any]) -> str:
                      None if rel.get("final_translation_error_m") is None
                      else rel["final_translation_error_m"] * 100,
                      (merge.get("not_merged") or {}).get(name, "")])
-    text = "merge (no ground truth in the run): " + ", ".join(
-        "+".join(m) for m in merge["components"].values()) + "\n"
-    text += format_table(["robot", "group", "joined at (robot:frame)", "rel. rot err deg",
-                          "rel. trans err cm", "not merged because"], rows)
+    return (["robot", "group", "joined at (robot:frame)", "rel. rot err deg",
+             "rel. trans err cm", "not merged because"], rows)
+
+
+def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
+    """(the groups line, the lines after the table: constraints, joint ATE)."""
+    evaluation = merge.get("evaluation") or {}
+    joint = evaluation.get("joint_ate")
+    head = "merge (no ground truth in the run): " + ", ".join(
+        "+".join(m) for m in merge["components"].values())
     scored = [c for c in evaluation.get("constraints", []) if "rotation_error_deg" in c]
     kept = [c for c in scored if c["kept"]]
-    text += (f"\ninter-robot constraints: {len(merge['constraints'])} "
-             f"({sum(c['kept'] is False for c in merge['constraints'])} rejected by GNC)")
+    line = (f"inter-robot constraints: {len(merge['constraints'])} "
+            f"({sum(c['kept'] is False for c in merge['constraints'])} rejected by GNC)")
     if kept:
         worst = max(kept, key=lambda c: c["rotation_error_deg"])
-        text += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
+        line += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
                  f" / {max(c['translation_error_m'] for c in kept) * 100:.1f} cm")
+    lines = [line]
     if joint:
-        text += f"\njoint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm"
-    return text
+        lines.append(f"joint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm")
+    return head, lines
+
+
+def merge_table(merge: dict[str, Any]) -> str:
+    """Which robots joined, when, with how many constraints; the errors if scored."""
+    head, lines = merge_notes(merge)
+    return "\n".join([head, format_table(*merge_robot_table(merge)), *lines])

@@ -309,4 +309,15 @@ class CloudServer:
         }
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
+        self._write_report()
         return summary
+
+    def _write_report(self) -> None:
+        """The run report of what was just merged, in the cloud's folder, without ground
+        truth (the cloud never reads it). A plot that fails costs the report, not the merge."""
+        from fleetslam.reporting import write_report
+
+        try:
+            log.info("report: %s", write_report(self.out_dir, ground_truth=False))
+        except Exception:
+            log.exception("the run report could not be written")

@@ -110,6 +110,11 @@ class RobotReport:
     plan_history: list[dict[str, Any]] = field(default_factory=list)
     frames_per_point: dict[str, int] = field(default_factory=dict)
     frames_skipped: int = 0
+    # Every frame and keyframe upload put on the link, for the run report's plots of bytes
+    # and link use over time: [start s, end s, bytes, "frame" | "keyframe", delivered], the
+    # times since the first frame was read (start: handed to the link, which may first
+    # finish earlier messages; end: its last bit sent). Recorded only, never sent.
+    sends: list[tuple[float, float, int, str, bool]] = field(default_factory=list)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
@@ -172,6 +177,7 @@ class Robot:
         self._upload_error: str | None = None
         # The point each recent frame went at (an adaptive robot switches).
         self._point_of: OrderedDict[int, int] = OrderedDict()
+        self._t0 = time.monotonic()  # reset when the first frame is read
 
     # -- Zenoh callbacks ------------------------------------------------------------------
 
@@ -414,8 +420,13 @@ class Robot:
         """Send on the link; an adaptive robot learns its link from how long sends take."""
         start = time.monotonic()
         delivered = self.link.send(key, data)
+        end = time.monotonic()
         if self.planner is not None:
-            self.planner.meter.sent(len(data), start, time.monotonic())
+            self.planner.meter.sent(len(data), start, end)
+        # list.append is atomic: the sender and uploader threads both record here.
+        self.report.sends.append((start - self._t0, end - self._t0, len(data),
+                                  "keyframe" if key == keys.keyframe(self.robot_id) else "frame",
+                                  delivered))
         return delivered
 
     def _sender(self, outbox: queue.Queue) -> None:

@@ -60,7 +60,7 @@ def trajectory_ate(trajectory: Path, sequence: RgbdSequence) -> dict[str, Any] |
     return ate_summary(poses[ok], gt)
 
 
-def _same_world(a: RgbdSequence, b: RgbdSequence) -> bool:
+def same_world(a: RgbdSequence, b: RgbdSequence) -> bool:
     """Two robots' ground truths share a frame when they play the same recording, or
     recordings of one generated scene (its ``scene.json`` declares one world frame)."""
     fa, fb = a.folder.resolve(), b.folder.resolve()
@@ -76,7 +76,7 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdS
         q, p = sequences[c["query_robot"]], sequences[c["place_robot"]]
         row = {k: c[k] for k in ("query_robot", "query_frame", "place_robot", "place_frame",
                                  "trusted", "kept")}
-        if _same_world(q, p):
+        if same_world(q, p):
             true = invert(p.gt_poses[c["place_frame"]]) @ q.gt_poses[c["query_frame"]]
             err = transform_error(np.array(c["T_place_query"]), true)
             row.update(rotation_error_deg=err.rotation_deg, translation_error_m=err.translation_m)
@@ -96,7 +96,7 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdS
         if m == anchor:
             continue
         b = sequences[m]
-        if not _same_world(a, b):
+        if not same_world(a, b):
             result["relative_poses"].append({"robot": m, "note": "different recordings"})
             continue
         true = invert(a.gt_poses[0]) @ b.gt_poses[0]
@@ -107,7 +107,7 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdS
             row[f"{label}_rotation_error_deg"] = err.rotation_deg
             row[f"{label}_translation_error_m"] = err.translation_m
         result["relative_poses"].append(row)
-    if all(_same_world(a, sequences[m]) for m in members):
+    if all(same_world(a, sequences[m]) for m in members):
         est, gt = [], []
         for m in members:
             times, poses = read_tum_trajectory(out_dir / merge["global_trajectories"][m])

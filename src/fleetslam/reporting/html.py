@@ -1,0 +1,94 @@
+"""The report page: one self-contained HTML file beside its PNGs (relative paths, inline CSS,
+no script, nothing fetched), so it opens from disk, from a copied folder or an archive."""
+
+from __future__ import annotations
+
+import html
+import time
+from typing import Any
+
+from fleetslam.report import _cell
+from fleetslam.reporting.plots import Figure
+from fleetslam.reporting.run import RunData
+from fleetslam.system import merge_notes, merge_robot_table, robot_table, transport_table
+
+STYLE = """
+body { font: 14px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px;
+       padding: 0 1em; color: #222; }
+h1 { font-size: 1.5em; margin-bottom: 0.2em; } h2 { font-size: 1.2em; margin-top: 1.8em; }
+.meta { color: #666; } .notes { background: #fff8e0; border-left: 4px solid #e0b000;
+        padding: 0.4em 1em; }
+table { border-collapse: collapse; margin: 0.5em 0; font-size: 13px; }
+th, td { border: 1px solid #ccc; padding: 2px 8px; } th { background: #f0f0f0; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+figure { margin: 1.2em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { color: #555; font-size: 13px; max-width: 900px; }
+"""
+
+
+def _table(headers: list[str], rows: list[list[Any]]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
+    body = "".join(
+        "<tr>" + "".join(
+            f'<td class="num">{html.escape(_cell(v))}</td>' if isinstance(v, int | float)
+            and not isinstance(v, bool) else f"<td>{html.escape(_cell(v))}</td>" for v in row)
+        + "</tr>" for row in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _ground_truth_line(run: RunData) -> str:
+    if not run.ground_truth_read:
+        return ("Ground truth: not read for this report (the cloud's own report: the cloud "
+                "never reads it), so the plots that need it are left out; `fleetslam report` "
+                "on this folder adds them where the robots' sequences are.")
+    with_gt = [r.name for r in run.robots if r.own is not None and r.own.has_gt]
+    if not with_gt:
+        return ("Ground truth: none for this run, so the plots that need it (error over time, "
+                "aligned trajectories) are left out; every other plot is shown.")
+    others = [r.name for r in run.robots if r.name not in with_gt]
+    return ("Ground truth (evaluation only, read after the run from each robot's source "
+            f"folder): {', '.join(with_gt)}"
+            + (f"; none for {', '.join(others)}" if others else "") + ".")
+
+
+def render_page(run: RunData, figures: list[Figure], skipped: dict[str, str]) -> str:
+    s = run.summary
+    name = run.folder.resolve().name
+    parts = [f"<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+             f"<title>fleetslam run {html.escape(name)}</title><style>{STYLE}</style></head>"
+             f"<body><h1>fleetslam run {html.escape(name)}</h1>"]
+    deployment = s.get("deployment") or {}
+    meta = [f"{len(run.robots)} robots", f"wall time {s.get('wall_time_s', 0):.1f} s"]
+    if deployment:
+        meta.append(f"{deployment.get('processes')} processes over "
+                    f"{'TLS' if deployment.get('tls') else 'TCP'}, offload at "
+                    f"{deployment.get('offload_at')}"
+                    + (f", link {' '.join(deployment['link'])}" if deployment.get("link") else ""))
+    meta.append(f"report made {time.strftime('%Y-%m-%d %H:%M:%S')}")
+    parts.append(f'<p class="meta">{html.escape(" · ".join(meta))}</p>')
+    notes = [_ground_truth_line(run), *run.notes]
+    parts.append('<div class="notes"><ul>' + "".join(f"<li>{html.escape(n)}</li>"
+                                                    for n in notes) + "</ul></div>")
+    parts.append("<h2>Robots</h2>" + _table(*robot_table(s)))
+    sources = [[r.name, r.source] for r in run.robots]
+    parts.append(_table(["robot", "source"], sources))
+    transport = transport_table(s)
+    if transport:
+        parts.append("<h2>Robot &rarr; cloud</h2>" + _table(*transport))
+    merge = s.get("merge")
+    if merge:
+        head, lines = merge_notes(merge)
+        parts.append(f"<h2>Merge</h2><p>{html.escape(head)}</p>"
+                     + _table(*merge_robot_table(merge))
+                     + "".join(f"<p>{html.escape(line)}</p>" for line in lines))
+    parts.append("<h2>Plots</h2>")
+    for f in figures:
+        parts.append(f'<figure><h3>{html.escape(f.title)}</h3>'
+                     f'<img src="{html.escape(f.file)}" alt="{html.escape(f.title)}">'
+                     f"<figcaption>{html.escape(f.caption)}</figcaption></figure>")
+    if skipped:
+        parts.append("<h2>Not shown</h2><ul>" + "".join(
+            f"<li>{html.escape(k)}: {html.escape(v)}</li>" for k, v in skipped.items())
+            + "</ul>")
+    parts.append("</body></html>\n")
+    return "\n".join(parts)
