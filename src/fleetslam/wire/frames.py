@@ -644,7 +644,8 @@ def _write_state(state: State, split_point: int, camera: Camera, config: WireCon
                  f"{len(references)} references (at most {MAX_REFERENCES})")
         seqs = [int(seq) for seq, _ in references]
         _require(len(set(seqs)) == len(seqs), f"references {seqs} repeat a frame")
-        w.pack(f"B{len(seqs)}Q", len(seqs), *seqs)
+        w.pack("B", len(seqs))
+        w.array(np.array(seqs, np.uint64), "u8")
         ctx = _Coding([ref for _, ref in references], stats)
     elif stats is not None and (features := features_of(state)) is not None:
         stats.descriptors += len(features[1])
@@ -733,7 +734,7 @@ def _read_references(r: Reader, split_point: int, seq: int,
     (count,) = r.unpack("B", "reference count")
     if not 1 <= count <= MAX_REFERENCES:
         raise WireError(f"{count} reference frames (1..{MAX_REFERENCES})")
-    seqs = list(r.unpack(f"{count}Q", "reference seqs"))
+    seqs = [int(s) for s in r.array("u8", count, "reference seqs")]
     if len(set(seqs)) != count or max(seqs) >= seq:
         raise WireError(f"reference seqs {seqs} repeat or are not before the frame's {seq}")
     if references is None:
