@@ -344,8 +344,11 @@ class WireConfig:
     intra_every: int = 30
     # Acknowledged frames a message is coded against (the newest ones), at most 8.
     inter_references: int = 4
-    # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames).
-    reference_frames: int = 8
+    # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames):
+    # a reference must still be there when a frame coded against it arrives, and a busy
+    # cloud's feedback comes tens of frames late (bench/offload.py: ~1.3 s median round
+    # trip at 10 Mbit/s on 2 cores). ~33 kB each.
+    reference_frames: int = 64
 
 
 @dataclass
