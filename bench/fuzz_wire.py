@@ -79,6 +79,7 @@ from fleetslam.wire.envelope import (  # noqa: E402
     seal,
 )
 from fleetslam.wire.frames import decode_frame_message, encode_frame_message  # noqa: E402
+from fleetslam.wire.inter import Reference, reference_of  # noqa: E402
 from fleetslam.wire.messages import (  # noqa: E402
     Feedback,
     KeyframeUpload,
@@ -133,21 +134,26 @@ class Context:
     png_bombs: list[tuple[str, bytes, int, int, int, int]]  # (what, png, h, w, ch, itemsize)
     jpeg: bytes  # a small baseline JPEG, tables to patch
     progressive: bytes  # the same image as a progressive JPEG
+    # The cloud's ring of reference frames (seq -> Reference) the inter-coded seeds use.
+    references: dict[int, Reference] = field(default_factory=dict)
 
     def by_channel(self, channel: str) -> list[Seed]:
         return [s for s in self.seeds if s.channel == channel]
 
 
-def decoder(channel: str, camera: Camera) -> Callable[[bytes], Any]:
-    """What the cloud runs on bytes from a channel (feedback: what a robot runs)."""
+def decoder(channel: str, camera: Camera,
+            references: dict[int, Reference] | None = None) -> Callable[[bytes], Any]:
+    """What the cloud runs on bytes from a channel (feedback: what a robot runs); inter-coded
+    frames find their references in ``references`` (the cloud's ring)."""
     if channel == "frame":
-        return lambda data: decode_frame_message(data, camera)
+        return lambda data: decode_frame_message(data, camera, references or {})
     if channel == "keyframe":
         return lambda data: decode_keyframe(data, camera)
     return decode_feedback
 
 
-def trace_fields(seed: Seed, camera: Camera) -> None:
+def trace_fields(seed: Seed, camera: Camera,
+                 references: dict[int, Reference] | None = None) -> None:
     """Decode the seed once with Reader.unpack recording every fixed field it reads: the
     field-aware mutations then edit exactly what the decoder interprets."""
     fields: list[Field] = []
@@ -159,7 +165,7 @@ def trace_fields(seed: Seed, camera: Camera) -> None:
 
     binary.Reader.unpack = recording  # type: ignore[method-assign]
     try:
-        decoder(seed.channel, camera)(seed.data)
+        decoder(seed.channel, camera, references)(seed.data)
     finally:
         binary.Reader.unpack = original  # type: ignore[method-assign]
     seed.fields = fields
@@ -177,6 +183,7 @@ def build_context(n_frames: int = 3, small: bool = False) -> Context:
     config = Config()
     frames = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
     messages: list[tuple[str, str, bytes]] = []
+    references: dict[int, Reference] = {}
     variants = {"png+zstd": config.wire, "jpeg": WireConfig(frame_image_codec="jpeg"),
                 "raw": WireConfig(compress=False)}
     for k in range(7):
@@ -189,6 +196,15 @@ def build_context(n_frames: int = 3, small: bool = False) -> Context:
                     continue  # JPEG only changes images (k <= 1); one uncompressed frame
                 data = encode_frame_message(state, k, ROBOT, seq_no, camera, wire)
                 messages.append((f"frame k={k} #{frame.index} {vname}", "frame", data))
+            # Inter-coded (wire/inter.py): as frame 100 + seq_no, against this very frame
+            # (all descriptors coded) and, after the first, the frame before it too.
+            ref = reference_of(state)
+            if ref is None:
+                continue
+            references[seq_no] = ref
+            refs = [(s, references[s]) for s in range(seq_no, max(-1, seq_no - 2), -1)]
+            data = encode_frame_message(state, k, ROBOT, 100 + seq_no, camera, config.wire, refs)
+            messages.append((f"frame k={k} #{frame.index} inter x{len(refs)}", "frame", data))
     for codec in ("jpeg", "png"):
         f = frames[-1]
         raw = camera.metres_to_depth(f.depth_m)
@@ -205,10 +221,10 @@ def build_context(n_frames: int = 3, small: bool = False) -> Context:
     for name, channel, data in messages:
         header, payload = open_message(data)
         seed = Seed(name, channel, data, header, payload)
-        trace_fields(seed, camera)
+        trace_fields(seed, camera, references)
         seeds.append(seed)
     return Context(camera, seeds, control_seeds(camera), zstd_bombs(seeds, small),
-                   png_bombs(small), *small_jpegs())
+                   png_bombs(small), *small_jpegs(), references)
 
 
 def control_seeds(camera: Camera) -> list[tuple[str, bytes]]:
@@ -222,8 +238,10 @@ def control_seeds(camera: Camera) -> list[tuple[str, bytes]]:
               "", False).message(0),
         protocol.end(599, poses), protocol.end(10), protocol.ending(), protocol.need([3, 17]),
         protocol.ended({"frames": 600, "ate_m": 0.05}), protocol.ack(17),
-        protocol.welcome(True, 18, 20, 2),
+        protocol.welcome(True, 18, 20, 2, 8),
         protocol.error(protocol.Code.REJECTED, "frame rejected: x", rejected="frame"),
+        protocol.error(protocol.Code.REFERENCE_MISSING, "frame rejected: y", rejected="frame",
+                       seq=12, missing=[9, 10]),
         protocol.request("status", "a" * 32), protocol.request("merge", "b" * 32),
         protocol.status("c" * 32, {"r1": {"frames": 3, "finished": False}}, {"state": "idle"}),
         protocol.merged("d" * 32, {"robots": 2}),
@@ -751,7 +769,7 @@ def run_case(ctx: Context, family: str, seed: int, index: int) -> tuple[float, d
     ValueError for control messages."""
     channel, data = make_case(ctx, family, seed, index)
     clean = ValueError if channel == "control" else WireError
-    run = handle_control if channel == "control" else decoder(channel, ctx.camera)
+    run = handle_control if channel == "control" else decoder(channel, ctx.camera, ctx.references)
     start = time.perf_counter()
     try:
         run(data)
@@ -916,7 +934,7 @@ def replay(ctx: Context, spec: str) -> None:
     family, seed, index = spec.split(":")
     channel, data = make_case(ctx, family, int(seed), int(index))
     print(f"{family} case {index} (seed {seed}): {len(data)} bytes on the {channel} channel")
-    run = handle_control if channel == "control" else decoder(channel, ctx.camera)
+    run = handle_control if channel == "control" else decoder(channel, ctx.camera, ctx.references)
     start = time.perf_counter()
     try:
         run(data)

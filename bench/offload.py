@@ -1,6 +1,7 @@
 """Offloading over an emulated 10 Mbps link, measured end to end with real processes.
 
     .venv/bin/python bench/offload.py [--points 0,3,6] [--frames 1000] [--mbps 10]
+        [--coding inter,intra]
 
 For each offloading point: a fresh cloud process, one robot process streaming the 7-Scenes
 frames as fast as its stages and its link allow (1000 frames = 0-599 then back 598-199),
@@ -12,6 +13,9 @@ and the paper's columns (Table "Running time comparison"):
   total  wall time, first frame sent -> the cloud's 'ended' (all frames tracked, the
          keyframes stored and the dense map built); less than sum where they overlap.
 Point 0 is total offloading (eta = 0), 3 the paper's point, 6 everything on the robot.
+``--coding``: each point with inter-frame coding of the frame message (the default,
+wire.inter_frame = true) and/or without it (intra: every frame coded alone); only points
+2-5 carry descriptors, so only there does it change anything.
 Writes bench/results/offload.json.
 """
 
@@ -25,7 +29,8 @@ import time
 from pathlib import Path
 
 from fleetslam.datasets.tum import open_robot
-from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop, trajectory_ate
+from fleetslam.evaluation.fleet import trajectory_ate
+from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
 from fleetslam.report import format_table
 from shared_data import SEVEN_SCENES
 
@@ -45,17 +50,23 @@ def source_spec(frames: int) -> str:
     return f"{SEQ}:0-599,598-{598 - (frames - 601)}"
 
 
-def run_point(k: int, spec: str, mbps: float, work: Path) -> dict:
-    endpoint, out = free_endpoint(), work / f"point{k}"
-    cloud = start_cloud(endpoint, out, work / f"point{k}-cloud.log")
-    report_path = work / f"point{k}-robot.json"
+def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter") -> dict:
+    name = f"point{k}-{coding}"
+    endpoint, out = free_endpoint(), work / name
+    config_path = None
+    if coding == "intra":
+        config_path = work / "intra.toml"
+        config_path.write_text("[wire]\ninter_frame = false\n")
+    cloud = start_cloud(endpoint, out, work / f"{name}-cloud.log")
+    report_path = work / f"{name}-robot.json"
     try:
-        robot = start_robot(endpoint, "r0", spec, k, work / f"point{k}-robot.log", report_path,
+        robot = start_robot(endpoint, "r0", spec, k, work / f"{name}-robot.log", report_path,
+                            config_path=None if config_path is None else str(config_path),
                             extra=["--bandwidth-mbps", str(mbps)])
         code = robot.wait()
         if code != 0:
             raise RuntimeError(f"robot at point {k} failed ({code}); see "
-                               f"{work / f'point{k}-robot.log'}")
+                               f"{work / f'{name}-robot.log'}")
     finally:
         stop(cloud)
     r = json.loads(report_path.read_text())
@@ -63,7 +74,7 @@ def run_point(k: int, spec: str, mbps: float, work: Path) -> dict:
     ate = trajectory_ate(out / "r0" / "trajectory.tum", open_robot(spec))
     robot_s, trans_s, cloud_s = r["robot_compute_s"], r["link_busy_s"], cloud_summary["cloud_s_total"]
     return {
-        "point": k, "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,
+        "point": k, "coding": coding, "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,
         "cloud_s": cloud_s, "sum_s": robot_s + trans_s + cloud_s, "total_s": r["total_s"],
         "last_feedback_s": r["last_feedback_s"], "streaming_s": r["streaming_s"],
         "frame_kB": r["frame_bytes"] / r["frames"] / 1000,
@@ -74,6 +85,8 @@ def run_point(k: int, spec: str, mbps: float, work: Path) -> dict:
         "round_trip_ms_median": r["round_trip_ms_median"],
         "round_trip_ms_p95": r["round_trip_ms_p95"],
         "robot_stage_ms": r["robot_stage_ms"], "cloud_stage_ms": cloud_summary["stage_ms"],
+        "encode_ms_mean": r.get("encode_ms_mean"), "encode_ms_p95": r.get("encode_ms_p95"),
+        "inter_coding": r.get("inter_coding"),
     }
 
 
@@ -82,6 +95,8 @@ def main() -> None:
     parser.add_argument("--points", default="0,3,6", help="offloading points to measure")
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--mbps", type=float, default=10.0)
+    parser.add_argument("--coding", default="inter",
+                        help="inter and/or intra (comma-separated): frame message coding")
     parser.add_argument("--out", default="bench/results/offload.json")
     args = parser.parse_args()
     if not SEQ.exists():
@@ -92,11 +107,13 @@ def main() -> None:
     spec = source_spec(args.frames)
     results = []
     for k in (int(p) for p in args.points.split(",")):
-        print(f"point {k}: {args.frames} frames over {args.mbps:g} Mbit/s ...", flush=True)
-        results.append(run_point(k, spec, args.mbps, work))
-        r = results[-1]
-        print(f"  total {r['total_s']:.1f} s, {r['frame_kB']:.1f} kB/frame", flush=True)
-    rows = [[f"point {r['point']}", r["robot_s"], r["trans_s"], r["cloud_s"], r["sum_s"],
+        for coding in args.coding.split(","):
+            print(f"point {k} ({coding}): {args.frames} frames over {args.mbps:g} Mbit/s ...",
+                  flush=True)
+            results.append(run_point(k, spec, args.mbps, work, coding))
+            r = results[-1]
+            print(f"  total {r['total_s']:.1f} s, {r['frame_kB']:.1f} kB/frame", flush=True)
+    rows = [[f"point {r['point']} {r['coding']}", r["robot_s"], r["trans_s"], r["cloud_s"], r["sum_s"],
              r["total_s"], r["frame_kB"], r["keyframes"], r["keyframe_MB"],
              None if r["ate_m"] is None else r["ate_m"] * 100] for r in results]
     rows += [[name, *cols, None, None, None, None] for name, cols in PAPER.items()]

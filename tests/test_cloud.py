@@ -25,10 +25,11 @@ from fleetslam.launch import free_endpoint
 from fleetslam.pipeline.split import TrackingPipeline, run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import keys
-from fleetslam.transport.protocol import PROTOCOL
+from fleetslam.transport.protocol import PROTOCOL, Code
 from fleetslam.transport.zenoh_session import open_connecting, put
-from fleetslam.wire.envelope import FORMAT_VERSION
+from fleetslam.wire.envelope import FORMAT_VERSION, Kind, open_message
 from fleetslam.wire.frames import encode_frame_message
+from fleetslam.wire.inter import InterEncoder, reference_of
 from fleetslam.wire.messages import decode_feedback
 
 K = 3  # the paper's offloading point
@@ -750,3 +751,47 @@ def test_the_link_is_encrypted(messages, tmp_path, secure):
         assert relay.first_bytes[:1] == b"\x16" and not seen  # a TLS handshake, then ciphertext
     else:
         assert len(seen) == 3
+
+
+def test_a_missing_reference_is_refused_and_the_robot_falls_back_to_intra(cloud, scene):
+    """Inter-coded frames (wire/inter.py) refer to frames the cloud acknowledged. When the
+    cloud lacks one (here its ring is emptied, as a restart empties it), it refuses the frame
+    with REFERENCE_MISSING; the robot's encoder then sends an intra frame, and inter-codes
+    again once that one is acknowledged. Every frame the cloud takes is tracked exactly."""
+    server, client = cloud
+    seq = RgbdSequence(scene[0])
+    robot = FakeRobot(client, "r0", seq.camera)
+    welcome = robot.hello()
+    assert welcome["reference_frames"] == Config().wire.reference_frames
+    config = Config()
+    encoder = InterEncoder(config.wire, welcome["reference_frames"])
+    pipeline = TrackingPipeline(config, seq.camera)
+    frames = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
+    kinds, tracked = [], []
+    for seq_no, frame in enumerate(frames):
+        state = run_stages(pipeline.split(K)[0], frame, pipeline.session)
+        refs = encoder.choose(seq_no)
+        data = encode_frame_message(state, K, "r0", seq_no, seq.camera, config.wire, refs)
+        encoder.sent(seq_no, reference_of(state), len(refs))
+        kinds.append(open_message(data)[0].kind)
+        if seq_no == 5:
+            server.sessions["r0"].references.clear()
+        robot.send(data)
+        if seq_no == 5:
+            error = robot.reply("error")
+            assert error["code"] == Code.REFERENCE_MISSING.value, error
+            assert error["seq"] == 5 and error["missing"] and "does not hold" in error["reason"]
+            encoder.refused(seq_no + 1)
+            continue
+        header, fb = decode_feedback(robot.feedback.get(timeout=30))
+        assert header.seq == seq_no
+        encoder.acked(header.seq)
+        tracked.append(fb.T_world_camera)
+    assert kinds[0] == Kind.FRAME and kinds[6] == Kind.FRAME  # first, and after the refusal
+    assert all(k == Kind.FRAME_INTER for k in kinds[1:6] + kinds[7:]), kinds
+    reference = TrackingPipeline(Config(), seq.camera)
+    expected = [reference.track(f).T_world_camera for i, f in enumerate(frames) if i != 5]
+    np.testing.assert_array_equal(np.array(tracked), np.array(expected))
+    counts = server.sessions["r0"].state.counts
+    assert counts["rejected frame"] == 1 and counts["errors"] == 0
+    robot.close()

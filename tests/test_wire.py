@@ -48,6 +48,13 @@ from fleetslam.wire.frames import (
     encode_frame_message,
     encode_state,
 )
+from fleetslam.wire.inter import (
+    InterEncoder,
+    InterStats,
+    MissingReference,
+    ReferenceRing,
+    reference_of,
+)
 from fleetslam.wire.messages import (
     Feedback,
     KeyframeUpload,
@@ -537,3 +544,164 @@ def test_depth_of_another_size_than_the_colour_image_is_refused():
     with pytest.raises(WireError, match="depth image is 320 x 240"):
         decode_frame_message(encode_frame_message(frame, 0, ROBOT, 0, camera, WireConfig()),
                              camera)
+
+
+# ---------------------------------------------------------------------------------------
+# Inter-frame coding (wire/inter.py): exact over real sequences, with frames lost
+# ---------------------------------------------------------------------------------------
+
+
+def run_inter_through_wire(camera: Camera, frames: list[CapturedFrame], k: int, loss: float,
+                           ack_lag: int = 1, config: Config | None = None
+                           ) -> tuple[np.ndarray, list[bool], list[int], InterEncoder]:
+    """As run_through_wire, with the robot's InterEncoder and the cloud's ReferenceRing:
+    a frame is lost with probability ``loss``; the cloud's feedback for a frame reaches the
+    robot ``ack_lag`` frames after it was sent. Lost frames are not tracked by the cloud,
+    so the poses compare with an in-memory run that skips them too."""
+    config = config or Config()
+    pipeline = TrackingPipeline(config, camera)
+    robot, cloud = pipeline.split(k)
+    encoder = InterEncoder(config.wire, config.wire.reference_frames)
+    ring = ReferenceRing(config.wire.reference_frames)
+    rng = np.random.default_rng(11)
+    poses, keyframes, sizes, in_flight = [], [], [], []
+    for seq, frame in enumerate(frames):
+        while in_flight and in_flight[0] <= seq - ack_lag:
+            encoder.acked(in_flight.pop(0))
+        state = run_stages(robot, frame, pipeline.session)
+        refs = encoder.choose(seq)
+        stats = InterStats()
+        data = encode_frame_message(state, k, ROBOT, seq, camera, config.wire, refs, stats)
+        encoder.sent(seq, reference_of(state), len(refs))
+        encoder.record(stats)
+        sizes.append(len(data))
+        assert open_message(data)[0].kind == (Kind.FRAME_INTER if refs else Kind.FRAME)
+        if seq and rng.random() < loss:
+            continue
+        header, decoded = decode_frame_message(data, camera, ring)
+        assert_same_state(state, decoded, k)
+        ring.put(seq, reference_of(decoded))
+        mine, theirs = reference_of(state), ring.get(seq)
+        assert mine.descriptors.tobytes() == theirs.descriptors.tobytes()
+        assert mine.angles.tobytes() == theirs.angles.tobytes()
+        in_flight.append(seq)
+        out = run_stages(cloud, decoded, pipeline.session)
+        poses.append(out.T_world_camera)
+        keyframes.append(out.is_keyframe)
+    return np.array(poses), keyframes, sizes, encoder
+
+
+@pytest.fixture(scope="module")
+def lossy_frames(seven_scenes):
+    """The frames the cloud gets when 20 % are lost (same seed as run_inter_through_wire)."""
+    camera, frames = seven_scenes
+    rng = np.random.default_rng(11)
+    kept = [f for i, f in enumerate(frames) if not (i and rng.random() < 0.2)]
+    return kept
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("k", [2, 3, 5])
+@pytest.mark.parametrize("loss", [0.0, 0.2])
+def test_inter_coded_frames_are_exact(seven_scenes, seven_scenes_reference, lossy_frames,
+                                      k, loss):
+    camera, frames = seven_scenes
+    poses, keyframes, sizes, encoder = run_inter_through_wire(camera, frames, k, loss,
+                                                              ack_lag=2)
+    if loss:
+        expected_poses, expected_kf = run_reference(camera, lossy_frames)
+        assert len(poses) == len(lossy_frames) < len(frames)
+    else:
+        expected_poses, expected_kf = seven_scenes_reference
+    assert poses.tobytes() == expected_poses.tobytes(), f"k={k} loss={loss}"
+    assert keyframes == expected_kf
+    counts = encoder.counts
+    assert counts.inter_frames >= len(frames) - 4 and counts.intra_frames >= 1
+    assert counts.inter_descriptors > 0.8 * counts.descriptors
+    if k == 3:
+        intra = run_through_wire(camera, frames[:3], 3)[2]
+        assert np.mean(sizes[3:]) < 0.75 * np.mean(intra), (sizes, intra)
+
+
+def test_intra_frames_come_every_n_and_when_no_reference_is_acknowledged():
+    f = orb_features()
+    refs = reference_of(f)
+    encoder = InterEncoder(WireConfig(intra_every=4, inter_references=2), cloud_ring=3)
+    kinds = []
+    for seq in range(10):
+        chosen = encoder.choose(seq)
+        kinds.append(len(chosen))
+        encoder.sent(seq, refs, len(chosen))
+        if seq != 9:  # frame 9 is lost: never acknowledged
+            encoder.acked(seq)
+    assert kinds == [0, 1, 2, 2, 0, 2, 2, 2, 0, 2]  # intra at 0, 4, 8
+    assert encoder.choose(10) == [(8, refs), (7, refs)]  # newest first, 9 never acked
+    encoder.refused(next_seq=10)  # the cloud lacked one: no earlier ack counts
+    assert encoder.choose(10) == [] and encoder.choose(12) == []
+    encoder.sent(10, refs, 0)
+    encoder.acked(10)
+    assert encoder.choose(11) == encoder.choose(13) == [(10, refs)]
+    assert encoder.choose(14) == []  # 10 may have left the cloud's ring of 3
+    off = InterEncoder(WireConfig(inter_frame=False), cloud_ring=8)
+    off.sent(0, refs, 0)
+    off.acked(0)
+    assert off.choose(1) == []
+    old_cloud = InterEncoder(WireConfig(), cloud_ring=0)  # its welcome named no ring
+    old_cloud.sent(0, refs, 0)
+    old_cloud.acked(0)
+    assert old_cloud.choose(1) == []
+
+
+def test_inter_frames_refuse_a_missing_reference_and_old_builds_refuse_them(monkeypatch):
+    f = orb_features()
+    ref = reference_of(f)
+    data = encode_frame_message(f, 3, ROBOT, 7, DISTORTED, WireConfig(), [(6, ref), (4, ref)])
+    header, decoded = decode_frame_message(data, DISTORTED, {6: ref, 4: ref})
+    assert header.kind == Kind.FRAME_INTER
+    assert_same_state(f, decoded, 3)
+    assert len(data) < 0.3 * len(encode_frame_message(f, 3, ROBOT, 7, DISTORTED, WireConfig()))
+    with pytest.raises(MissingReference, match=r"seq 7 refers to frame\(s\) seq 4 that") as exc:
+        decode_frame_message(data, DISTORTED, {6: ref})
+    assert (exc.value.seq, exc.value.missing) == (7, [4])
+    with pytest.raises(MissingReference):
+        decode_frame_message(data, DISTORTED)  # a decoder with no ring at all
+    # Its reference seqs must come before it, and be distinct.
+    with pytest.raises(WireError, match="not before the frame's 6"):
+        decode_frame_message(encode_frame_message(f, 3, ROBOT, 6, DISTORTED, WireConfig(),
+                                                  [(6, ref)]), DISTORTED, {6: ref})
+    # A build from before inter-frame coding does not know the kind: it says so.
+    monkeypatch.delitem(Kind._value2member_map_, int(Kind.FRAME_INTER))
+    with pytest.raises(WireError, match="unknown message kind 4"):
+        open_message(data)
+    monkeypatch.undo()
+    # An inter payload under the intra kind is refused, with a reason.
+    _, payload = open_message(data)
+    with pytest.raises(WireError):
+        decode_state(payload, 3, DISTORTED)
+    # Inter-coding only applies where descriptors are: other points stay intra.
+    frame = CapturedFrame(0, 0.5, np.zeros((480, 640, 3), np.uint8),
+                          np.zeros((480, 640), np.float32))
+    camera = Camera(525.0, 525.0, 319.5, 239.5)
+    data = encode_frame_message(frame, 0, ROBOT, 1, camera, WireConfig(), [(0, ref)])
+    assert open_message(data)[0].kind == Kind.FRAME
+
+
+def test_inter_frame_faults_raise_only_wire_errors():
+    f = orb_features()
+    ref = reference_of(f)
+    shifted = replace(f, descriptors=np.roll(f.descriptors, 1, axis=1))
+    payload = encode_state(shifted, 3, DISTORTED, WireConfig(), [(2, ref)])
+    refs = {2: ref}
+    assert_same_state(shifted, decode_state(payload, 3, DISTORTED, refs, inter=True, seq=3), 3)
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        data = bytearray(payload)
+        for pos in rng.integers(0, len(data), 3):
+            data[pos] = rng.integers(0, 256)
+        try:
+            decode_state(bytes(data), 3, DISTORTED, refs, inter=True, seq=3)
+        except WireError:
+            pass
+    for n in range(0, len(payload), 97):
+        with pytest.raises(WireError):
+            decode_state(payload[:n], 3, DISTORTED, refs, inter=True, seq=3)

@@ -336,6 +336,19 @@ class WireConfig:
     jpeg_quality: int = 90
     # Keyframe uploads for the dense map: colour only feeds the map's point colours.
     keyframe_rgb_codec: str = "jpeg"
+    # Inter-frame coding (wire/inter.py): a robot codes each descriptor against the nearest
+    # one of frames the cloud acknowledged (points 2-5), lossless; 7-Scenes at point 3: 34
+    # -> ~19 kB a frame (bench/inter_coding.py). Off: every frame is coded alone.
+    inter_frame: bool = True
+    # An intra frame (coded alone) at least every this many frames.
+    intra_every: int = 30
+    # Acknowledged frames a message is coded against (the newest ones), at most 8.
+    inter_references: int = 4
+    # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames):
+    # a reference must still be there when a frame coded against it arrives, and a busy
+    # cloud's feedback comes tens of frames late (bench/offload.py: ~1.3 s median round
+    # trip at 10 Mbit/s on 2 cores). ~33 kB each.
+    reference_frames: int = 64
 
 
 @dataclass

@@ -32,6 +32,7 @@ from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import CLOUD_TRACKS, ROBOT_TRACKS, Hello
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.frames import decode_frame_message
+from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
 from fleetslam.wire.messages import (
     Feedback,
     KeyframeUpload,
@@ -141,6 +142,9 @@ class RobotSession:
         self.stages = default_stages()[state.hello.offload_at:] \
             if state.hello.offload_at in CLOUD_TRACKS else []
         self.finished: FinishedMap | None = None
+        # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
+        # session refuses references to frames before it, and the robot sends intra).
+        self.references = ReferenceRing(config.wire.reference_frames)
         self._last_rejection_reply = -float("inf")
         self._rejected_since_reply = 0
         self._paused_until = -float("inf")
@@ -318,7 +322,10 @@ class RobotSession:
         st = self.state
         camera = st.hello.camera
         try:
-            header, state = decode_frame_message(data, camera)
+            header, state = decode_frame_message(data, camera, self.references)
+        except MissingReference as exc:
+            return self._reject("frame", str(exc), protocol.Code.REFERENCE_MISSING,
+                                seq=exc.seq, missing=exc.missing)
         except WireError as exc:
             return self._reject("frame", str(exc))
         if header.robot_id != self.robot_id:
@@ -340,6 +347,7 @@ class RobotSession:
                                          f"last frame's {st.rows[-1].timestamp:.6f}")
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.count("frames lost in transit", header.seq - st.last_seq - 1)
+        self.references.put(header.seq, reference_of(state))
         start = time.perf_counter()
         stages = self._stages_from(header.split_point)
         if stages:
@@ -445,7 +453,8 @@ class RobotSession:
     def welcome(self, resumed: bool) -> None:
         st = self.state
         self._reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
-                                     len(self.store.keyframe_indices(self.robot_id))))
+                                     len(self.store.keyframe_indices(self.robot_id)),
+                                     self.references.size))
 
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")

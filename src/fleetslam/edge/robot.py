@@ -33,7 +33,8 @@ from fleetslam.transport.link import EmulatedLink
 from fleetslam.transport.protocol import ROBOT_TRACKS, SUPPORTED_POINTS, Hello
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
-from fleetslam.wire.frames import encode_frame_message
+from fleetslam.wire.frames import INTER_POINTS, encode_frame_message
+from fleetslam.wire.inter import InterEncoder, InterStats, reference_of
 from fleetslam.wire.messages import KeyframeUpload, decode_feedback, encode_keyframe
 from fleetslam.wire.paper_yaml import write_paper_yaml
 
@@ -115,6 +116,11 @@ class RobotReport:
     # times since the first frame was read (start: handed to the link, which may first
     # finish earlier messages; end: its last bit sent). Recorded only, never sent.
     sends: list[tuple[float, float, int, str, bool]] = field(default_factory=list)
+    # Message encoding per frame (inter-frame coding matches descriptors: robot CPU), and
+    # the inter-frame coding's counts (wire/inter.py: intra share, descriptors coded inter).
+    encode_ms_mean: float | None = None
+    encode_ms_p95: float | None = None
+    inter_coding: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
@@ -178,6 +184,10 @@ class Robot:
         # The point each recent frame went at (an adaptive robot switches).
         self._point_of: OrderedDict[int, int] = OrderedDict()
         self._t0 = time.monotonic()  # reset when the first frame is read
+        # Inter-frame coding: which frames the cloud acknowledged (feedback) and holds.
+        self.inter = InterEncoder(config.wire)
+        self._next_seq = 0
+        self._encode_ms: list[float] = []
 
     # -- Zenoh callbacks ------------------------------------------------------------------
 
@@ -190,6 +200,7 @@ class Robot:
         now = time.monotonic()
         self._last_feedback = now
         self.report.feedback += 1
+        self.inter.acked(header.seq)
         sent = self._sent_at.pop(header.seq, None)
         if sent is not None:
             self._round_trips.append(1000.0 * (now - sent))
@@ -217,6 +228,9 @@ class Robot:
             log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
             if message.get("code") == protocol.Code.NOT_A_KEYFRAME.value:
                 return self._keyframe_not_needed(message.get("frame_index"))
+            if message.get("code") == protocol.Code.REFERENCE_MISSING.value:
+                # Intra frames until a frame sent from now on is acknowledged.
+                return self.inter.refused(self._next_seq)
             if "send a hello" in str(message.get("reason")):
                 self._need_hello.set()
             self._replies.put(message)
@@ -261,6 +275,9 @@ class Robot:
             welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
             if welcome is not None:
                 self._need_hello.clear()
+                # A new or resumed session: no frame acknowledged before is a reference.
+                self.inter.set_cloud_ring(int(welcome.get("reference_frames") or 0))
+                self.inter.restart(int(welcome["next_seq"]))
                 return welcome
         raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
                            f"{self.endpoint} after {cfg.max_attempts} hellos")
@@ -388,9 +405,18 @@ class Robot:
                                CapturedFrame(frame.index, frame.timestamp, frame.rgb,
                                              frame.depth_m),
                                self.pipeline.session, self.timer)
+            encode_start = time.perf_counter()
+            self._next_seq = seq + 1
+            refs = self.inter.choose(seq) if k in INTER_POINTS else []
+            stats = InterStats()
             data = encode_frame_message(state, k, self.robot_id, seq,
-                                        self.sequence.camera, self.config.wire)
-            self.report.robot_compute_s += time.perf_counter() - start
+                                        self.sequence.camera, self.config.wire, refs, stats)
+            if k in INTER_POINTS:
+                self.inter.sent(seq, reference_of(state), len(refs))
+                self.inter.record(stats)
+            now = time.perf_counter()
+            self._encode_ms.append(1000.0 * (now - encode_start))
+            self.report.robot_compute_s += now - start
             if self.paper_yaml_dir is not None:
                 write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
             self._point_of[frame.index] = k
@@ -491,6 +517,10 @@ class Robot:
         r.last_feedback_s = max(0.0, self._last_feedback - self._t0)
         r.link_busy_s = self.link.stats.busy_s
         r.robot_stage_ms = self.timer.mean_ms()
+        if self._encode_ms:
+            r.encode_ms_mean = float(np.mean(self._encode_ms))
+            r.encode_ms_p95 = float(np.percentile(self._encode_ms, 95))
+        r.inter_coding = self.inter.counts.summary()
         if self._round_trips:
             r.round_trip_ms_median = float(np.median(self._round_trips))
             r.round_trip_ms_p95 = float(np.percentile(self._round_trips, 95))

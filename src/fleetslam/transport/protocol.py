@@ -45,6 +45,9 @@ class Code(str, Enum):
     # a checkpoint older than it): it never will, so the robot stops resending it.
     NOT_A_KEYFRAME = "not_a_keyframe"
     UNKNOWN_TYPE = "unknown_type"
+    # An inter-coded frame names a reference frame the session does not hold (a restart, a
+    # closed session): the robot sends intra frames until new references are acknowledged.
+    REFERENCE_MISSING = "reference_missing"
     FAILED = "failed"  # the cloud tried and failed (e.g. a merge)
 
 
@@ -110,10 +113,13 @@ class Hello:
 
 # -- robot <-> cloud ------------------------------------------------------------------------
 
-def welcome(resumed: bool, next_index: int, next_seq: int, keyframes_stored: int
-            ) -> dict[str, Any]:
+def welcome(resumed: bool, next_index: int, next_seq: int, keyframes_stored: int,
+            reference_frames: int = 0) -> dict[str, Any]:
+    # reference_frames: the decoded frames the session keeps as references for inter-coded
+    # frames (wire/inter.py); a cloud that says nothing (older) takes intra frames only.
     return {"type": "welcome", "resumed": resumed, "next_index": next_index,
-            "next_seq": next_seq, "keyframes_stored": keyframes_stored}
+            "next_seq": next_seq, "keyframes_stored": keyframes_stored,
+            "reference_frames": reference_frames}
 
 
 def end(last_seq: int, keyframe_poses: dict[str, list] | None = None) -> dict[str, Any]:

@@ -56,6 +56,10 @@ class Kind(IntEnum):
     FRAME = 1
     FEEDBACK = 2
     KEYFRAME = 3
+    # A frame whose descriptors are coded against earlier frames (wire/inter.py). A kind of
+    # its own: a build that predates it refuses it ("unknown message kind 4"), and an intra
+    # frame stays byte for byte what it was.
+    FRAME_INTER = 4
 
 
 class WireError(ValueError):

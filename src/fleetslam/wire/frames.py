@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import struct
 import zlib
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -69,6 +69,16 @@ from fleetslam.wire.binary import (
     put_image,
 )
 from fleetslam.wire.envelope import N_SPLIT_POINTS, Header, Kind, WireError, open_message, seal
+from fleetslam.wire.inter import (
+    MAX_REFERENCES,
+    InterStats,
+    MissingReference,
+    Reference,
+    features_of,
+    get_inter_descriptors,
+    put_inter_descriptors,
+    quantised_angles,
+)
 
 State = Any
 STATE_TYPES: tuple[type, ...] = (CapturedFrame, DetectedFrame, DescribedFrame, FeatureFrame,
@@ -90,6 +100,20 @@ _DEPTH_PNG, _DEPTH_F32 = 0, 1
 _UV_RECOMPUTE, _UV_F64 = 0, 1
 _IDS_I32, _IDS_I64 = 0, 1
 _XYZ_MATCHED, _XYZ_ALL = 0, 1
+
+
+class _Coding:
+    """How a message codes its descriptors: alone (``refs`` None) or against reference
+    frames (wire/inter.py), which then also carry the keypoint angles."""
+
+    def __init__(self, refs: list[Reference] | None = None,
+                 stats: InterStats | None = None) -> None:
+        self.refs = refs
+        self.stats = stats
+        self.angles: np.ndarray | None = None  # quantised angles left to the descriptors
+
+
+INTRA = _Coding()
 
 
 def camera_digest(camera: Camera) -> int:
@@ -227,8 +251,9 @@ def _unzigzag(z: np.ndarray) -> np.ndarray:
     return (z >> 1) ^ -(z & 1)
 
 
-def _put_keypoints(w: Writer, kp: np.ndarray) -> None:
-    """The compact keypoint table of split points >= 2 (see the module docstring)."""
+def _put_keypoints(w: Writer, kp: np.ndarray, ctx: _Coding = INTRA) -> None:
+    """The compact keypoint table of split points >= 2 (see the module docstring). An
+    inter-coded frame sends the angles with its descriptors (``ctx.angles``)."""
     _check_keypoints(kp)
     n = len(kp)
     oct_f = kp[:, OCTAVE]
@@ -278,12 +303,13 @@ def _put_keypoints(w: Writer, kp: np.ndarray) -> None:
         w.array(class_id if n else np.zeros(1, np.float32), "f4")
     else:
         w.shuffled(kp[:, CLASS_ID], "f4")
-    with np.errstate(invalid="ignore"):
-        angle = np.nan_to_num(np.mod(kp[:, ANGLE].astype(np.float64), 360.0))
-    w.array(np.rint(angle * (256 / 360)).astype(np.int64) % 256, "u1")
+    if ctx.refs is not None:
+        ctx.angles = quantised_angles(kp)
+    else:
+        w.array(quantised_angles(kp), "u1")
 
 
-def _get_keypoints(r: Reader) -> np.ndarray:
+def _get_keypoints(r: Reader, ctx: _Coding = INTRA) -> np.ndarray:
     n = _keypoint_count(r)
     (mode,) = r.unpack("B", "keypoint mode")
     if mode == _KP_RAW:
@@ -327,8 +353,15 @@ def _get_keypoints(r: Reader) -> np.ndarray:
         kp[:, CLASS_ID] = r.shuffled("f4", n, "keypoint class id")
     else:
         kp[:, CLASS_ID] = r.array("f4", 1, "keypoint class id")[0]
-    kp[:, ANGLE] = r.array("u1", n, "keypoint angle").astype(np.float32) * np.float32(360 / 256)
+    if ctx.refs is not None:
+        ctx.angles = np.zeros(0, np.uint8)  # (with the descriptors)
+    else:
+        kp[:, ANGLE] = _angles(r.array("u1", n, "keypoint angle"))
     return kp
+
+
+def _angles(steps: np.ndarray) -> np.ndarray:
+    return steps.astype(np.float32) * np.float32(360 / 256)
 
 
 def _put_raw_keypoints(w: Writer, kp: np.ndarray) -> None:
@@ -342,17 +375,24 @@ def _get_raw_keypoints(r: Reader) -> np.ndarray:
     return r.shuffled("f4", n * 7, "keypoints").reshape(n, 7)
 
 
-def _put_descriptors(w: Writer, descriptors: np.ndarray, n: int) -> None:
+def _put_descriptors(w: Writer, descriptors: np.ndarray, n: int, ctx: _Coding = INTRA) -> None:
     _require(descriptors.shape == (n, 32) and descriptors.dtype == np.uint8,
              f"descriptors must be {n} x 32 uint8, got {descriptors.shape} {descriptors.dtype}")
+    if ctx.refs is not None:
+        return put_inter_descriptors(w, descriptors, ctx.angles, ctx.refs, ctx.stats)
     # Column by column, each its own zstd block: every byte position has its own bit biases,
     # which zstd exploits only with a table per position (TUM fr1_rpy 4 % smaller, 7-Scenes
     # 1 %; row by row zstd level 3 gains nothing).
     w.columns(descriptors)
 
 
-def _get_descriptors(r: Reader, n: int) -> np.ndarray:
-    return r.columns(n, 32, "descriptors")
+def _get_descriptors(r: Reader, kp: np.ndarray, ctx: _Coding = INTRA) -> np.ndarray:
+    if ctx.refs is None:
+        return r.columns(len(kp), 32, "descriptors")
+    descriptors, angles = get_inter_descriptors(r, len(kp), ctx.refs, ctx.angles is not None)
+    if angles is not None:
+        kp[:, ANGLE] = _angles(angles)
+    return descriptors
 
 
 # ---------------------------------------------------------------------------------------
@@ -360,21 +400,24 @@ def _get_descriptors(r: Reader, n: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 
 
-def _put_captured(w: Writer, s: CapturedFrame, camera: Camera, config: WireConfig) -> None:
+def _put_captured(w: Writer, s: CapturedFrame, camera: Camera, config: WireConfig,
+                   ctx: _Coding = INTRA) -> None:
     _require(s.rgb.ndim == 3 and s.rgb.shape[2] == 3 and s.rgb.dtype == np.uint8,
              f"rgb must be H x W x 3 uint8, got {s.rgb.shape} {s.rgb.dtype}")
     put_image(w, s.rgb, config.frame_image_codec, config.jpeg_quality)
     _put_depth_image(w, s.depth_m, camera)
 
 
-def _get_captured(r: Reader, index: int, timestamp: float, camera: Camera) -> CapturedFrame:
+def _get_captured(r: Reader, index: int, timestamp: float, camera: Camera,
+                   ctx: _Coding = INTRA) -> CapturedFrame:
     rgb, _ = get_image(r, "rgb image", (camera.height, camera.width))
     if rgb.ndim != 3:
         raise WireError(f"rgb image has shape {rgb.shape}")
     return CapturedFrame(index, timestamp, rgb, _get_depth_image(r, camera))
 
 
-def _put_detected(w: Writer, s: DetectedFrame, camera: Camera, config: WireConfig) -> None:
+def _put_detected(w: Writer, s: DetectedFrame, camera: Camera, config: WireConfig,
+                   ctx: _Coding = INTRA) -> None:
     _require(s.gray.ndim == 2 and s.gray.dtype == np.uint8,
              f"grey image must be H x W uint8, got {s.gray.shape} {s.gray.dtype}")
     put_image(w, s.gray, config.frame_image_codec, config.jpeg_quality)
@@ -382,7 +425,8 @@ def _put_detected(w: Writer, s: DetectedFrame, camera: Camera, config: WireConfi
     _put_raw_keypoints(w, s.keypoints)
 
 
-def _get_detected(r: Reader, index: int, timestamp: float, camera: Camera) -> DetectedFrame:
+def _get_detected(r: Reader, index: int, timestamp: float, camera: Camera,
+                   ctx: _Coding = INTRA) -> DetectedFrame:
     gray, _ = get_image(r, "grey image", (camera.height, camera.width))
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise WireError(f"grey image is {gray.shape} {gray.dtype}")
@@ -390,16 +434,18 @@ def _get_detected(r: Reader, index: int, timestamp: float, camera: Camera) -> De
     return DetectedFrame(index, timestamp, gray, depth, _get_raw_keypoints(r))
 
 
-def _put_described(w: Writer, s: DescribedFrame, camera: Camera, config: WireConfig) -> None:
+def _put_described(w: Writer, s: DescribedFrame, camera: Camera, config: WireConfig,
+                    ctx: _Coding = INTRA) -> None:
     _put_depth_image(w, s.depth_m, camera)
-    _put_keypoints(w, s.keypoints)
-    _put_descriptors(w, s.descriptors, len(s.keypoints))
+    _put_keypoints(w, s.keypoints, ctx)
+    _put_descriptors(w, s.descriptors, len(s.keypoints), ctx)
 
 
-def _get_described(r: Reader, index: int, timestamp: float, camera: Camera) -> DescribedFrame:
+def _get_described(r: Reader, index: int, timestamp: float, camera: Camera,
+                    ctx: _Coding = INTRA) -> DescribedFrame:
     depth = _get_depth_image(r, camera)
-    kp = _get_keypoints(r)
-    return DescribedFrame(index, timestamp, depth, kp, _get_descriptors(r, len(kp)))
+    kp = _get_keypoints(r, ctx)
+    return DescribedFrame(index, timestamp, depth, kp, _get_descriptors(r, kp, ctx))
 
 
 def _undistort(kp: np.ndarray, camera: Camera) -> np.ndarray:
@@ -407,10 +453,11 @@ def _undistort(kp: np.ndarray, camera: Camera) -> np.ndarray:
     return camera.undistort_points(kp[:, :2].astype(np.float64))
 
 
-def _put_features(w: Writer, f: FeatureFrame, camera: Camera, config: WireConfig) -> None:
+def _put_features(w: Writer, f: FeatureFrame, camera: Camera, config: WireConfig,
+                   ctx: _Coding = INTRA) -> None:
     n = len(f.keypoints)
-    _put_keypoints(w, f.keypoints)
-    _put_descriptors(w, f.descriptors, n)
+    _put_keypoints(w, f.keypoints, ctx)
+    _put_descriptors(w, f.descriptors, n, ctx)
     _require(f.depth.shape == (n,) and f.depth.dtype == np.float32,
              f"keypoint depth must be {n} float32, got {f.depth.shape} {f.depth.dtype}")
     _put_depth_values(w, f.depth, camera)
@@ -423,10 +470,11 @@ def _put_features(w: Writer, f: FeatureFrame, camera: Camera, config: WireConfig
         w.shuffled(uv, "f8")
 
 
-def _get_features(r: Reader, index: int, timestamp: float, camera: Camera) -> FeatureFrame:
-    kp = _get_keypoints(r)
+def _get_features(r: Reader, index: int, timestamp: float, camera: Camera,
+                   ctx: _Coding = INTRA) -> FeatureFrame:
+    kp = _get_keypoints(r, ctx)
     n = len(kp)
-    descriptors = _get_descriptors(r, n)
+    descriptors = _get_descriptors(r, kp, ctx)
     depth = _get_depth_values(r, n, camera)
     (uv_mode,) = r.unpack("B", "uv mode")
     if uv_mode == _UV_RECOMPUTE:
@@ -448,8 +496,9 @@ def _get_pose(r: Reader, what: str) -> np.ndarray:
     return r.array("f8", 16, what).reshape(4, 4)
 
 
-def _put_matched(w: Writer, s: MatchedFrame, camera: Camera, config: WireConfig) -> None:
-    _put_features(w, s.features, camera, config)
+def _put_matched(w: Writer, s: MatchedFrame, camera: Camera, config: WireConfig,
+                  ctx: _Coding = INTRA) -> None:
+    _put_features(w, s.features, camera, config, ctx)
     n = len(s.features.keypoints)
     ids, xyz = np.asarray(s.landmark_ids), np.asarray(s.landmark_xyz, dtype=np.float64)
     _require(ids.shape == (n,) and xyz.shape == (n, 3),
@@ -469,8 +518,9 @@ def _put_matched(w: Writer, s: MatchedFrame, camera: Camera, config: WireConfig)
     w.pack("B", bool(s.repeated))
 
 
-def _get_matched(r: Reader, index: int, timestamp: float, camera: Camera) -> MatchedFrame:
-    features = _get_features(r, index, timestamp, camera)
+def _get_matched(r: Reader, index: int, timestamp: float, camera: Camera,
+                  ctx: _Coding = INTRA) -> MatchedFrame:
+    features = _get_features(r, index, timestamp, camera, ctx)
     n = len(features.keypoints)
     ids_mode, xyz_mode = r.unpack("BB", "landmark modes")
     if ids_mode not in (_IDS_I32, _IDS_I64) or xyz_mode not in (_XYZ_MATCHED, _XYZ_ALL):
@@ -491,8 +541,9 @@ def _get_matched(r: Reader, index: int, timestamp: float, camera: Camera) -> Mat
     return MatchedFrame(features, ids, xyz, T_pred, r.flag("repeated flag"))
 
 
-def _put_posed(w: Writer, s: PosedFrame, camera: Camera, config: WireConfig) -> None:
-    _put_matched(w, s.matched, camera, config)
+def _put_posed(w: Writer, s: PosedFrame, camera: Camera, config: WireConfig,
+                ctx: _Coding = INTRA) -> None:
+    _put_matched(w, s.matched, camera, config, ctx)
     n = len(s.matched.features.keypoints)
     _require(np.shape(s.inliers) == (n,), f"inliers must have {n} entries")
     _put_pose(w, s.T_world_camera, "pose")
@@ -500,14 +551,16 @@ def _put_posed(w: Writer, s: PosedFrame, camera: Camera, config: WireConfig) -> 
     w.pack("B", bool(s.tracked))
 
 
-def _get_posed(r: Reader, index: int, timestamp: float, camera: Camera) -> PosedFrame:
-    matched = _get_matched(r, index, timestamp, camera)
+def _get_posed(r: Reader, index: int, timestamp: float, camera: Camera,
+                ctx: _Coding = INTRA) -> PosedFrame:
+    matched = _get_matched(r, index, timestamp, camera, ctx)
     T = _get_pose(r, "pose")
     inliers = r.bits(len(matched.features.keypoints), "inliers")
     return PosedFrame(matched, T, inliers, r.flag("tracked flag"))
 
 
-def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig) -> None:
+def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig,
+                  ctx: _Coding = INTRA) -> None:
     _put_pose(w, s.T_world_camera, "pose")
     _require(0 <= s.n_inliers < 2**32, f"inlier count {s.n_inliers}")
     w.pack("BBI", bool(s.tracked), bool(s.is_keyframe), s.n_inliers)
@@ -530,7 +583,8 @@ def _rigid_pose(r: Reader, what: str) -> np.ndarray:
     return T
 
 
-def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera) -> TrackedPose:
+def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera,
+                  ctx: _Coding = INTRA) -> TrackedPose:
     T = _rigid_pose(r, "pose")
     tracked = r.flag("tracked flag")
     is_keyframe = r.flag("keyframe flag")
@@ -544,10 +598,10 @@ def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera) -> Tra
                        T_reference)
 
 
-_ENCODERS: tuple[Callable[[Writer, Any, Camera, WireConfig], None], ...] = (
+_ENCODERS: tuple[Callable[[Writer, Any, Camera, WireConfig, _Coding], None], ...] = (
     _put_captured, _put_detected, _put_described, _put_features, _put_matched, _put_posed,
     _put_tracked)
-_DECODERS: tuple[Callable[[Reader, int, float, Camera], Any], ...] = (
+_DECODERS: tuple[Callable[[Reader, int, float, Camera, _Coding], Any], ...] = (
     _get_captured, _get_detected, _get_described, _get_features, _get_matched, _get_posed,
     _get_tracked)
 
@@ -566,7 +620,14 @@ def state_index_time(state: State) -> tuple[int, float]:
 # ---------------------------------------------------------------------------------------
 
 
-def _write_state(state: State, split_point: int, camera: Camera, config: WireConfig) -> Writer:
+References = list[tuple[int, Reference]]
+
+
+def _write_state(state: State, split_point: int, camera: Camera, config: WireConfig,
+                 references: References | None = None, stats: InterStats | None = None
+                 ) -> tuple[Writer, bool]:
+    """The payload's columns, and whether it is inter-coded: against ``references`` (seq and
+    frame, at most MAX_REFERENCES) when given and the state carries descriptors."""
     if not 0 <= split_point < N_SPLIT_POINTS:
         raise ValueError(f"split point {split_point} outside 0..{N_SPLIT_POINTS - 1}")
     expected = STATE_TYPES[split_point]
@@ -577,13 +638,26 @@ def _write_state(state: State, split_point: int, camera: Camera, config: WireCon
     index, timestamp = state_index_time(state)
     w = Writer()
     w.pack("Iqd", camera_digest(camera), index, timestamp)
-    _ENCODERS[split_point](w, state, camera, config)
-    return w
+    ctx = INTRA
+    if references and features_of(state) is not None:
+        _require(len(references) <= MAX_REFERENCES,
+                 f"{len(references)} references (at most {MAX_REFERENCES})")
+        seqs = [int(seq) for seq, _ in references]
+        _require(len(set(seqs)) == len(seqs), f"references {seqs} repeat a frame")
+        w.pack("B", len(seqs))
+        w.array(np.array(seqs, np.uint64), "u8")
+        ctx = _Coding([ref for _, ref in references], stats)
+    elif stats is not None and (features := features_of(state)) is not None:
+        stats.descriptors += len(features[1])
+    _ENCODERS[split_point](w, state, camera, config, ctx)
+    return w, ctx is not INTRA
 
 
-def encode_state(state: State, split_point: int, camera: Camera, config: WireConfig) -> bytes:
-    """The payload of state ``split_point`` (the input of stage ``split_point``)."""
-    return _write_state(state, split_point, camera, config).getvalue()
+def encode_state(state: State, split_point: int, camera: Camera, config: WireConfig,
+                 references: References | None = None) -> bytes:
+    """The payload of state ``split_point`` (the input of stage ``split_point``); inter-coded
+    against ``references`` if given (decode it with ``inter=True``)."""
+    return _write_state(state, split_point, camera, config, references)[0].getvalue()
 
 
 # Content limits a decoded frame must meet before any stage reads it (a message that decodes
@@ -641,9 +715,44 @@ def _check_content(state: State, camera: Camera) -> None:
             raise WireError("uv disagrees with the keypoints it belongs to")
 
 
-def decode_state(payload: bytes, split_point: int, camera: Camera) -> State:
+class ReferenceSource(Protocol):
+    """Where an inter-coded frame's references are looked up (wire/inter.ReferenceRing, or
+    a dict of seq -> Reference)."""
+
+    def get(self, seq: int) -> Reference | None: ...
+
+
+# Split points whose state carries descriptors, so may be inter-coded.
+INTER_POINTS = (2, 3, 4, 5)
+
+
+def _read_references(r: Reader, split_point: int, seq: int,
+                     references: ReferenceSource | None) -> _Coding:
+    if split_point not in INTER_POINTS:
+        raise WireError(f"an inter-coded frame at split point {split_point}, which carries no "
+                        "descriptors")
+    (count,) = r.unpack("B", "reference count")
+    if not 1 <= count <= MAX_REFERENCES:
+        raise WireError(f"{count} reference frames (1..{MAX_REFERENCES})")
+    seqs = [int(s) for s in r.array("u8", count, "reference seqs")]
+    if len(set(seqs)) != count or max(seqs) >= seq:
+        raise WireError(f"reference seqs {seqs} repeat or are not before the frame's {seq}")
+    if references is None:
+        raise MissingReference(seq, seqs)
+    refs = [references.get(s) for s in seqs]
+    missing = [s for s, ref in zip(seqs, refs) if ref is None]
+    if missing:
+        raise MissingReference(seq, missing)
+    return _Coding([ref for ref in refs if ref is not None])
+
+
+def decode_state(payload: bytes, split_point: int, camera: Camera,
+                 references: ReferenceSource | None = None, *, inter: bool = False,
+                 seq: int = 2**64 - 1) -> State:
     """The state :func:`encode_state` encoded. Raises WireError on any inconsistency, and on
-    content the stages cannot take (sizes, values, counts: :func:`_check_content`)."""
+    content the stages cannot take (sizes, values, counts: :func:`_check_content`). An
+    inter-coded payload (``inter``) of frame ``seq`` needs its reference frames in
+    ``references``: MissingReference (a WireError) names those absent."""
     if not 0 <= split_point < N_SPLIT_POINTS:
         raise WireError(f"split point {split_point} outside 0..{N_SPLIT_POINTS - 1}")
     r = Reader(payload, f"frame payload (split point {split_point})")
@@ -651,26 +760,36 @@ def decode_state(payload: bytes, split_point: int, camera: Camera) -> State:
     if digest != camera_digest(camera):
         raise WireError("the sender's camera differs from this one (intrinsics, distortion or "
                         "depth scale): keypoints and depth would be rebuilt wrongly")
-    state = _DECODERS[split_point](r, index, timestamp, camera)
+    ctx = _read_references(r, split_point, seq, references) if inter else _Coding()
+    state = _DECODERS[split_point](r, index, timestamp, camera, ctx)
     r.finish()
     _check_content(state, camera)
     return state
 
 
 def encode_frame_message(state: State, split_point: int, robot_id: str, seq: int,
-                         camera: Camera, config: WireConfig) -> bytes:
-    """The whole frame message (envelope + payload); its timestamp is the frame's."""
-    sections = _write_state(state, split_point, camera, config).sections()
+                         camera: Camera, config: WireConfig,
+                         references: References | None = None,
+                         stats: InterStats | None = None) -> bytes:
+    """The whole frame message (envelope + payload); its timestamp is the frame's. With
+    ``references`` (seq, frame) that the cloud holds, a state that carries descriptors is
+    inter-coded (Kind.FRAME_INTER, wire/inter.py); ``stats`` counts its descriptors."""
+    writer, inter = _write_state(state, split_point, camera, config, references, stats)
     _, timestamp = state_index_time(state)
-    return seal(Kind.FRAME, robot_id, seq, timestamp, split_point, sections,
-                compress=config.compress, level=config.zstd_level)
+    return seal(Kind.FRAME_INTER if inter else Kind.FRAME, robot_id, seq, timestamp,
+                split_point, writer.sections(), compress=config.compress,
+                level=config.zstd_level)
 
 
-def decode_frame_message(data: bytes, camera: Camera) -> tuple[Header, State]:
+def decode_frame_message(data: bytes, camera: Camera,
+                         references: ReferenceSource | None = None) -> tuple[Header, State]:
+    """A frame message's header and state. An inter-coded one needs its reference frames in
+    ``references`` (the cloud's ReferenceRing): MissingReference says which are absent."""
     header, payload = open_message(data)
-    if header.kind != Kind.FRAME:
+    if header.kind not in (Kind.FRAME, Kind.FRAME_INTER):
         raise WireError(f"expected a frame message, got {header.kind.name}")
-    state = decode_state(payload, header.split_point, camera)
+    state = decode_state(payload, header.split_point, camera, references,
+                         inter=header.kind == Kind.FRAME_INTER, seq=header.seq)
     _, timestamp = state_index_time(state)
     if timestamp != header.timestamp:
         raise WireError(f"payload timestamp {timestamp} differs from the header's "
