@@ -174,3 +174,54 @@ def test_a_stalled_view_never_holds_up_a_session(scene, tmp_path):
     finally:
         recording.release.set()
         session.close()
+
+
+def test_without_a_display_the_live_view_is_served_for_a_viewer_to_connect(monkeypatch,
+                                                                           tmp_path):
+    """``--view`` on a headless machine: served over gRPC; rerun's own client, connected to
+    the URL, receives what the view logs (here: it records it to a file)."""
+    import signal
+    import subprocess
+    import warnings
+
+    pytest.importorskip("rerun")
+    from fleetslam.camera import Camera
+    from fleetslam.launch import free_endpoint
+    from fleetslam.visualisation import recording
+    from fleetslam.visualisation.live_view import open_view
+
+    viewer_cli = recording._viewer_executable()
+    if viewer_cli is None:
+        pytest.skip("rerun's viewer executable is not installed")
+    monkeypatch.setattr(recording, "can_spawn_viewer", lambda: False)
+    config = Config()
+    config.view.grpc_port = int(free_endpoint().rsplit(":", 1)[1])
+    assert any(recording.grpc_url(config.view) in line
+               for line in recording.live_plan(config.view, None, True))
+    view = open_view(config, None, live=True)
+    out = tmp_path / "received.rrd"
+    client = subprocess.Popen([viewer_cli, recording.grpc_url(config.view), "--save", str(out),
+                               "--port", "auto"], stdin=subprocess.DEVNULL,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        view.robot("r0", Camera(525.0, 525.0, 319.5, 239.5))
+        for i in range(5):
+            T = np.eye(4)
+            T[0, 3] = 0.1 * i
+            view.frame("r0", i, T, True, i == 0, 3, 10.0)
+        time.sleep(3.0)  # the client connects (the server keeps what came before)
+        view.close()
+        time.sleep(1.0)
+    finally:
+        client.send_signal(signal.SIGINT)  # it records until stopped
+        try:
+            client.wait(10)
+        except subprocess.TimeoutExpired:
+            client.kill()
+            client.wait()
+    from rerun.chunk import RrdReader
+
+    with warnings.catch_warnings():  # a file cut short has no footer: read it whole
+        warnings.simplefilter("ignore")
+        received = RrdReader(str(out)).stream().collect().schema().entity_paths()
+    assert {"/world/r0/camera", "/robots/r0/split_point"} <= set(received)

@@ -411,9 +411,10 @@ class ViewConfig:
     # Link throughput per robot: bytes received, sampled this often.
     throughput_every_s: float = 1.0
     # Without a display to spawn a viewer on, the cloud serves its view over gRPC here
-    # (``rerun rerun+http://HOST:PORT/proxy``); loopback only unless changed.
+    # (``rerun rerun+http://HOST:PORT/proxy``); loopback only unless changed. Not rerun's
+    # 9876: a viewer started on the same machine opens its own server there.
     grpc_bind: str = "127.0.0.1"
-    grpc_port: int = 9876
+    grpc_port: int = 9877
     # What that server keeps for viewers that connect late (rerun's size syntax).
     server_memory_limit: str = "1GiB"
     # A finished run's maps (fleetslam view): at most this many points each.
