@@ -144,7 +144,6 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     import threading
 
     from fleetslam.cloud.server import CloudServer
-
     from fleetslam.visualisation.live_view import open_view
     from fleetslam.visualisation.recording import live_plan
 
