@@ -1,4 +1,5 @@
-"""The ``fleetslam`` command: demo, run, cloud, robot, merge, plan, report, generate."""
+"""The ``fleetslam`` command: demo, run, cloud, robot, merge, status, plan, certs, report,
+view, generate."""
 
 from __future__ import annotations
 
@@ -79,6 +80,9 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     progress = Progress(f"synthetic scene {scene}", total, enabled=not args.quiet)
     folders = ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))
     out = Path(args.out) if args.out else _default_out("demo")
+    view_args = _view_args(args, config)
+    if view_args and args.in_process:
+        raise ValueError("--view / --save show the cloud process: not with --in-process")
     if args.in_process:
         from fleetslam.datasets.tum import RgbdSequence
         from fleetslam.system import run_fleet
@@ -89,7 +93,7 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
         summary = run_demo([str(f) for f in folders], out, args.offload_at, args.config,
                            link_args=_link_args(args), show_progress=not args.quiet,
                            zenoh_config=config.transport.zenoh_config or None,
-                           secure=not args.insecure)
+                           secure=not args.insecure, cloud_args=view_args)
     _finish(summary, out, args.quiet)
     return 0
 
@@ -111,6 +115,34 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
                         "(keyframe uploads are resent until acknowledged)")
 
 
+def _add_view_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--view", action="store_true", help="live view in rerun: spawn a "
+                        "viewer if this machine has a display, else serve it over gRPC and "
+                        "print the URL (needs pip install 'fleetslam[view]')")
+    parser.add_argument("--save", metavar="FILE.rrd", help="record the live view to this "
+                        "file (replay: rerun FILE.rrd); with or without --view")
+
+
+def _view_args(args: argparse.Namespace, config: Config) -> list[str]:
+    """The demo's --view / --save, passed on to its cloud process (rerun checked here)."""
+    if not (args.view or args.save):
+        return []
+    from fleetslam.visualisation.recording import import_rerun, live_plan
+
+    import_rerun()
+    save = Path(args.save).resolve() if args.save else None
+    for line in live_plan(config.view, save, args.view):
+        print(f"{line} (the cloud process)", file=sys.stderr)
+    return (["--view"] if args.view else []) + (["--save", str(save)] if save else [])
+
+
+def cmd_view(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.visualisation.run_view import view_run
+
+    print(view_run(Path(args.run_dir), config, Path(args.save) if args.save else None))
+    return 0
+
+
 def _setup_logging(quiet: bool) -> None:
     import logging
 
@@ -123,9 +155,14 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     import threading
 
     from fleetslam.cloud.server import CloudServer
+    from fleetslam.visualisation.live_view import open_view
+    from fleetslam.visualisation.recording import live_plan
 
     _setup_logging(args.quiet)
-    server = CloudServer(config, Path(args.out), args.listen).start()
+    view = open_view(config, args.save, args.view)
+    for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
+        print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
+    server = CloudServer(config, Path(args.out), args.listen, view=view).start()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -333,6 +370,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--insecure", action="store_true",
                       help="plain TCP instead of TLS between the demo's processes")
     _add_link_options(demo)
+    _add_view_options(demo)
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="run robots on TUM-layout folders")
@@ -348,6 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
     cloud.add_argument("--out", required=True, help="folder for maps, trajectories, "
                        "keyframes and checkpoints (reused after a restart)")
+    _add_view_options(cloud)
     cloud.set_defaults(func=cmd_cloud)
 
     robot = sub.add_parser("robot", help="stream a recorded sequence to the cloud")
@@ -426,6 +465,13 @@ def build_parser() -> argparse.ArgumentParser:
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")
     gen.set_defaults(func=cmd_generate)
+
+    view = sub.add_parser("view", help="open a finished run's maps and trajectories in rerun "
+                          "(needs pip install 'fleetslam[view]')")
+    view.add_argument("run_dir", metavar="RUN_DIR", help="a run folder (runs/<command>-<time>)")
+    view.add_argument("--save", metavar="FILE.rrd", help="write a recording (open it with "
+                      "rerun FILE.rrd) instead of spawning a viewer")
+    view.set_defaults(func=cmd_view)
     return parser
 
 

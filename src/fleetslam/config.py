@@ -399,6 +399,44 @@ class TransportConfig:
 
 
 @dataclass
+class ViewConfig:
+    """The view in rerun: the cloud's live view (``cloud`` / ``demo`` with ``--view`` or
+    ``--save``) and a finished run's (``fleetslam view``)."""
+
+    # Updates waiting for the view's own logging thread; when it falls behind, new ones are
+    # dropped (and counted): a robot's session never waits for the view.
+    queue_size: int = 2048
+    # A robot's camera (frustum and pose) every n-th frame; its trajectory as line-strip
+    # segments of this many frames (each logged once, never the whole trajectory again).
+    pose_every_frames: int = 1
+    trajectory_segment_frames: int = 10
+    # Each keyframe's back-projected points, voxel-downsampled to this size, at most this
+    # many per keyframe, so the growing map stays fluid in the viewer.
+    keyframe_voxel_m: float = 0.05
+    max_points_per_keyframe: int = 4000
+    # A keyframe's points move with it (local BA, loop closing) once its pose changed by
+    # more than this.
+    move_translation_m: float = 0.01
+    move_rotation_deg: float = 0.5
+    # The merger's global transforms and inter-robot constraints at most this often
+    # (each may re-optimise a joined group's pose graph, on the merger's thread).
+    global_every_s: float = 2.0
+    # Link throughput per robot: bytes received, sampled this often.
+    throughput_every_s: float = 1.0
+    # Without a display to spawn a viewer on, the cloud serves its view over gRPC here
+    # (``rerun rerun+http://HOST:PORT/proxy``); loopback only unless changed. Not rerun's
+    # 9876: a viewer started on the same machine opens its own server there.
+    grpc_bind: str = "127.0.0.1"
+    grpc_port: int = 9877
+    # What that server keeps for viewers that connect late (rerun's size syntax).
+    server_memory_limit: str = "1GiB"
+    # A finished run's maps (fleetslam view): at most this many points each.
+    max_map_points: int = 2_000_000
+    # At shutdown, the cloud waits at most this long for queued updates to be written.
+    close_timeout_s: float = 10.0
+
+
+@dataclass
 class Config:
     orb: OrbConfig = field(default_factory=OrbConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -413,6 +451,7 @@ class Config:
     wire: WireConfig = field(default_factory=WireConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
+    view: ViewConfig = field(default_factory=ViewConfig)
 
 
 def _update(obj: Any, values: dict[str, Any], where: str) -> None:

@@ -33,9 +33,10 @@ def _tail(path: Path, lines: int = 15) -> str:
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
              link_args: list[str] | None = None, show_progress: bool = True,
              timeout_s: float = 1800.0, zenoh_config: str | None = None,
-             secure: bool = True) -> dict[str, Any]:
+             secure: bool = True, cloud_args: list[str] | None = None) -> dict[str, Any]:
     """Cloud and robots as processes on loopback. ``secure``: over TLS, with a lab made for
-    this run in ``out/tls`` (unless a Zenoh config file says how to connect)."""
+    this run in ``out/tls`` (unless a Zenoh config file says how to connect).
+    ``cloud_args``: more options of the cloud process (the live view's --view, --save)."""
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=False)
     endpoint = free_endpoint()
@@ -46,7 +47,7 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
         configs = {name: str(path) for name, path in lab.items()}
     logs = out / "logs"
-    cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path,
+    cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path, extra=cloud_args,
                         zenoh_config=configs["cloud"])
     robots: dict[str, Any] = {}
     client = None

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from typing import Any, Callable, TypeVar
 
 import numpy as np
@@ -17,6 +18,7 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
+from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.merge")
 
@@ -24,9 +26,15 @@ T = TypeVar("T")
 
 
 class MergerService:
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, view: NullView | None = None) -> None:
         self.merger = MapMerger(config)
         self.errors = 0
+        # The live view gets the global transforms and constraints at most every
+        # view.global_every_s, on this thread (never on a robot's session).
+        self.view = view or NullView()
+        self._view_every_s = config.view.global_every_s
+        self._view_due = False
+        self._view_at = -float("inf")
         self._lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="cloud-merger", daemon=True)
@@ -43,10 +51,18 @@ class MergerService:
         self._queue.put(("keyframe", (summary, poses)))
 
     def _run(self) -> None:
-        while (item := self._queue.get()) is not None:
+        wait = self._view_every_s if self.view.enabled else None
+        while True:
+            try:
+                item = self._queue.get(timeout=wait)
+            except queue.Empty:
+                item = ("tick", None)  # the view's last changes, when keyframes stop
+            if item is None:
+                return
             kind, payload = item
             try:
                 with self._lock:
+                    self._view_due |= kind in ("robot", "keyframe")
                     if kind == "robot":
                         robot, camera, keyframes, poses = payload
                         self.merger.add_robot(robot, camera)
@@ -59,9 +75,34 @@ class MergerService:
                         self.merger.add_keyframe(*payload)
                     elif kind == "call":
                         payload()
+                    if self._view_due and time.monotonic() - self._view_at >= \
+                            self._view_every_s:
+                        self._show()
             except Exception:
                 self.errors += 1
                 log.exception("merger: %s failed", kind)
+
+    def _show(self) -> None:
+        """Hand the view every robot's global transform and the inter-robot constraints
+        (as lines between their keyframes, in the global frame). Under the lock."""
+        if not self.view.enabled:
+            return
+        m = self.merger
+        transforms = {name: m.T_global_map(name) for name in m.robots}
+        poses = m.global_keyframe_poses()
+        lines = []
+        for c in m.constraints:
+            q, p = c.match.query, c.match.place
+            if q.keyframe < len(poses[q.robot]) and p.keyframe < len(poses[p.robot]):
+                lines.append((poses[q.robot][q.keyframe][:3, 3].copy(),
+                              poses[p.robot][p.keyframe][:3, 3].copy(), c.kept))
+        self.view.merged(transforms, lines)
+        self._view_due = False
+        self._view_at = time.monotonic()
+
+    def show(self) -> None:
+        """Hand the view the merger's state now (after a merge)."""
+        self.locked(lambda m: self._show())
 
     def drain(self, timeout: float) -> bool:
         """Wait until everything submitted so far is merged; False on timeout."""

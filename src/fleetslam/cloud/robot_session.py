@@ -30,6 +30,7 @@ from fleetslam.pipeline.stages import default_stages
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import CLOUD_TRACKS, ROBOT_TRACKS, Hello
+from fleetslam.visualisation.live_view import NullView
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.frames import decode_frame_message
 from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
@@ -133,8 +134,11 @@ KeyframeSink = Callable[[KeyframeSummary, np.ndarray], None]
 
 class RobotSession:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
-                 publish: Publish, keyframe_sink: KeyframeSink | None = None) -> None:
+                 publish: Publish, keyframe_sink: KeyframeSink | None = None,
+                 view: NullView | None = None) -> None:
         self.state = state
+        # The live view (off: a NullView); its calls only enqueue, never wait.
+        self.view = view or NullView()
         self.keyframe_sink = keyframe_sink
         self.config = config
         self.store = store
@@ -172,10 +176,11 @@ class RobotSession:
 
     @staticmethod
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
-             publish: Publish, keyframe_sink: KeyframeSink | None = None) -> "RobotSession":
+             publish: Publish, keyframe_sink: KeyframeSink | None = None,
+             view: NullView | None = None) -> "RobotSession":
         # The front end's state is made by the first frame that needs it (_on_frame).
         return RobotSession(SessionState(robot_id, hello, CloudSession(config, hello.camera)),
-                            config, store, publish, keyframe_sink)
+                            config, store, publish, keyframe_sink, view)
 
     @property
     def robot_id(self) -> str:
@@ -185,6 +190,7 @@ class RobotSession:
 
     def submit_frame(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
+        self.view.received(self.robot_id, len(data))
         if not self._paused():
             self._frames.put(("frame", data, arrival))
 
@@ -194,6 +200,7 @@ class RobotSession:
 
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
+        self.view.received(self.robot_id, len(data))
         if not self._paused():
             self._keyframes.put(("keyframe", data, arrival))
 
@@ -373,6 +380,8 @@ class RobotSession:
         now = time.monotonic()
         st.first_frame_time = st.first_frame_time or now
         st.last_frame_time = now
+        self.view.frame(self.robot_id, out.index, st.rows[-1].T_world_camera, out.tracked,
+                        out.is_keyframe, header.split_point, cloud_ms)
         if out.is_keyframe:
             if isinstance(state, CapturedFrame):
                 # Total offloading: the cloud already has the keyframe's RGB-D.
@@ -385,6 +394,11 @@ class RobotSession:
             self._checkpoints.put((out.index, blob))
             if self.stages and self.keyframe_sink is not None:
                 self.keyframe_sink(*self.newest_keyframe())
+            if self.view.enabled and self.stages:  # local BA moved the recent keyframes
+                lmap = st.tracking.map
+                self.view.keyframe_poses(self.robot_id,
+                                         [kf.frame_index for kf in lmap.keyframes],
+                                         lmap.keyframe_poses())
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
                             out.n_inliers, out.T_world_camera, cloud_ms)
         self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
@@ -410,6 +424,22 @@ class RobotSession:
                                            self.config.map.pixel_stride)
         self.store.put_keyframe(self.robot_id, frame.index,
                                 encode_keyframe(self.robot_id, seq, upload, self.config.wire))
+        if self.view.enabled:
+            self.view.keyframe_points(self.robot_id, frame.index,
+                                      self._keyframe_pose(frame.index), upload.rgb,
+                                      upload.depth_raw, upload.stride)
+
+    def _keyframe_pose(self, frame_index: int) -> np.ndarray:
+        """A keyframe's current pose: in the tracking map, or as its frame was tracked (a
+        robot that tracks itself)."""
+        if self.stages:
+            for kf in reversed(list(self.state.tracking.map.keyframes)):
+                if kf.frame_index == frame_index:
+                    return kf.T_world_camera.copy()
+        for row in reversed(list(self.state.rows)):
+            if row.index == frame_index:
+                return row.T_world_camera
+        return np.eye(4)
 
     def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
         try:
@@ -441,6 +471,10 @@ class RobotSession:
         else:
             self.store.put_keyframe(self.robot_id, upload.frame_index, data)
             self.count("keyframes stored")
+            if self.view.enabled:
+                self.view.keyframe_points(self.robot_id, upload.frame_index,
+                                          self._keyframe_pose(upload.frame_index),
+                                          upload.rgb, upload.depth_raw, upload.stride)
         # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
         # (a resent one is acknowledged again).
         if not self._await_checkpoint(upload.frame_index):

@@ -26,6 +26,7 @@ from fleetslam.system import SUMMARY_VERSION
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_listening, put
+from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.cloud")
 
@@ -60,14 +61,17 @@ class Throttle:
 
 
 class CloudServer:
-    def __init__(self, config: Config, out_dir: Path, endpoint: str | None = None) -> None:
+    def __init__(self, config: Config, out_dir: Path, endpoint: str | None = None,
+                 view: NullView | None = None) -> None:
         self.config = config
+        # The live view (visualisation/live_view.py; off: a NullView). The server closes it.
+        self.view = view or NullView()
         self.out_dir = Path(out_dir)
         self.endpoint = endpoint or config.transport.endpoint
         self.store = CloudStore(self.out_dir)
         self.sessions: dict[str, RobotSession] = {}
         self._merges: dict[str, bytes] = {}
-        self.merger = MergerService(config)
+        self.merger = MergerService(config, self.view)
         self._lock = threading.Lock()
         self._zenoh: zenoh.Session | None = None
         self._subscribers: list[Any] = []
@@ -100,6 +104,7 @@ class CloudServer:
         for session in sessions:
             session.close()
         self.merger.close()
+        self.view.close()
         for sub in self._subscribers:
             sub.undeclare()
         if self._zenoh is not None:
@@ -175,8 +180,9 @@ class CloudServer:
                 if state is None:
                     return None
                 session = RobotSession(state, self.config, self.store, self.publish,
-                                       self.merger.submit)
+                                       self.merger.submit, self.view)
                 self.sessions[robot_id] = session
+                self.view.robot(robot_id, state.hello.camera)
                 # The merger is rebuilt from the keyframes the session already has (none for
                 # a robot that tracks itself).
                 self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
@@ -219,8 +225,10 @@ class CloudServer:
                               f"robots at once (transport.max_sessions)")
                     return self._error(reply, protocol.Code.REFUSED, reason)
                 session = self.sessions.get(robot_id) or RobotSession.open(
-                    robot_id, hello, self.config, self.store, self.publish, self.merger.submit)
+                    robot_id, hello, self.config, self.store, self.publish, self.merger.submit,
+                    self.view)
                 self.sessions[robot_id] = session
+                self.view.robot(robot_id, hello.camera)
                 self.merger.add_robot(robot_id, hello.camera)
             log.info("robot %s: new session, offloading at %d, source %s", robot_id,
                      hello.offload_at, hello.source)
@@ -308,6 +316,7 @@ class CloudServer:
             "config": config_to_dict(self.config),
         }
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        self.merger.show()
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
         self._write_report()
         return summary

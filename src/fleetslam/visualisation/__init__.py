@@ -1,0 +1,1 @@
+"""Views of fleetslam in rerun (optional: ``pip install 'fleetslam[view]'``)."""
