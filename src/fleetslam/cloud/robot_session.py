@@ -213,6 +213,12 @@ class RobotSession:
         self.count("dropped unread (too many rejected)")
         return True
 
+    def _snapshot(self) -> bytes:
+        """The state as a checkpoint now; under the counts lock, since the keyframe thread
+        counts while this copies."""
+        with self._counts_lock:
+            return snapshot(self.state)
+
     def count(self, name: str, n: int = 1) -> None:
         with self._counts_lock:
             self.state.counts[name] += n
@@ -230,8 +236,7 @@ class RobotSession:
         for t in self._threads[:2]:
             t.join(timeout)
         if final_checkpoint:
-            with self._counts_lock:
-                self._checkpoints.put((self.state.last_index, snapshot(self.state)))
+            self._checkpoints.put((self.state.last_index, self._snapshot()))
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
         self._checkpoints.put(None)
         self._threads[2].join(timeout)
@@ -389,9 +394,7 @@ class RobotSession:
             # Checkpoint the session as it is now (the snapshot here, the slow durable write
             # on the writer thread); the keyframe's upload is acknowledged only once this
             # checkpoint is on disk, so no acknowledged keyframe is one a restart forgets.
-            with self._counts_lock:  # the keyframe thread counts while this copies
-                blob = snapshot(st)
-            self._checkpoints.put((out.index, blob))
+            self._checkpoints.put((out.index, self._snapshot()))
             if self.stages and self.keyframe_sink is not None:
                 self.keyframe_sink(*self.newest_keyframe())
             if self.view.enabled and self.stages:  # local BA moved the recent keyframes
@@ -424,9 +427,13 @@ class RobotSession:
                                            self.config.map.pixel_stride)
         self.store.put_keyframe(self.robot_id, frame.index,
                                 encode_keyframe(self.robot_id, seq, upload, self.config.wire))
+        self._show_keyframe(upload)
+
+    def _show_keyframe(self, upload: KeyframeUpload) -> None:
+        """A stored keyframe's points in the live view (nothing when it is off)."""
         if self.view.enabled:
-            self.view.keyframe_points(self.robot_id, frame.index,
-                                      self._keyframe_pose(frame.index), upload.rgb,
+            self.view.keyframe_points(self.robot_id, upload.frame_index,
+                                      self._keyframe_pose(upload.frame_index), upload.rgb,
                                       upload.depth_raw, upload.stride)
 
     def _keyframe_pose(self, frame_index: int) -> np.ndarray:
@@ -471,10 +478,7 @@ class RobotSession:
         else:
             self.store.put_keyframe(self.robot_id, upload.frame_index, data)
             self.count("keyframes stored")
-            if self.view.enabled:
-                self.view.keyframe_points(self.robot_id, upload.frame_index,
-                                          self._keyframe_pose(upload.frame_index),
-                                          upload.rgb, upload.depth_raw, upload.stride)
+            self._show_keyframe(upload)
         # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
         # (a resent one is acknowledged again).
         if not self._await_checkpoint(upload.frame_index):

@@ -99,9 +99,7 @@ class CloudServer:
         self.stopped.set()
         if self._reaper.is_alive():
             self._reaper.join(30.0)
-        with self._lock:
-            sessions = list(self.sessions.values())
-        for session in sessions:
+        for _, session in self._sessions_now():
             session.close()
         self.merger.close()
         self.view.close()
@@ -143,6 +141,11 @@ class CloudServer:
         except Exception:
             self._count_unrouted()
             log.exception("message on %s failed", sample.key_expr)
+
+    def _sessions_now(self) -> list[tuple[str, RobotSession]]:
+        """The session table as it is now (Zenoh callbacks and the idle closer change it)."""
+        with self._lock:
+            return list(self.sessions.items())
 
     def _count_unrouted(self) -> None:
         with self._lock:  # Zenoh calls back on several threads
@@ -249,10 +252,8 @@ class CloudServer:
         if message["type"] == "merge":
             self._request_merge(rid)
         elif message["type"] == "status":
-            with self._lock:
-                sessions = list(self.sessions.items())
             robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None}
-                      for r, s in sessions}
+                      for r, s in self._sessions_now()}
             self.publish(keys.CLOUD_REPLY, protocol.encode(
                 protocol.status(rid, robots, self.merger.status())))
         else:
@@ -297,9 +298,7 @@ class CloudServer:
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
                                f"within {timeout_s:.0f} s; ask again")
-        with self._lock:
-            sessions = list(self.sessions.values())
-        finished = sorted((s.finished for s in sessions if s.finished),
+        finished = sorted((s.finished for _, s in self._sessions_now() if s.finished),
                           key=lambda f: f.robot_id)
         global_map = None
         if len(finished) > 1:
