@@ -40,6 +40,14 @@ def _rules(name: str, sends: list[str], receives: list[str]) -> list[dict[str, A
     ]
 
 
+def check_robot_identity(robot: str) -> str:
+    """A robot id that can also be a certificate's identity (ValueError if not)."""
+    keys.check_robot_id(robot)
+    if robot == OPERATOR:
+        raise ValueError(f"robot id '{OPERATOR}' is the operator's identity")
+    return robot
+
+
 def fleet_acl(robots: list[str]) -> dict[str, Any]:
     """The ``access_control`` block of the cloud's Zenoh config for these robot ids."""
     rules: list[dict[str, Any]] = []
@@ -54,9 +62,7 @@ def fleet_acl(robots: list[str]) -> dict[str, Any]:
                          "rules": [r["id"] for r in granted]})
 
     for robot in sorted(set(robots)):
-        keys.check_robot_id(robot)
-        if robot == OPERATOR:
-            raise ValueError(f"robot id '{OPERATOR}' is the operator's identity")
+        check_robot_identity(robot)
         allow(robot, [keys.frame(robot), keys.keyframe(robot), keys.control(robot)],
               [keys.feedback(robot), keys.reply(robot)])
     allow(OPERATOR, [keys.CLOUD_CONTROL], [keys.CLOUD_REPLY])

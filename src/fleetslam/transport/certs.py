@@ -22,7 +22,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from fleetslam.transport.access_control import OPERATOR, fleet_acl
+from fleetslam.transport.access_control import OPERATOR, check_robot_identity, fleet_acl
 
 VALID_DAYS = 825
 MANIFEST = "lab.json"  # the lab's hosts and robots: what the cloud's ACL admits
@@ -115,8 +115,7 @@ def _add_robots(out: Path, robots: list[str]) -> dict[str, Path]:
         raise ValueError(f"{out / 'ca.key'}: not the EC key of a fleetslam lab")
     ca_name = x509.load_pem_x509_certificate((out / "ca.pem").read_bytes()).subject
     for robot in robots:
-        if robot == OPERATOR:
-            raise ValueError(f"robot id '{OPERATOR}' is the operator's identity")
+        check_robot_identity(robot)  # before its files: "operator" would overwrite the tools'
         if robot in manifest["robots"]:
             raise FileExistsError(f"robot {robot} is already in the lab {out}")
         _client(out, robot, f"robot-{robot}.json5", ca_key, ca_name)
