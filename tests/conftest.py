@@ -28,3 +28,14 @@ def small_scene(tmp_path_factory, frames_per_robot: int) -> list[Path]:
     config = Config()
     config.synthetic.frames_per_robot = frames_per_robot
     return ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)
+
+
+def exact_config():
+    """The defaults with local mapping in-line in the cloud too: the cloud's poses are then
+    bit-identical to an in-memory run (with ``async`` they depend on when each local BA
+    lands)."""
+    from fleetslam.config import Config
+
+    config = Config()
+    config.tracking.local_mapping = "inline"
+    return config

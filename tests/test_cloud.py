@@ -16,10 +16,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import small_scene
+from conftest import exact_config, small_scene
 
 from fleetslam.cloud.server import CloudServer
-from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.launch import free_endpoint
 from fleetslam.pipeline.split import TrackingPipeline, run_stages
@@ -47,13 +46,13 @@ def robot_messages(scene, k: int) -> dict:
     out = {}
     for name, folder in zip(("r0", "r1"), scene):
         seq = RgbdSequence(folder)
-        robot = TrackingPipeline(Config(), seq.camera)
-        reference = TrackingPipeline(Config(), seq.camera)
+        robot = TrackingPipeline(exact_config(), seq.camera)
+        reference = TrackingPipeline(exact_config(), seq.camera)
         msgs, poses = [], []
         for seq_no, f in enumerate(seq):
             frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
             state = run_stages(robot.split(k)[0], frame, robot.session)
-            msgs.append(encode_frame_message(state, k, name, seq_no, seq.camera, Config().wire))
+            msgs.append(encode_frame_message(state, k, name, seq_no, seq.camera, exact_config().wire))
             poses.append(reference.track(frame).T_world_camera)
         out[name] = (seq, msgs, np.array(poses))
     return out
@@ -128,7 +127,7 @@ class FakeRobot:
 @pytest.fixture()
 def cloud(tmp_path):
     endpoint = free_endpoint()
-    server = CloudServer(Config(), tmp_path / "cloud", endpoint).start()
+    server = CloudServer(exact_config(), tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
     yield server, client
     client.close()
@@ -261,7 +260,7 @@ def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path
             replies.append({**json.loads(data), "frames": holder[0].state.counts["frames"]})
 
     hello = Hello(K, seq0.camera, "test")
-    session = RobotSession.open("r0", hello, Config(), CloudStore(tmp_path), publish)
+    session = RobotSession.open("r0", hello, exact_config(), CloudStore(tmp_path), publish)
     holder.append(session)
     now = time.monotonic()
     for data in msgs0[:-3]:
@@ -286,7 +285,7 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
     before any stage runs, the robot hears why, and its good frames track as before."""
     server, client = cloud
     seq = RgbdSequence(scene[0])
-    camera, config = seq.camera, Config()
+    camera, config = seq.camera, exact_config()
     robot_side, reference = TrackingPipeline(config, camera), TrackingPipeline(config, camera)
     states, expected = [], []
     for f in seq:
@@ -354,7 +353,7 @@ def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
 
 
 def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scene):
-    config = Config()
+    config = exact_config()
     config.transport.max_sessions = 1
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
@@ -387,7 +386,7 @@ def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(m
     lost: its next frame restores the session from the checkpoint and tracking goes on with
     the same poses as a session that never closed."""
     seq0, msgs0, poses0 = messages["r0"]
-    config = Config()
+    config = exact_config()
     config.transport.idle_session_s = 0.4
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
@@ -424,7 +423,7 @@ def test_a_robot_flooding_bad_frames_is_paused_and_then_heard_again(messages, tm
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, poses0 = messages["r0"]
-    config = Config()
+    config = exact_config()
     config.transport.max_rejections_per_s = 20
     config.transport.misbehaving_pause_s = 0.5
     replies: list[dict] = []
@@ -492,7 +491,7 @@ def test_a_busy_session_still_waits_for_the_last_frame_after_the_end(messages, t
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, _ = messages["r0"]
-    config = Config()
+    config = exact_config()
     config.transport.end_grace_s = 0.5
     replies: list[dict] = []
     holder: list[RobotSession] = []
@@ -528,7 +527,7 @@ def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(m
 
     seq0, msgs0, _ = messages["r0"]
     replies: list[dict] = []
-    session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), Config(),
+    session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), exact_config(),
                                 CloudStore(tmp_path), lambda k, d: replies.append(json.loads(d))
                                 if k == keys.reply("r0") else None)
     for data in msgs0:
@@ -538,9 +537,9 @@ def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(m
     keyframe = next(r.index for r in rows if r.is_keyframe)
     other = next(r.index for r in rows if not r.is_keyframe)
     frame = seq0[other]
-    stride = Config().map.pixel_stride
+    stride = exact_config().map.pixel_stride
     forged = KeyframeUpload.from_frame(other, frame.timestamp, frame.rgb, frame.depth_raw, stride)
-    session.submit_keyframe(encode_keyframe("r0", 0, forged, Config().wire), time.monotonic())
+    session.submit_keyframe(encode_keyframe("r0", 0, forged, exact_config().wire), time.monotonic())
     time.sleep(0.3)
     assert "is not a keyframe of this session" in replies[-1]["reason"]
     # Said so that the robot stops resending it (its own test: test_robot.py).
@@ -548,7 +547,7 @@ def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(m
     time.sleep(1.0)  # one rejection reason per second
     small = KeyframeUpload(keyframe, frame.timestamp, stride, frame.rgb[:10, :10],
                            frame.depth_raw[:10, :10])
-    session.submit_keyframe(encode_keyframe("r0", 1, small, Config().wire), time.monotonic())
+    session.submit_keyframe(encode_keyframe("r0", 1, small, exact_config().wire), time.monotonic())
     time.sleep(0.3)
     session.close()
     # Refused before its images are decoded (decode_keyframe knows the camera).
@@ -565,7 +564,7 @@ def test_the_cloud_starts_from_a_labs_zenoh_config_file(tmp_path):
 
     router = tmp_path / "cloud.json5"
     router.write_text('{ mode: "router", scouting: { multicast: { enabled: false } } }')
-    config = Config()
+    config = exact_config()
     config.transport.zenoh_config = str(router)
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
@@ -599,7 +598,7 @@ def test_a_tls_cloud_refuses_clients_without_the_labs_ca(tmp_path, capsys):
     assert main(["certs", "--out", str(lab), "--robot", "r2"]) == 0  # added with its CA
     assert json.loads((lab / "lab.json").read_text())["robots"] == ["r1", "r2"]
     assert main(["certs", "--out", str(tmp_path / "other")]) == 0
-    config = Config()
+    config = exact_config()
     config.transport.zenoh_config = str(lab / "cloud.json5")
     endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
@@ -633,7 +632,7 @@ def test_a_robot_can_use_only_its_own_keys(messages, tmp_path):
 
     seq1, r1_msgs, poses1 = messages["r1"]
     lab = make_lab(tmp_path / "lab", ["localhost"], ["r1", "r2"])
-    config = Config()
+    config = exact_config()
     config.transport.zenoh_config = str(lab["cloud"])
     endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
@@ -722,7 +721,7 @@ def test_the_link_is_encrypted(messages, tmp_path, secure):
     from fleetslam.transport.certs import make_lab
 
     seq1, msgs1, poses1 = messages["r1"]
-    config, robot_config = Config(), None
+    config, robot_config = exact_config(), None
     port = int(free_endpoint().rsplit(":", 1)[1])
     if secure:
         lab = make_lab(tmp_path / "lab", ["localhost"], ["r1"])
@@ -762,8 +761,8 @@ def test_a_missing_reference_is_refused_and_the_robot_falls_back_to_intra(cloud,
     seq = RgbdSequence(scene[0])
     robot = FakeRobot(client, "r0", seq.camera)
     welcome = robot.hello()
-    assert welcome["reference_frames"] == Config().wire.reference_frames
-    config = Config()
+    assert welcome["reference_frames"] == exact_config().wire.reference_frames
+    config = exact_config()
     encoder = InterEncoder(config.wire, welcome["reference_frames"])
     pipeline = TrackingPipeline(config, seq.camera)
     frames = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
@@ -789,7 +788,7 @@ def test_a_missing_reference_is_refused_and_the_robot_falls_back_to_intra(cloud,
         tracked.append(fb.T_world_camera)
     assert kinds[0] == Kind.FRAME and kinds[6] == Kind.FRAME  # first, and after the refusal
     assert all(k == Kind.FRAME_INTER for k in kinds[1:6] + kinds[7:]), kinds
-    reference = TrackingPipeline(Config(), seq.camera)
+    reference = TrackingPipeline(exact_config(), seq.camera)
     expected = [reference.track(f).T_world_camera for i, f in enumerate(frames) if i != 5]
     np.testing.assert_array_equal(np.array(tracked), np.array(expected))
     counts = server.sessions["r0"].state.counts

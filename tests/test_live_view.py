@@ -10,10 +10,9 @@ import time
 
 import numpy as np
 import pytest
-from conftest import small_scene
+from conftest import exact_config, small_scene
 
 from fleetslam.cli import main
-from fleetslam.config import Config
 
 N_FRAMES = 16
 
@@ -41,7 +40,7 @@ def viewed_run(scene, tmp_path_factory):
     from fleetslam.visualisation.live_view import open_view
 
     tmp = tmp_path_factory.mktemp("viewed")
-    config, endpoint = Config(), free_endpoint()
+    config, endpoint = exact_config(), free_endpoint()
     view = open_view(config, tmp / "live.rrd", live=False)
     server = CloudServer(config, tmp / "cloud", endpoint, view=view).start()
     try:
@@ -119,7 +118,7 @@ def test_without_rerun_the_view_says_how_to_install_it(monkeypatch, tmp_path, ca
     # The view off needs no rerun.
     from fleetslam.visualisation.live_view import NullView, open_view
 
-    assert isinstance(open_view(Config(), None, False), NullView)
+    assert isinstance(open_view(exact_config(), None, False), NullView)
 
 
 class StalledRecording:
@@ -149,7 +148,7 @@ def test_a_stalled_view_never_holds_up_a_session(scene, tmp_path):
     from fleetslam.visualisation.live_view import LiveView
 
     seq, msgs, poses = robot_messages(scene, K)["r0"]
-    config = Config()
+    config = exact_config()
     config.view.queue_size = 4
     config.view.close_timeout_s = 0.5
     recording = StalledRecording()
@@ -194,7 +193,7 @@ def test_without_a_display_the_live_view_is_served_for_a_viewer_to_connect(monke
     if viewer_cli is None:
         pytest.skip("rerun's viewer executable is not installed")
     monkeypatch.setattr(recording, "can_spawn_viewer", lambda: False)
-    config = Config()
+    config = exact_config()
     config.view.grpc_port = int(free_endpoint().rsplit(":", 1)[1])
     assert any(recording.grpc_url(config.view) in line
                for line in recording.live_plan(config.view, None, True))

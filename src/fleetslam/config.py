@@ -89,7 +89,7 @@ class TrackingConfig:
     # ... and more close points than this are not (ORB-SLAM: 70).
     keyframe_close_untracked: int = 70
     # Local bundle adjustment of keyframe poses and landmarks at every keyframe (ORB-SLAM's
-    # local mapping, run in-line).
+    # local mapping; where it runs: ``local_mapping``).
     local_ba: bool = True
     # Keyframes optimised: the new one and its most covisible ones (ORB-SLAM: all covisible).
     local_ba_window: int = 10
@@ -97,6 +97,15 @@ class TrackingConfig:
     covisibility_min_shared: int = 15
     # Levenberg-Marquardt iterations: robust pass, then inlier-only pass (ORB-SLAM: 5, 10).
     local_ba_iterations: tuple[int, int] = (5, 10)
+    # Where a cloud runs local BA: "async" in worker processes, its result written into
+    # the map at a later frame, so a keyframe does not hold up the frames behind it
+    # (ORB-SLAM's LocalMapping thread); "inline" at the keyframe, deterministic (the
+    # exactness tests). One-process runs and robots tracking at point 6 are always inline.
+    local_mapping: str = "async"
+    # Worker processes of a cloud for local BA, shared by its robots' sessions ...
+    local_mapping_workers: int = 1
+    # ... and how long a solve may take before it is dropped (the map stays as it was).
+    local_ba_timeout_s: float = 30.0
     # Cull new landmarks as ORB-SLAM does (MapPointCulling) during their first keyframes.
     cull_landmarks: bool = True
     # ... when matched in fewer than this fraction of the frames predicted to see them ...

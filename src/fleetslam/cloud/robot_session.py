@@ -24,6 +24,7 @@ from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.merging.global_map import RobotTrack
 from fleetslam.merging.inter_robot import KeyframeSummary, keyframe_summary
+from fleetslam.pipeline.local_mapping_worker import AsyncLocalMapping, LocalMappingPool
 from fleetslam.pipeline.session import CloudSession, EdgeSession, Session
 from fleetslam.pipeline.split import StageTimer, run_stages
 from fleetslam.pipeline.stages import default_stages
@@ -135,7 +136,8 @@ KeyframeSink = Callable[[KeyframeSummary, np.ndarray], None]
 class RobotSession:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
                  publish: Publish, keyframe_sink: KeyframeSink | None = None,
-                 view: NullView | None = None) -> None:
+                 view: NullView | None = None,
+                 local_mapping: LocalMappingPool | None = None) -> None:
         self.state = state
         # The live view (off: a NullView); its calls only enqueue, never wait.
         self.view = view or NullView()
@@ -146,6 +148,9 @@ class RobotSession:
         self.stages = default_stages()[state.hello.offload_at:] \
             if state.hello.offload_at in CLOUD_TRACKS else []
         self.finished: FinishedMap | None = None
+        if local_mapping is not None and self.stages:
+            # Local BA in the cloud's worker processes (off the frame thread).
+            state.tracking.local_mapping = AsyncLocalMapping(local_mapping, config.tracking)
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
         # session refuses references to frames before it, and the robot sends intra).
         self.references = ReferenceRing(config.wire.reference_frames)
@@ -177,10 +182,11 @@ class RobotSession:
     @staticmethod
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
              publish: Publish, keyframe_sink: KeyframeSink | None = None,
-             view: NullView | None = None) -> "RobotSession":
+             view: NullView | None = None,
+             local_mapping: LocalMappingPool | None = None) -> "RobotSession":
         # The front end's state is made by the first frame that needs it (_on_frame).
         return RobotSession(SessionState(robot_id, hello, CloudSession(config, hello.camera)),
-                            config, store, publish, keyframe_sink, view)
+                            config, store, publish, keyframe_sink, view, local_mapping)
 
     @property
     def robot_id(self) -> str:
@@ -515,6 +521,9 @@ class RobotSession:
             except ValueError as exc:
                 return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
             self.state.robot_keyframe_poses.update(poses)
+            if self.state.tracking.local_mapping is not None:
+                # The last keyframes' local BA belongs in the final map.
+                self.state.tracking.local_mapping.flush(self.state.tracking)
             missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
                 self.robot_id, i)]
             if missing:

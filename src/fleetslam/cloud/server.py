@@ -22,6 +22,7 @@ from fleetslam.cloud.robot_session import REJECTION_REPLY_INTERVAL_S, RobotSessi
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
 from fleetslam.merging.global_map import build_global_map, merge_summary
+from fleetslam.pipeline.local_mapping_worker import LocalMappingPool
 from fleetslam.system import SUMMARY_VERSION
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
@@ -80,10 +81,17 @@ class CloudServer:
         self._throttle = Throttle(REJECTION_REPLY_INTERVAL_S)
         self._reaper = threading.Thread(target=self._close_idle_sessions, name="cloud-idle",
                                         daemon=True)
+        self.local_mapping: LocalMappingPool | None = None
 
     # -- lifecycle ----------------------------------------------------------------------
 
     def start(self) -> "CloudServer":
+        tracking = self.config.tracking
+        if tracking.local_mapping not in ("async", "inline"):
+            raise ValueError(f"tracking.local_mapping is {tracking.local_mapping!r}: "
+                             f"'async' or 'inline'")
+        if tracking.local_mapping == "async" and tracking.local_ba:
+            self.local_mapping = LocalMappingPool(tracking.local_mapping_workers)
         self._zenoh = open_listening(self.endpoint, self.config.transport.zenoh_config or None)
         z = self._zenoh
         self._subscribers = [
@@ -102,6 +110,8 @@ class CloudServer:
         for _, session in self._sessions_now():
             session.close()
         self.merger.close()
+        if self.local_mapping is not None:
+            self.local_mapping.close()
         self.view.close()
         for sub in self._subscribers:
             sub.undeclare()
@@ -183,7 +193,7 @@ class CloudServer:
                 if state is None:
                     return None
                 session = RobotSession(state, self.config, self.store, self.publish,
-                                       self.merger.submit, self.view)
+                                       self.merger.submit, self.view, self.local_mapping)
                 self.sessions[robot_id] = session
                 self.view.robot(robot_id, state.hello.camera)
                 # The merger is rebuilt from the keyframes the session already has (none for
@@ -229,7 +239,7 @@ class CloudServer:
                     return self._error(reply, protocol.Code.REFUSED, reason)
                 session = self.sessions.get(robot_id) or RobotSession.open(
                     robot_id, hello, self.config, self.store, self.publish, self.merger.submit,
-                    self.view)
+                    self.view, self.local_mapping)
                 self.sessions[robot_id] = session
                 self.view.robot(robot_id, hello.camera)
                 self.merger.add_robot(robot_id, hello.camera)

@@ -1,4 +1,4 @@
-"""Local bundle adjustment at keyframe insertion: ORB-SLAM's local mapping, run in-line.
+"""Local bundle adjustment at keyframe insertion: ORB-SLAM's local mapping.
 
 When a keyframe is inserted, the poses of a window of keyframes (the new one and the
 keyframes that share the most landmarks with it) and the positions of the landmarks they
@@ -16,8 +16,12 @@ erase the observations that are still outliers from the map. Landmarks seen by a
 keyframe carry no information on poses: they stay out of the problem and move rigidly with
 their keyframe.
 
-gtsam objects live only inside ``local_bundle_adjustment``: the map and the session stay
-plain numpy (picklable, split-invariant).
+It comes in three steps so that the solve can run elsewhere (local mapping's worker
+process, see ``local_mapping_worker``): ``local_ba_problem`` copies what the solve needs out
+of the map, ``solve_local_ba`` optimises it (a pure function of plain numpy, the only place
+gtsam objects live), and ``apply_local_ba`` writes the result back into the map, naming
+observations by (keyframe, landmark) so that rows the map gained meanwhile are untouched.
+``local_bundle_adjustment`` runs the three in a row (the deterministic in-line mode).
 """
 
 from __future__ import annotations
@@ -37,6 +41,42 @@ LANDMARK_KEY = 1 << 40
 # A fixed keyframe is held by a prior this tight (gtsam's NonlinearEquality makes the
 # multifrontal Cholesky solve indeterminate); its pose is never written back anyway.
 FIXED_SIGMA = 1e-6
+
+
+@dataclass
+class LocalBAProblem:
+    """Everything the solve reads, copied out of the map (plain numpy: it pickles)."""
+
+    kf_id: int  # the keyframe the window is built around
+    kfs: np.ndarray  # keyframe ids in the problem, sorted (free and fixed)
+    fixed: np.ndarray  # ids held fixed (anchors)
+    free: np.ndarray  # ids whose poses are optimised
+    T_old: np.ndarray  # (len(kfs), 4, 4) poses at the time of the copy
+    landmarks: np.ndarray  # landmark ids in the graph, sorted
+    xyz: np.ndarray  # (len(landmarks), 3) their positions at the time of the copy
+    obs_kf: np.ndarray  # one entry per observation row in the problem
+    obs_lm: np.ndarray
+    obs_uv: np.ndarray
+    obs_depth: np.ndarray
+    obs_oct: np.ndarray
+    # Landmarks seen by one free keyframe only: not optimised, they follow that keyframe.
+    follower_kf: np.ndarray
+    follower_lm: np.ndarray
+    camera: Camera
+    baseline_m: float
+    scale_factor: float
+    iterations: tuple[int, int]
+    # What the map was when copied (``LocalMap.epoch``): a result computed on an older map
+    # (a loop correction moved it since) is not applied.
+    epoch: int = 0
+
+
+@dataclass
+class LocalBASolution:
+    poses: np.ndarray  # (len(kfs), 4, 4)
+    xyz: np.ndarray  # (len(landmarks), 3)
+    outlier: np.ndarray  # bool per observation row of the problem
+    seconds: float  # solve time (wherever it ran)
 
 
 @dataclass
@@ -108,17 +148,13 @@ def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_
         return None
 
 
-def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: float,
-                            scale_factor: float, window_size: int = 10, min_shared: int = 15,
-                            iterations: tuple[int, int] = (5, 10),
-                            window: np.ndarray | None = None) -> LocalBAResult:
-    """Optimise the window around keyframe ``kf_id`` (or the given ``window`` of keyframe
-    ids: all of them is a global bundle adjustment) and write poses, landmark positions and
-    the removal of outlier observations back into ``lmap``."""
-    start = time.perf_counter()
+def local_ba_problem(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: float,
+                     scale_factor: float, window_size: int = 10, min_shared: int = 15,
+                     iterations: tuple[int, int] = (5, 10), window: np.ndarray | None = None
+                     ) -> LocalBAProblem | None:
+    """Copy out of ``lmap`` the problem around keyframe ``kf_id`` (or the given ``window``
+    of keyframe ids: all of them is a global bundle adjustment); None if nothing is free."""
     n_kf = len(lmap.keyframes)
-    none = LocalBAResult(np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0, 0, np.eye(4), 0.0)
-
     if window is None:
         window = select_window(lmap, kf_id, window_size, min_shared)
     in_window = np.zeros(n_kf, bool)
@@ -139,33 +175,43 @@ def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, basel
         fixed_mask[0] = True  # nothing anchors the window: hold its oldest keyframe
     fixed, free = kfs[fixed_mask], kfs[~fixed_mask]
     if len(free) == 0 or len(rows) == 0:
-        none.seconds = time.perf_counter() - start
-        return none
-
+        return None
     landmarks = np.flatnonzero(in_graph)
-    obs_kf = lmap.obs_keyframe[rows]
-    obs_lm = lmap.obs_landmark[rows]
-    obs_uv = lmap.obs_uv[rows]
-    obs_depth = lmap.obs_depth[rows]
-    obs_oct = lmap.obs_octave[rows]
+    f_rows = np.flatnonzero(follower[lmap.obs_landmark])
+    f_kf, f_lm = lmap.obs_keyframe[f_rows], lmap.obs_landmark[f_rows]
+    moved = np.isin(f_kf, free)
+    return LocalBAProblem(
+        kf_id, kfs, fixed, free, lmap.keyframe_poses(kfs), landmarks, lmap.xyz[landmarks].copy(),
+        lmap.obs_keyframe[rows], lmap.obs_landmark[rows], lmap.obs_uv[rows],
+        lmap.obs_depth[rows], lmap.obs_octave[rows], f_kf[moved], f_lm[moved], camera,
+        baseline_m, scale_factor, tuple(iterations), lmap.epoch)
+
+
+def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
+    """Optimise the problem (two passes, see the module's docstring); None if the system is
+    indeterminate (the map stays as it was)."""
+    start = time.perf_counter()
+    camera, kfs, landmarks = p.camera, p.kfs, p.landmarks
+    obs_kf, obs_lm, obs_uv, obs_depth, obs_oct = p.obs_kf, p.obs_lm, p.obs_uv, p.obs_depth, p.obs_oct
     stereo = obs_depth > 0
-    octave_scale = scale_factor ** obs_oct.astype(np.float64)
-    bf = camera.fx * baseline_m
+    octave_scale = p.scale_factor ** obs_oct.astype(np.float64)
+    bf = camera.fx * p.baseline_m
     threshold = np.where(stereo, CHI2_STEREO, CHI2_MONO)
+    kf_slot = np.searchsorted(kfs, obs_kf)
+    lm_slot = np.searchsorted(landmarks, obs_lm)
 
     # --- the graph (the one per-observation Python loop: gtsam has no batch API) ---
-    K_stereo = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, baseline_m)
+    K_stereo = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, p.baseline_m)
     K_mono = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
-    noise_stereo, noise_mono = _noise_models(int(obs_oct.max()) + 1, scale_factor)
-    T_old = {int(k): lmap.keyframes[k].T_world_camera for k in kfs}
+    noise_stereo, noise_mono = _noise_models(int(obs_oct.max()) + 1, p.scale_factor)
     values = gtsam.Values()
-    for k in kfs.tolist():
-        values.insert(k, gtsam.Pose3(T_old[k]))
-    for lm, p in zip((landmarks + LANDMARK_KEY).tolist(), lmap.xyz[landmarks]):
-        values.insert(lm, p)
+    for k, T in zip(kfs.tolist(), p.T_old):
+        values.insert(k, gtsam.Pose3(T))
+    for lm, xyz in zip((landmarks + LANDMARK_KEY).tolist(), p.xyz):
+        values.insert(lm, xyz)
     anchor_noise = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
-    anchors = [gtsam.PriorFactorPose3(k, gtsam.Pose3(T_old[k]), anchor_noise)
-               for k in fixed.tolist()]
+    anchors = [gtsam.PriorFactorPose3(k, gtsam.Pose3(p.T_old[np.searchsorted(kfs, k)]),
+                                      anchor_noise) for k in p.fixed.tolist()]
     factors = []
     u_l, v_l = obs_uv[:, 0].tolist(), obs_uv[:, 1].tolist()
     u_r = (obs_uv[:, 0] - bf / np.where(stereo, obs_depth, 1.0)).tolist()
@@ -181,76 +227,93 @@ def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, basel
 
     def build(use: np.ndarray) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
-        present = np.zeros(n_kf, bool)
-        present[obs_kf[use]] = True
-        for k, anchor in zip(fixed.tolist(), anchors):
-            if present[k]:
+        present = np.zeros(len(kfs), bool)
+        present[kf_slot[use]] = True
+        for k, anchor in zip(p.fixed.tolist(), anchors):
+            if present[np.searchsorted(kfs, k)]:
                 graph.add(anchor)
         for i in np.flatnonzero(use).tolist():
             graph.add(factors[i])
         return graph
 
-    def unpack(result: gtsam.Values, pose_ids: np.ndarray, lm_ids: np.ndarray
-               ) -> tuple[dict[int, np.ndarray], np.ndarray]:
-        poses = {k: result.atPose3(k).matrix() for k in pose_ids.tolist()}
-        return poses, gtsam.utilities.extractPoint3(result).reshape(-1, 3)
-
-    def chi2_of(poses: dict[int, np.ndarray], xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        T = np.array([poses[k] for k in kfs.tolist()])[np.searchsorted(kfs, obs_kf)]
-        return reprojection_chi2(camera, bf, T, xyz[np.searchsorted(landmarks, obs_lm)],
-                                 obs_uv, obs_depth, octave_scale)
+    def chi2_of(poses: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return reprojection_chi2(camera, bf, poses[kf_slot], xyz[lm_slot], obs_uv, obs_depth,
+                                 octave_scale)
 
     # --- pass 1: robust, from the current estimates ---
-    all_rows = np.ones(len(rows), bool)
-    result = _optimise(build(all_rows), values, (landmarks + LANDMARK_KEY).tolist(), kfs.tolist(),
-                       iterations[0])
+    result = _optimise(build(np.ones(len(obs_kf), bool)), values,
+                       (landmarks + LANDMARK_KEY).tolist(), kfs.tolist(), p.iterations[0])
     if result is None:
-        none.seconds = time.perf_counter() - start
-        return none
-    poses, xyz = unpack(result, kfs, landmarks)
+        return None
+    poses = np.array([result.atPose3(k).matrix() for k in kfs.tolist()])
+    xyz = gtsam.utilities.extractPoint3(result).reshape(-1, 3)
     chi2, z = chi2_of(poses, xyz)
     inlier = (chi2 <= threshold) & (z > 0)
 
     # --- pass 2: inliers only. A landmark keeps its pass-1 position if its inliers no
     # longer determine it (one observation without depth); same for a pose. ---
     constraint = np.where(stereo, 3, 2) * inlier
-    determined = np.bincount(np.searchsorted(landmarks, obs_lm), weights=constraint,
-                             minlength=len(landmarks)) >= 3
-    use = inlier & determined[np.searchsorted(landmarks, obs_lm)]
-    if use.any() and iterations[1] > 0:
+    determined = np.bincount(lm_slot, weights=constraint, minlength=len(landmarks)) >= 3
+    use = inlier & determined[lm_slot]
+    if use.any() and p.iterations[1] > 0:
         used_kfs = np.unique(obs_kf[use])
         used_lms = landmarks[determined]
         values2 = gtsam.Values()
         for k in used_kfs.tolist():
-            values2.insert(k, gtsam.Pose3(poses[k]))
-        for lm, p in zip((used_lms + LANDMARK_KEY).tolist(), xyz[determined]):
-            values2.insert(lm, p)
+            values2.insert(k, gtsam.Pose3(poses[np.searchsorted(kfs, k)]))
+        for lm, xyz_lm in zip((used_lms + LANDMARK_KEY).tolist(), xyz[determined]):
+            values2.insert(lm, xyz_lm)
         result2 = _optimise(build(use), values2, (used_lms + LANDMARK_KEY).tolist(),
-                            used_kfs.tolist(), iterations[1])
+                            used_kfs.tolist(), p.iterations[1])
         if result2 is not None:
-            poses2, xyz2 = unpack(result2, used_kfs, used_lms)
-            poses.update(poses2)
-            xyz[determined] = xyz2
+            poses[np.searchsorted(kfs, used_kfs)] = [result2.atPose3(k).matrix()
+                                                     for k in used_kfs.tolist()]
+            xyz[determined] = gtsam.utilities.extractPoint3(result2).reshape(-1, 3)
     chi2, z = chi2_of(poses, xyz)
     outlier = (chi2 > threshold) | (z <= 0)
+    return LocalBASolution(poses, xyz, outlier, time.perf_counter() - start)
 
-    # --- write back: free poses, landmark positions, followers, outlier removal ---
-    for k in free.tolist():
-        lmap.keyframes[k].T_world_camera = poses[k]
-    lmap.xyz[landmarks] = xyz
-    followers = np.flatnonzero(follower)
-    if len(followers):
-        f_rows = np.flatnonzero(follower[lmap.obs_landmark])
-        f_kf, f_lm = lmap.obs_keyframe[f_rows], lmap.obs_landmark[f_rows]
-        moved = np.isin(f_kf, free)
-        f_kf, f_lm = f_kf[moved], f_lm[moved]
-        if len(f_lm):
-            C = np.array([poses[k] @ np.linalg.inv(T_old[k]) for k in free.tolist()])
-            C = C[np.searchsorted(free, f_kf)]
-            lmap.xyz[f_lm] = np.einsum("nij,nj->ni", C[:, :3, :3], lmap.xyz[f_lm]) + C[:, :3, 3]
-    lmap.remove_observations(rows[outlier])
+
+def apply_local_ba(lmap: LocalMap, p: LocalBAProblem, s: LocalBASolution) -> LocalBAResult:
+    """Write a solution into ``lmap``: free poses, landmark positions, followers, removal of
+    the outlier observations. The map may have grown since the copy (newer keyframes,
+    landmarks, observations); those are left as they are."""
+    slot = np.searchsorted(p.kfs, p.free)
+    for k, T in zip(p.free.tolist(), s.poses[slot]):
+        lmap.keyframes[k].T_world_camera = T
+    lmap.xyz[p.landmarks] = s.xyz
+    if len(p.follower_lm):
+        C = s.poses[slot] @ np.linalg.inv(p.T_old[slot])
+        C = C[np.searchsorted(p.free, p.follower_kf)]
+        lmap.xyz[p.follower_lm] = (np.einsum("nij,nj->ni", C[:, :3, :3], lmap.xyz[p.follower_lm])
+                                   + C[:, :3, 3])
+    # The outliers by (keyframe, landmark): each pair is one row (see LocalMap).
+    n = lmap.n_landmarks
+    bad = p.obs_kf[s.outlier] * n + p.obs_lm[s.outlier]
+    lmap.remove_observations(np.isin(lmap.obs_keyframe * n + lmap.obs_landmark, bad))
     correction = np.eye(4)
-    if kf_id in T_old and kf_id in free:
-        correction = poses[kf_id] @ np.linalg.inv(T_old[kf_id])
-    return LocalBAResult(free, fixed, len(landmarks), len(rows), int(outlier.sum()), correction,
-                         time.perf_counter() - start)
+    if p.kf_id in p.free:
+        i = np.searchsorted(p.kfs, p.kf_id)
+        correction = s.poses[i] @ np.linalg.inv(p.T_old[i])
+    return LocalBAResult(p.free, p.fixed, len(p.landmarks), len(p.obs_kf), int(s.outlier.sum()),
+                         correction, s.seconds)
+
+
+def local_bundle_adjustment(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: float,
+                            scale_factor: float, window_size: int = 10, min_shared: int = 15,
+                            iterations: tuple[int, int] = (5, 10),
+                            window: np.ndarray | None = None) -> LocalBAResult:
+    """Optimise the window around keyframe ``kf_id`` (or the given ``window`` of keyframe
+    ids: all of them is a global bundle adjustment) and write poses, landmark positions and
+    the removal of outlier observations back into ``lmap``, in-line."""
+    start = time.perf_counter()
+    problem = local_ba_problem(lmap, camera, kf_id, baseline_m=baseline_m,
+                               scale_factor=scale_factor, window_size=window_size,
+                               min_shared=min_shared, iterations=iterations, window=window)
+    solution = None if problem is None else solve_local_ba(problem)
+    if problem is None or solution is None:
+        return LocalBAResult(np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0, 0, np.eye(4),
+                             time.perf_counter() - start)
+    result = apply_local_ba(lmap, problem, solution)
+    result.seconds = time.perf_counter() - start
+    return result

@@ -75,6 +75,9 @@ class LocalMap:
     obs_uv: np.ndarray = field(default_factory=lambda: _empty(np.float64, 2))
     obs_depth: np.ndarray = field(default_factory=lambda: _empty(np.float64))
     obs_octave: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    # Counts the changes that move or rename landmarks wholesale (a loop correction): work
+    # computed on a copy of an older epoch no longer fits the map.
+    epoch: int = 0
 
     @property
     def n_landmarks(self) -> int:
@@ -246,6 +249,7 @@ class LocalMap:
         keep, drop = keep[~chained], drop[~chained]
         if not len(drop):
             return 0
+        self.epoch += 1
         target = np.arange(self.n_landmarks)
         target[drop] = keep
         self.obs_landmark = target[self.obs_landmark]
@@ -271,6 +275,7 @@ class LocalMap:
     def move_landmarks_with_keyframes(self, corrections: dict[int, np.ndarray]) -> None:
         """Keyframe poses changed by T_new = C @ T_old: every landmark moves rigidly with the
         keyframe that created it."""
+        self.epoch += 1
         C = np.tile(np.eye(4), (len(self.keyframes), 1, 1))
         for k, Ck in corrections.items():
             C[k] = Ck

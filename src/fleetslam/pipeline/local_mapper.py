@@ -3,9 +3,12 @@ a keyframe.
 
     insert keyframe -> fuse (known landmarks seen again) -> new landmarks -> cull -> local BA
 
-It runs in-line, at the keyframe, on the thread that tracks: the next frame is matched
-against the map as local BA left it, so poses are the same in every process and at every
-split point (the exactness tests rely on it).
+Insertion, fusion and culling run in-line, at the keyframe, on the thread that tracks.
+Local BA runs in-line too when ``tracking.local_mapping`` is "inline": the next frame is
+matched against the map as local BA left it, so poses are the same in every process and at
+every split point (the exactness tests rely on it). In the cloud it is "async": the solve
+goes to a worker process and its result lands a few frames later
+(``local_mapping_worker``).
 """
 
 from __future__ import annotations
@@ -14,7 +17,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetslam.pipeline.local_ba import local_bundle_adjustment, reprojection_chi2
+from fleetslam.pipeline.local_ba import (
+    LocalBAProblem,
+    LocalBASolution,
+    apply_local_ba,
+    local_ba_problem,
+    reprojection_chi2,
+    solve_local_ba,
+)
 from fleetslam.pipeline.local_map import Keyframe
 from fleetslam.pipeline.matching import match_free_keypoints
 from fleetslam.pipeline.pose_optimizer import CHI2_MONO, CHI2_STEREO
@@ -46,19 +56,44 @@ def insert_keyframe(session: CloudSession, state: PosedFrame) -> InsertedKeyfram
             cfg.cull_probation_keyframes)
     correction = np.eye(4)
     if cfg.local_ba and kf.id > 0:
-        result = local_bundle_adjustment(
-            lmap, session.camera, kf.id, baseline_m=cfg.virtual_baseline_m,
-            scale_factor=session.config.orb.scale_factor,
-            window_size=cfg.local_ba_window, min_shared=cfg.covisibility_min_shared,
-            iterations=tuple(cfg.local_ba_iterations))
-        session.local_ba_seconds.append(result.seconds)
-        session.local_ba_outliers += result.n_outliers
-        correction = result.correction
-    # ORB-SLAM's reference: the keyframe's landmarks with enough observations
-    # (3, or 2 while the map has at most two keyframes; with depth counts 2).
-    min_weight = 3 if len(lmap.keyframes) > 2 else 2
-    session.reference_tracked = lmap.tracked_by_keyframe(kf.id, min_weight)
+        if session.local_mapping is not None:
+            session.local_mapping.request(session, kf.id)
+        else:
+            problem = build_problem(session, kf.id)
+            if problem is not None:
+                correction = apply_solution(session, problem, solve_local_ba(problem))
+    update_reference(session)
     return InsertedKeyframe(kf, correction)
+
+
+def build_problem(session: CloudSession, kf_id: int) -> LocalBAProblem | None:
+    """The local BA problem around keyframe ``kf_id``, as the config asks."""
+    cfg = session.config.tracking
+    return local_ba_problem(
+        session.map, session.camera, kf_id, baseline_m=cfg.virtual_baseline_m,
+        scale_factor=session.config.orb.scale_factor, window_size=cfg.local_ba_window,
+        min_shared=cfg.covisibility_min_shared, iterations=tuple(cfg.local_ba_iterations))
+
+
+def apply_solution(session: CloudSession, problem: LocalBAProblem,
+                   solution: LocalBASolution | None) -> np.ndarray:
+    """Write a local BA solution into the session's map (None: the solve failed, nothing
+    changes). Returns the world-frame correction of the problem's keyframe."""
+    if solution is None:
+        return np.eye(4)
+    result = apply_local_ba(session.map, problem, solution)
+    session.local_ba_seconds.append(result.seconds)
+    session.local_ba_outliers += result.n_outliers
+    return result.correction
+
+
+def update_reference(session: CloudSession) -> None:
+    """ORB-SLAM's reference for the keyframe test: the newest keyframe's landmarks with
+    enough observations (3, or 2 while the map has at most two keyframes; with depth
+    counts 2)."""
+    lmap = session.map
+    min_weight = 3 if len(lmap.keyframes) > 2 else 2
+    session.reference_tracked = lmap.tracked_by_keyframe(lmap.keyframes[-1].id, min_weight)
 
 
 def fuse_search(session: CloudSession, f: FeatureFrame, T_world_camera: np.ndarray,

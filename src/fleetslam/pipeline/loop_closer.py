@@ -88,6 +88,9 @@ def close_loops(session: CloudSession, kf: Keyframe) -> np.ndarray | None:
     if len(agreeing) + 1 < cfg.consistent_detections:
         return None
     start = time.perf_counter()
+    if session.local_mapping is not None:
+        # The correction moves the whole map: local BA in flight lands first.
+        session.local_mapping.flush(session)
     T_before = kf.T_world_camera.copy()
     accepted = correct(session, agreeing + [detection])
     state.correction_seconds.append(time.perf_counter() - start)

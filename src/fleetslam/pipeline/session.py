@@ -26,6 +26,7 @@ from fleetslam.pipeline.place_recognition import KeyframeDatabase
 from fleetslam.pipeline.states import FeatureFrame
 
 if TYPE_CHECKING:
+    from fleetslam.pipeline.local_mapping_worker import AsyncLocalMapping
     from fleetslam.pipeline.states import PosedFrame
 
 
@@ -89,10 +90,18 @@ class CloudSession:
     reference_tracked: int = 0
     _keyframe_was_last: bool = False
     _last_features: FeatureFrame | None = None
+    # Where local BA runs when not in-line (a cloud's worker processes; see
+    # local_mapping_worker). Not part of the session's state: never checkpointed.
+    local_mapping: "AsyncLocalMapping | None" = None
 
     def __post_init__(self) -> None:
         if self.places is None:
             self.places = KeyframeDatabase(self.config.place_recognition)
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.pop("local_mapping", None)
+        return state
 
     def predict_pose(self) -> np.ndarray:
         if self.T_last is None:
@@ -170,9 +179,18 @@ class CloudSession:
             "loop_query": stats(loops.query_seconds),
             "loop_correction": stats(loops.correction_seconds),
             "local_ba": stats(self.local_ba_seconds),
+            "local_mapping": self.local_mapping_summary(stats),
             "relocalisations": self.relocalisations, "loss_events": self.loss_events,
             "events": loops.events,
         }
+
+    def local_mapping_summary(self, stats) -> dict:
+        """Where local BA ran and, in the workers, what became of the requests."""
+        mapping = self.local_mapping
+        if mapping is None:
+            return {"mode": "inline"}
+        return {"mode": "inline (worker failed)" if mapping.broken else "async",
+                **mapping.counts, "request_to_applied": stats(mapping.lag_seconds)}
 
     def record(self, posed: "PosedFrame", features: FeatureFrame, is_keyframe: bool) -> None:
         """Bookkeeping after a frame: motion model, loss counters, repeat detection."""

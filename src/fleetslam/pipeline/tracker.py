@@ -35,6 +35,9 @@ class Match:
     side = "cloud"
 
     def __call__(self, state: FeatureFrame, session: CloudSession) -> MatchedFrame:
+        if session.local_mapping is not None:
+            # A frame boundary: local BA solved meanwhile lands in the map now.
+            session.local_mapping.poll(session)
         n = len(state.keypoints)
         ids = np.full(n, -1, np.int64)
         T_pred = session.predict_pose()
