@@ -2,6 +2,7 @@
 per-frame latency.
 
     .venv/bin/python bench/fleet.py [--robots 4] [--frames 300] [--load 0.8]
+        [--local-mapping inline,async]
 
 The robots' messages (offloading point 3, the paper's) are made from the real 7-Scenes
 frames before the clock starts, so that robot computation on this same machine does not
@@ -11,6 +12,8 @@ separate cloud process, as robots do, and times each frame from publish to feedb
      queues; sustained rate = frames / (last feedback - first publish).
   2. paced: fresh sessions, each robot at (load x sustained / robots) frames per second;
      latency median and p95 (publish -> feedback; includes any queueing).
+Both on a cloud with local BA in-line and on one with it in a worker process
+(``--local-mapping``, tracking.local_mapping), one after the other.
 Writes bench/results/fleet.json.
 """
 
@@ -117,11 +120,20 @@ class Fleet:
                     self.sent[(rid, i)] = time.monotonic()
                     put(self.z, keys.frame(rid), msgs[i])
 
-    def result(self, timeout: float) -> dict:
-        self.done.wait(timeout)
+    def result(self, idle_s: float) -> dict:
+        """When every frame has its feedback, or none came for ``idle_s`` (the cloud drops
+        the oldest waiting frames of a robot beyond transport.max_queued_frames)."""
+        seen = -1
+        while not self.done.wait(idle_s):
+            if len(self.got) == seen:
+                print(f"  no feedback for {idle_s:.0f} s: {self.total - seen} of "
+                      f"{self.total} frames were dropped", flush=True)
+                break
+            seen = len(self.got)
         lat = np.array([1000 * (self.got[k] - self.sent[k]) for k in self.got if k in self.sent])
         span = max(self.got.values()) - min(self.sent.values())
         return {"frames_sent": len(self.sent), "frames_tracked": len(self.got),
+                "frames_dropped": len(self.sent) - len(self.got),
                 "cloud_fps": len(self.got) / span, "span_s": span,
                 "latency_ms_median": float(np.median(lat)),
                 "latency_ms_p95": float(np.percentile(lat, 95)),
@@ -139,6 +151,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=300, help="frames per robot")
     parser.add_argument("--load", type=float, default=0.8,
                         help="paced run: offered rate as a fraction of the sustained rate")
+    parser.add_argument("--local-mapping", default="inline,async",
+                        help="cloud runs, side by side: tracking.local_mapping of each")
     parser.add_argument("--out", default="bench/results/fleet.json")
     args = parser.parse_args()
     if not SEQ.exists():
@@ -149,10 +163,35 @@ def main() -> None:
     prepared = [robot_messages(f"r{i}", int(s), args.frames) for i, s in enumerate(starts)]
     out = Path(args.out)
     work = out.parent / "fleet-runs" / time.strftime("%Y%m%d-%H%M%S")
+    results: dict[str, dict] = {}
+    for mode in args.local_mapping.split(","):
+        results[mode] = run_cloud(mode, prepared, args.robots, args.load, work / mode)
+    rows = [[mode, phase, r["frames_tracked"], r["frames_dropped"],
+             "all at once" if r["offered_fps_per_robot"] is None
+             else f"{r['offered_fps_per_robot'] * args.robots:.1f}",
+             r["cloud_fps"], r["latency_ms_median"], r["latency_ms_p95"],
+             r["cloud_ms_median"], r["cloud_ms_p95"]]
+            for mode, phases in results.items() for phase, r in phases.items()]
+    print(format_table(["local mapping", "run", "frames", "dropped", "offered fps", "cloud fps",
+                        "latency ms median", "latency ms p95", "cloud ms median",
+                        "cloud ms p95"], rows))
+    print(f"{args.robots} robots x {args.frames} frames of {SEQ.name}, offloading point {K}; "
+          f"cores: {os.cpu_count()}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"robots": args.robots, "frames_per_robot": args.frames,
+                               "cores": os.cpu_count(), "results": results}, indent=2))
+    print(f"wrote {out}")
+
+
+def run_cloud(mode: str, prepared: list, n_robots: int, load: float, work: Path) -> dict:
+    """Both phases on a fresh cloud process whose local mapping runs ``mode``."""
+    work.mkdir(parents=True, exist_ok=True)
+    config = work / "cloud.toml"
+    config.write_text(f'[tracking]\nlocal_mapping = "{mode}"\n')
     endpoint = free_endpoint()
-    cloud = start_cloud(endpoint, work / "cloud", work / "cloud.log")
+    cloud = start_cloud(endpoint, work / "cloud", work / "cloud.log", config_path=str(config))
     z = open_connecting(endpoint)
-    results = {}
+    results: dict[str, dict] = {}
     try:
         for phase in ("saturation", "paced"):
             tag = "s" if phase == "saturation" else "p"
@@ -165,29 +204,17 @@ def main() -> None:
             fleet.hello()
             fps = None
             if phase == "paced":
-                fps = args.load * results["saturation"]["cloud_fps"] / args.robots
-            print(f"{phase}: {args.robots} robots "
+                fps = load * results["saturation"]["cloud_fps"] / n_robots
+            print(f"{mode} local mapping, {phase}: {n_robots} robots "
                   f"{'all at once' if fps is None else f'at {fps:.1f} fps each'} ...", flush=True)
             fleet.send(fps)
-            results[phase] = fleet.result(timeout=1800)
+            results[phase] = fleet.result(idle_s=20.0)
             results[phase]["offered_fps_per_robot"] = fps
             fleet.close()
     finally:
         z.close()
         stop(cloud)
-    rows = [[phase, r["frames_tracked"],
-             "all at once" if r["offered_fps_per_robot"] is None
-             else f"{r['offered_fps_per_robot'] * args.robots:.1f}",
-             r["cloud_fps"], r["latency_ms_median"], r["latency_ms_p95"],
-             r["cloud_ms_median"], r["cloud_ms_p95"]] for phase, r in results.items()]
-    print(format_table(["run", "frames", "offered fps", "cloud fps", "latency ms median",
-                        "latency ms p95", "cloud ms median", "cloud ms p95"], rows))
-    print(f"{args.robots} robots x {args.frames} frames of {SEQ.name}, offloading point {K}; "
-          f"cores: {os.cpu_count()}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"robots": args.robots, "frames_per_robot": args.frames,
-                               "cores": os.cpu_count(), "results": results}, indent=2))
-    print(f"wrote {out}")
+    return results
 
 
 def robot_messages_for(robot_id: str, messages: list[bytes]) -> list[bytes]:

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
+import threading
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -39,6 +41,19 @@ if TYPE_CHECKING:
     from fleetslam.pipeline.session import CloudSession
 
 log = logging.getLogger(__name__)
+# How often a worker checks that the cloud process that started it is still there.
+PARENT_POLL_S = 1.0
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """In each worker: exit when the cloud process is gone (a SIGKILLed cloud cannot shut its
+    pool down, and its workers would wait for work forever)."""
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_S)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 def _warm_up() -> bool:
@@ -56,7 +71,8 @@ class LocalMappingPool:
             raise ValueError(f"tracking.local_mapping_workers is {workers}: at least 1")
         # spawn, not fork: the cloud process has Zenoh's and the sessions' threads.
         self._executor = ProcessPoolExecutor(
-            max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+            max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_exit_with_parent, initargs=(os.getpid(),))
         self._executor.submit(_warm_up)
 
     def submit(self, problem: LocalBAProblem) -> Future:
