@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/offload.py [--points 0,3,6] [--frames 1000] [--mbps 10]
         [--coding inter,intra]
+        [--rate max|recorded|FPS]
 
 For each offloading point: a fresh cloud process, one robot process streaming the 7-Scenes
 frames as fast as its stages and its link allow (1000 frames = 0-599 then back 598-199),
@@ -50,7 +51,8 @@ def source_spec(frames: int) -> str:
     return f"{SEQ}:0-599,598-{598 - (frames - 601)}"
 
 
-def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter") -> dict:
+def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter",
+              rate: str = "max") -> dict:
     name = f"point{k}-{coding}"
     endpoint, out = free_endpoint(), work / name
     config_path = None
@@ -62,7 +64,7 @@ def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter")
     try:
         robot = start_robot(endpoint, "r0", spec, k, work / f"{name}-robot.log", report_path,
                             config_path=None if config_path is None else str(config_path),
-                            extra=["--bandwidth-mbps", str(mbps)])
+                            extra=["--bandwidth-mbps", str(mbps), "--rate", rate])
         code = robot.wait()
         if code != 0:
             raise RuntimeError(f"robot at point {k} failed ({code}); see "
@@ -74,7 +76,7 @@ def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter")
     ate = trajectory_ate(out / "r0" / "trajectory.tum", open_robot(spec))
     robot_s, trans_s, cloud_s = r["robot_compute_s"], r["link_busy_s"], cloud_summary["cloud_s_total"]
     return {
-        "point": k, "coding": coding, "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,
+        "point": k, "coding": coding, "rate": rate, "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,
         "cloud_s": cloud_s, "sum_s": robot_s + trans_s + cloud_s, "total_s": r["total_s"],
         "last_feedback_s": r["last_feedback_s"], "streaming_s": r["streaming_s"],
         "frame_kB": r["frame_bytes"] / r["frames"] / 1000,
@@ -97,6 +99,9 @@ def main() -> None:
     parser.add_argument("--mbps", type=float, default=10.0)
     parser.add_argument("--coding", default="inter",
                         help="inter and/or intra (comma-separated): frame message coding")
+    parser.add_argument("--rate", default="max",
+                        help="the robot's frame rate: 'max' (as fast as it can), 'recorded' "
+                             "(the camera's timestamps) or frames per second")
     parser.add_argument("--out", default="bench/results/offload.json")
     args = parser.parse_args()
     if not SEQ.exists():
@@ -110,19 +115,24 @@ def main() -> None:
         for coding in args.coding.split(","):
             print(f"point {k} ({coding}): {args.frames} frames over {args.mbps:g} Mbit/s ...",
                   flush=True)
-            results.append(run_point(k, spec, args.mbps, work, coding))
+            results.append(run_point(k, spec, args.mbps, work, coding, args.rate))
             r = results[-1]
             print(f"  total {r['total_s']:.1f} s, {r['frame_kB']:.1f} kB/frame", flush=True)
     rows = [[f"point {r['point']} {r['coding']}", r["robot_s"], r["trans_s"], r["cloud_s"], r["sum_s"],
              r["total_s"], r["frame_kB"], r["keyframes"], r["keyframe_MB"],
-             None if r["ate_m"] is None else r["ate_m"] * 100] for r in results]
-    rows += [[name, *cols, None, None, None, None] for name, cols in PAPER.items()]
+             None if r["ate_m"] is None else r["ate_m"] * 100,
+             r["round_trip_ms_median"], r["round_trip_ms_p95"],
+             (r["inter_coding"] or {}).get("intra_share")] for r in results]
+    rows += [[name, *cols, None, None, None, None, None, None, None]
+             for name, cols in PAPER.items()]
     print(format_table(["run", "robot s", "trans s", "cloud s", "sum s", "total s",
-                        "kB/frame", "KF", "KF MB", "ATE cm"], rows))
+                        "kB/frame", "KF", "KF MB", "ATE cm", "RT ms med", "RT ms p95",
+                        "intra share"], rows))
     print(f"{args.frames} frames of {SEQ.name} ({spec.split(':')[-1]}), link "
-          f"{args.mbps:g} Mbit/s, cores: {os.cpu_count()} (robot and cloud share them)")
+          f"{args.mbps:g} Mbit/s, rate {args.rate}, cores: {os.cpu_count()} (robot and cloud share them)")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"frames": args.frames, "mbps": args.mbps, "source": spec,
+    out.write_text(json.dumps({"frames": args.frames, "mbps": args.mbps, "rate": args.rate,
+                               "source": spec,
                                "cores": os.cpu_count(), "results": results,
                                "paper": PAPER}, indent=2))
     print(f"wrote {out}")

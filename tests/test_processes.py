@@ -194,6 +194,10 @@ def test_demo_runs_cloud_and_robots_as_processes(scene, tmp_path, capsys):
         assert robot["frames"] == N_FRAMES and robot["lost_frames"] == 0
         assert robot["ate"]["rmse_m"] < 0.02
         assert robot["robot"]["frames"] == N_FRAMES  # the robot process's own report
+        # The cloud's local BA ran in its worker process, and its solutions landed.
+        mapping = robot["loop_closing"]["local_mapping"]
+        assert mapping["mode"] == "async" and mapping["inline"] == 0, mapping
+        assert mapping["applied"] >= robot["keyframes"] // 2, mapping
     # The cloud joined the robots while they ran, with no ground truth; scored afterwards.
     merge = summary["merge"]
     assert merge["members"] == ["r0", "r1"]
