@@ -279,6 +279,39 @@ def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path
     assert replies[-1]["type"] == "need" and replies[-1]["frames"] == N_FRAMES
 
 
+def test_frames_are_held_as_references_when_decoded_not_when_tracked(messages, tmp_path):
+    """Inter-frame coding refers to frames the cloud holds. The session says it holds a
+    frame as soon as it is decoded: a tracker that lags (here: stopped) must not hold back
+    what the robot may code against, or a busy cloud gets intra frames only."""
+    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.cloud.store import CloudStore
+    from fleetslam.transport.protocol import Hello
+
+    seq0, msgs0, _ = messages["r0"]
+    sent: list[tuple[str, bytes]] = []
+    session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), exact_config(),
+                                CloudStore(tmp_path), lambda key, data: sent.append((key, data)))
+    gate = threading.Event()
+    session._decoded.put(("call", lambda: gate.wait(30), 0.0))  # the tracker is busy
+    now = time.monotonic()
+    for data in msgs0:
+        session.submit_frame(data, now)
+    deadline = time.monotonic() + 30
+    held = []
+    while len(held) < len(msgs0):
+        assert time.monotonic() < deadline, held
+        time.sleep(0.02)
+        held = [json.loads(d)["seq"] for k, d in list(sent)
+                if k == keys.reply("r0") and json.loads(d)["type"] == "held"]
+    assert held == list(range(len(msgs0)))
+    assert not [k for k, _ in sent if k == keys.feedback("r0")]  # nothing tracked yet
+    assert all(i in session.references for i in held)
+    gate.set()
+    session.drain()
+    assert len([k for k, _ in sent if k == keys.feedback("r0")]) == len(msgs0)
+    session.close()
+
+
 def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes_on(cloud,
                                                                                    scene):
     """Messages that are well formed but carry what no camera produces: each is rejected

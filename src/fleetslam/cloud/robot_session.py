@@ -160,14 +160,21 @@ class RobotSession:
         # The frame and keyframe threads both count, and status reads the counts.
         self._counts_lock = threading.Lock()
         self.last_heard = time.monotonic()
+        # Frames and control in arrival order: the receive thread decodes each frame (and
+        # tells the robot it holds it as a reference) and passes it on to the tracking
+        # thread, so a busy tracker does not delay what inter-frame coding may refer to.
         self._frames = WorkQueue(config.transport.max_queued_frames)
+        self._decoded = WorkQueue(config.transport.max_queued_frames)
+        self._decoded_seq = state.last_seq  # newest frame put in the reference ring
         self._keyframes: queue.Queue = queue.Queue()
         self._checkpoints: queue.Queue = queue.Queue()
         # Newest frame index covered by a checkpoint on disk (a restored session: all of it).
         self._durable_index = state.last_index
         self._durable = threading.Condition()
         self._threads = [
-            threading.Thread(target=self._serve, args=(self._frames, self._on_work),
+            threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
+                             daemon=True),
+            threading.Thread(target=self._serve, args=(self._decoded, self._on_work),
                              name=f"cloud-{state.robot_id}", daemon=True),
             threading.Thread(target=self._serve, args=(self._keyframes, self._on_keyframe),
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
@@ -239,13 +246,13 @@ class RobotSession:
         is closed this way and restored from it when its robot speaks again)."""
         self._frames.put(None)
         self._keyframes.put(None)
-        for t in self._threads[:2]:
+        for t in self._threads[:3]:
             t.join(timeout)
         if final_checkpoint:
             self._checkpoints.put((self.state.last_index, self._snapshot()))
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
         self._checkpoints.put(None)
-        self._threads[2].join(timeout)
+        self._threads[3].join(timeout)
 
     def drain(self, timeout: float = 60.0) -> None:
         """Wait until everything submitted so far is processed (tests, shutdown)."""
@@ -267,6 +274,47 @@ class RobotSession:
             except Exception:  # a bug on one message must not end the robot's session
                 self.count("errors")
                 log.exception("robot %s: %s message failed", self.robot_id, kind)
+
+    def _receive(self) -> None:
+        """Decode each frame as it arrives (the reference ring must hold it before a frame
+        coded against it comes), say so to the robot, and hand everything on in order."""
+        while True:
+            item = self._frames.get()
+            if item is not None and item[0] == "frame":
+                try:
+                    item = self._decode(item[1], item[2])
+                except Exception:  # a bug on one message must not end the robot's session
+                    self.count("errors")
+                    log.exception("robot %s: frame message failed", self.robot_id)
+                    continue
+                if item is None:
+                    continue
+            self._decoded.put(item)
+            if item is None:
+                return
+
+    def _decode(self, data: bytes, arrival: float) -> tuple | None:
+        """("frame", (header, state), arrival), or None if rejected. The seq and timestamp
+        checks against the tracked trajectory stay on the tracking thread."""
+        try:
+            header, state = decode_frame_message(data, self.state.hello.camera, self.references)
+        except MissingReference as exc:
+            return self._reject("frame", str(exc), protocol.Code.REFERENCE_MISSING,
+                                seq=exc.seq, missing=exc.missing)
+        except WireError as exc:
+            return self._reject("frame", str(exc))
+        if header.robot_id != self.robot_id:
+            return self._reject("frame", f"header names robot {header.robot_id!r}, "
+                                         f"sent on {self.robot_id!r}'s key")
+        reference = reference_of(state)
+        # Only ever newer seqs: a replayed or reordered message must not replace what a
+        # later frame was coded against.
+        if 0 < header.seq - self._decoded_seq <= MAX_SEQ_JUMP:
+            self._decoded_seq = header.seq
+            if reference is not None and self.references.size:
+                self.references.put(header.seq, reference)
+                self._reply(protocol.held(header.seq))
+        return ("frame", (header, state), arrival)
 
     def _write_checkpoints(self) -> None:
         while (item := self._checkpoints.get()) is not None:
@@ -336,19 +384,9 @@ class RobotSession:
         elif kind == "call":
             payload()
 
-    def _on_frame(self, data: bytes, arrival: float) -> None:
+    def _on_frame(self, decoded: tuple, arrival: float) -> None:
         st = self.state
-        camera = st.hello.camera
-        try:
-            header, state = decode_frame_message(data, camera, self.references)
-        except MissingReference as exc:
-            return self._reject("frame", str(exc), protocol.Code.REFERENCE_MISSING,
-                                seq=exc.seq, missing=exc.missing)
-        except WireError as exc:
-            return self._reject("frame", str(exc))
-        if header.robot_id != self.robot_id:
-            return self._reject("frame", f"header names robot {header.robot_id!r}, "
-                                         f"sent on {self.robot_id!r}'s key")
+        header, state = decoded
         switching = st.hello.adaptive and header.split_point in CLOUD_TRACKS
         if header.split_point != st.hello.offload_at and not switching:
             return self._reject("frame", f"split point {header.split_point}, but the session "
@@ -365,7 +403,6 @@ class RobotSession:
                                          f"last frame's {st.rows[-1].timestamp:.6f}")
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.count("frames lost in transit", header.seq - st.last_seq - 1)
-        self.references.put(header.seq, reference_of(state))
         start = time.perf_counter()
         stages = self._stages_from(header.split_point)
         if stages:
@@ -629,6 +666,7 @@ class RobotSession:
             "latency_ms_p95": float(np.percentile(st.latency_ms, 95)) if st.latency_ms else None,
             "tracking_fps": len(st.rows) / span if span > 0 else None,
             "transport": {**self.counts(),
-                          "frames dropped (session busy)": self._frames.dropped},
+                          "frames dropped (session busy)":
+                              self._frames.dropped + self._decoded.dropped},
             "trajectory": f"{self.robot_id}/trajectory.tum", "map": f"{self.robot_id}/map.ply",
         }

@@ -200,7 +200,7 @@ class Robot:
         now = time.monotonic()
         self._last_feedback = now
         self.report.feedback += 1
-        self.inter.acked(header.seq)
+        self.inter.acked(header.seq)  # as "held", for a cloud that does not send it
         sent = self._sent_at.pop(header.seq, None)
         if sent is not None:
             self._round_trips.append(1000.0 * (now - sent))
@@ -219,7 +219,9 @@ class Robot:
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("robot %s: reply rejected: %s", self.robot_id, exc)
             return
-        if kind == "ack":
+        if kind == "held":
+            self.inter.acked(int(message["seq"]))
+        elif kind == "ack":
             with self._acks_lock:
                 event = self._acks.get(int(message["frame_index"]))
             if event is not None:

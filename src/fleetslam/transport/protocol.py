@@ -4,7 +4,8 @@ messages are wire/).
 
 Robot <-> cloud, on ``fleet/<robot>/control`` and ``fleet/<robot>/reply``:
     hello -> welcome | error;  end -> ending, then need (resend these keyframes) | ended;
-    each keyframe upload -> ack;  a rejected message -> error (with a code and a reason).
+    each keyframe upload -> ack;  each frame decoded -> held (a reference for inter-frame
+    coding);  a rejected message -> error (with a code and a reason).
 Client <-> cloud, on ``fleet/cloud/control`` and ``fleet/cloud/reply``:
     status -> status;  merge -> merged | error.  A client request carries an ``id`` that its
     reply repeats; the client resends the same request until the reply comes (a lost request
@@ -161,6 +162,12 @@ def ended(summary: dict[str, Any]) -> dict[str, Any]:
 
 def ack(frame_index: int) -> dict[str, Any]:
     return {"type": "ack", "frame_index": frame_index}
+
+
+def held(seq: int) -> dict[str, Any]:
+    # Frame ``seq`` is decoded and in the session's reference ring: later frames may be
+    # coded against it (sent on arrival, before tracking, which may lag far behind).
+    return {"type": "held", "seq": seq}
 
 
 def error(code: Code, reason: str, **extra: Any) -> dict[str, Any]:

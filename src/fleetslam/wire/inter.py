@@ -18,7 +18,8 @@ Positions, octaves and per-keypoint depth are still sent as in an intra frame: p
 them from the reference keypoint did not pay (bench/inter_coding.py's notes).
 
 A reference is usable only once the cloud has it: the robot takes a frame as a reference
-after the cloud's feedback for its seq arrived (``InterEncoder.acked``), and only while the
+after the cloud said it holds it (its "held" reply, sent when the frame is decoded, before
+it is tracked; or the frame's feedback) (``InterEncoder.acked``), and only while the
 cloud's ring of decoded frames (``ReferenceRing``, its size told in the welcome) must still
 hold it. A message whose reference the cloud lacks (a restart, a closed session) is refused
 with ``Code.REFERENCE_MISSING``; the robot forgets every reference it had and sends intra
@@ -299,7 +300,7 @@ class InterEncoder:
                 self._acked.discard(old)
 
     def acked(self, seq: int) -> None:
-        """The cloud's feedback for frame ``seq`` arrived: it decoded the frame."""
+        """The cloud decoded frame ``seq`` (its "held" reply or the frame's feedback)."""
         with self._lock:
             if seq in self._sent and seq >= self._epoch:
                 self._acked.add(seq)
