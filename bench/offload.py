@@ -84,11 +84,16 @@ def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter",
         "upload_retries": r["upload_retries"],
         "lost_frames": cloud_summary["lost_frames"],
         "ate_m": ate["rmse_m"] if ate else None,
+        "cloud_ms_median": cloud_summary.get("cloud_ms_median"),
+        "cloud_ms_p95": cloud_summary.get("cloud_ms_p95"),
         "round_trip_ms_median": r["round_trip_ms_median"],
         "round_trip_ms_p95": r["round_trip_ms_p95"],
         "robot_stage_ms": r["robot_stage_ms"], "cloud_stage_ms": cloud_summary["stage_ms"],
         "encode_ms_mean": r.get("encode_ms_mean"), "encode_ms_p95": r.get("encode_ms_p95"),
         "inter_coding": r.get("inter_coding"),
+        "flow_wait_s": r.get("flow_wait_s"), "flow_timeouts": r.get("flow_timeouts"),
+        "frames_dropped_by_cloud": cloud_summary["transport"].get(
+            "frames dropped (session busy)", 0),
     }
 
 
@@ -121,12 +126,14 @@ def main() -> None:
     rows = [[f"point {r['point']} {r['coding']}", r["robot_s"], r["trans_s"], r["cloud_s"], r["sum_s"],
              r["total_s"], r["frame_kB"], r["keyframes"], r["keyframe_MB"],
              None if r["ate_m"] is None else r["ate_m"] * 100,
+             r["cloud_ms_median"], r["cloud_ms_p95"],
              r["round_trip_ms_median"], r["round_trip_ms_p95"],
              (r["inter_coding"] or {}).get("intra_share")] for r in results]
-    rows += [[name, *cols, None, None, None, None, None, None, None]
+    rows += [[name, *cols, None, None, None, None, None, None, None, None, None]
              for name, cols in PAPER.items()]
     print(format_table(["run", "robot s", "trans s", "cloud s", "sum s", "total s",
-                        "kB/frame", "KF", "KF MB", "ATE cm", "RT ms med", "RT ms p95",
+                        "kB/frame", "KF", "KF MB", "ATE cm", "cloud ms med", "cloud ms p95",
+                        "RT ms med", "RT ms p95",
                         "intra share"], rows))
     print(f"{args.frames} frames of {SEQ.name} ({spec.split(':')[-1]}), link "
           f"{args.mbps:g} Mbit/s, rate {args.rate}, cores: {os.cpu_count()} (robot and cloud share them)")

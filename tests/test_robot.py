@@ -79,3 +79,44 @@ def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
     reply(protocol.error(protocol.Code.NOT_A_KEYFRAME, "keyframe rejected: frame 14 is not a "
                          "keyframe of this session", frame_index=14))
     assert robot._acks[14].is_set() and robot.report.uploads_not_needed == 1
+
+
+def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_factory):
+    """Flow control: with transport.max_frames_in_flight frames unanswered the robot waits;
+    feedback for a frame frees it and every older frame (feedback comes in order, so those
+    were lost); a cloud that does not answer at all holds it up at most in_flight_wait_s."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    import numpy as np
+    from conftest import small_scene
+
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.wire.messages import Feedback, encode_feedback
+
+    folder = small_scene(tmp_path_factory, 2)[0]
+    config = Config()
+    config.transport.max_frames_in_flight, config.transport.in_flight_wait_s = 4, 30.0
+    robot = Robot("r1", RgbdSequence(folder), str(folder), 3, config, show_progress=False)
+    for seq in range(4):
+        robot._sent_at[seq] = time.monotonic()
+    waiter = threading.Thread(target=robot._await_window)
+    waiter.start()
+    time.sleep(0.3)
+    assert waiter.is_alive()  # 4 in flight: the next frame waits
+    data = encode_feedback("r1", 2, Feedback(2, 0.0, True, False, 100, np.eye(4), 5.0))
+    robot._on_feedback(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+    waiter.join(5)
+    assert not waiter.is_alive() and list(robot._sent_at) == [3]
+    assert robot.report.flow_timeouts == 0
+
+    config.transport.in_flight_wait_s = 0.2  # now the cloud goes silent
+    for seq in range(4, 7):
+        robot._sent_at[seq] = time.monotonic()
+    start = time.monotonic()
+    robot._await_window()
+    assert 0.2 <= time.monotonic() - start < 2.0
+    assert robot.report.flow_timeouts == 1 and len(robot._sent_at) < 4

@@ -111,6 +111,10 @@ class RobotReport:
     plan_history: list[dict[str, Any]] = field(default_factory=list)
     frames_per_point: dict[str, int] = field(default_factory=dict)
     frames_skipped: int = 0
+    # Flow control: seconds the robot waited for its window of frames in flight, and the
+    # waits that ran out (the cloud did not answer in time).
+    flow_wait_s: float = 0.0
+    flow_timeouts: int = 0
     # Every frame and keyframe upload put on the link, for the run report's plots of bytes
     # and link use over time: [start s, end s, bytes, "frame" | "keyframe", delivered], the
     # times since the first frame was read (start: handed to the link, which may first
@@ -176,7 +180,11 @@ class Robot:
         self._uploads: queue.Queue = queue.Queue()
         self._buffer: OrderedDict[int, KeyframeUpload] = OrderedDict()
         self._buffer_lock = threading.Lock()
-        self._sent_at: dict[int, float] = {}
+        # Frames sent and not yet answered (seq -> when), in seq order; the flow-control
+        # window waits on it. Feedback comes in seq order, so a frame older than one with
+        # feedback was lost (link, or dropped by the cloud) and leaves the window.
+        self._sent_at: OrderedDict[int, float] = OrderedDict()
+        self._in_flight = threading.Condition()
         self._round_trips: list[float] = []
         self._last_feedback = 0.0
         self._need_hello = threading.Event()
@@ -201,7 +209,11 @@ class Robot:
         self._last_feedback = now
         self.report.feedback += 1
         self.inter.acked(header.seq)  # as "held", for a cloud that does not send it
-        sent = self._sent_at.pop(header.seq, None)
+        with self._in_flight:
+            sent = self._sent_at.pop(header.seq, None)
+            while self._sent_at and next(iter(self._sent_at)) < header.seq:
+                self._sent_at.popitem(last=False)
+            self._in_flight.notify_all()
         if sent is not None:
             self._round_trips.append(1000.0 * (now - sent))
             if self.planner is not None:
@@ -280,6 +292,9 @@ class Robot:
                 # A new or resumed session: no frame acknowledged before is a reference.
                 self.inter.set_cloud_ring(int(welcome.get("reference_frames") or 0))
                 self.inter.restart(int(welcome["next_seq"]))
+                with self._in_flight:  # a new or resumed session answers none of them
+                    self._sent_at.clear()
+                    self._in_flight.notify_all()
                 return welcome
         raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
                            f"{self.endpoint} after {cfg.max_attempts} hellos")
@@ -401,6 +416,7 @@ class Robot:
                 wait = t0 + due - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
+            self._await_window()
             start = time.perf_counter()
             stages = self.robot_stages if self.planner is None else self.pipeline.stages[:k]
             state = run_stages(stages,
@@ -431,7 +447,8 @@ class Robot:
                         frame.index, frame.timestamp, frame.rgb, frame.depth_raw, stride)
                     while len(self._buffer) > self.config.transport.keyframe_buffer_frames:
                         self._buffer.popitem(last=False)
-            self._sent_at[seq] = time.monotonic()
+            with self._in_flight:
+                self._sent_at[seq] = time.monotonic()
             outbox.put((seq, data))
             self.report.frames += 1
             self.report.frame_bytes += len(data)
@@ -443,6 +460,25 @@ class Robot:
         sender.join()
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
+
+    def _await_window(self) -> None:
+        """Flow control: wait while ``transport.max_frames_in_flight`` frames await their
+        feedback (at most ``in_flight_wait_s``; then the oldest is taken as lost)."""
+        cfg = self.config.transport
+        if cfg.max_frames_in_flight <= 0:
+            return
+        start = time.monotonic()
+        with self._in_flight:
+            if self._in_flight.wait_for(lambda: len(self._sent_at) < cfg.max_frames_in_flight,
+                                        cfg.in_flight_wait_s):
+                self.report.flow_wait_s += time.monotonic() - start
+                return
+            self.report.flow_timeouts += 1
+            self.report.flow_wait_s += time.monotonic() - start
+            log.warning("robot %s: no feedback for %.0f s with %d frames in flight; going on",
+                        self.robot_id, cfg.in_flight_wait_s, len(self._sent_at))
+            while len(self._sent_at) >= cfg.max_frames_in_flight:
+                self._sent_at.popitem(last=False)
 
     def _send_measured(self, key: str, data: bytes) -> bool:
         """Send on the link; an adaptive robot learns its link from how long sends take."""
@@ -462,7 +498,9 @@ class Robot:
             seq, data = item
             if not self._send_measured(keys.frame(self.robot_id), data):
                 self.report.frames_lost_on_link += 1
-                self._sent_at.pop(seq, None)
+                with self._in_flight:
+                    self._sent_at.pop(seq, None)
+                    self._in_flight.notify_all()
             outbox.task_done()
         outbox.task_done()
 
