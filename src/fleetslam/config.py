@@ -43,6 +43,10 @@ class TrackingConfig:
     ransac_confidence: float = 0.999
     # Fewer PnP inliers than this is a tracking loss.
     min_inliers: int = 20
+    # Pose from the motion model's prediction first (ORB-SLAM's TrackWithMotionModel:
+    # motion-only BA on the guided matches, no RANSAC), kept when at least this fraction of
+    # the matches are inliers; otherwise, and when 0, PnP RANSAC on the matches.
+    prediction_min_inlier_ratio: float = 0.7
     # Keyframe when inliers drop below this fraction of the reference keyframe's points ...
     keyframe_inlier_ratio: float = 0.55
     # ... or when the camera moved this far from the reference keyframe.

