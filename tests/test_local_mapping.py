@@ -99,7 +99,7 @@ def test_a_dead_worker_leaves_local_ba_in_line():
         problem = build_problem(inline, NEWEST)
         apply_solution(inline, problem, solve_local_ba(problem))
         np.testing.assert_array_equal(session.map.keyframe_poses(), inline.map.keyframe_poses())
-        assert session.local_mapping_summary(lambda s: {})["mode"] == "inline (worker failed)"
+        assert session.local_mapping_summary()["mode"] == "inline (worker failed)"
     finally:
         pool.close()
 

@@ -153,26 +153,24 @@ class AsyncLocalMapping:
             self.poll(session)
 
     def _submit(self, session: "CloudSession", kf_id: int) -> None:
-        from fleetslam.pipeline.local_mapper import apply_solution, build_problem
+        from fleetslam.pipeline.local_mapper import build_problem
 
         problem = build_problem(session, kf_id)
         if problem is None:
             return
-        if self.broken:
-            self.counts["inline"] += 1
-            apply_solution(session, problem, solve_local_ba(problem))
-            return
-        try:
-            future = self.pool.submit(problem)
-        except (BrokenProcessPool, RuntimeError) as exc:
-            self._break(exc)
-            return self._submit(session, kf_id)
-        self.counts["submitted"] += 1
-        self.in_flight = _InFlight(future, problem, time.monotonic())
+        if not self.broken:
+            try:
+                future = self.pool.submit(problem)
+            except (BrokenProcessPool, RuntimeError) as exc:
+                self._break(exc)
+            else:
+                self.counts["submitted"] += 1
+                self.in_flight = _InFlight(future, problem, time.monotonic())
+                return
+        self.counts["inline"] += 1
+        self._land(session, problem, solve_local_ba(problem))
 
     def _finish(self, session: "CloudSession", job: _InFlight) -> None:
-        from fleetslam.pipeline.local_mapper import apply_solution, update_reference
-
         try:
             solution: LocalBASolution | None = job.future.result()
         except BrokenProcessPool as exc:
@@ -186,11 +184,19 @@ class AsyncLocalMapping:
         if job.problem.epoch != session.map.epoch:
             self.counts["stale"] += 1
             return
-        # The frames tracked since moved with the map: so does the motion model.
-        session.correct_motion(apply_solution(session, job.problem, solution))
-        update_reference(session)
+        self._land(session, job.problem, solution)
         self.counts["applied"] += 1
         self.lag_seconds.append(time.monotonic() - job.submitted)
+
+    @staticmethod
+    def _land(session: "CloudSession", problem: LocalBAProblem,
+              solution: LocalBASolution | None) -> None:
+        """Write a solution into the map. The frames tracked since moved with the map: so
+        does the motion model; and the keyframe test's reference is counted again."""
+        from fleetslam.pipeline.local_mapper import apply_solution, update_reference
+
+        session.correct_motion(apply_solution(session, problem, solution))
+        update_reference(session)
 
     def _break(self, exc: BaseException) -> None:
         if not self.broken:

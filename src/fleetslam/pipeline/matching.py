@@ -16,11 +16,6 @@ if TYPE_CHECKING:
     from fleetslam.pipeline.session import CloudSession
 
 
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise Hamming distance of two N x 32 uint8 descriptor arrays (uint16)."""
-    return hamming_rows(a, np.arange(len(a)), b, np.arange(len(b)))
-
-
 def hamming_rows(a: np.ndarray, rows_a: np.ndarray, b: np.ndarray, rows_b: np.ndarray
                  ) -> np.ndarray:
     """Hamming distance of descriptor a[rows_a[k]] to b[rows_b[k]] for every k (uint16).

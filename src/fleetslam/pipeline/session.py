@@ -56,6 +56,13 @@ class EdgeSession:
         return state
 
 
+def duration_stats(seconds: list[float]) -> dict:
+    """Count, median and p95 (ms) of durations in seconds, for summary.json."""
+    ms = 1000.0 * np.asarray(seconds)
+    return {"n": len(ms), "median_ms": float(np.median(ms)) if len(ms) else None,
+            "p95_ms": float(np.percentile(ms, 95)) if len(ms) else None}
+
+
 @dataclass
 class CloudSession:
     config: Config
@@ -166,31 +173,26 @@ class CloudSession:
         """Loop closing and relocalisation counts and times, for summary.json."""
         loops = self.loops
 
-        def stats(seconds: list[float]) -> dict:
-            ms = 1000.0 * np.asarray(seconds)
-            return {"n": len(ms), "median_ms": float(np.median(ms)) if len(ms) else None,
-                    "p95_ms": float(np.percentile(ms, 95)) if len(ms) else None}
-
         return {
             "loops_accepted": sum(1 for e in loops.events if e["accepted"]),
             "loops_rejected_by_graph": sum(1 for e in loops.events if not e["accepted"]),
             "loop_queries": loops.queries, "candidates_verified": loops.candidates_verified,
             "verified_detections": loops.detections_total,
-            "loop_query": stats(loops.query_seconds),
-            "loop_correction": stats(loops.correction_seconds),
-            "local_ba": stats(self.local_ba_seconds),
-            "local_mapping": self.local_mapping_summary(stats),
+            "loop_query": duration_stats(loops.query_seconds),
+            "loop_correction": duration_stats(loops.correction_seconds),
+            "local_ba": duration_stats(self.local_ba_seconds),
+            "local_mapping": self.local_mapping_summary(),
             "relocalisations": self.relocalisations, "loss_events": self.loss_events,
             "events": loops.events,
         }
 
-    def local_mapping_summary(self, stats) -> dict:
+    def local_mapping_summary(self) -> dict:
         """Where local BA ran and, in the workers, what became of the requests."""
         mapping = self.local_mapping
         if mapping is None:
             return {"mode": "inline"}
         return {"mode": "inline (worker failed)" if mapping.broken else "async",
-                **mapping.counts, "request_to_applied": stats(mapping.lag_seconds)}
+                **mapping.counts, "request_to_applied": duration_stats(mapping.lag_seconds)}
 
     def record(self, posed: "PosedFrame", features: FeatureFrame, is_keyframe: bool) -> None:
         """Bookkeeping after a frame: motion model, loss counters, repeat detection."""
