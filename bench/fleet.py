@@ -47,8 +47,9 @@ SEQ = SEVEN_SCENES
 K = 3
 
 
-def robot_messages(robot_id: str, first: int, frames: int) -> tuple[list[bytes], dict]:
-    seq = RgbdSequence(SEQ, first=first, last=first + frames - 1)
+def robot_messages(robot_id: str, first: int, frames: int, source: Path = SEQ
+                   ) -> tuple[list[bytes], dict]:
+    seq = RgbdSequence(source, first=first, last=first + frames - 1)
     pipeline = TrackingPipeline(Config(), seq.camera)
     stages = pipeline.split(K)[0]
     msgs = []

@@ -83,6 +83,9 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     view_args = _view_args(args, config)
     if view_args and args.in_process:
         raise ValueError("--view / --save show the cloud process: not with --in-process")
+    if args.workers < 1 or (args.in_process and args.workers > 1):
+        raise ValueError("--workers N: at least 1, and cloud workers are processes (not with "
+                         "--in-process)")
     if args.in_process:
         from fleetslam.datasets.tum import RgbdSequence
         from fleetslam.system import run_fleet
@@ -93,7 +96,8 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
         summary = run_demo([str(f) for f in folders], out, args.offload_at, args.config,
                            link_args=_link_args(args), show_progress=not args.quiet,
                            zenoh_config=config.transport.zenoh_config or None,
-                           secure=not args.insecure, cloud_args=view_args)
+                           secure=not args.insecure, cloud_args=view_args,
+                           workers=args.workers)
     _finish(summary, out, args.quiet)
     return 0
 
@@ -162,15 +166,40 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     view = open_view(config, args.save, args.view)
     for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
-    server = CloudServer(config, Path(args.out), args.listen, view=view).start()
+    if args.worker_id:
+        config.placement.worker_id = args.worker_id
+    server = CloudServer(config, Path(args.out), args.listen, view=view,
+                         connect=args.connect).start()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"fleetslam cloud: listening on {server.endpoint}, writing to {args.out}",
-          file=sys.stderr, flush=True)
+    print(f"fleetslam cloud: worker {server.worker_id} "
+          f"{'connected to' if args.connect else 'listening on'} {server.endpoint}, "
+          f"store {args.out}", file=sys.stderr, flush=True)
     stop.wait()
     server.close()
     print("fleetslam cloud: stopped", file=sys.stderr)
+    return 0
+
+
+def cmd_router(args: argparse.Namespace, config: Config) -> int:
+    import signal
+    import threading
+
+    from fleetslam.transport.zenoh_session import open_router
+
+    _setup_logging(args.quiet)
+    endpoint = args.listen or config.transport.endpoint
+    session = open_router(endpoint, args.connect, config.transport.zenoh_config or None)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"fleetslam router: listening on {endpoint}"
+          + (f", joined {', '.join(args.connect)}" if args.connect else ""),
+          file=sys.stderr, flush=True)
+    stop.wait()
+    session.close()
+    print("fleetslam router: stopped", file=sys.stderr)
     return 0
 
 
@@ -256,12 +285,16 @@ def cmd_status(args: argparse.Namespace, config: Config) -> int:
     status = _ask_cloud(args, config, "status")
     merge = status.get("merge") or {}
     merged = merge.get("robots", {})
-    print(f"{'robot':<12} {'frames':>7} {'finished':>9} {'keyframes':>10} {'joined to':>10}")
+    print(f"{'robot':<12} {'frames':>7} {'finished':>9} {'keyframes':>10} {'joined to':>10}  "
+          f"worker")
     for robot, s in sorted(status["robots"].items()):
         m = merged.get(robot, {})
         print(f"{robot:<12} {s['frames']:>7} {'yes' if s['finished'] else 'no':>9} "
-              f"{m.get('keyframes', 0):>10} {m.get('anchor', '-'):>10}")
-    print(f"map groups: {merge.get('components', {})}; inter-robot constraints: "
+              f"{m.get('keyframes', 0):>10} {m.get('anchor', '-'):>10}  {s.get('worker', '-')}")
+    print(f"workers: {', '.join(status.get('workers') or [])} (answered: "
+          f"{', '.join(status.get('answered') or [])})")
+    print(f"map groups (merger of worker {status.get('worker')}): "
+          f"{merge.get('components', {})}; inter-robot constraints: "
           f"{merge.get('constraints', 0)} ({merge.get('constraints_rejected', 0)} rejected)")
     return 0
 
@@ -339,6 +372,9 @@ def cmd_certs(args: argparse.Namespace, config: Config) -> int:
           f"{', '.join(lab_robots(Path(args.out))) or 'none'}")
     print(f"cloud:   fleetslam --zenoh-config {files['cloud']} cloud --listen tls/HOST:7447 ...")
     print(f"clients: fleetslam --zenoh-config {files['client']} merge --connect tls/HOST:7447")
+    print(f"or several workers: fleetslam --zenoh-config {files['cloud']} router --listen "
+          f"tls/HOST:7447, then on each worker machine: fleetslam --zenoh-config "
+          f"{files['worker']} cloud --connect tls/HOST:7447 --worker-id wN --out SHARED")
     for robot in args.robot:
         print(f"robot {robot}: fleetslam --zenoh-config {files[robot]} robot --id {robot} "
               f"--connect tls/HOST:7447 ...")
@@ -365,6 +401,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--offload-at", default="paper",
                       help="split point of every robot: 0-3 or 6, 'paper' (3), or the first "
                       "cloud stage's name")
+    demo.add_argument("--workers", type=int, default=1,
+                      help="cloud workers: N > 1 runs a Zenoh router and N cloud worker "
+                           "processes that share the robots (default 1: one cloud process)")
     demo.add_argument("--in-process", action="store_true",
                       help="track, map and merge in this one process (no network)")
     demo.add_argument("--insecure", action="store_true",
@@ -382,12 +421,28 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=cmd_run)
 
     cloud = sub.add_parser("cloud", help="serve robots over Zenoh: track, map, merge")
-    cloud.add_argument("--listen", default=None, metavar="ENDPOINT",
-                       help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
-    cloud.add_argument("--out", required=True, help="folder for maps, trajectories, "
-                       "keyframes and checkpoints (reused after a restart)")
+    where = cloud.add_mutually_exclusive_group()
+    where.add_argument("--listen", default=None, metavar="ENDPOINT",
+                       help="alone: be the Zenoh router robots connect to, listening here "
+                            "(default tcp/127.0.0.1:7447)")
+    where.add_argument("--connect", default=None, metavar="ENDPOINT",
+                       help="as one of several workers: connect to the Zenoh router there "
+                            "(`fleetslam router`); robots are shared among the workers")
+    cloud.add_argument("--worker-id", help="this worker's name in the placement (A-Z a-z 0-9 "
+                       "_ -; default w-<host>-<pid>)")
+    cloud.add_argument("--out", required=True, help="the store: maps, trajectories, "
+                       "keyframes and checkpoints (reused after a restart; every worker of "
+                       "a fleet is given the same folder, a shared volume across machines)")
     _add_view_options(cloud)
     cloud.set_defaults(func=cmd_cloud)
+
+    router = sub.add_parser("router", help="a Zenoh router that cloud workers and robots "
+                            "connect to")
+    router.add_argument("--listen", default=None, metavar="ENDPOINT",
+                        help="endpoint to listen on (default tcp/127.0.0.1:7447)")
+    router.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        help="another router to join (repeatable)")
+    router.set_defaults(func=cmd_router)
 
     robot = sub.add_parser("robot", help="stream a recorded sequence to the cloud")
     robot.add_argument("--connect", default=None, metavar="ENDPOINT",

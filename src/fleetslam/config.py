@@ -422,6 +422,21 @@ class TransportConfig:
 
 
 @dataclass
+class PlacementConfig:
+    """Cloud workers sharing robots (cloud/placement.py): how bids for a robot are settled."""
+
+    # A worker's name in the liveliness tokens; empty: w-<host>-<pid>.
+    worker_id: str = ""
+    # Bids are compared this long after a worker bids (longer than the routers' round
+    # trip, so every worker sees the same bids).
+    settle_s: float = 0.3
+    # A liveliness query of the routers gives up after this long.
+    query_timeout_s: float = 2.0
+    # Bidding rounds for one robot before the worker leaves it to the robot's next message.
+    max_rounds: int = 5
+
+
+@dataclass
 class ViewConfig:
     """The view in rerun: the cloud's live view (``cloud`` / ``demo`` with ``--view`` or
     ``--save``) and a finished run's (``fleetslam view``)."""
@@ -474,6 +489,7 @@ class Config:
     wire: WireConfig = field(default_factory=WireConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
+    placement: PlacementConfig = field(default_factory=PlacementConfig)
     view: ViewConfig = field(default_factory=ViewConfig)
 
 

@@ -5,10 +5,11 @@ ground truth (the cloud never sees ground truth) and writes summary.json."""
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from fleetslam.datasets.tum import open_robot
 from fleetslam.evaluation.fleet import score_fleet
@@ -17,7 +18,10 @@ from fleetslam.launch import (
     free_endpoint,
     start_cloud,
     start_robot,
+    start_router,
+    start_worker,
     stop,
+    stop_all,
 )
 from fleetslam.progress import Progress
 from fleetslam.transport.certs import make_lab
@@ -30,30 +34,56 @@ def _tail(path: Path, lines: int = 15) -> str:
         return "(no log)"
 
 
+def _await_workers(client: CloudClient, workers: int, timeout_s: float) -> None:
+    """Until the cloud answers, and with workers, until every one of them does."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        answered = client.status(timeout=max(deadline - time.monotonic(), 1.0))["answered"]
+        if len(answered) >= workers:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{len(answered)} of {workers} cloud workers answer after "
+                               f"{timeout_s:.0f} s")
+        time.sleep(0.5)
+
+
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
              link_args: list[str] | None = None, show_progress: bool = True,
              timeout_s: float = 1800.0, zenoh_config: str | None = None,
-             secure: bool = True, cloud_args: list[str] | None = None) -> dict[str, Any]:
+             secure: bool = True, cloud_args: list[str] | None = None,
+             workers: int = 1,
+             watch: Callable[[dict[str, Any], list[subprocess.Popen]], None] | None = None
+             ) -> dict[str, Any]:
     """Cloud and robots as processes on loopback. ``secure``: over TLS, with a lab made for
     this run in ``out/tls`` (unless a Zenoh config file says how to connect).
-    ``cloud_args``: more options of the cloud process (the live view's --view, --save)."""
+    ``cloud_args``: more options of the cloud process (the live view's --view, --save).
+    ``workers`` > 1: a Zenoh router and that many cloud workers sharing ``out`` as their
+    store; the robots connect to the router and the workers share them out. ``watch``: called
+    with each status while the robots run, and the worker processes (a benchmark kills one)."""
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=False)
     endpoint = free_endpoint()
     names = [f"r{i}" for i in range(len(sources))]
-    configs = {name: zenoh_config for name in ["cloud", "client", *names]}
+    configs = {name: zenoh_config for name in ["cloud", "client", "worker", *names]}
     if secure and zenoh_config is None:
         lab = make_lab(out / "tls", ["localhost", "127.0.0.1"], names)
         endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
         configs = {name: str(path) for name, path in lab.items()}
     logs = out / "logs"
-    cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path, extra=cloud_args,
-                        zenoh_config=configs["cloud"])
+    if workers > 1:
+        cloud = start_router(endpoint, logs / "router.log", configs["cloud"])
+        cloud_workers = [start_worker(endpoint, f"w{i}", out, logs / f"w{i}.log", config_path,
+                                      extra=cloud_args, zenoh_config=configs["worker"])
+                         for i in range(workers)]
+    else:
+        cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path, extra=cloud_args,
+                            zenoh_config=configs["cloud"])
+        cloud_workers = []
     robots: dict[str, Any] = {}
     client = None
     try:
         client = CloudClient(endpoint, zenoh_config=configs["client"])
-        client.status(timeout=60.0)  # the cloud is up and answering
+        _await_workers(client, workers, 60.0)
         for name, source in zip(names, sources):
             robots[name] = start_robot(endpoint, name, source, offload_at, logs / f"{name}.log",
                                        out / name / "robot_report.json", config_path,
@@ -75,6 +105,8 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
                 groups = (status.get("merge") or {}).get("components", {})
                 progress.update(sum(r["frames"] for r in status["robots"].values()),
                                 "groups " + " | ".join("+".join(m) for m in groups.values()))
+                if watch is not None:
+                    watch(status, cloud_workers)
             except TimeoutError:
                 pass
             time.sleep(0.5)
@@ -88,14 +120,16 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
     except BaseException:
         for p in robots.values():
             stop(p, 5.0)
-        if cloud.poll() is not None:
-            print(f"cloud exited ({cloud.returncode}):\n" + _tail(logs / "cloud.log"),
-                  file=sys.stderr)
+        for name, p in [("cloud", cloud)] + [(f"w{i}", w) for i, w in enumerate(cloud_workers)]:
+            if p.poll() is not None:
+                log = logs / ("router.log" if name == "cloud" and cloud_workers
+                              else f"{name}.log")
+                print(f"{name} exited ({p.returncode}):\n" + _tail(log), file=sys.stderr)
         raise
     finally:
         if client is not None:
             client.close()
-        stop(cloud)
+        stop_all([*cloud_workers, cloud])
     score_fleet(summary, out, sequences)  # ground truth, read only now
     for robot in summary["robots"]:
         report = out / robot["name"] / "robot_report.json"
@@ -106,7 +140,8 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
     summary["merge_wall_time_s"] = summary["wall_time_s"]
     summary["wall_time_s"] = time.perf_counter() - started
     summary["deployment"] = {"endpoint": endpoint, "tls": endpoint.startswith("tls/"),
-                             "processes": 1 + len(robots),
+                             "processes": 1 + len(cloud_workers) + len(robots),
+                             "workers": max(workers, 1),
                              "offload_at": offload_at, "link": link_args or []}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -42,6 +42,29 @@ def start_cloud(endpoint: str, out_dir: Path, log_path: Path, config_path: str |
                             env=_env())
 
 
+def start_router(endpoint: str, log_path: Path, zenoh_config: str | None = None
+                 ) -> subprocess.Popen:
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    cmd = _python(None, zenoh_config) + ["router", "--listen", endpoint]
+    return subprocess.Popen(cmd, stdout=open(log_path, "ab"), stderr=subprocess.STDOUT,
+                            env=_env())
+
+
+def start_worker(router: str, worker_id: str, out_dir: Path, log_path: Path,
+                 config_path: str | None = None, extra: list[str] | None = None,
+                 zenoh_config: str | None = None, cpus: list[int] | None = None
+                 ) -> subprocess.Popen:
+    """A cloud worker connected to the router at ``router``, sharing the store ``out_dir``;
+    ``cpus``: pinned to these cores (Linux)."""
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    cmd = _python(config_path, zenoh_config) + ["cloud", "--connect", router, "--worker-id",
+                                                worker_id, "--out", str(out_dir),
+                                                *(extra or [])]
+    pin = (lambda: os.sched_setaffinity(0, cpus)) if cpus else None
+    return subprocess.Popen(cmd, stdout=open(log_path, "ab"), stderr=subprocess.STDOUT,
+                            env=_env(), preexec_fn=pin)
+
+
 def start_robot(endpoint: str, robot_id: str, source: str, offload_at: int | str,
                 log_path: Path, report_path: Path | None = None,
                 config_path: str | None = None, extra: list[str] | None = None,
@@ -72,6 +95,16 @@ def stop(process: subprocess.Popen, timeout: float = 20.0) -> int:
             process.kill()
             process.wait()
     return process.returncode
+
+
+def stop_all(processes: list[subprocess.Popen], timeout: float = 20.0) -> None:
+    """SIGTERM to all at once (cloud workers stopping together do not hand their robots to
+    each other one by one), then as :func:`stop`."""
+    for p in processes:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    for p in processes:
+        stop(p, timeout)
 
 
 class CloudClient:
@@ -109,8 +142,28 @@ class CloudClient:
         raise TimeoutError(f"no '{reply_type}' from the cloud at {self.endpoint} within "
                            f"{timeout:.0f} s")
 
-    def status(self, timeout: float = 30.0) -> dict[str, Any]:
-        return self.request(protocol.request("status"), "status", timeout)
+    def status(self, timeout: float = 30.0, gather_s: float = 2.0) -> dict[str, Any]:
+        """Every cloud worker's answer in one: all robots (each with the worker serving it),
+        the live workers and the placement. Waits for the answers of the workers the first
+        answer lists, at most ``gather_s`` more."""
+        rid = protocol.request("status")
+        first = self.request(rid, "status", timeout)
+        answers = {first.get("worker"): first}
+        expected = set(first.get("workers") or [first.get("worker")])
+        deadline = time.monotonic() + gather_s
+        while not expected <= set(answers) and time.monotonic() < deadline:
+            try:
+                reply = json.loads(self._replies.get(timeout=0.1))
+            except queue.Empty:
+                continue
+            if reply.get("id") == rid["id"] and reply.get("type") == "status":
+                answers[reply.get("worker")] = reply
+                expected |= set(reply.get("workers") or [])
+        # The merger's view of the global map: the worker whose id sorts first merges.
+        merged = dict(answers[min(answers, key=str)])
+        merged["robots"] = {r: v for a in answers.values() for r, v in a["robots"].items()}
+        merged["answered"] = sorted(str(w) for w in answers)
+        return merged
 
     def merge(self, timeout: float = 600.0) -> dict[str, Any]:
         # Resent with the same id until answered: the cloud merges once per id.

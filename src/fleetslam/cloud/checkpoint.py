@@ -29,6 +29,7 @@ def _classes() -> dict[str, type]:
     from fleetslam import config
     from fleetslam.camera import Camera
     from fleetslam.cloud.robot_session import SessionState, TrajectoryRow
+    from fleetslam.merging.inter_robot import KeyframeSummary
     from fleetslam.pipeline.local_map import Keyframe, LocalMap
     from fleetslam.pipeline.loop_closer import LoopClosingState, LoopDetection
     from fleetslam.pipeline.place_recognition import KeyframeDatabase
@@ -43,6 +44,7 @@ def _classes() -> dict[str, type]:
     return {c.__name__: c for c in (
         SessionState, TrajectoryRow, Hello, Camera, CloudSession, EdgeSession, LocalMap,
         Keyframe, FeatureFrame, KeyframeDatabase, LoopClosingState, LoopDetection, PoseEdge,
+        KeyframeSummary,
         *configs)}
 
 

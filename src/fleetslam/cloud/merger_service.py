@@ -2,6 +2,10 @@
 on tracking; it queries the other robots' places, joins robots and keeps the global pose
 graph. A slow query never holds up a robot's frames, and a failure on one keyframe is
 logged and counted, never raised into a session.
+
+With several cloud workers, one of them merges (server.py: the live worker whose id sorts
+first); the others publish their robots' keyframes to it (encode_keyframe), and a worker
+that becomes the merger takes every robot's keyframes from the store first.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from fleetslam.camera import Camera
+from fleetslam.cloud import checkpoint
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
@@ -25,9 +30,40 @@ log = logging.getLogger("fleetslam.merge")
 T = TypeVar("T")
 
 
+# A robot's keyframes as the merger has them in the store: (camera, summaries, poses), or
+# None (no checkpoint): what fills a gap in keyframes heard from another worker.
+FromStore = Callable[[str], "tuple[Camera, list[KeyframeSummary], np.ndarray] | None"]
+
+
+def encode_keyframe(camera: Camera, summary: KeyframeSummary, poses: np.ndarray) -> bytes:
+    """A keyframe for the merger on another worker (``fleet/cloud/keyframes/<robot>``): data
+    in the checkpoint format, never a pickle."""
+    return checkpoint.dumps({"camera": camera, "summary": summary,
+                             "poses": np.asarray(poses, np.float64)})
+
+
+def decode_keyframe(data: bytes, robot: str) -> tuple[Camera, KeyframeSummary, np.ndarray]:
+    """What :func:`encode_keyframe` wrote, for ``robot``; ValueError saying what is wrong."""
+    where = f"keyframe summary of robot {robot}"
+    tree = checkpoint.loads(data, where)
+    if not isinstance(tree, dict) or not isinstance(tree.get("camera"), Camera) \
+            or not isinstance(tree.get("summary"), KeyframeSummary) \
+            or not isinstance(tree.get("poses"), np.ndarray):
+        raise ValueError(f"{where}: not a camera, a keyframe summary and poses")
+    summary, poses = tree["summary"], tree["poses"]
+    if summary.robot != robot or poses.ndim != 3 or poses.shape[1:] != (4, 4) \
+            or not 0 <= summary.keyframe < len(poses):
+        raise ValueError(f"{where}: robot {summary.robot!r}, keyframe {summary.keyframe} of "
+                         f"poses {poses.shape}")
+    return tree["camera"], summary, poses
+
+
 class MergerService:
-    def __init__(self, config: Config, view: NullView | None = None) -> None:
+    def __init__(self, config: Config, view: NullView | None = None,
+                 from_store: FromStore | None = None) -> None:
         self.merger = MapMerger(config)
+        self._from_store = from_store
+        self.remote_gaps = 0  # keyframes that came after a gap, filled from the store
         self.errors = 0
         # The live view gets the global transforms and constraints at most every
         # view.global_every_s, on this thread (never on a robot's session).
@@ -49,6 +85,42 @@ class MergerService:
 
     def submit(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
         self._queue.put(("keyframe", (summary, poses)))
+
+    def submit_remote(self, camera: Camera, summary: KeyframeSummary, poses: np.ndarray
+                      ) -> None:
+        """A keyframe of a robot another worker serves: taken in order; one already held is
+        skipped, and a gap (keyframes missed while this worker was not the merger, or
+        lost) is filled from the robot's checkpoint in the store first."""
+        self._queue.put(("remote", (camera, summary, poses)))
+
+    def rebuild_from_store(self, robots: list[str]) -> None:
+        """Take these robots' keyframes as their checkpoints in the store have them (a worker
+        becoming the merger: the last one died or stopped)."""
+        self._queue.put(("rebuild", robots))
+
+    def _fill(self, robot: str) -> None:
+        loaded = self._from_store(robot) if self._from_store else None
+        if loaded is None:
+            return
+        camera, keyframes, poses = loaded
+        self.merger.add_robot(robot, camera)
+        have = len(self.merger.robots[robot].keyframes)
+        for kf in keyframes[have:]:
+            self.merger.add_keyframe(kf, poses[: kf.keyframe + 1])
+        if len(keyframes) > have:
+            self.merger.update_poses(robot, poses)
+
+    def _keyframe(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
+        """Keyframes in order: one held already (a rebuild from the store took it) only
+        brings newer poses; a gap is filled from the store first."""
+        if summary.keyframe > len(self.merger.robots[summary.robot].keyframes):
+            self.remote_gaps += 1
+            self._fill(summary.robot)
+        have = len(self.merger.robots[summary.robot].keyframes)
+        if summary.keyframe == have:
+            self.merger.add_keyframe(summary, poses)
+        elif summary.keyframe < have and len(poses) >= have:
+            self.merger.update_poses(summary.robot, poses)
 
     def _run(self) -> None:
         wait = self._view_every_s if self.view.enabled else None
@@ -72,7 +144,14 @@ class MergerService:
                         if poses is not None:
                             self.merger.update_poses(robot, poses)
                     elif kind == "keyframe":
-                        self.merger.add_keyframe(*payload)
+                        self._keyframe(*payload)
+                    elif kind == "remote":
+                        camera, summary, poses = payload
+                        self.merger.add_robot(summary.robot, camera)
+                        self._keyframe(summary, poses)
+                    elif kind == "rebuild":
+                        for robot in payload:
+                            self._fill(robot)
                     elif kind == "call":
                         payload()
                     if self._view_due and time.monotonic() - self._view_at >= \
@@ -119,6 +198,7 @@ class MergerService:
         status = self.locked(lambda m: m.status())
         status["errors"] = self.errors
         status["queued"] = self._queue.qsize()
+        status["remote_gaps"] = self.remote_gaps
         return status
 
     def close(self, timeout: float = 5.0) -> None:

@@ -49,6 +49,8 @@ log = logging.getLogger("fleetslam.cloud")
 MAX_SEQ_JUMP = 100_000
 # A robot is told why a message was rejected at most this often.
 REJECTION_REPLY_INTERVAL_S = 1.0
+# The longest a reply waits for the checkpoint that must be on disk before it goes out.
+CHECKPOINT_WAIT_S = 30.0
 
 
 @dataclass
@@ -83,6 +85,9 @@ class SessionState:
     latency_ms: list[float] = field(default_factory=list)
     first_frame_time: float | None = None
     last_frame_time: float | None = None
+    # The robot ended its stream and the cloud wrote its outputs: a worker restoring the
+    # session (a restart, a failover, the merge) has its finished map without the robot.
+    ended: bool = False
 
 
 @dataclass
@@ -170,6 +175,10 @@ class RobotSession:
         self._checkpoints: queue.Queue = queue.Queue()
         # Newest frame index covered by a checkpoint on disk (a restored session: all of it).
         self._durable_index = state.last_index
+        # Checkpoints queued and written, counted: the end's checkpoint is awaited by number
+        # (it may cover no newer frame than the last keyframe's).
+        self._checkpoints_queued = 0
+        self._checkpoints_written = 0
         self._durable = threading.Condition()
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
@@ -181,8 +190,15 @@ class RobotSession:
             threading.Thread(target=self._write_checkpoints,
                              name=f"cloud-{state.robot_id}-checkpoints", daemon=True),
         ]
+
+    def start(self) -> "RobotSession":
+        """Start the session's threads; a session restored after its robot ended has its
+        finished map for the merge (its outputs were written before that checkpoint)."""
+        if self.state.ended and self.finished is None:
+            self.finished = self.finished_map()
         for t in self._threads:
             t.start()
+        return self
 
     # -- construction ------------------------------------------------------------------
 
@@ -193,7 +209,7 @@ class RobotSession:
              local_mapping: LocalMappingPool | None = None) -> "RobotSession":
         # The front end's state is made by the first frame that needs it (_on_frame).
         return RobotSession(SessionState(robot_id, hello, CloudSession(config, hello.camera)),
-                            config, store, publish, keyframe_sink, view, local_mapping)
+                            config, store, publish, keyframe_sink, view, local_mapping).start()
 
     @property
     def robot_id(self) -> str:
@@ -247,12 +263,14 @@ class RobotSession:
         self._frames.put(None)
         self._keyframes.put(None)
         for t in self._threads[:3]:
-            t.join(timeout)
+            if t.is_alive():
+                t.join(timeout)
         if final_checkpoint:
-            self._checkpoints.put((self.state.last_index, self._snapshot()))
+            self._checkpoint(self.state.last_index)
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
         self._checkpoints.put(None)
-        self._threads[3].join(timeout)
+        if self._threads[3].is_alive():
+            self._threads[3].join(timeout)
 
     def drain(self, timeout: float = 60.0) -> None:
         """Wait until everything submitted so far is processed (tests, shutdown)."""
@@ -316,15 +334,23 @@ class RobotSession:
                 self._reply(protocol.held(header.seq))
         return ("frame", (header, state), arrival)
 
+    def _checkpoint(self, frame_index: int) -> int:
+        """Queue a checkpoint of the state now for the writer thread; its number."""
+        with self._durable:
+            self._checkpoints_queued += 1
+            number = self._checkpoints_queued
+        self._checkpoints.put((frame_index, number, self._snapshot()))
+        return number
+
     def _write_checkpoints(self) -> None:
         while (item := self._checkpoints.get()) is not None:
-            index, blob = item
+            index, number, blob = item
             while not self._checkpoints.empty():  # only the newest one matters
                 newer = self._checkpoints.get()
                 if newer is None:
                     self._checkpoints.put(None)
                     break
-                index, blob = newer
+                index, number, blob = newer
             try:
                 self.store.write_checkpoint(self.robot_id, blob)
             except OSError:
@@ -332,9 +358,10 @@ class RobotSession:
                 continue
             with self._durable:
                 self._durable_index = max(self._durable_index, index)
+                self._checkpoints_written = max(self._checkpoints_written, number)
                 self._durable.notify_all()
 
-    def _await_checkpoint(self, frame_index: int, timeout: float = 30.0) -> bool:
+    def _await_checkpoint(self, frame_index: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
         with self._durable:
             return self._durable.wait_for(lambda: self._durable_index >= frame_index, timeout)
 
@@ -437,7 +464,7 @@ class RobotSession:
             # Checkpoint the session as it is now (the snapshot here, the slow durable write
             # on the writer thread); the keyframe's upload is acknowledged only once this
             # checkpoint is on disk, so no acknowledged keyframe is one a restart forgets.
-            self._checkpoints.put((out.index, self._snapshot()))
+            self._checkpoint(out.index)
             if self.stages and self.keyframe_sink is not None:
                 self.keyframe_sink(*self.newest_keyframe())
             if self.view.enabled and self.stages:  # local BA moved the recent keyframes
@@ -531,11 +558,11 @@ class RobotSession:
 
     # -- control ------------------------------------------------------------------------
 
-    def welcome(self, resumed: bool) -> None:
+    def welcome(self, resumed: bool, taken_over: bool = False) -> None:
         st = self.state
         self._reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
                                      len(self.store.keyframe_indices(self.robot_id)),
-                                     self.references.size))
+                                     self.references.size, taken_over))
 
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")
@@ -566,6 +593,14 @@ class RobotSession:
             if missing:
                 return self._reply(protocol.need(missing))
             self.finished = self.finish()
+            # Durable before the robot hears "ended": another worker restores it finished.
+            self.state.ended = True
+            number = self._checkpoint(self.state.last_index)
+            with self._durable:
+                written = self._durable.wait_for(
+                    lambda: self._checkpoints_written >= number, CHECKPOINT_WAIT_S)
+            if not written:
+                log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
             self._reply(protocol.ended(self.finished.summary))
         else:
             self._reply(protocol.error(protocol.Code.UNKNOWN_TYPE,
@@ -630,6 +665,15 @@ class RobotSession:
         log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
                  len(rows), len(kf_index), len(points))
         return FinishedMap(self.robot_id, points, colors, self.track(timestamps), summary)
+
+    def finished_map(self) -> FinishedMap:
+        """A finished session's map for the merge, as its worker wrote it (robot.json),
+        without writing anything: another worker's robot, read from the store."""
+        rows = self.state.rows
+        written = self.store.robot_dir(self.robot_id) / "robot.json"
+        summary = json.loads(written.read_text()) if written.exists() else self.summary(0)
+        return FinishedMap(self.robot_id, np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
+                           self.track(np.array([r.timestamp for r in rows])), summary)
 
     def track(self, timestamps: np.ndarray) -> RobotTrack:
         """What the global map needs of this robot; keyframe images from the store."""

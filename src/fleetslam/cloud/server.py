@@ -1,32 +1,46 @@
-"""The cloud process: listens on one Zenoh endpoint, keeps one RobotSession per robot id,
-merges the finished maps on request and writes the run folder.
+"""The cloud process, alone or as one of many workers: keeps one RobotSession per robot it
+serves, merges the finished maps on request and writes the run folder (the store).
 
-Zenoh callbacks only check the key and enqueue; each robot's work happens on its session's
-own threads. After a restart with the same output folder, a robot's session is restored
-from its last checkpoint the first time that robot is heard from again.
+Alone, it listens on an endpoint as the Zenoh router robots connect to. As a worker, it
+connects to the routers (``--connect``) beside other workers sharing the same store folder;
+which worker serves which robot is agreed through liveliness tokens (``placement.py``), and
+a worker hears a robot's frames only while it serves that robot. Zenoh callbacks only check
+the key and enqueue; each robot's work happens on its session's own threads. A worker that
+starts (a restart, a new worker) or sees a worker die bids for the robots nobody serves and
+restores the winner's sessions from their checkpoints in the store.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
+import socket
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zenoh
 
-from fleetslam.cloud.merger_service import MergerService
-from fleetslam.cloud.robot_session import REJECTION_REPLY_INTERVAL_S, RobotSession
+from fleetslam.camera import Camera
+from fleetslam.cloud.merger_service import MergerService, decode_keyframe, encode_keyframe
+from fleetslam.cloud.placement import Placement
+from fleetslam.cloud.robot_session import (
+    REJECTION_REPLY_INTERVAL_S,
+    FinishedMap,
+    RobotSession,
+)
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
 from fleetslam.merging.global_map import build_global_map, merge_summary
+from fleetslam.merging.inter_robot import KeyframeSummary
 from fleetslam.pipeline.local_mapping_worker import LocalMappingPool
 from fleetslam.system import SUMMARY_VERSION
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
-from fleetslam.transport.zenoh_session import open_listening, put
+from fleetslam.transport.zenoh_session import open_connecting, open_listening, put
 from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.cloud")
@@ -35,6 +49,14 @@ log = logging.getLogger("fleetslam.cloud")
 # a resent request gets the reply again instead of a second merge).
 MERGE_RUNNING = b""
 MERGES_REMEMBERED = 16
+# Control messages of robots nobody serves yet, kept for the election's winner (per robot:
+# the newest), and at most this many robots' at once.
+PENDING_ROBOTS = 256
+
+
+def default_worker_id() -> str:
+    host = "".join(c if c.isalnum() or c in "-_" else "-" for c in socket.gethostname())
+    return f"w-{host[:40]}-{os.getpid()}"
 
 
 class Throttle:
@@ -63,19 +85,28 @@ class Throttle:
 
 class CloudServer:
     def __init__(self, config: Config, out_dir: Path, endpoint: str | None = None,
-                 view: NullView | None = None) -> None:
+                 view: NullView | None = None, connect: str | None = None) -> None:
+        """``endpoint``: listen there as the router (a lone cloud); ``connect``: a worker
+        connecting to the routers there instead. ``out_dir`` is the store every worker of
+        the fleet shares."""
         self.config = config
         # The live view (visualisation/live_view.py; off: a NullView). The server closes it.
         self.view = view or NullView()
         self.out_dir = Path(out_dir)
-        self.endpoint = endpoint or config.transport.endpoint
+        self.connect = connect
+        self.endpoint = connect or endpoint or config.transport.endpoint
+        self.worker_id = keys.check_worker_id(config.placement.worker_id or default_worker_id())
+        self.placement: Placement | None = None
         self.store = CloudStore(self.out_dir)
         self.sessions: dict[str, RobotSession] = {}
         self._merges: dict[str, bytes] = {}
-        self.merger = MergerService(config, self.view)
+        self.merger = MergerService(config, self.view, self._keyframes_in_store)
+        self._merging = False  # this worker runs the fleet's merger (see _is_merger)
         self._lock = threading.Lock()
         self._zenoh: zenoh.Session | None = None
         self._subscribers: list[Any] = []
+        self._robot_subscribers: dict[str, list[Any]] = {}
+        self._pending: dict[str, tuple[bytes, float]] = {}
         self.stopped = threading.Event()
         self.unrouted = 0  # messages on keys that name no valid robot
         self._throttle = Throttle(REJECTION_REPLY_INTERVAL_S)
@@ -92,23 +123,162 @@ class CloudServer:
                              f"'async' or 'inline'")
         if tracking.local_mapping == "async" and tracking.local_ba:
             self.local_mapping = LocalMappingPool(tracking.local_mapping_workers)
-        self._zenoh = open_listening(self.endpoint, self.config.transport.zenoh_config or None)
+        transport = self.config.transport
+        if self.connect:
+            self._zenoh = open_connecting(self.connect, transport.reach_deadline_s,
+                                          transport.zenoh_config or None)
+        else:
+            self._zenoh = open_listening(self.endpoint, transport.zenoh_config or None)
         z = self._zenoh
         self._subscribers = [
-            z.declare_subscriber(keys.ALL_FRAMES, lambda s: self._route(s, "frame")),
-            z.declare_subscriber(keys.ALL_KEYFRAMES, lambda s: self._route(s, "keyframe")),
             z.declare_subscriber(keys.ALL_CONTROL, lambda s: self._route(s, "control")),
+            z.declare_subscriber(f"{keys.MERGE_KEYFRAMES}/*", self._on_remote_keyframe),
         ]
+        if not self.connect:
+            # The router itself hears every robot's frames at no cost to the network (they
+            # pass through it): it serves its own and tells a robot nobody serves to say
+            # hello. A worker behind a router hears only the robots it serves (_take).
+            self._subscribers += [
+                z.declare_subscriber(keys.ALL_FRAMES, lambda s: self._route(s, "frame")),
+                z.declare_subscriber(keys.ALL_KEYFRAMES, lambda s: self._route(s, "keyframe")),
+            ]
+        self.placement = Placement(z, self.worker_id, self.config.placement, self._load,
+                                   self._take, self._give_up, self._worth_serving).start()
         self._reaper.start()
-        log.info("cloud listening on %s, writing to %s", self.endpoint, self.out_dir)
+        threading.Thread(target=self._claim_orphans, name="cloud-orphans", daemon=True).start()
+        log.info("cloud worker %s %s %s, store %s", self.worker_id,
+                 "connected to" if self.connect else "listening on", self.endpoint,
+                 self.out_dir)
         return self
 
+    # -- the fleet's merger (one worker merges every worker's robots) ----------------------
+
+    def _is_merger(self) -> bool:
+        """The live worker whose id sorts first merges; a worker that becomes it (the last
+        one died or stopped) first takes every other robot's keyframes from the store."""
+        placement = self.placement
+        merging = placement is None or placement.live_workers()[0] == self.worker_id
+        if merging and not self._merging:
+            self._merging = True
+            # Its own robots' keyframes went to the merger that was; all robots are taken
+            # (its own from their sessions here). No lock: callers may hold it.
+            robots = sorted(set(self.store.robots_with_checkpoints()) | set(list(self.sessions)))
+            if robots:
+                log.info("worker %s merges now: robots %s from the store", self.worker_id,
+                         ", ".join(robots))
+                self.merger.rebuild_from_store(robots)
+        self._merging = merging
+        return merging
+
+    def _keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
+        """A session's new keyframe: to the merger here, or published for the worker that
+        merges."""
+        if self._is_merger():
+            self.merger.submit(summary, poses)
+        elif self.placement is not None:
+            session = self.sessions.get(summary.robot)
+            if session is not None:
+                self.publish(keys.merge_keyframe(summary.robot), encode_keyframe(
+                    session.state.hello.camera, summary, poses))
+
+    def _on_remote_keyframe(self, sample: zenoh.Sample) -> None:
+        try:
+            if not self._is_merger():
+                return
+            robot_id = keys.check_robot_id(keys.last_chunks(sample.key_expr, 1)[0])
+            self.merger.submit_remote(*decode_keyframe(sample.payload.to_bytes(), robot_id))
+        except ValueError as exc:
+            self._count_unrouted()
+            if self._throttle.due("remote keyframe"):
+                log.warning("keyframe on %s rejected: %s", sample.key_expr, exc)
+
+    def _keyframes_in_store(self, robot_id: str
+                            ) -> tuple[Camera, list[KeyframeSummary], np.ndarray] | None:
+        """A robot's keyframes for the merger: its live session's here, else its checkpoint
+        in the store (read only)."""
+        with self._lock:
+            session = self.sessions.get(robot_id)
+        if session is None:
+            try:
+                state = self.store.load_checkpoint(robot_id)
+            except ValueError as exc:
+                log.error("merger: %s", exc)
+                return None
+            if state is None:
+                return None
+            session = RobotSession(state, self.config, self.store, self.publish)  # not started
+        return (session.state.hello.camera, session.all_keyframes(),
+                session.state.tracking.map.keyframe_poses())
+
+    # -- placement (which worker serves which robot) ----------------------------------------
+
+    def _load(self) -> int:
+        return sum(1 for _, s in self._sessions_now() if s.finished is None)
+
+    def _worth_serving(self, robot_id: str) -> bool:
+        """A robot whose worker died is taken over when it has a checkpoint to restore."""
+        return (self.store.robot_dir(robot_id) / "session.ckpt").exists()
+
+    def _claim_orphans(self) -> None:
+        """Bid for every robot of the store that nobody serves: a restarted (or a new)
+        worker takes over the sessions a dead worker left, finished ones too (the merge
+        needs them). Once the liveliness history has arrived."""
+        if self.stopped.wait(self.config.placement.settle_s):
+            return
+        for robot_id in self.store.robots_with_checkpoints():
+            if self.placement is not None and self.placement.owner(robot_id) is None:
+                self.placement.claim(robot_id)
+
+    def _take(self, robot_id: str) -> None:
+        """This worker won ``robot_id``: hear its frames and uploads, restore its session
+        if the store has one, and answer what it said meanwhile."""
+        z = self._zenoh
+        if z is None:
+            return
+        with self._lock:
+            if self.connect and robot_id not in self._robot_subscribers:
+                self._robot_subscribers[robot_id] = [
+                    z.declare_subscriber(keys.frame(robot_id),
+                                         lambda s: self._route(s, "frame")),
+                    z.declare_subscriber(keys.keyframe(robot_id),
+                                         lambda s: self._route(s, "keyframe")),
+                ]
+            pending = self._pending.pop(robot_id, None)
+            existed = robot_id in self.sessions
+        session = self._session(robot_id)
+        restored = session is not None and not existed
+        if restored and session.finished is None:
+            # Taken over mid-stream: the robot's frames in flight went to the dead worker.
+            # A welcome tells it to stop waiting for them (and to send intra frames).
+            session.welcome(resumed=True, taken_over=True)
+        if pending is not None and not (restored and b'"hello"' in pending[0]):
+            # What the robot said while nobody served it (a hello kept from an election
+            # lost long ago is answered by the welcome above).
+            self._on_robot_control(robot_id, *pending)
+
+    def _give_up(self, robot_id: str) -> None:
+        """Another worker serves ``robot_id`` too (a partition healed): drop ours unsaved."""
+        with self._lock:
+            subs = self._robot_subscribers.pop(robot_id, [])
+            session = self.sessions.pop(robot_id, None)
+        for sub in subs:
+            sub.undeclare()
+        if session is not None:
+            session.close()
+
     def close(self) -> None:
+        """Stop; every session's state goes to the store first, then this worker's robots
+        are given back (another worker restores them from there)."""
         self.stopped.set()
         if self._reaper.is_alive():
             self._reaper.join(30.0)
         for _, session in self._sessions_now():
-            session.close()
+            session.close(final_checkpoint=True)
+        if self.placement is not None:
+            self.placement.close()
+        for subs in self._robot_subscribers.values():
+            for sub in subs:
+                sub.undeclare()
         self.merger.close()
         if self.local_mapping is not None:
             self.local_mapping.close()
@@ -134,7 +304,13 @@ class CloudServer:
                 return self._on_cloud_control(data)
             robot_id = keys.check_robot_id(keys.robot_of(key))
             if kind == "control":
-                return self._on_robot_control(robot_id, data, arrival)
+                return self._on_control_of(robot_id, data, arrival)
+            placement = self.placement
+            if placement is not None and not placement.serves(robot_id):
+                if placement.owner(robot_id) is not None:
+                    return  # another worker's robot (a router-worker hears every robot)
+                if self._worth_serving(robot_id):
+                    return placement.claim(robot_id)  # a restart: restore, then serve
             session = self._session(robot_id)
             if session is None:
                 self._error(keys.reply(robot_id), protocol.Code.NO_SESSION,
@@ -159,7 +335,10 @@ class CloudServer:
 
     def _count_unrouted(self) -> None:
         with self._lock:  # Zenoh calls back on several threads
-            self.unrouted += 1
+            self._count_unrouted_locked()
+
+    def _count_unrouted_locked(self) -> None:
+        self.unrouted += 1
 
     def _close_idle_sessions(self) -> None:
         """Checkpoint and close every unfinished session that has heard nothing from its
@@ -193,13 +372,16 @@ class CloudServer:
                 if state is None:
                     return None
                 session = RobotSession(state, self.config, self.store, self.publish,
-                                       self.merger.submit, self.view, self.local_mapping)
+                                       self._keyframe_sink, self.view,
+                                       self.local_mapping).start()
                 self.sessions[robot_id] = session
                 self.view.robot(robot_id, state.hello.camera)
                 # The merger is rebuilt from the keyframes the session already has (none for
                 # a robot that tracks itself).
-                self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
-                                      state.tracking.map.keyframe_poses())
+                if self._is_merger():
+                    self.merger.add_robot(robot_id, state.hello.camera,
+                                          session.all_keyframes(),
+                                          state.tracking.map.keyframe_poses())
                 log.info("robot %s: session restored from its checkpoint (frame %d)",
                          robot_id, state.last_index)
             return session
@@ -212,6 +394,26 @@ class CloudServer:
             return
         log.warning("%s: %s", key, reason)
         self.publish(key, protocol.encode(protocol.error(code, reason, **extra)))
+
+    def _on_control_of(self, robot_id: str, data: bytes, arrival: float) -> None:
+        """A robot's control message: handled if this worker serves the robot, ignored if
+        another one does, else kept while the workers bid for the robot."""
+        placement = self.placement
+        if placement is None or placement.serves(robot_id):
+            return self._on_robot_control(robot_id, data, arrival)
+        if placement.owner(robot_id) is not None:
+            return
+        with self._lock:
+            if robot_id not in self._pending and len(self._pending) >= PENDING_ROBOTS:
+                self._count_unrouted_locked()
+                return
+            self._pending[robot_id] = (data, arrival)
+            full = len([r for r, s in self.sessions.items() if s.finished is None]) \
+                >= self.config.transport.max_sessions
+        if not full:  # a full worker does not bid; a robot nobody can take hears it below
+            placement.claim(robot_id)
+        elif len(placement.live_workers()) == 1:
+            self._on_robot_control(robot_id, *self._pending.pop(robot_id))
 
     def _on_robot_control(self, robot_id: str, data: bytes, arrival: float) -> None:
         reply = keys.reply(robot_id)
@@ -238,11 +440,12 @@ class CloudServer:
                               f"robots at once (transport.max_sessions)")
                     return self._error(reply, protocol.Code.REFUSED, reason)
                 session = self.sessions.get(robot_id) or RobotSession.open(
-                    robot_id, hello, self.config, self.store, self.publish, self.merger.submit,
-                    self.view, self.local_mapping)
+                    robot_id, hello, self.config, self.store, self.publish,
+                    self._keyframe_sink, self.view, self.local_mapping)
                 self.sessions[robot_id] = session
                 self.view.robot(robot_id, hello.camera)
-                self.merger.add_robot(robot_id, hello.camera)
+                if self._is_merger():
+                    self.merger.add_robot(robot_id, hello.camera)
             log.info("robot %s: new session, offloading at %d, source %s", robot_id,
                      hello.offload_at, hello.source)
             session.welcome(resumed=False)
@@ -260,12 +463,20 @@ class CloudServer:
                                f"control message rejected: {exc}")
         rid = protocol.request_id(message)
         if message["type"] == "merge":
+            if self.placement is not None and \
+                    self.placement.live_workers()[0] != self.worker_id:
+                return  # one worker merges: the live one whose id sorts first
             self._request_merge(rid)
         elif message["type"] == "status":
-            robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None}
+            robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
+                          "worker": self.worker_id}
                       for r, s in self._sessions_now()}
-            self.publish(keys.CLOUD_REPLY, protocol.encode(
-                protocol.status(rid, robots, self.merger.status())))
+            placement = self.placement
+            self.publish(keys.CLOUD_REPLY, protocol.encode(protocol.status(
+                rid, robots, self.merger.status(), worker=self.worker_id,
+                workers=placement.live_workers() if placement else [self.worker_id],
+                placement=placement.table() if placement else {},
+                elections=dict(placement.elections) if placement else {})))
         else:
             self._error(keys.CLOUD_REPLY, protocol.Code.UNKNOWN_TYPE,
                         f"unknown request {message['type']!r}", id=rid)
@@ -308,8 +519,11 @@ class CloudServer:
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
                                f"within {timeout_s:.0f} s; ask again")
-        finished = sorted((s.finished for _, s in self._sessions_now() if s.finished),
-                          key=lambda f: f.robot_id)
+        finished = sorted([*(s.finished for _, s in self._sessions_now() if s.finished),
+                           *self._finished_elsewhere()], key=lambda f: f.robot_id)
+        if not self.merger.drain(timeout_s):
+            raise RuntimeError(f"the merger has not taken the other workers' robots within "
+                               f"{timeout_s:.0f} s; ask again")
         global_map = None
         if len(finished) > 1:
             global_map = self.merger.locked(lambda m: build_global_map(
@@ -329,6 +543,28 @@ class CloudServer:
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
         self._write_report()
         return summary
+
+    def _finished_elsewhere(self) -> list[FinishedMap]:
+        """The finished robots other workers serve (or served), read from the store; the
+        merger takes their keyframes as a restored session hands them over."""
+        here = {robot_id for robot_id, _ in self._sessions_now()}
+        found = []
+        for robot_id in self.store.robots_with_checkpoints():
+            if robot_id in here:
+                continue
+            try:
+                state = self.store.load_checkpoint(robot_id)
+            except ValueError as exc:
+                log.error("merge: %s", exc)
+                continue
+            if state is None or not state.ended:
+                continue
+            # Not started: no threads, nothing written; read only.
+            session = RobotSession(state, self.config, self.store, self.publish)
+            self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
+                                  state.tracking.map.keyframe_poses())
+            found.append(session.finished_map())
+        return found
 
     def _write_report(self) -> None:
         """The run report of what was just merged, in the cloud's folder, without ground

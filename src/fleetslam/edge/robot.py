@@ -94,6 +94,8 @@ class RobotReport:
     upload_retries: int = 0
     # Uploads the cloud said it no longer needs (keyframes a restarted cloud lost).
     uploads_not_needed: int = 0
+    # Frame indices of the keyframes the cloud acknowledged (stored and checkpointed).
+    acknowledged: list[int] = field(default_factory=list)
     feedback: int = 0
     keyframes: int = 0
     robot_compute_s: float = 0.0
@@ -115,6 +117,10 @@ class RobotReport:
     # waits that ran out (the cloud did not answer in time).
     flow_wait_s: float = 0.0
     flow_timeouts: int = 0
+    # Times a cloud worker took the session over from its checkpoint (failover), and the
+    # longest time between two feedbacks (the pause a takeover costs, or a backlog's).
+    takeovers: int = 0
+    longest_feedback_gap_s: float = 0.0
     # Every frame and keyframe upload put on the link, for the run report's plots of bytes
     # and link use over time: [start s, end s, bytes, "frame" | "keyframe", delivered], the
     # times since the first frame was read (start: handed to the link, which may first
@@ -206,6 +212,10 @@ class Robot:
             log.warning("robot %s: feedback rejected: %s", self.robot_id, exc)
             return
         now = time.monotonic()
+        if self._last_feedback:
+            # The longest the cloud was silent (a worker taking over, a backlog).
+            self.report.longest_feedback_gap_s = max(self.report.longest_feedback_gap_s,
+                                                     now - self._last_feedback)
         self._last_feedback = now
         self.report.feedback += 1
         self.inter.acked(header.seq)  # as "held", for a cloud that does not send it
@@ -233,9 +243,21 @@ class Robot:
             return
         if kind == "held":
             self.inter.acked(int(message["seq"]))
+        elif kind == "welcome" and message.get("taken_over"):
+            # A worker took the session over from its checkpoint (the one serving it died):
+            # the frames in flight went to the dead one, and it holds none as a reference.
+            with self._in_flight:
+                self._sent_at.clear()
+                self._in_flight.notify_all()
+            self.inter.refused(self._next_seq)
+            self.report.takeovers += 1
+            self._replies.put(message)
         elif kind == "ack":
+            index = int(message["frame_index"])
             with self._acks_lock:
-                event = self._acks.get(int(message["frame_index"]))
+                event = self._acks.get(index)
+                if event is not None and not event.is_set():
+                    self.report.acknowledged.append(index)
             if event is not None:
                 event.set()
         elif kind == "error":
@@ -475,8 +497,12 @@ class Robot:
                 return
             self.report.flow_timeouts += 1
             self.report.flow_wait_s += time.monotonic() - start
-            log.warning("robot %s: no feedback for %.0f s with %d frames in flight; going on",
-                        self.robot_id, cfg.in_flight_wait_s, len(self._sent_at))
+            log.warning("robot %s: no feedback for %.0f s with %d frames in flight; saying "
+                        "hello again and going on", self.robot_id, cfg.in_flight_wait_s,
+                        len(self._sent_at))
+            # Nobody may be serving this robot any more (a cloud that lost it, a worker
+            # gone): a hello is heard by every worker and gets it served again.
+            self._need_hello.set()
             while len(self._sent_at) >= cfg.max_frames_in_flight:
                 self._sent_at.popitem(last=False)
 

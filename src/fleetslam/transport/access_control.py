@@ -10,6 +10,8 @@ denied; then
                 may receive  fleet/<id>/feedback, fleet/<id>/reply
     operator    may put on   fleet/cloud/control (merge, status)
                 may receive  fleet/cloud/reply
+    cloud-worker  anything on fleet/** (a cloud worker behind the router serves any robot
+                and declares the liveliness tokens of the placement)
 
 So a robot can neither publish as another robot (nor end its session) nor read another
 robot's poses, and only the operator asks for a merge or the status. Zenoh reads the ACL
@@ -23,6 +25,10 @@ from typing import Any
 from fleetslam.transport import keys
 
 OPERATOR = "operator"  # the common name of the operator's certificate
+WORKER = "cloud-worker"  # the common name of the cloud workers' certificate
+_WORKER_MESSAGES = ["put", "delete", "declare_subscriber", "query", "declare_queryable",
+                    "reply", "liveliness_token", "declare_liveliness_subscriber",
+                    "liveliness_query"]
 
 # What a client sends (ingress at the cloud) and what it may be sent (egress).
 _SEND = ["put"]
@@ -43,8 +49,8 @@ def _rules(name: str, sends: list[str], receives: list[str]) -> list[dict[str, A
 def check_robot_identity(robot: str) -> str:
     """A robot id that can also be a certificate's identity (ValueError if not)."""
     keys.check_robot_id(robot)
-    if robot == OPERATOR:
-        raise ValueError(f"robot id '{OPERATOR}' is the operator's identity")
+    if robot in (OPERATOR, WORKER):
+        raise ValueError(f"robot id '{robot}' is the identity of the {robot}s' certificate")
     return robot
 
 
@@ -66,5 +72,13 @@ def fleet_acl(robots: list[str]) -> dict[str, Any]:
         allow(robot, [keys.frame(robot), keys.keyframe(robot), keys.control(robot)],
               [keys.feedback(robot), keys.reply(robot)])
     allow(OPERATOR, [keys.CLOUD_CONTROL], [keys.CLOUD_REPLY])
+    # Cloud workers behind the router serve any robot: every fleet key, and the liveliness
+    # tokens they agree through (cloud/placement.py).
+    rules.append({"id": f"{WORKER} everything", "permission": "allow",
+                  "flows": ["ingress", "egress"], "messages": _WORKER_MESSAGES,
+                  "key_exprs": [f"{keys.ROOT}/**"]})
+    subjects.append({"id": WORKER, "cert_common_names": [WORKER]})
+    policies.append({"id": f"{WORKER} policy", "subjects": [WORKER],
+                     "rules": [f"{WORKER} everything"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}

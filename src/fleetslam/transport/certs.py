@@ -22,7 +22,12 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from fleetslam.transport.access_control import OPERATOR, check_robot_identity, fleet_acl
+from fleetslam.transport.access_control import (
+    OPERATOR,
+    WORKER,
+    check_robot_identity,
+    fleet_acl,
+)
 
 VALID_DAYS = 825
 MANIFEST = "lab.json"  # the lab's hosts and robots: what the cloud's ACL admits
@@ -72,7 +77,8 @@ def _issue(subject: str, key: ec.EllipticCurvePrivateKey, ca_key: ec.EllipticCur
 def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
     """Write ca.pem/ca.key, cloud.pem/cloud.key, operator.pem/.key, <robot>.pem/.key, lab.json
     and the Zenoh configs: cloud.json5 (the router: TLS listener and access control),
-    client.json5 (the operator's tools) and robot-<id>.json5. In an existing lab, issue only
+    client.json5 (the operator's tools), worker.json5 (cloud workers behind the router) and
+    robot-<id>.json5. In an existing lab, issue only
     the new robots' certificates (with its CA) and rewrite cloud.json5 to admit them.
     Returns the config files (and the CA) by name."""
     if (out / "ca.key").exists():
@@ -105,6 +111,7 @@ def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
                                           [ExtendedKeyUsageOID.SERVER_AUTH]))
     _client(out, OPERATOR, "client.json5", ca_key, ca_name)
     _write_manifest(out, {"hosts": hosts, "robots": []})
+    _client(out, WORKER, "worker.json5", ca_key, ca_name)
     return _add_robots(out, robots)
 
 
@@ -121,6 +128,8 @@ def _add_robots(out: Path, robots: list[str]) -> dict[str, Path]:
         _client(out, robot, f"robot-{robot}.json5", ca_key, ca_name)
         manifest["robots"].append(robot)
     _write_manifest(out, manifest)
+    if not (out / "worker.json5").exists():  # a lab made before cloud workers existed
+        _client(out, WORKER, "worker.json5", ca_key, ca_name)
     tls_cloud = {"root_ca_certificate": str((out / "ca.pem").resolve()),
                  "listen_private_key": str((out / "cloud.key").resolve()),
                  "listen_certificate": str((out / "cloud.pem").resolve()),
@@ -129,7 +138,7 @@ def _add_robots(out: Path, robots: list[str]) -> dict[str, Path]:
     files = {"ca": out / "ca.pem",
              "cloud": _config(out / "cloud.json5", "router", tls_cloud,
                               fleet_acl(manifest["robots"])),
-             "client": out / "client.json5"}
+             "client": out / "client.json5", "worker": out / "worker.json5"}
     files.update({robot: out / f"robot-{robot}.json5" for robot in manifest["robots"]})
     return files
 

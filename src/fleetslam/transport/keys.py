@@ -10,6 +10,19 @@
     fleet/cloud/control      anyone -> cloud JSON: merge (register all finished maps), status
     fleet/cloud/reply        cloud -> anyone JSON: merged, status
 
+Cloud workers agree among themselves with Zenoh liveliness tokens (no payload: a token is
+there while its worker's Zenoh session lives, and vanishes when the worker dies):
+
+    fleet/cloud/workers/<worker>           a worker is up
+    fleet/cloud/claims/<robot>/<rank>      a worker bids to serve a robot (rank = its load
+                                           and id: the lowest bid wins)
+    fleet/cloud/owners/<robot>/<worker>    the worker that serves the robot
+
+and the workers that do not merge publish each new keyframe of their robots for the one that
+does (data: a keyframe summary, its robot's keyframe poses and camera):
+
+    fleet/cloud/keyframes/<robot>          worker -> the merging worker
+
 A robot id is 1-64 characters of [A-Za-z0-9_-], so it is always one key chunk.
 """
 
@@ -55,6 +68,40 @@ ALL_KEYFRAMES = f"{ROOT}/*/keyframe"
 ALL_CONTROL = f"{ROOT}/*/control"
 CLOUD_CONTROL = control(CLOUD)
 CLOUD_REPLY = reply(CLOUD)
+
+
+WORKERS = f"{ROOT}/{CLOUD}/workers"
+# Keyframe summaries a worker publishes for the worker that merges (cloud/merger_service.py).
+MERGE_KEYFRAMES = f"{ROOT}/{CLOUD}/keyframes"
+CLAIMS = f"{ROOT}/{CLOUD}/claims"
+OWNERS = f"{ROOT}/{CLOUD}/owners"
+
+
+def check_worker_id(worker_id: str) -> str:
+    """A worker id is a key chunk with a robot id's characters (ValueError if not)."""
+    envelope.check_robot_id(worker_id)
+    return worker_id
+
+
+def worker(worker_id: str) -> str:
+    return f"{WORKERS}/{worker_id}"
+
+
+def claim(robot_id: str, rank: str) -> str:
+    return f"{CLAIMS}/{robot_id}/{rank}"
+
+
+def owner(robot_id: str, worker_id: str) -> str:
+    return f"{OWNERS}/{robot_id}/{worker_id}"
+
+
+def last_chunks(key: str, n: int) -> list[str]:
+    """The last ``n`` chunks of a key (a liveliness token's robot and worker)."""
+    return str(key).split("/")[-n:]
+
+
+def merge_keyframe(robot_id: str) -> str:
+    return f"{MERGE_KEYFRAMES}/{robot_id}"
 
 
 def robot_of(key: str) -> str:

@@ -4,6 +4,7 @@ messages are wire/).
 
 Robot <-> cloud, on ``fleet/<robot>/control`` and ``fleet/<robot>/reply``:
     hello -> welcome | error;  end -> ending, then need (resend these keyframes) | ended;
+    a worker taking the session over (its worker died) -> welcome (taken_over, unasked);
     each keyframe upload -> ack;  each frame decoded -> held (a reference for inter-frame
     coding);  a rejected message -> error (with a code and a reason).
 Client <-> cloud, on ``fleet/cloud/control`` and ``fleet/cloud/reply``:
@@ -115,12 +116,14 @@ class Hello:
 # -- robot <-> cloud ------------------------------------------------------------------------
 
 def welcome(resumed: bool, next_index: int, next_seq: int, keyframes_stored: int,
-            reference_frames: int = 0) -> dict[str, Any]:
+            reference_frames: int = 0, taken_over: bool = False) -> dict[str, Any]:
     # reference_frames: the decoded frames the session keeps as references for inter-coded
     # frames (wire/inter.py); a cloud that says nothing (older) takes intra frames only.
-    return {"type": "welcome", "resumed": resumed, "next_index": next_index,
-            "next_seq": next_seq, "keyframes_stored": keyframes_stored,
-            "reference_frames": reference_frames}
+    # taken_over: unasked, from a worker that restored the session after its worker died.
+    message = {"type": "welcome", "resumed": resumed, "next_index": next_index,
+               "next_seq": next_seq, "keyframes_stored": keyframes_stored,
+               "reference_frames": reference_frames}
+    return {**message, "taken_over": True} if taken_over else message
 
 
 def end(last_seq: int, keyframe_poses: dict[str, list] | None = None) -> dict[str, Any]:
@@ -188,9 +191,11 @@ def request_id(message: dict[str, Any]) -> str | None:
     return rid if isinstance(rid, str) and 0 < len(rid) <= 64 else None
 
 
-def status(request_id: str | None, robots: dict[str, Any], merge: dict[str, Any]
-           ) -> dict[str, Any]:
-    return {"type": "status", "id": request_id, "robots": robots, "merge": merge}
+def status(request_id: str | None, robots: dict[str, Any], merge: dict[str, Any],
+           **worker: Any) -> dict[str, Any]:
+    """One worker's answer: its robots and merger, and (``worker``) its id, the live
+    workers and the placement table it knows; a client gathers every worker's answer."""
+    return {"type": "status", "id": request_id, "robots": robots, "merge": merge, **worker}
 
 
 def merged(request_id: str | None, summary: dict[str, Any]) -> dict[str, Any]:

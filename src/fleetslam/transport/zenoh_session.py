@@ -15,16 +15,18 @@ log = logging.getLogger("fleetslam.transport")
 _RETRY = "{period_init_ms: 200, period_max_ms: 1000, period_increase_factor: 2}"
 
 
-def _base_config(path: str | None = None) -> zenoh.Config:
+def _base_config(path: str | None = None, mode: str = "client") -> zenoh.Config:
     """Zenoh's settings: a lab's own Zenoh config file (TLS, authentication, access control,
-    routers) when given, else fleetslam's defaults. The endpoint is fleetslam's to set."""
+    routers) when given, else fleetslam's defaults: whoever listens is a router, everyone
+    else its client (liveliness tokens, which cloud workers agree through, need routers).
+    The endpoint is fleetslam's to set."""
     if path:
         try:
             return zenoh.Config.from_file(str(path))
         except zenoh.ZError as exc:
             raise ValueError(f"{path}: not a Zenoh config file: {exc}") from None
     config = zenoh.Config()
-    config.insert_json5("mode", '"peer"')
+    config.insert_json5("mode", json.dumps(mode))
     # Robots find the cloud through the configured endpoint, never by multicast: a lab
     # network full of other fleets must not join by accident.
     config.insert_json5("scouting/multicast/enabled", "false")
@@ -32,8 +34,25 @@ def _base_config(path: str | None = None) -> zenoh.Config:
 
 
 def open_listening(endpoint: str, zenoh_config: str | None = None) -> zenoh.Session:
-    config = _base_config(zenoh_config)
+    """A router listening on ``endpoint`` (a lone cloud, or ``fleetslam router``)."""
+    config = _base_config(zenoh_config, "router")
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise RuntimeError(f"cannot listen on {endpoint}: {exc}") from exc
+
+
+def open_router(endpoint: str, others: list[str] | None = None,
+                zenoh_config: str | None = None) -> zenoh.Session:
+    """A router of its own on ``endpoint``, joined to the ``others`` (kept retrying)."""
+    config = _base_config(zenoh_config, "router")
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    if others:
+        config.insert_json5("connect/endpoints", json.dumps(others))
+        config.insert_json5("connect/exit_on_failure", "false")
+        config.insert_json5("connect/timeout_ms", "-1")
+        config.insert_json5("connect/retry", _RETRY)
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:

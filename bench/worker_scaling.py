@@ -1,0 +1,194 @@
+"""Robots on 1, 2 and 4 cloud workers behind one Zenoh router: the aggregate frame rate the
+workers sustain, per-frame latency and the CPU each worker used; then the same with each
+worker pinned to its own core, to show throughput grows with the cores given.
+
+    .venv/bin/python bench/worker_scaling.py [--robots 8] [--frames 150] [--workers 1,2,4]
+        [--pinned 1,2] [--load 0.8]
+
+Robots alternate between real sequences (7-Scenes redkitchen, 150-frame pieces, and TUM
+fr1_rpy 0-149); their messages at offloading point 3 are made before the clock starts
+(bench/fleet.py), then published over Zenoh to the router as robots do. Per setting, fresh
+router and workers sharing one store folder:
+  1. saturation: every robot sends all its frames at once; rate = frames / span;
+  2. paced: fresh sessions at (load x sustained / robots) fps each; latency median, p95;
+  3. 10 fps: as many robots as the saturated rate allows at 10 fps each (at most --robots),
+     then one robot fewer at a time until the latency p95 is under 300 ms: the fleet that
+     setting really sustains at 10 fps per robot.
+CPU per worker: user + system seconds of the worker and its local-mapping processes over
+the phase, divided by the phase's span (1.0 = one core busy).
+Writes bench/results/worker_scaling.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from fleet import Fleet, robot_messages, robot_messages_for
+from shared_data import SEVEN_SCENES, TUM_RPY
+
+from fleetslam.launch import (
+    CloudClient,
+    free_endpoint,
+    start_router,
+    start_worker,
+    stop_all,
+)
+from fleetslam.report import format_table
+from fleetslam.transport.zenoh_session import open_connecting
+
+TICK = os.sysconf("SC_CLK_TCK")
+# A fleet at 10 fps per robot counts as sustained when its latency p95 stays under this.
+SUSTAINED_P95_MS = 300.0
+
+
+def tree_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` and every process below it (Linux /proc)."""
+    parent: dict[int, int] = {}
+    cpu: dict[int, float] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parent[int(entry.name)] = int(fields[1])
+        cpu[int(entry.name)] = (int(fields[11]) + int(fields[12])) / TICK
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        total += cpu.get(p, 0.0)
+        todo += [c for c, pp in parent.items() if pp == p]
+    return total
+
+
+def prepare(n: int, frames: int) -> list[tuple[list[bytes], dict]]:
+    out = []
+    for i in range(n):
+        if i % 2 == 0:
+            start = (i // 2 * frames) % max(600 - frames + 1, 1)
+            out.append(robot_messages(f"r{i}", start, frames, SEVEN_SCENES))
+        else:
+            out.append(robot_messages(f"r{i}", 0, min(frames, 150), TUM_RPY))
+    return out
+
+
+def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work: Path
+                ) -> dict:
+    work.mkdir(parents=True, exist_ok=True)
+    endpoint = free_endpoint()
+    router = start_router(endpoint, work / "router.log")
+    cores = os.cpu_count() or 1
+    workers = {f"w{i}": start_worker(endpoint, f"w{i}", work / "store", work / f"w{i}.log",
+                                     cpus=[i % cores] if pinned else None)
+               for i in range(n_workers)}
+    client = CloudClient(endpoint)
+    z = open_connecting(endpoint)
+    results: dict[str, dict] = {}
+    try:
+        deadline = time.monotonic() + 60
+        while len(client.status(timeout=30).get("answered", [])) < n_workers:
+            if time.monotonic() > deadline:
+                raise RuntimeError("the workers did not all answer within 60 s")
+            time.sleep(0.5)
+        phases = ["saturation", "paced"]
+        while phases:
+            phase = phases.pop(0)
+            if phase == "saturation":
+                fps, chosen = None, prepared
+            elif phase == "paced":
+                fps, chosen = load * results["saturation"]["cloud_fps"] / len(prepared), prepared
+                n = int(min(len(prepared), results["saturation"]["cloud_fps"] // 10))
+                phases.append(f"10fps x{max(n, 1)}")
+            else:
+                n = int(phase.split("x")[1])
+                fps, chosen = 10.0, prepared[:n]
+            tag = {"saturation": "s", "paced": "p"}.get(phase, f"t{len(chosen)}-")
+            robots = {f"{tag}{i}": (robot_messages_for(f"{tag}{i}", msgs), cam)
+                      for i, (msgs, cam) in enumerate(chosen)}
+            fleet = Fleet(z, robots)
+            fleet.hello()
+            status = client.status(timeout=30)
+            per_worker = {w: sorted(r for r, v in status["robots"].items()
+                                    if v.get("worker") == w and r in robots)
+                          for w in workers}
+            cpu0 = {w: tree_cpu_s(p.pid) for w, p in workers.items()}
+            print(f"{n_workers} worker(s){' pinned' if pinned else ''}, {phase}: "
+                  f"{len(robots)} robots {'all at once' if fps is None else f'at {fps:.1f} fps'}"
+                  f"; placement {per_worker}", flush=True)
+            fleet.send(fps)
+            result = fleet.result(idle_s=20.0)
+            cpu = {w: (tree_cpu_s(p.pid) - cpu0[w]) / result["span_s"]
+                   for w, p in workers.items()}
+            result.update(offered_fps_per_robot=fps, robots=len(robots), placement=per_worker,
+                          cpu_cores_per_worker=cpu)
+            results[phase] = result
+            fleet.close()
+            # 10 fps per robot: fewer robots until that fleet is really sustained.
+            if phase.startswith("10fps") and result["latency_ms_p95"] > SUSTAINED_P95_MS \
+                    and len(chosen) > 1:
+                phases.append(f"10fps x{len(chosen) - 1}")
+    finally:
+        z.close()
+        client.close()
+        stop_all([*workers.values(), router])
+    return results
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robots", type=int, default=8)
+    parser.add_argument("--frames", type=int, default=150, help="frames per robot")
+    parser.add_argument("--workers", default="1,2,4", help="worker counts, unpinned")
+    parser.add_argument("--pinned", default="1,2", help="worker counts, one core each")
+    parser.add_argument("--load", type=float, default=0.8,
+                        help="paced run: offered rate as a fraction of the sustained rate")
+    parser.add_argument("--out", default="bench/results/worker_scaling.json")
+    args = parser.parse_args()
+    for folder in (SEVEN_SCENES, TUM_RPY):
+        if not folder.exists():
+            sys.exit(f"{folder} missing: this benchmark needs ../shared/data")
+    print(f"preparing {args.robots} x {args.frames} messages (robot stages, point 3) ...",
+          flush=True)
+    prepared = prepare(args.robots, args.frames)
+    out = Path(args.out)
+    work = out.parent / "worker-scaling-runs" / time.strftime("%Y%m%d-%H%M%S")
+    settings = [(int(n), False) for n in args.workers.split(",") if n] + \
+        [(int(n), True) for n in args.pinned.split(",") if n]
+    results = {}
+    for n, pinned in settings:
+        name = f"{n} worker{'s' if n > 1 else ''}{', 1 core each' if pinned else ''}"
+        results[name] = run_setting(n, pinned, prepared, args.load, work / name.replace(
+            " ", "_").replace(",", ""))
+    rows = []
+    for name, phases in results.items():
+        for phase, r in phases.items():
+            cpu = r["cpu_cores_per_worker"]
+            rows.append([name, phase, r["robots"], r["frames_tracked"], r["frames_dropped"],
+                         "all at once" if r["offered_fps_per_robot"] is None
+                         else f"{r['offered_fps_per_robot'] * r['robots']:.1f}",
+                         r["cloud_fps"], r["latency_ms_median"], r["latency_ms_p95"],
+                         " ".join(f"{v:.2f}" for v in cpu.values()),
+                         " ".join(str(len(v)) for v in r["placement"].values())])
+    print(format_table(["setting", "run", "robots", "frames", "dropped", "offered fps",
+                        "sustained fps", "latency ms median", "latency ms p95",
+                        "cores used per worker", "robots per worker"], rows))
+    for name, phases in results.items():
+        ok = [r["robots"] for p, r in phases.items() if p.startswith("10fps")
+              and r["latency_ms_p95"] <= SUSTAINED_P95_MS]
+        print(f"{name}: saturated {phases['saturation']['cloud_fps']:.1f} fps; sustains "
+              f"{max(ok) if ok else 'no'} robot(s) at 10 fps each with latency p95 <= "
+              f"{SUSTAINED_P95_MS:.0f} ms")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"robots": args.robots, "frames_per_robot": args.frames,
+                               "cores": os.cpu_count(), "results": results}, indent=2))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

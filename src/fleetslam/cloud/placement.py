@@ -1,0 +1,216 @@
+"""Which cloud worker serves which robot, agreed through Zenoh liveliness tokens.
+
+Several ``fleetslam cloud`` workers may hang off the same Zenoh routers; a robot never
+knows which one serves it. A robot's session lives on exactly one worker at a time:
+
+- A worker hearing of a robot nobody serves (its hello, or its owner's token vanishing
+  when that worker died) bids for it: a claim token whose name carries the worker's load
+  and id. After ``placement.settle_s`` every bidder lists the bids; the lowest (least
+  loaded, then a hash of robot and worker) wins, the others withdraw. So a new robot goes to the
+  least-loaded worker, and two bidders never both win: each sees the same bids.
+- The winner declares the owner token ``fleet/cloud/owners/<robot>/<worker>`` before it
+  withdraws its bid, and a worker bids only for a robot without an owner token. The token
+  lives as long as the worker's Zenoh session: when the worker dies (SIGKILL, a lost
+  machine after Zenoh's lease), the token vanishes and the others bid for its robots.
+- Should two owners ever show up for one robot (a network partition healing), the worker
+  with the larger id gives the robot up.
+
+No state of its own is shared: every worker sees the same tokens, and the sessions'
+durable state lives in the shared store (``cloud/store.py``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import queue
+import threading
+import time
+from typing import Any, Callable
+
+import zenoh
+
+from fleetslam.config import PlacementConfig
+from fleetslam.transport import keys
+
+log = logging.getLogger("fleetslam.placement")
+
+
+def rank(load: int, robot_id: str, worker_id: str) -> str:
+    """A bid's name: sorts by load first; equal loads by a hash of robot and worker (robots
+    arriving together spread over the workers instead of all going to the first id), and
+    the worker id last (unique)."""
+    # A real hash: a CRC is linear, so names differing in one character compare the same
+    # way whatever the robot.
+    spread = hashlib.blake2s(f"{robot_id}/{worker_id}".encode(), digest_size=4).hexdigest()
+    return f"{min(load, 999_999):06d}.{spread}.{worker_id}"
+
+
+class Placement:
+    def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
+                 load: Callable[[], int], won: Callable[[str], None],
+                 give_up: Callable[[str], None], wants: Callable[[str], bool]) -> None:
+        """``load``: this worker's load now (its unfinished sessions); ``won``: take the
+        robot (called once per win, on an election thread); ``give_up``: drop a robot
+        another worker also serves; ``wants``: whether a robot whose owner vanished is
+        worth serving (it has a checkpoint in the store)."""
+        self.z = z
+        self.worker_id = keys.check_worker_id(worker_id)
+        self.cfg = cfg
+        self._load, self._won, self._give_up, self._wants = load, won, give_up, wants
+        self._lock = threading.Lock()
+        self.owners: dict[str, set[str]] = {}  # robot -> workers holding its owner token
+        self.workers: set[str] = set()
+        self._mine: dict[str, Any] = {}  # robot -> this worker's owner token
+        self._electing: set[str] = set()
+        self.elections = {"won": 0, "lost": 0, "failovers": 0, "given_up": 0}
+        self._closed = threading.Event()
+        # One election at a time per worker: each bid's load counts the robots this worker
+        # won just before, so robots arriving together spread evenly over the workers.
+        self._bids: queue.Queue = queue.Queue()
+        self._elector = threading.Thread(target=self._run_elections, name="placement",
+                                         daemon=True)
+        self._token = None
+        self._subscribers: list[Any] = []
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def start(self) -> "Placement":
+        self._elector.start()
+        live = self.z.liveliness()
+        self._token = live.declare_token(keys.worker(self.worker_id))
+        self._subscribers = [
+            live.declare_subscriber(f"{keys.OWNERS}/**", self._on_owner, history=True),
+            live.declare_subscriber(f"{keys.WORKERS}/*", self._on_worker, history=True),
+        ]
+        return self
+
+    def close(self) -> None:
+        """Give every robot back (the other workers take them from their checkpoints)."""
+        self._closed.set()
+        self._bids.put(None)
+        with self._lock:
+            tokens, self._mine = list(self._mine.values()), {}
+        for token in tokens:
+            token.undeclare()
+        for sub in self._subscribers:
+            sub.undeclare()
+        if self._token is not None:
+            self._token.undeclare()
+
+    # -- what the worker asks ---------------------------------------------------------------
+
+    def serves(self, robot: str) -> bool:
+        with self._lock:
+            return robot in self._mine
+
+    def owner(self, robot: str) -> str | None:
+        """The worker serving ``robot`` as this worker last heard (None: nobody)."""
+        with self._lock:
+            owners = self.owners.get(robot)
+            return min(owners) if owners else None
+
+    def table(self) -> dict[str, str]:
+        with self._lock:
+            return {robot: min(ws) for robot, ws in self.owners.items() if ws}
+
+    def live_workers(self) -> list[str]:
+        with self._lock:
+            return sorted(self.workers | {self.worker_id})
+
+    def claim(self, robot: str) -> None:
+        """Bid for ``robot`` unless it is served or a bid of ours is queued or running
+        (returns at once; elections run one after another on the placement thread)."""
+        with self._lock:
+            if self._closed.is_set() or robot in self._electing or self.owners.get(robot):
+                return
+            self._electing.add(robot)
+        self._bids.put(robot)
+
+    # -- liveliness events -------------------------------------------------------------------
+
+    def _on_worker(self, sample: zenoh.Sample) -> None:
+        (worker,) = keys.last_chunks(sample.key_expr, 1)
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.workers.add(worker)
+            else:
+                self.workers.discard(worker)
+
+    def _on_owner(self, sample: zenoh.Sample) -> None:
+        robot, worker = keys.last_chunks(sample.key_expr, 2)
+        with self._lock:
+            owners = self.owners.setdefault(robot, set())
+            if sample.kind == zenoh.SampleKind.PUT:
+                owners.add(worker)
+                conflict = robot in self._mine and worker < self.worker_id
+            else:
+                owners.discard(worker)
+                conflict = False
+            orphaned = not owners and robot not in self._mine
+        if conflict:
+            log.warning("robot %s is also served by worker %s: giving it up", robot, worker)
+            self.release(robot)
+            self.elections["given_up"] += 1
+            self._give_up(robot)
+        elif orphaned and sample.kind == zenoh.SampleKind.DELETE and self._wants(robot):
+            log.info("robot %s lost its worker %s: bidding to serve it", robot, worker)
+            self.elections["failovers"] += 1
+            self.claim(robot)
+
+    def release(self, robot: str) -> None:
+        with self._lock:
+            token = self._mine.pop(robot, None)
+        if token is not None:
+            token.undeclare()
+
+    # -- the election ------------------------------------------------------------------------
+
+    def _listed(self, key: str) -> list[str]:
+        """The tokens under ``key`` now, asked of the routers (not the cached table)."""
+        replies = self.z.liveliness().get(key, timeout=self.cfg.query_timeout_s)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    def _run_elections(self) -> None:
+        while (robot := self._bids.get()) is not None:
+            self._elect(robot)
+
+    def _elect(self, robot: str) -> None:
+        try:
+            for attempt in range(self.cfg.max_rounds):
+                if self._closed.is_set() or self._listed(f"{keys.OWNERS}/{robot}/*"):
+                    return
+                bid = rank(self._load(), robot, self.worker_id)
+                token = self.z.liveliness().declare_token(keys.claim(robot, bid))
+                try:
+                    time.sleep(self.cfg.settle_s)
+                    bids = sorted({keys.last_chunks(k, 1)[0]
+                                   for k in self._listed(f"{keys.CLAIMS}/{robot}/*")})
+                    served = self._listed(f"{keys.OWNERS}/{robot}/*")
+                    if not served and bids and bids[0] == bid:
+                        with self._lock:
+                            self._mine[robot] = self.z.liveliness().declare_token(
+                                keys.owner(robot, self.worker_id))
+                            self.owners.setdefault(robot, set()).add(self.worker_id)
+                        self.elections["won"] += 1
+                        log.info("worker %s serves robot %s (bids: %s)", self.worker_id,
+                                 robot, ", ".join(bids))
+                        self._won(robot)
+                        return
+                finally:
+                    token.undeclare()  # after the owner token is up: never a gap
+                self.elections["lost"] += 1
+                # Another bid won: it must show its owner token soon. If it does not (its
+                # worker died mid-election), bid again.
+                deadline = time.monotonic() + self.cfg.settle_s * 4
+                while time.monotonic() < deadline and not self._closed.is_set():
+                    if self.owner(robot) is not None:
+                        return
+                    time.sleep(self.cfg.settle_s / 4)
+                log.warning("robot %s: the winning bid never took it (round %d); bidding "
+                            "again", robot, attempt + 1)
+        except Exception:
+            log.exception("robot %s: election failed", robot)
+        finally:
+            with self._lock:
+                self._electing.discard(robot)

@@ -1,0 +1,163 @@
+"""Several cloud workers behind one Zenoh router: bids place each robot on exactly one
+worker (the least loaded), a worker's death hands its robots to another, and the robots
+finish with every acknowledged keyframe (real processes, the lab's mutual TLS)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import small_scene
+
+from fleetslam.cloud.placement import Placement, rank
+from fleetslam.cloud.store import CloudStore
+from fleetslam.config import PlacementConfig
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.io.trajectory import read_tum_trajectory
+from fleetslam.launch import (
+    CloudClient,
+    free_endpoint,
+    start_robot,
+    start_router,
+    start_worker,
+    stop,
+    stop_all,
+)
+from fleetslam.transport.certs import make_lab
+from fleetslam.transport.zenoh_session import open_connecting, open_router
+
+N_FRAMES = 60
+
+
+class Worker:
+    """A Placement on its own Zenoh session, recording what it won."""
+
+    def __init__(self, endpoint: str, name: str, load: int) -> None:
+        self.z = open_connecting(endpoint, 20.0)
+        self.load = load
+        self.won: list[str] = []
+        self.event = threading.Event()
+        self.placement = Placement(self.z, name, PlacementConfig(settle_s=0.3), lambda: self.load,
+                                   self._won, lambda robot: None, lambda robot: True).start()
+
+    def _won(self, robot: str) -> None:
+        self.won.append(robot)
+        self.load += 1
+        self.event.set()
+
+    def close(self) -> None:
+        self.placement.close()
+        self.z.close()
+
+
+def _wait(predicate, timeout: float, what: str, interval: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_bids_rank_by_load_then_spread():
+    assert rank(0, "r1", "w9") < rank(1, "r1", "w0")  # the least loaded wins
+    assert rank(2, "r1", "w0") != rank(2, "r1", "w1")  # equal loads never tie
+    # Equal loads: robots spread over workers by a hash, not all to the first id.
+    firsts = {min(("w0", "w1"), key=lambda w: rank(0, f"r{i}", w)) for i in range(8)}
+    assert firsts == {"w0", "w1"}
+
+
+def test_one_winner_the_least_loaded_and_a_dead_workers_robot_moves():
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    busy, idle = Worker(endpoint, "w0", load=3), Worker(endpoint, "w1", load=0)
+    try:
+        time.sleep(0.3)  # both see each other's tokens
+        assert busy.placement.live_workers() == ["w0", "w1"]
+        for w in (busy, idle):  # both hear the robot's hello at once
+            w.placement.claim("r7")
+        _wait(lambda: idle.placement.serves("r7"), 10, "the idle worker to serve r7")
+        time.sleep(1.0)  # the loser withdraws; nobody else wins
+        assert idle.won == ["r7"] and busy.won == []
+        assert busy.placement.owner("r7") == idle.placement.owner("r7") == "w1"
+        busy.placement.claim("r7")  # served: no bid
+        time.sleep(0.6)
+        assert busy.won == []
+        # The serving worker dies (its Zenoh session ends, like SIGKILL): the other one
+        # sees its owner token vanish and takes the robot.
+        idle.close()
+        _wait(lambda: busy.placement.serves("r7"), 10, "the other worker to take r7 over")
+        assert busy.won == ["r7"] and busy.placement.elections["failovers"] == 1
+        assert busy.placement.table() == {"r7": "w0"}
+    finally:
+        busy.close()
+        router.close()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return small_scene(tmp_path_factory, N_FRAMES)
+
+
+def _status(client: CloudClient) -> dict:
+    try:
+        return client.status(timeout=3.0)
+    except TimeoutError:
+        return {"robots": {}, "answered": []}
+
+
+def test_a_killed_worker_hands_its_robot_over_without_losing_a_keyframe(scene, tmp_path):
+    lab = {k: str(v) for k, v in make_lab(tmp_path / "lab", ["localhost"], ["r0", "r1"]).items()}
+    endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
+    out = tmp_path / "store"
+    router = start_router(endpoint, tmp_path / "router.log", lab["cloud"])
+    workers = [start_worker(endpoint, f"w{i}", out, tmp_path / f"w{i}.log",
+                            zenoh_config=lab["worker"]) for i in range(2)]
+    client = CloudClient(endpoint, zenoh_config=lab["client"])
+    robots = []
+    try:
+        _wait(lambda: len(_status(client)["answered"]) == 2, 60, "both workers to answer")
+        robots = [start_robot(endpoint, f"r{i}", str(scene[i]), 3, tmp_path / f"r{i}.log",
+                              tmp_path / f"r{i}.json", extra=["--rate", "10"],
+                              zenoh_config=lab[f"r{i}"]) for i in range(2)]
+        status = _wait(lambda: (s := _status(client)) and len(s["robots"]) == 2
+                       and s["robots"]["r0"]["frames"] >= 15 and s, 60, "r0 at 15 frames")
+        placed = {r: v["worker"] for r, v in status["robots"].items()}
+        assert sorted(placed.values()) == ["w0", "w1"]  # one robot each
+        victim = placed["r0"]
+        workers[int(victim[1])].send_signal(signal.SIGKILL)
+        for i, robot in enumerate(robots):
+            assert robot.wait(120) == 0, (tmp_path / f"r{i}.log").read_text()
+        after = _status(client)
+        assert {v["worker"] for v in after["robots"].values()} == {placed["r1"]}
+        # The merging worker (the survivor) holds both robots' keyframes: its own robot's,
+        # and the other's, published to it or taken from the store when it became merger.
+        held = after["merge"]["robots"]
+        assert held["r0"]["keyframes"] >= 2 and held["r1"]["keyframes"] >= 2
+        summary = client.merge(timeout=120)
+    finally:
+        client.close()
+        for robot in robots:
+            stop(robot, 2.0)
+        stop_all([*workers, router])
+    survivor = Path(tmp_path / f"w{placed['r1'][1]}.log").read_text()
+    assert "robot r0: session restored from its checkpoint" in survivor
+    assert sorted(r["name"] for r in summary["robots"]) == ["r0", "r1"]
+    report = json.loads((tmp_path / "r0.json").read_text())
+    assert report["takeovers"] == 1
+    # Every keyframe the cloud acknowledged is a keyframe of the final map.
+    final = CloudStore(out).load_checkpoint("r0")
+    kept = {kf.frame_index for kf in final.tracking.map.keyframes}
+    assert report["acknowledged"] and set(report["acknowledged"]) <= kept
+    kf_times, _ = read_tum_trajectory(out / "r0" / "keyframes.tum")
+    assert len(kf_times) == len(kept)
+    times, _ = read_tum_trajectory(out / "r0" / "trajectory.tum")
+    assert times[-1] == pytest.approx(RgbdSequence(scene[0]).timestamps[-1])
+    assert np.all(np.diff(times) > 0)
