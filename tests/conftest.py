@@ -39,3 +39,25 @@ def exact_config():
     config = Config()
     config.tracking.local_mapping = "inline"
     return config
+
+
+def wait_for(predicate, timeout: float, what: str, interval: float = 0.1):
+    """The predicate's first true value, polled; AssertionError naming ``what`` at the
+    deadline."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def secure_endpoint() -> str:
+    """A free loopback endpoint as a lab's TLS endpoint (its cloud certificate names
+    localhost)."""
+    from fleetslam.launch import free_endpoint
+
+    return free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")

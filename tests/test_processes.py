@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import small_scene
+from conftest import secure_endpoint, small_scene, wait_for
 
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.wire.paper_yaml import read_paper_yaml
-from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop
+from fleetslam.launch import CloudClient, start_cloud, start_robot, stop
 from fleetslam.transport.certs import make_lab
 
 N_FRAMES = 60
@@ -33,20 +33,6 @@ def scene(tmp_path_factory):
 def lab(tmp_path_factory) -> dict[str, str]:
     files = make_lab(tmp_path_factory.mktemp("lab") / "lab", ["localhost"], ["r0", "r1"])
     return {name: str(path) for name, path in files.items()}
-
-
-def secure_endpoint() -> str:
-    return free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
-
-
-def _wait(predicate, timeout: float, what: str, interval: float = 0.1):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def _frames(client: CloudClient, robot: str) -> int:
@@ -81,7 +67,7 @@ def test_killed_robot_resumes_its_session(scene, lab, tmp_path, capsys):
     try:
         first = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-a.log",
                             extra=["--rate", "recorded"], zenoh_config=lab["r0"])
-        _wait(lambda: _frames(client, "r0") >= 20, 60, "20 frames tracked")
+        wait_for(lambda: _frames(client, "r0") >= 20, 60, "20 frames tracked")
         first.send_signal(signal.SIGKILL)
         first.wait()
         report = tmp_path / "r0-b.json"
@@ -119,7 +105,7 @@ def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, lab, tmp_
     robot = start_robot(endpoint, "r1", str(scene[1]), 3, tmp_path / "r1.log", report,
                         extra=["--rate", "10"], zenoh_config=lab["r1"])
     try:
-        _wait(lambda: _frames(client, "r1") >= 15 and len(_keyframe_files(out, "r1")) >= 2,
+        wait_for(lambda: _frames(client, "r1") >= 15 and len(_keyframe_files(out, "r1")) >= 2,
               60, "15 frames and 2 stored keyframes")
         cloud.send_signal(signal.SIGKILL)
         cloud.wait()

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import small_scene
+from conftest import secure_endpoint, small_scene, wait_for
 
 from fleetslam.cloud.placement import Placement, rank
 from fleetslam.cloud.store import CloudStore
@@ -56,16 +56,6 @@ class Worker:
         self.z.close()
 
 
-def _wait(predicate, timeout: float, what: str, interval: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_bids_rank_by_load_then_spread():
     assert rank(0, "r1", "w9") < rank(1, "r1", "w0")  # the least loaded wins
     assert rank(2, "r1", "w0") != rank(2, "r1", "w1")  # equal loads never tie
@@ -83,7 +73,7 @@ def test_one_winner_the_least_loaded_and_a_dead_workers_robot_moves():
         assert busy.placement.live_workers() == ["w0", "w1"]
         for w in (busy, idle):  # both hear the robot's hello at once
             w.placement.claim("r7")
-        _wait(lambda: idle.placement.serves("r7"), 10, "the idle worker to serve r7")
+        wait_for(lambda: idle.placement.serves("r7"), 10, "the idle worker to serve r7")
         time.sleep(1.0)  # the loser withdraws; nobody else wins
         assert idle.won == ["r7"] and busy.won == []
         assert busy.placement.owner("r7") == idle.placement.owner("r7") == "w1"
@@ -93,7 +83,7 @@ def test_one_winner_the_least_loaded_and_a_dead_workers_robot_moves():
         # The serving worker dies (its Zenoh session ends, like SIGKILL): the other one
         # sees its owner token vanish and takes the robot.
         idle.close()
-        _wait(lambda: busy.placement.serves("r7"), 10, "the other worker to take r7 over")
+        wait_for(lambda: busy.placement.serves("r7"), 10, "the other worker to take r7 over")
         assert busy.won == ["r7"] and busy.placement.elections["failovers"] == 1
         assert busy.placement.table() == {"r7": "w0"}
     finally:
@@ -115,7 +105,7 @@ def _status(client: CloudClient) -> dict:
 
 def test_a_killed_worker_hands_its_robot_over_without_losing_a_keyframe(scene, tmp_path):
     lab = {k: str(v) for k, v in make_lab(tmp_path / "lab", ["localhost"], ["r0", "r1"]).items()}
-    endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
+    endpoint = secure_endpoint()
     out = tmp_path / "store"
     router = start_router(endpoint, tmp_path / "router.log", lab["cloud"])
     workers = [start_worker(endpoint, f"w{i}", out, tmp_path / f"w{i}.log",
@@ -123,11 +113,11 @@ def test_a_killed_worker_hands_its_robot_over_without_losing_a_keyframe(scene, t
     client = CloudClient(endpoint, zenoh_config=lab["client"])
     robots = []
     try:
-        _wait(lambda: len(_status(client)["answered"]) == 2, 60, "both workers to answer")
+        wait_for(lambda: len(_status(client)["answered"]) == 2, 60, "both workers to answer")
         robots = [start_robot(endpoint, f"r{i}", str(scene[i]), 3, tmp_path / f"r{i}.log",
                               tmp_path / f"r{i}.json", extra=["--rate", "10"],
                               zenoh_config=lab[f"r{i}"]) for i in range(2)]
-        status = _wait(lambda: (s := _status(client)) and len(s["robots"]) == 2
+        status = wait_for(lambda: (s := _status(client)) and len(s["robots"]) == 2
                        and s["robots"]["r0"]["frames"] >= 15 and s, 60, "r0 at 15 frames")
         placed = {r: v["worker"] for r, v in status["robots"].items()}
         assert sorted(placed.values()) == ["w0", "w1"]  # one robot each

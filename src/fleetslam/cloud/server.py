@@ -31,6 +31,7 @@ from fleetslam.cloud.robot_session import (
     REJECTION_REPLY_INTERVAL_S,
     FinishedMap,
     RobotSession,
+    SessionState,
 )
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
@@ -199,11 +200,7 @@ class CloudServer:
         with self._lock:
             session = self.sessions.get(robot_id)
         if session is None:
-            try:
-                state = self.store.load_checkpoint(robot_id)
-            except ValueError as exc:
-                log.error("merger: %s", exc)
-                return None
+            state = self._stored_state(robot_id)
             if state is None:
                 return None
             session = RobotSession(state, self.config, self.store, self.publish)  # not started
@@ -217,7 +214,7 @@ class CloudServer:
 
     def _worth_serving(self, robot_id: str) -> bool:
         """A robot whose worker died is taken over when it has a checkpoint to restore."""
-        return (self.store.robot_dir(robot_id) / "session.ckpt").exists()
+        return self.store.has_checkpoint(robot_id)
 
     def _claim_orphans(self) -> None:
         """Bid for every robot of the store that nobody serves: a restarted (or a new)
@@ -359,16 +356,21 @@ class CloudServer:
                                  "(checkpointed; its next message restores it)", robot_id,
                                  now - session.last_heard)
 
+    def _stored_state(self, robot_id: str) -> SessionState | None:
+        """The robot's session as its last checkpoint has it; None without one, or if it
+        cannot be restored (logged with the file and why)."""
+        try:
+            return self.store.load_checkpoint(robot_id)
+        except ValueError as exc:
+            log.error("%s", exc)
+            return None
+
     def _session(self, robot_id: str) -> RobotSession | None:
         """The live session, or the one restored from its checkpoint after a restart."""
         with self._lock:
             session = self.sessions.get(robot_id)
             if session is None:
-                try:
-                    state = self.store.load_checkpoint(robot_id)
-                except ValueError as exc:
-                    log.error("%s", exc)
-                    return None
+                state = self._stored_state(robot_id)
                 if state is None:
                     return None
                 session = RobotSession(state, self.config, self.store, self.publish,
@@ -402,6 +404,8 @@ class CloudServer:
         if placement is None or placement.serves(robot_id):
             return self._on_robot_control(robot_id, data, arrival)
         if placement.owner(robot_id) is not None:
+            with self._lock:  # another worker's robot: nothing of it to keep here
+                self._pending.pop(robot_id, None)
             return
         with self._lock:
             if robot_id not in self._pending and len(self._pending) >= PENDING_ROBOTS:
@@ -552,11 +556,7 @@ class CloudServer:
         for robot_id in self.store.robots_with_checkpoints():
             if robot_id in here:
                 continue
-            try:
-                state = self.store.load_checkpoint(robot_id)
-            except ValueError as exc:
-                log.error("merge: %s", exc)
-                continue
+            state = self._stored_state(robot_id)
             if state is None or not state.ended:
                 continue
             # Not started: no threads, nothing written; read only.

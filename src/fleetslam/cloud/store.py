@@ -78,6 +78,9 @@ class CloudStore:
     def write_checkpoint(self, robot_id: str, blob: bytes) -> None:
         write_durably(self.robot_dir(robot_id) / CHECKPOINT, blob)
 
+    def has_checkpoint(self, robot_id: str) -> bool:
+        return (self.robot_dir(robot_id) / CHECKPOINT).exists()
+
     def load_checkpoint(self, robot_id: str) -> Any | None:
         """The robot's last checkpoint, None if it has none; ValueError naming the file if
         it cannot be restored (damaged, another format version, an old pickle)."""
