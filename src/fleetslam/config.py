@@ -434,6 +434,8 @@ class PlacementConfig:
     query_timeout_s: float = 2.0
     # Bidding rounds for one robot before the worker leaves it to the robot's next message.
     max_rounds: int = 5
+    # A worker's load is its robots heard from within this many seconds.
+    active_s: float = 10.0
 
 
 @dataclass

@@ -50,7 +50,7 @@ class Placement:
     def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
                  load: Callable[[], int], won: Callable[[str], None],
                  give_up: Callable[[str], None], wants: Callable[[str], bool]) -> None:
-        """``load``: this worker's load now (its unfinished sessions); ``won``: take the
+        """``load``: this worker's load now (its robots at work); ``won``: take the
         robot (called once per win, on an election thread); ``give_up``: drop a robot
         another worker also serves; ``wants``: whether a robot whose owner vanished is
         worth serving (it has a checkpoint in the store)."""

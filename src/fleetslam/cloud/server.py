@@ -210,7 +210,12 @@ class CloudServer:
     # -- placement (which worker serves which robot) ----------------------------------------
 
     def _load(self) -> int:
-        return sum(1 for _, s in self._sessions_now() if s.finished is None)
+        """Robots this worker is working for: unfinished sessions heard from lately (a
+        session whose robot went quiet holds memory, not CPU)."""
+        now = time.monotonic()
+        active_s = self.config.placement.active_s
+        return sum(1 for _, s in self._sessions_now()
+                   if s.finished is None and now - s.last_heard < active_s)
 
     def _worth_serving(self, robot_id: str) -> bool:
         """A robot whose worker died is taken over when it has a checkpoint to restore."""
