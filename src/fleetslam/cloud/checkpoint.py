@@ -48,7 +48,28 @@ def _classes() -> dict[str, type]:
         *configs)}
 
 
+@dataclasses.dataclass
+class Capture:
+    """A state as it was when captured: its object tree (JSON) and copies of its arrays.
+    Capturing is quick (the tracking thread does it at every keyframe); writing the file
+    (:meth:`to_bytes`, most of the time: one zip member per array) can wait for another
+    thread, since nothing here changes with the live state."""
+
+    tree: str
+    arrays: dict[str, np.ndarray]
+
+    def to_bytes(self) -> bytes:
+        buffer = io.BytesIO()
+        np.savez(buffer, **{_TREE: np.frombuffer(self.tree.encode(), np.uint8)},
+                 **self.arrays)
+        return buffer.getvalue()
+
+
 def dumps(state: Any) -> bytes:
+    return capture(state).to_bytes()
+
+
+def capture(state: Any) -> Capture:
     classes = _classes()
     arrays: dict[str, np.ndarray] = {}
 
@@ -63,7 +84,7 @@ def dumps(state: Any) -> bytes:
             if v.dtype.hasobject:
                 raise TypeError("an object array cannot be checkpointed as data")
             key = f"a{len(arrays)}"
-            arrays[key] = v
+            arrays[key] = v.copy()  # the live array may change before it is written
             return {"__nd__": key}
         if isinstance(v, Counter):
             return {"__counter__": [[enc(k), enc(x)] for k, x in v.items()]}
@@ -81,9 +102,7 @@ def dumps(state: Any) -> bytes:
         raise TypeError(f"a {type(v).__module__}.{name} cannot be checkpointed")
 
     tree = json.dumps({"format": FORMAT, "version": VERSION, "state": enc(state)})
-    buffer = io.BytesIO()
-    np.savez(buffer, **{_TREE: np.frombuffer(tree.encode(), np.uint8)}, **arrays)
-    return buffer.getvalue()
+    return Capture(tree, arrays)
 
 
 def loads(data: bytes, where: str) -> Any:

@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from fleetslam.cloud.checkpoint import Capture
 from fleetslam.cloud.store import CloudStore, snapshot
 from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
@@ -242,7 +243,7 @@ class RobotSession:
         self.count("dropped unread (too many rejected)")
         return True
 
-    def _snapshot(self) -> bytes:
+    def _snapshot(self) -> Capture:
         """The state as a checkpoint now; under the counts lock, since the keyframe thread
         counts while this copies."""
         with self._counts_lock:

@@ -40,9 +40,10 @@ def write_durably(path: Path, data: bytes) -> None:
         os.close(dir_fd)
 
 
-def snapshot(state: Any) -> bytes:
-    """The state as it is now, as bytes a later load_checkpoint turns back into it."""
-    return checkpoint.dumps(state)
+def snapshot(state: Any) -> checkpoint.Capture:
+    """The state as it is now (quick: the file's bytes are made by ``write_checkpoint``),
+    for a later load_checkpoint to turn back into it."""
+    return checkpoint.capture(state)
 
 
 class CloudStore:
@@ -75,8 +76,9 @@ class CloudStore:
     def save_checkpoint(self, robot_id: str, state: Any) -> None:
         self.write_checkpoint(robot_id, snapshot(state))
 
-    def write_checkpoint(self, robot_id: str, blob: bytes) -> None:
-        write_durably(self.robot_dir(robot_id) / CHECKPOINT, blob)
+    def write_checkpoint(self, robot_id: str, blob: bytes | checkpoint.Capture) -> None:
+        data = blob.to_bytes() if isinstance(blob, checkpoint.Capture) else blob
+        write_durably(self.robot_dir(robot_id) / CHECKPOINT, data)
 
     def has_checkpoint(self, robot_id: str) -> bool:
         return (self.robot_dir(robot_id) / CHECKPOINT).exists()
