@@ -68,7 +68,8 @@ class TrajectoryRow:
 
 @dataclass
 class SessionState:
-    """Everything a session must keep across a cloud restart (pickled at keyframes)."""
+    """Everything a session must keep across a cloud restart or a takeover by another
+    worker (checkpointed at keyframes and at the end: cloud/checkpoint.py)."""
 
     robot_id: str
     hello: Hello
