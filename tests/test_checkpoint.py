@@ -85,3 +85,61 @@ def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp
     (tmp_path / "r0" / "session.pkl").write_bytes(pickle.dumps({"x": 1}))
     with pytest.raises(ValueError, match="session.pkl: a checkpoint pickled by an older"):
         CloudStore(tmp_path).load_checkpoint("r0")
+
+
+def _session_state(frames, n: int) -> SessionState:
+    camera, captured = frames
+    pipeline = TrackingPipeline(Config(), camera)
+    for frame in captured[:n]:
+        pipeline.track(frame)
+    return SessionState("r0", Hello(3, camera, "test"), pipeline.session.cloud,
+                        pipeline.session.edge, n - 1, n - 1)
+
+
+def test_two_writers_of_one_checkpoint_never_break_it(frames, tmp_path):
+    """Two workers may for a moment both serve a robot: their writes of its checkpoint must
+    never rename or truncate each other's (each file on disk is one whole checkpoint)."""
+    import threading
+
+    store = CloudStore(tmp_path)
+    blobs = [checkpoint.capture(_session_state(frames, n)) for n in (4, 8)]
+    errors = []
+
+    def write(blob) -> None:
+        try:
+            for _ in range(40):
+                store.write_checkpoint("r0", blob)
+        except Exception as exc:  # noqa: BLE001 - the test reports any
+            errors.append(exc)
+
+    writers = [threading.Thread(target=write, args=(b,)) for b in blobs]
+    for w in writers:
+        w.start()
+    for w in writers:
+        w.join()
+    assert errors == []
+    assert store.load_checkpoint("r0").last_index in (3, 7)
+    assert [p.name for p in (tmp_path / "r0").iterdir()] == ["session.ckpt"]
+
+
+def test_the_merger_gets_a_keyframe_only_once_its_checkpoint_is_on_disk(frames, tmp_path):
+    """A worker taking a session over from the store must find every keyframe the merger
+    already holds: the keyframe goes to the merger after its checkpoint is written."""
+    from fleetslam.cloud.robot_session import RobotSession
+
+    store = CloudStore(tmp_path)
+    seen = []
+
+    def sink(summary, poses) -> None:
+        on_disk = store.load_checkpoint("r0")
+        seen.append((summary, on_disk.last_index if on_disk else None))
+
+    session = RobotSession(_session_state(frames, 8), Config(), store, lambda k, d: None,
+                           sink).start()
+    try:
+        keyframe = session.newest_keyframe()
+        session._checkpoint(7, keyframe)
+        session._checkpoint(7)  # coalesced with the one before: its keyframe still goes
+    finally:
+        session.close()  # waits for the writer
+    assert [(s.keyframe, index) for s, index in seen] == [(keyframe[0].keyframe, 7)]

@@ -186,12 +186,24 @@ class Placement:
                     time.sleep(self.cfg.settle_s)
                     bids = sorted({keys.last_chunks(k, 1)[0]
                                    for k in self._listed(f"{keys.CLAIMS}/{robot}/*")})
-                    served = self._listed(f"{keys.OWNERS}/{robot}/*")
+                    # Asked of the routers, and as this worker's subscription heard it: a
+                    # winner's owner token may reach one before the other on a loaded host.
+                    served = self._listed(f"{keys.OWNERS}/{robot}/*") or self.owner(robot)
                     if not served and bids and bids[0] == bid:
                         with self._lock:
                             self._mine[robot] = self.z.liveliness().declare_token(
                                 keys.owner(robot, self.worker_id))
-                            self.owners.setdefault(robot, set()).add(self.worker_id)
+                            owners = self.owners.setdefault(robot, set())
+                            owners.add(self.worker_id)
+                            earlier = min(owners)
+                        if earlier != self.worker_id:
+                            # Another owner was heard while this one declared: the rule of
+                            # _on_owner (the smaller id keeps the robot) applies at once.
+                            log.warning("robot %s is also served by worker %s: not taking it",
+                                        robot, earlier)
+                            self.release(robot)
+                            self.elections["given_up"] += 1
+                            return
                         self.elections["won"] += 1
                         log.info("worker %s serves robot %s (bids: %s)", self.worker_id,
                                  robot, ", ".join(bids))

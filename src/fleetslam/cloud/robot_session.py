@@ -336,32 +336,46 @@ class RobotSession:
                 self._reply(protocol.held(header.seq))
         return ("frame", (header, state), arrival)
 
-    def _checkpoint(self, frame_index: int) -> int:
-        """Queue a checkpoint of the state now for the writer thread; its number."""
+    def _checkpoint(self, frame_index: int, keyframe: tuple | None = None) -> int:
+        """Queue a checkpoint of the state now for the writer thread; its number.
+        ``keyframe``: what the merger gets of the new keyframe, handed on once this
+        checkpoint is on disk."""
         with self._durable:
             self._checkpoints_queued += 1
             number = self._checkpoints_queued
-        self._checkpoints.put((frame_index, number, self._snapshot()))
+        self._checkpoints.put((frame_index, number, self._snapshot(), keyframe))
         return number
 
     def _write_checkpoints(self) -> None:
         while (item := self._checkpoints.get()) is not None:
-            index, number, blob = item
+            index, number, blob, keyframe = item
+            keyframes = [keyframe]
             while not self._checkpoints.empty():  # only the newest one matters
                 newer = self._checkpoints.get()
                 if newer is None:
                     self._checkpoints.put(None)
                     break
-                index, number, blob = newer
+                index, number, blob, keyframe = newer
+                keyframes.append(keyframe)
             try:
                 self.store.write_checkpoint(self.robot_id, blob)
             except OSError:
                 log.exception("robot %s: checkpoint not written", self.robot_id)
-                continue
-            with self._durable:
-                self._durable_index = max(self._durable_index, index)
-                self._checkpoints_written = max(self._checkpoints_written, number)
-                self._durable.notify_all()
+            else:
+                with self._durable:
+                    self._durable_index = max(self._durable_index, index)
+                    self._checkpoints_written = max(self._checkpoints_written, number)
+                    self._durable.notify_all()
+            # The merger holds no keyframe the store lacks (unless a write failed, logged
+            # above): a worker taking the session over from the store goes on from the
+            # keyframes the merger has, never from an older map beside them.
+            for kf in keyframes:
+                if kf is not None and self.keyframe_sink is not None:
+                    try:
+                        self.keyframe_sink(*kf)
+                    except Exception:  # the merger's loss, never the checkpoints'
+                        log.exception("robot %s: keyframe not handed to the merger",
+                                      self.robot_id)
 
     def _await_checkpoint(self, frame_index: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
         with self._durable:
@@ -464,11 +478,10 @@ class RobotSession:
                 # Total offloading: the cloud already has the keyframe's RGB-D.
                 self._store_captured_keyframe(state, header.seq)
             # Checkpoint the session as it is now (the snapshot here, the slow durable write
-            # on the writer thread); the keyframe's upload is acknowledged only once this
-            # checkpoint is on disk, so no acknowledged keyframe is one a restart forgets.
-            self._checkpoint(out.index)
-            if self.stages and self.keyframe_sink is not None:
-                self.keyframe_sink(*self.newest_keyframe())
+            # on the writer thread); the keyframe's upload is acknowledged, and the keyframe
+            # handed to the merger, only once this checkpoint is on disk, so no acknowledged
+            # or merged keyframe is one a restart or a takeover forgets.
+            self._checkpoint(out.index, self.newest_keyframe() if self.stages else None)
             if self.view.enabled and self.stages:  # local BA moved the recent keyframes
                 lmap = st.tracking.map
                 self.view.keyframe_poses(self.robot_id,
