@@ -98,17 +98,19 @@ class MergerService:
         becoming the merger: the last one died or stopped)."""
         self._queue.put(("rebuild", robots))
 
-    def _fill(self, robot: str) -> None:
-        loaded = self._from_store(robot) if self._from_store else None
-        if loaded is None:
-            return
-        camera, keyframes, poses = loaded
+    def _take_robot(self, robot: str, camera: Camera, keyframes: list[KeyframeSummary],
+                    poses: np.ndarray | None) -> int:
+        """Register the robot and take those of its keyframes not held yet; how many."""
         self.merger.add_robot(robot, camera)
         have = len(self.merger.robots[robot].keyframes)
         for kf in keyframes[have:]:
             self.merger.add_keyframe(kf, poses[: kf.keyframe + 1])
-        if len(keyframes) > have:
-            self.merger.update_poses(robot, poses)
+        return len(keyframes) - have
+
+    def _fill(self, robot: str) -> None:
+        loaded = self._from_store(robot) if self._from_store else None
+        if loaded is not None and self._take_robot(robot, *loaded) > 0:
+            self.merger.update_poses(robot, loaded[2])
 
     def _keyframe(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
         """Keyframes in order: one held already (a rebuild from the store took it) only
@@ -137,10 +139,7 @@ class MergerService:
                     self._view_due |= kind in ("robot", "keyframe")
                     if kind == "robot":
                         robot, camera, keyframes, poses = payload
-                        self.merger.add_robot(robot, camera)
-                        have = len(self.merger.robots[robot].keyframes)
-                        for kf in keyframes[have:]:
-                            self.merger.add_keyframe(kf, poses[: kf.keyframe + 1])
+                        self._take_robot(robot, camera, keyframes, poses)
                         if poses is not None:
                             self.merger.update_poses(robot, poses)
                     elif kind == "keyframe":

@@ -55,6 +55,13 @@ MERGES_REMEMBERED = 16
 PENDING_ROBOTS = 256
 
 
+def _is_hello(data: bytes) -> bool:
+    try:
+        return protocol.parse_control(data)["type"] == "hello"
+    except ValueError:
+        return False
+
+
 def default_worker_id() -> str:
     host = "".join(c if c.isalnum() or c in "-_" else "-" for c in socket.gethostname())
     return f"w-{host[:40]}-{os.getpid()}"
@@ -160,7 +167,6 @@ class CloudServer:
         placement = self.placement
         merging = placement is None or placement.live_workers()[0] == self.worker_id
         if merging and not self._merging:
-            self._merging = True
             # Its own robots' keyframes went to the merger that was; all robots are taken
             # (its own from their sessions here). No lock: callers may hold it.
             robots = sorted(set(self.store.robots_with_checkpoints()) | set(list(self.sessions)))
@@ -199,11 +205,9 @@ class CloudServer:
         in the store (read only)."""
         with self._lock:
             session = self.sessions.get(robot_id)
+        session = session or self._stored_session(robot_id)
         if session is None:
-            state = self._stored_state(robot_id)
-            if state is None:
-                return None
-            session = RobotSession(state, self.config, self.store, self.publish)  # not started
+            return None
         return (session.state.hello.camera, session.all_keyframes(),
                 session.state.tracking.map.keyframe_poses())
 
@@ -253,7 +257,7 @@ class CloudServer:
             # Taken over mid-stream: the robot's frames in flight went to the dead worker.
             # A welcome tells it to stop waiting for them (and to send intra frames).
             session.welcome(resumed=True, taken_over=True)
-        if pending is not None and not (restored and b'"hello"' in pending[0]):
+        if pending is not None and not (restored and _is_hello(pending[0])):
             # What the robot said while nobody served it (a hello kept from an election
             # lost long ago is answered by the welcome above).
             self._on_robot_control(robot_id, *pending)
@@ -370,6 +374,13 @@ class CloudServer:
             log.error("%s", exc)
             return None
 
+    def _stored_session(self, robot_id: str) -> RobotSession | None:
+        """The robot's session from the store, read only: not started (no threads, nothing
+        written), not served here."""
+        state = self._stored_state(robot_id)
+        return None if state is None else RobotSession(state, self.config, self.store,
+                                                      self.publish)
+
     def _session(self, robot_id: str) -> RobotSession | None:
         """The live session, or the one restored from its checkpoint after a restart."""
         with self._lock:
@@ -417,8 +428,7 @@ class CloudServer:
                 self._count_unrouted_locked()
                 return
             self._pending[robot_id] = (data, arrival)
-            full = len([r for r, s in self.sessions.items() if s.finished is None]) \
-                >= self.config.transport.max_sessions
+            full = len(self.sessions) >= self.config.transport.max_sessions
         if not full:  # a full worker does not bid; a robot nobody can take hears it below
             placement.claim(robot_id)
         elif len(placement.live_workers()) == 1:
@@ -472,8 +482,7 @@ class CloudServer:
                                f"control message rejected: {exc}")
         rid = protocol.request_id(message)
         if message["type"] == "merge":
-            if self.placement is not None and \
-                    self.placement.live_workers()[0] != self.worker_id:
+            if not self._is_merger():
                 return  # one worker merges: the live one whose id sorts first
             self._request_merge(rid)
         elif message["type"] == "status":
@@ -561,11 +570,10 @@ class CloudServer:
         for robot_id in self.store.robots_with_checkpoints():
             if robot_id in here:
                 continue
-            state = self._stored_state(robot_id)
-            if state is None or not state.ended:
+            session = self._stored_session(robot_id)
+            if session is None or not session.state.ended:
                 continue
-            # Not started: no threads, nothing written; read only.
-            session = RobotSession(state, self.config, self.store, self.publish)
+            state = session.state
             self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
                                   state.tracking.map.keyframe_poses())
             found.append(session.finished_map())
