@@ -222,8 +222,9 @@ class CloudServer:
                    if s.finished is None and now - s.last_heard < active_s)
 
     def _worth_serving(self, robot_id: str) -> bool:
-        """A robot whose worker died is taken over when it has a checkpoint to restore."""
-        return self.store.has_checkpoint(robot_id)
+        """A robot whose worker died is taken over when it has a checkpoint to restore (not
+        by a worker that is stopping itself: workers stopped together would swap robots)."""
+        return not self.stopped.is_set() and self.store.has_checkpoint(robot_id)
 
     def _claim_orphans(self) -> None:
         """Bid for every robot of the store that nobody serves: a restarted (or a new)
@@ -239,7 +240,9 @@ class CloudServer:
         """This worker won ``robot_id``: hear its frames and uploads, restore its session
         if the store has one, and answer what it said meanwhile."""
         z = self._zenoh
-        if z is None:
+        if z is None or self.stopped.is_set():
+            if self.placement is not None:
+                self.placement.release(robot_id)  # stopping: another worker takes it
             return
         with self._lock:
             if self.connect and robot_id not in self._robot_subscribers:
