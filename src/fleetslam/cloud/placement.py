@@ -7,7 +7,7 @@ knows which one serves it. A robot's session lives on exactly one worker at a ti
   when that worker died) bids for it: a claim token whose name carries the worker's load
   and id. After ``placement.settle_s`` every bidder lists the bids; the lowest (least
   loaded, then a hash of robot and worker) wins, the others withdraw. So a new robot goes to the
-  least-loaded worker, and two bidders never both win: each sees the same bids.
+  least-loaded worker, and two bidders that see the same bids never both win.
 - The winner declares the owner token ``fleet/cloud/owners/<robot>/<worker>`` before it
   withdraws its bid, and a worker bids only for a robot without an owner token. The token
   lives as long as the worker's Zenoh session: when the worker dies (SIGKILL, a lost
@@ -66,7 +66,7 @@ class Placement:
         self.elections = {"won": 0, "lost": 0, "failovers": 0, "given_up": 0}
         self._closed = threading.Event()
         # One election at a time per worker: each bid's load counts the robots this worker
-        # won just before, so robots arriving together spread evenly over the workers.
+        # won just before, so robots arriving together tend to spread over the workers.
         self._bids: queue.Queue = queue.Queue()
         self._elector = threading.Thread(target=self._run_elections, name="placement",
                                          daemon=True)
