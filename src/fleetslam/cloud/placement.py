@@ -13,8 +13,7 @@ knows which one serves it. A robot's session lives on exactly one worker at a ti
   lives as long as the worker's Zenoh session: when the worker dies (SIGKILL, a lost
   machine after Zenoh's lease), the token vanishes and the others bid for its robots.
 - Should two owners ever show up for one robot (a worker slow to hear the other's token, a
-  partition healing), the worker
-  with the larger id gives the robot up.
+  partition healing), the worker with the larger id gives the robot up.
 
 No state of its own is shared: every worker sees the same tokens, and the sessions'
 durable state lives in the shared store (``cloud/store.py``).
