@@ -1,6 +1,6 @@
 """Tracking on real Kinect data (../shared/data): no loss, centimetre ATE, and the written
 trajectory is read by evo. Bounds guard against regressions; the measured values are in
-bench/tracking_real.py's output (3.5 cm on both sequences at the time of writing)."""
+bench/tracking_real.py's output."""
 
 from __future__ import annotations
 
@@ -16,7 +16,9 @@ from fleetslam.system import track_robot
 
 
 @pytest.mark.parametrize("folder, last, bound_m", [
-    (TUM_RPY, None, 0.045),        # fast rotation, blur, lens distortion
+    # fast rotation, blur, lens distortion; 2.69 cm measured (3.31 cm with depth read at
+    # the colour pixel instead of through the factory pinhole the depth is registered to)
+    (TUM_RPY, None, 0.030),
     (SEVEN_SCENES, 299, 0.045),    # mm depth, 65535 holes, repeated frames
 ])
 def test_real_sequence_tracks_without_loss(folder, last, bound_m, tmp_path):

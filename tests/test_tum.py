@@ -119,6 +119,8 @@ def test_real_tum_fr1_camera_and_ground_truth():
     assert len(seq) == 150
     assert seq.camera.fx == pytest.approx(517.306408) and seq.camera.has_distortion
     assert seq.camera.depth_scale == 5000
+    # Its depth images follow OpenNI's factory pinhole, not the calibrated colour camera.
+    assert seq.camera.depth_intrinsics == (525.0, 525.0, 319.5, 239.5)
     assert np.isfinite(seq.gt_poses).all()
     frame = seq[0]
     assert 0.3 < np.median(frame.depth_m[frame.depth_m > 0]) < 4.0
@@ -142,6 +144,8 @@ def test_real_seven_scenes_camera_depth_scale_and_invalid_values():
     ({"width": 0}, "width must be a whole number"),
     ({"height": 480.5}, "height must be a whole number"),
     ({"distortion": [0.1, 0.2]}, "distortion must be 0, 4, 5 or 8"),
+    ({"depth_intrinsics": [525.0, 525.0, 319.5]}, "depth_intrinsics must be empty or 4"),
+    ({"depth_intrinsics": [0.0, 525.0, 319.5, 239.5]}, "depth_intrinsics must be empty or 4"),
 ])
 def test_a_camera_that_would_fail_every_frame_is_refused_naming_the_field(change, message):
     from fleetslam.camera import Camera
@@ -150,3 +154,28 @@ def test_a_camera_that_would_fail_every_frame_is_refused_naming_the_field(change
     assert Camera.from_dict(good) == Camera(525.0, 525.0, 319.5, 239.5)
     with pytest.raises(ValueError, match=f"hello camera: {message}"):
         Camera.from_dict({**good, **change}, "hello camera")
+
+
+def test_a_depth_image_on_its_own_pinhole_is_read_where_the_colour_ray_meets_it():
+    """A keypoint's depth is looked up where its (undistorted) colour ray falls in the depth
+    image's pinhole, and a depth pixel is back-projected along that pinhole's ray and
+    coloured where the ray meets the distorted colour image: the two agree both ways."""
+    from fleetslam.camera import TUM_CAMERAS, Camera
+
+    camera = TUM_CAMERAS["freiburg1"]
+    fx, fy, cx, cy = camera.depth_intrinsics
+    # A slanted plane, so every depth pixel holds a different depth.
+    v, u = np.mgrid[0:480, 0:640]
+    depth = (1.0 + 0.002 * u + 0.001 * v).astype(np.float32)
+    points, vu = camera.backproject_image(depth, stride=8)
+    sample = slice(None, None, 97)
+    # The depth pixel each point came from, found again from its colour pixel.
+    keypoints = vu[sample, ::-1].astype(np.float64)
+    found = camera.depth_pixels(keypoints, camera.undistort_points(keypoints))
+    expected = np.stack([points[sample, 0] / points[sample, 2] * fx + cx,
+                         points[sample, 1] / points[sample, 2] * fy + cy], axis=1)
+    np.testing.assert_allclose(found, expected, atol=0.75)  # colour pixels are rounded
+    # Without a depth pinhole, depth pixel (u, v) is colour pixel (u, v).
+    plain = Camera(525.0, 525.0, 319.5, 239.5)
+    np.testing.assert_array_equal(plain.depth_pixels(keypoints, keypoints + 3), keypoints)
+    assert Camera.from_dict(camera.to_dict()) == camera

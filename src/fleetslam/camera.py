@@ -1,4 +1,11 @@
-"""Pinhole camera with optional radial-tangential distortion, depth scale, back-projection."""
+"""Pinhole camera with optional radial-tangential distortion, depth scale, back-projection.
+
+The depth image may follow a pixel grid of its own: a sensor that registers depth to the
+colour camera with a model other than the calibrated one (TUM freiburg1/2: OpenNI's factory
+pinhole 525 / 525 / 319.5 / 239.5, no distortion, while the colour images keep their lens
+distortion) gives depth pixel (u, v) the ray of that model, not of colour pixel (u, v).
+``depth_intrinsics`` names that pinhole; empty, depth pixel (u, v) is colour pixel (u, v).
+"""
 
 from __future__ import annotations
 
@@ -32,6 +39,9 @@ class Camera:
     depth_scale: float = 5000.0
     # Raw depth values that mean "no measurement" besides 0 (7-Scenes uses 65535).
     invalid_depth: tuple[int, ...] = (0,)
+    # (fx, fy, cx, cy) of the undistorted pinhole the depth image is registered to, sharing
+    # the colour camera's centre; empty = the colour camera's own (distorted) pixel grid.
+    depth_intrinsics: tuple[float, ...] = field(default_factory=tuple)
 
     @property
     def K(self) -> np.ndarray:
@@ -74,6 +84,25 @@ class Camera:
         out = cv2.undistortPoints(pts, self.K, self.dist_coeffs, P=self.K)
         return out.reshape(-1, 2)
 
+    def depth_pixels(self, keypoints_uv: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Where the depth of each keypoint is in the depth image: its detected (distorted)
+        position ``keypoints_uv``, or, with ``depth_intrinsics``, its ideal position ``uv``
+        re-projected by that pinhole."""
+        if not self.depth_intrinsics:
+            return np.asarray(keypoints_uv, dtype=np.float64)
+        fx, fy, cx, cy = self.depth_intrinsics
+        return np.stack([(uv[:, 0] - self.cx) / self.fx * fx + cx,
+                         (uv[:, 1] - self.cy) / self.fy * fy + cy], axis=1)
+
+    def distort_points(self, uv: np.ndarray) -> np.ndarray:
+        """Ideal pinhole pixel coordinates (N, 2) to distorted ones (as detected)."""
+        if not self.has_distortion or len(uv) == 0:
+            return np.asarray(uv, dtype=np.float64)
+        rays = np.stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy,
+                         np.ones(len(uv))], axis=1)
+        out, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), self.K, self.dist_coeffs)
+        return out.reshape(-1, 2)
+
     def backproject(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Ideal pixel coordinates (N, 2) and depths (N,) to camera-frame points (N, 3)."""
         x = (uv[:, 0] - self.cx) / self.fx * z
@@ -100,8 +129,17 @@ class Camera:
         ok = (z > 0) & (z <= max_depth_m)
         u, v, z = u[ok], v[ok], z[ok].astype(np.float64)
         uv = np.stack([u, v], axis=1).astype(np.float64) * decimated_by
-        uv = self.undistort_points(uv)
-        return self.backproject(uv, z), np.stack([v, u], axis=1)
+        if not self.depth_intrinsics:
+            points = self.backproject(self.undistort_points(uv), z)
+            return points, np.stack([v, u], axis=1)
+        # The depth pixel's ray is the depth pinhole's; its colour is where that ray meets
+        # the (distorted) colour image, on the same decimated grid.
+        fx, fy, cx, cy = self.depth_intrinsics
+        points = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=1)
+        colour_uv = self.distort_points(self.project(points)) / decimated_by
+        cu, cv = np.rint(colour_uv[:, 0]).astype(np.int64), np.rint(colour_uv[:, 1]).astype(np.int64)
+        inside = (cu >= 0) & (cu < depth_m.shape[1]) & (cv >= 0) & (cv < depth_m.shape[0])
+        return points[inside], np.stack([cv[inside], cu[inside]], axis=1)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
@@ -117,6 +155,8 @@ class Camera:
             values = dict(values)
             values["distortion"] = tuple(float(v) for v in values.get("distortion", ()))
             values["invalid_depth"] = tuple(int(v) for v in values.get("invalid_depth", (0,)))
+            values["depth_intrinsics"] = tuple(float(v)
+                                               for v in values.get("depth_intrinsics", ()))
             camera = Camera(**values)
         except (ValueError, TypeError, OverflowError) as exc:  # float(10**400), int(inf)
             raise ValueError(f"{where}: not a valid camera: {exc}") from exc
@@ -135,6 +175,12 @@ class Camera:
         if len(camera.distortion) not in (0, 4, 5, 8) or \
                 not all(math.isfinite(v) for v in camera.distortion):
             raise ValueError(f"{where}: distortion must be 0, 4, 5 or 8 finite coefficients")
+        if camera.depth_intrinsics and (
+                len(camera.depth_intrinsics) != 4
+                or not all(math.isfinite(v) for v in camera.depth_intrinsics)
+                or min(camera.depth_intrinsics[:2]) <= 0):
+            raise ValueError(f"{where}: depth_intrinsics must be empty or 4 finite numbers "
+                             f"fx, fy, cx, cy with fx, fy > 0")
         return camera
 
     @staticmethod
@@ -147,16 +193,22 @@ class Camera:
 
 
 # TUM RGB-D colour cameras (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats).
+# The freiburg1/2 depth images were registered to the colour camera by the OpenNI driver
+# with the Kinect's factory model, the pinhole TUM gives for turning depth images into
+# points (ROS default, below); their colour images keep the calibrated lens distortion.
+KINECT_FACTORY_PINHOLE = (525.0, 525.0, 319.5, 239.5)
 TUM_CAMERAS: dict[str, Camera] = {
     "freiburg1": Camera(
         517.306408, 516.469215, 318.643040, 255.313989,
         distortion=(0.262383, -0.953104, -0.005358, 0.002628, 1.163314),
+        depth_intrinsics=KINECT_FACTORY_PINHOLE,
     ),
     "freiburg2": Camera(
         520.908620, 521.007327, 325.141442, 249.701764,
         distortion=(0.231222, -0.784899, -0.003257, -0.000105, 0.917205),
+        depth_intrinsics=KINECT_FACTORY_PINHOLE,
     ),
     "freiburg3": Camera(535.4, 539.2, 320.1, 247.6),
     # ROS default, used when the folder names no freiburg camera.
-    "default": Camera(525.0, 525.0, 319.5, 239.5),
+    "default": Camera(*KINECT_FACTORY_PINHOLE),
 }

@@ -115,15 +115,18 @@ class AssociateDepth:
         cfg = session.config.tracking
         depth_img = state.depth_m
         h, w = depth_img.shape
-        u = np.clip(np.round(state.keypoints[:, 0]).astype(int), 1, w - 2)
-        v = np.clip(np.round(state.keypoints[:, 1]).astype(int), 1, h - 2)
+        uv = session.camera.undistort_points(state.keypoints[:, :2].astype(np.float64))
+        at = np.round(session.camera.depth_pixels(state.keypoints[:, :2], uv))
+        u = np.clip(at[:, 0].astype(int), 1, w - 2)
+        v = np.clip(at[:, 1].astype(int), 1, h - 2)
         du, dv = np.meshgrid([-1, 0, 1], [-1, 0, 1])
         patch = depth_img[v[:, None] + dv.ravel(), u[:, None] + du.ravel()]  # N x 9
         z = depth_img[v, u]
         valid = patch > 0
         spread = (np.where(valid, patch, -np.inf).max(axis=1)
                   - np.where(valid, patch, np.inf).min(axis=1))
-        ok = (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m) & (spread < 0.05 * z)
+        ok = ((z >= cfg.min_depth_m) & (z <= cfg.max_depth_m) & (spread < 0.05 * z)
+              & (at[:, 0] >= 1) & (at[:, 0] <= w - 2) & (at[:, 1] >= 1) & (at[:, 1] <= h - 2))
         # A depth image that is a byte-for-byte copy of the previous one (7-Scenes fills
         # dropped frames so) belongs to another instant than this colour image: its values
         # at the keypoints would be wrong, so the frame goes on without depth. (Every second
@@ -136,7 +139,6 @@ class AssociateDepth:
             session.stale_depth_frames += 1
         session.last_depth_digest = digest
         depth = np.where(ok, z, 0.0).astype(np.float32)
-        uv = session.camera.undistort_points(state.keypoints[:, :2].astype(np.float64))
         return FeatureFrame(state.index, state.timestamp, state.keypoints, state.descriptors,
                             depth, uv)
 

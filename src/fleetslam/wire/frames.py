@@ -31,8 +31,9 @@ Quantised or dropped, as no stage after Describe reads them (k>=2 only):
 - ``response``: not sent, decoded as 0;
 - NaN world points of unmatched rows come back as the standard NaN.
 
-The payload also carries a digest of the camera (intrinsics, distortion, depth scale), so a
-cloud that would rebuild uv or depth with another camera rejects the message instead.
+The payload also carries a digest of the camera (intrinsics, distortion, depth scale, depth
+image model), so a cloud that would rebuild uv or depth with another camera rejects the
+message instead.
 
 Layout, for zstd: every array is its own column (numbers byte-shuffled, descriptors column
 by column, keypoint positions as byte planes, depth as a palette of the few distinct sensor
@@ -117,9 +118,10 @@ INTRA = _Coding()
 
 
 def camera_digest(camera: Camera) -> int:
-    """CRC-32 of what decoding depends on: intrinsics, distortion, depth scale."""
+    """CRC-32 of what decoding depends on: intrinsics, distortion, depth scale, depth
+    image model."""
     values = (camera.fx, camera.fy, camera.cx, camera.cy, camera.depth_scale,
-              *camera.distortion)
+              *camera.distortion, *camera.depth_intrinsics)
     return zlib.crc32(struct.pack(f"<{len(values)}d", *values))
 
 
