@@ -39,7 +39,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import run_ate
 from fleetslam.pipeline.loop_closer import verify
-from fleetslam.pipeline.place_recognition import KeyframeDatabase
+from fleetslam.pipeline.place_recognition import make_database
 from fleetslam.pipeline.session import CloudSession
 from fleetslam.pipeline.split import TrackingPipeline
 from fleetslam.pipeline.states import CapturedFrame
@@ -178,9 +178,13 @@ def gt_revisits(gt: np.ndarray) -> np.ndarray:
     return (dist <= REVISIT_M) & (angle <= REVISIT_DEG) & valid[:, None] & valid[None]
 
 
-def place_recognition(name: str, folder: Path) -> dict[str, Any]:
+def place_recognition(name: str, folder: Path,
+                      tracked: tuple[RgbdSequence, CloudSession] | None = None,
+                      database: Any = None) -> dict[str, Any]:
+    """Top-1 place recognition over the final keyframes of a loop-closing run (``tracked``,
+    else tracked here), with ``database`` (empty; default: the configured method's)."""
     config = config_for(True)
-    seq, session = track_session(folder, config)
+    seq, session = tracked or track_session(folder, config)
     kfs = session.map.keyframes
     frames = np.array([kf.frame_index for kf in kfs])
     gt_kf = seq.gt_poses[frames] if seq.gt_poses is not None else np.full((len(kfs), 4, 4), np.nan)
@@ -188,7 +192,7 @@ def place_recognition(name: str, folder: Path) -> dict[str, Any]:
     revisit = gt_revisits(gt_kf) & (np.abs(frames[:, None] - frames[None]) >= REVISIT_MIN_FRAME_GAP)
     # One database of every keyframe; a query allowed only the keyframes >= 100 frames older
     # is the same as a database of just those (the index and the idf see only allowed rows).
-    db = KeyframeDatabase(config.place_recognition)
+    db = database if database is not None else make_database(config.place_recognition)
     for kf in kfs:
         db.add(kf.id, kf.features.descriptors if kf.features is not None
                else np.zeros((0, 32), np.uint8))

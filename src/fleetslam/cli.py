@@ -1,5 +1,5 @@
 """The ``fleetslam`` command: demo, run, cloud, robot, merge, status, plan, certs, report,
-view, generate."""
+view, generate, vocabulary."""
 
 from __future__ import annotations
 
@@ -317,6 +317,36 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def cmd_vocabulary(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.pipeline.vocabulary import Vocabulary, image_descriptors, training_images
+    from fleetslam.progress import Progress
+
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise ValueError(f"{out}: a vocabulary is written as .npz")
+    paths = [p for folder in args.images for p in training_images(folder, args.every)]
+    progress = Progress("vocabulary: ORB descriptors", len(paths), "images",
+                        enabled=not args.quiet)
+    descriptors = []
+    for i, path in enumerate(paths):
+        descriptors.append(image_descriptors(path, config))
+        progress.update(i + 1)
+    pr = config.place_recognition
+    if not args.quiet:
+        print(f"clustering {sum(len(d) for d in descriptors)} descriptors into "
+              f"{pr.vocabulary_branching}^{pr.vocabulary_levels} words ...", file=sys.stderr)
+    start = time.perf_counter()
+    vocabulary = Vocabulary.train(descriptors, pr.vocabulary_branching, pr.vocabulary_levels,
+                                  trained_on=", ".join(f"{f} (every {args.every})"
+                                                       for f in args.images))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    vocabulary.save(out)
+    print(f"{out}: {vocabulary.n_words} words from {len(paths)} images "
+          f"({time.perf_counter() - start:.0f} s); use it with [place_recognition] "
+          f"method = \"bag_of_words\", vocabulary = \"{out}\"")
+    return 0
+
+
 def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.planner.model import Link
     from fleetslam.planner.plan import plan, report, write_plan
@@ -520,6 +550,16 @@ def build_parser() -> argparse.ArgumentParser:
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")
     gen.set_defaults(func=cmd_generate)
+
+    vocab = sub.add_parser("vocabulary", help="train a bag-of-words vocabulary on ORB "
+                           "descriptors of your own images (for [place_recognition] method = "
+                           "\"bag_of_words\")")
+    vocab.add_argument("--images", nargs="+", required=True, metavar="DIR",
+                       help="folders of colour images (TUM layout, 7-Scenes, or plain)")
+    vocab.add_argument("--every", type=int, default=5, help="use every n-th image "
+                       "(neighbouring video frames repeat each other)")
+    vocab.add_argument("--out", required=True, metavar="FILE.npz")
+    vocab.set_defaults(func=cmd_vocabulary)
 
     view = sub.add_parser("view", help="open a finished run's maps and trajectories in rerun "
                           "(needs pip install 'fleetslam[view]')")

@@ -36,6 +36,7 @@ def _classes() -> dict[str, type]:
     from fleetslam.pipeline.pose_graph import PoseEdge
     from fleetslam.pipeline.session import CloudSession, EdgeSession
     from fleetslam.pipeline.states import FeatureFrame
+    from fleetslam.pipeline.vocabulary import BowDatabase
     from fleetslam.transport.protocol import Hello
 
     configs = [c for c in vars(config).values()
@@ -44,7 +45,7 @@ def _classes() -> dict[str, type]:
     return {c.__name__: c for c in (
         SessionState, TrajectoryRow, Hello, Camera, CloudSession, EdgeSession, LocalMap,
         Keyframe, FeatureFrame, KeyframeDatabase, LoopClosingState, LoopDetection, PoseEdge,
-        KeyframeSummary,
+        KeyframeSummary, BowDatabase,
         *configs)}
 
 

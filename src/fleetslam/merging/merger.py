@@ -21,16 +21,19 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import KeyframeSummary, PlaceMatch, verify_places
-from fleetslam.pipeline.place_recognition import KeyframeDatabase
+from fleetslam.pipeline.place_recognition import KeyframeDatabase, make_database
 from fleetslam.pipeline.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.transforms import invert, transforms_agree
+
+if TYPE_CHECKING:
+    from fleetslam.pipeline.vocabulary import BowDatabase
 
 log = logging.getLogger("fleetslam.merge")
 
@@ -45,7 +48,7 @@ class RobotRecord:
     camera: Camera
     keyframes: list[KeyframeSummary] = field(default_factory=list)
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_map_keyframe
-    places: KeyframeDatabase | None = None
+    places: "KeyframeDatabase | BowDatabase | None" = None
     # The component (by its anchor robot) and this robot's map frame in the anchor's frame.
     anchor: str = ""
     T_anchor_map: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -84,7 +87,7 @@ class MapMerger:
         if name in self.robots:
             return
         self.robots[name] = RobotRecord(name, len(self.robots), camera,
-                                        places=KeyframeDatabase(self.config.place_recognition),
+                                        places=make_database(self.config.place_recognition),
                                         anchor=name)
 
     def update_poses(self, robot: str, poses: np.ndarray) -> None:

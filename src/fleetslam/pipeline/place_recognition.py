@@ -8,9 +8,11 @@ spread over many entries (a generic corner) says little, so its vote is weighted
 inverse document frequency, log(1 + allowed entries / entries it hits), as a bag of words
 would weight a common word.
 
-No vocabulary is trained or shipped: the index is exact and built on the fly from the
-allowed entries (a copy of their descriptors, a few MB for a few hundred keyframes), so the
-candidates never depend on images seen elsewhere.
+No vocabulary is needed: the index is exact and built on the fly from the allowed entries
+(a copy of their descriptors, a few MB for a few hundred keyframes), so the candidates never
+depend on images seen elsewhere. The alternative, a bag of words on a vocabulary trained
+with ``fleetslam vocabulary``, is ``vocabulary.BowDatabase`` (``[place_recognition]
+method = "bag_of_words"``); bench/place_recognition.py compares the two.
 
 The database is plain numpy (picklable with the session); faiss objects live only inside
 ``query``.
@@ -19,12 +21,15 @@ The database is plain numpy (picklable with the session); faiss objects live onl
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Hashable
+from typing import TYPE_CHECKING, Hashable
 
 import faiss
 import numpy as np
 
 from fleetslam.config import PlaceRecognitionConfig
+
+if TYPE_CHECKING:
+    from fleetslam.pipeline.vocabulary import BowDatabase
 
 DESCRIPTOR_BITS = 256
 # One thread: a query is a few tens of ms, and faiss's OpenMP threads spin against the
@@ -101,3 +106,15 @@ class KeyframeDatabase:
         best = score[order[0]]
         return [PlaceCandidate(int(e), self.keys[e], float(score[e]), int(votes[e]))
                 for e in order if score[e] >= cfg.min_score_ratio * best]
+
+
+def make_database(config: PlaceRecognitionConfig) -> "KeyframeDatabase | BowDatabase":
+    """The keyframe database ``config.method`` names."""
+    if config.method == "nearest_neighbour":
+        return KeyframeDatabase(config)
+    if config.method == "bag_of_words":
+        from fleetslam.pipeline.vocabulary import BowDatabase
+
+        return BowDatabase(config)
+    raise ValueError(f"place_recognition.method: '{config.method}' is not one of "
+                     f"'nearest_neighbour', 'bag_of_words'")

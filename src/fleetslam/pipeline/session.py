@@ -22,12 +22,13 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.pipeline.local_map import LocalMap
 from fleetslam.pipeline.loop_closer import LoopClosingState
-from fleetslam.pipeline.place_recognition import KeyframeDatabase
+from fleetslam.pipeline.place_recognition import KeyframeDatabase, make_database
 from fleetslam.pipeline.states import FeatureFrame
 
 if TYPE_CHECKING:
     from fleetslam.pipeline.local_mapping_worker import AsyncLocalMapping
     from fleetslam.pipeline.states import PosedFrame
+    from fleetslam.pipeline.vocabulary import BowDatabase
 
 
 @dataclass
@@ -69,7 +70,7 @@ class CloudSession:
     camera: Camera
     map: LocalMap = field(default_factory=LocalMap)
     # Place recognition over this robot's keyframes (entry i = keyframe i).
-    places: KeyframeDatabase | None = None
+    places: "KeyframeDatabase | BowDatabase | None" = None
     loops: LoopClosingState = field(default_factory=LoopClosingState)
     # Last two estimated poses, for the constant-velocity motion model.
     T_last: np.ndarray | None = None
@@ -103,7 +104,7 @@ class CloudSession:
 
     def __post_init__(self) -> None:
         if self.places is None:
-            self.places = KeyframeDatabase(self.config.place_recognition)
+            self.places = make_database(self.config.place_recognition)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
