@@ -1,7 +1,8 @@
 """Local mapping off the tracking thread: a local BA solved in the worker process gives the
 same numbers as in-line, a result computed on a map that a loop correction moved since is
 dropped, a dead worker leaves the session with in-line BA, the worker's handle is never
-checkpointed, and on real data the asynchronous cloud tracks as well as the in-line one."""
+checkpointed, and on real data the asynchronous cloud (local BA and the loop closer's
+database queries in the worker) tracks as well as the in-line one."""
 
 from __future__ import annotations
 
@@ -127,11 +128,17 @@ def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
         for i in range(len(sequence)):
             tracker.step(i)
         if mode == "async":
-            tracker.session.local_mapping.flush(tracker.session)
+            tracker.session.local_mapping.flush(tracker.session, loops=True)
         run = tracker.finish()
         ates[mode] = run_ate(run)["rmse_m"]
         summary = run.loop_closing["local_mapping"]
         if mode == "async":
             assert summary["applied"] >= 0.8 * len(run.keyframe_indices) - 1, summary
             assert summary["inline"] == 0 and summary["failed"] == 0
+            # The loop closer's database queries ran in the worker too, and every answer
+            # was verified on the tracking thread.
+            queries = summary["loop_queries"]
+            searched = len(run.keyframe_indices) - config.loop_closing.min_keyframes
+            assert queries["failed"] == 0 and queries["answered"] >= 0.5 * searched, queries
+            assert run.loop_closing["loop_queries"] == queries["answered"]
     assert ates["async"] <= 1.25 * ates["inline"], ates

@@ -601,8 +601,8 @@ class RobotSession:
                 return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
             self.state.robot_keyframe_poses.update(poses)
             if self.state.tracking.local_mapping is not None:
-                # The last keyframes' local BA belongs in the final map.
-                self.state.tracking.local_mapping.flush(self.state.tracking)
+                # The last keyframes' local BA and loop queries belong in the final map.
+                self.state.tracking.local_mapping.flush(self.state.tracking, loops=True)
             missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
                 self.robot_id, i)]
             if missing:

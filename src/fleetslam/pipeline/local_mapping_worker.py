@@ -24,6 +24,7 @@ one-process ``fleetslam run``, a robot tracking at point 6).
 
 from __future__ import annotations
 
+import copy
 import logging
 import multiprocessing
 import os
@@ -33,6 +34,8 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 from fleetslam.config import TrackingConfig
 from fleetslam.pipeline.local_ba import LocalBAProblem, LocalBASolution, solve_local_ba
@@ -54,6 +57,13 @@ def _exit_with_parent(parent_pid: int) -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def query_places(database, descriptors: np.ndarray, allowed: np.ndarray
+                 ) -> tuple[list, float]:
+    """In a worker: a keyframe database query (candidates, seconds)."""
+    start = time.perf_counter()
+    return database.query(descriptors, allowed), time.perf_counter() - start
 
 
 def _warm_up() -> bool:
@@ -78,6 +88,9 @@ class LocalMappingPool:
     def submit(self, problem: LocalBAProblem) -> Future:
         return self._executor.submit(solve_local_ba, problem)
 
+    def submit_query(self, database, descriptors: np.ndarray, allowed: np.ndarray) -> Future:
+        return self._executor.submit(query_places, database, descriptors, allowed)
+
     def close(self) -> None:
         # Waits for the solve in flight (a fraction of a second): a pool left to shut down
         # at interpreter exit writes to closed pipes.
@@ -88,6 +101,14 @@ class LocalMappingPool:
 class _InFlight:
     future: Future
     problem: LocalBAProblem
+    submitted: float
+
+
+@dataclass
+class _LoopQuery:
+    future: Future
+    kf_id: int
+    epoch: int
     submitted: float
 
 
@@ -106,6 +127,27 @@ class AsyncLocalMapping:
         "failed": 0, "inline": 0})
     # Seconds from request to the solution written into the map.
     lag_seconds: list[float] = field(default_factory=list)
+    # The loop closer's database query in flight (one at a time) and the newest keyframe
+    # whose query waits for it (with the database as it was then).
+    loop_query: _LoopQuery | None = None
+    loop_waiting: tuple[int, object, np.ndarray] | None = None
+    loop_counts: dict[str, int] = field(default_factory=lambda: {
+        "submitted": 0, "answered": 0, "superseded": 0, "stale": 0, "failed": 0})
+    loop_lag_seconds: list[float] = field(default_factory=list)
+
+    def request_loop_query(self, session: "CloudSession", kf_id: int,
+                           allowed: np.ndarray) -> None:
+        """Place recognition for keyframe ``kf_id`` in the worker, against the database as
+        it is now; the answer is verified at the frame it lands (``poll``)."""
+        # A copy: the live database grows while the query waits (it is small next to the
+        # search: ~32 kB a keyframe).
+        snapshot = copy.deepcopy(session.places)
+        if self.loop_query is None:
+            self._submit_query(session, kf_id, snapshot, allowed)
+        else:
+            if self.loop_waiting is not None:
+                self.loop_counts["superseded"] += 1
+            self.loop_waiting = (kf_id, snapshot, allowed)
 
     def request(self, session: "CloudSession", kf_id: int) -> None:
         """Local BA around keyframe ``kf_id``: submitted now, or after the one in flight."""
@@ -118,7 +160,9 @@ class AsyncLocalMapping:
             self.waiting = kf_id
 
     def poll(self, session: "CloudSession") -> None:
-        """Apply a finished solution (never waits); then submit the waiting keyframe's."""
+        """Apply a finished solution and verify a finished loop query (never waits); then
+        submit what waits."""
+        self._poll_loop(session)
         job = self.in_flight
         if job is None:
             return
@@ -135,11 +179,70 @@ class AsyncLocalMapping:
             kf_id, self.waiting = self.waiting, None
             self._submit(session, kf_id)
 
-    def flush(self, session: "CloudSession", timeout_s: float | None = None) -> None:
+    def _poll_loop(self, session: "CloudSession", wait_s: float = 0.0) -> None:
+        from fleetslam.pipeline.loop_closer import on_candidates
+
+        job = self.loop_query
+        if job is None:
+            return
+        try:
+            candidates, query_s = job.future.result(timeout=wait_s)
+        except TimeoutError:
+            if time.monotonic() - job.submitted > self.config.local_ba_timeout_s:
+                log.warning("loop query of keyframe %d not back after %.0f s: dropped",
+                            job.kf_id, self.config.local_ba_timeout_s)
+                self.loop_counts["failed"] += 1
+                self.loop_query = None
+            return
+        except BrokenProcessPool as exc:
+            self._break(exc)
+            candidates, query_s = None, 0.0
+        except Exception as exc:  # a bug in the query must not end the robot's session
+            log.error("loop query of keyframe %d failed: %r", job.kf_id, exc)
+            candidates, query_s = None, 0.0
+        self.loop_query = None
+        if candidates is None:
+            self.loop_counts["failed"] += 1
+        elif job.epoch != session.map.epoch:
+            # A loop was corrected meanwhile: the candidates' place may be merged already.
+            self.loop_counts["stale"] += 1
+        else:
+            self.loop_counts["answered"] += 1
+            self.loop_lag_seconds.append(time.monotonic() - job.submitted)
+            correction = on_candidates(session, job.kf_id, candidates, query_s)
+            if correction is not None:
+                session.correct_motion(correction)
+        if self.loop_waiting is not None and not self.broken:
+            kf_id, snapshot, allowed = self.loop_waiting
+            self.loop_waiting = None
+            self._submit_query(session, kf_id, snapshot, allowed)
+
+    def _submit_query(self, session: "CloudSession", kf_id: int, snapshot,
+                      allowed: np.ndarray) -> None:
+        try:
+            future = self.pool.submit_query(
+                snapshot, session.map.keyframes[kf_id].features.descriptors, allowed)
+        except (BrokenProcessPool, RuntimeError) as exc:
+            self._break(exc)
+            self.loop_counts["failed"] += 1
+            return
+        self.loop_counts["submitted"] += 1
+        self.loop_query = _LoopQuery(future, kf_id, session.map.epoch, time.monotonic())
+
+    def flush(self, session: "CloudSession", timeout_s: float | None = None,
+              loops: bool = False) -> None:
         """Wait (at most ``timeout_s``, default the config's) for the solve in flight and the
-        waiting one, and apply them: before a loop correction and at the end of a run."""
+        waiting one, and apply them: before a loop correction and at the end of a run; at
+        the end (``loops``) also for the loop queries."""
         deadline = time.monotonic() + (self.config.local_ba_timeout_s if timeout_s is None
                                        else timeout_s)
+        while loops and self.loop_query is not None:
+            self._poll_loop(session, wait_s=max(deadline - time.monotonic(), 0.0))
+            if time.monotonic() >= deadline and self.loop_query is not None:
+                log.warning("loop query of keyframe %d not back in time: dropped",
+                            self.loop_query.kf_id)
+                self.loop_counts["failed"] += 1
+                self.loop_query, self.loop_waiting = None, None
         while self.in_flight is not None:
             job = self.in_flight
             try:

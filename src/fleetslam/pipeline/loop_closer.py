@@ -8,8 +8,11 @@ already holds, check it geometrically, and correct the drift accumulated in betw
 
 It runs in-line at each keyframe, after local mapping, on the thread that tracks: every
 process computes the same poses (the exactness tests rely on this deterministic mode; the
-RANSAC draws from a seeded generator). Every keyframe enters the database after its own
-query, so a keyframe never finds itself.
+RANSAC draws from a seeded generator). In a cloud with asynchronous local mapping, the
+database query (a brute-force Hamming search that holds the GIL: 50-200 ms a keyframe
+under load) runs in the local mapping worker; verification and correction stay on the
+tracking thread, at the frame its answer lands. Every keyframe enters the database after
+its own query, so a keyframe never finds itself.
 """
 
 from __future__ import annotations
@@ -59,25 +62,58 @@ class LoopClosingState:
     queries: int = 0
     candidates_verified: int = 0
     detections_total: int = 0
+    # Database query (in the worker when asynchronous) plus verification of its candidates.
     query_seconds: list[float] = field(default_factory=list)
     correction_seconds: list[float] = field(default_factory=list)
 
 
 def close_loops(session: CloudSession, kf: Keyframe) -> np.ndarray | None:
     """Loop closing for the newest keyframe. Returns the world-frame correction applied to
-    it when a loop was closed (the tracker moves its motion model with it), else None."""
+    it when a loop was closed (the tracker moves its motion model with it), else None.
+
+    In a cloud with asynchronous local mapping the database query (most of the time) goes
+    to the local mapping worker instead, and ``on_candidates`` runs when its answer lands,
+    at the start of a later frame (``AsyncLocalMapping.poll``)."""
+    cfg = session.config.loop_closing
+    candidates = None
+    if cfg.enabled and kf.id >= cfg.min_keyframes:
+        allowed = allowed_candidates(session, kf)
+        asynchronous = session.local_mapping is not None and not session.local_mapping.broken
+        if asynchronous and allowed.any():
+            # The database as it is now, without this keyframe (it never finds itself).
+            session.local_mapping.request_loop_query(session, kf.id, allowed)
+        else:
+            start = time.perf_counter()
+            candidates = session.places.query(kf.features.descriptors, allowed) \
+                if allowed.any() else []
+            query_s = time.perf_counter() - start
+    session.places.add(kf.id, kf.features.descriptors)
+    if candidates is None:
+        return None
+    return on_candidates(session, kf.id, candidates, query_s)
+
+
+def on_candidates(session: CloudSession, kf_id: int, candidates: list, query_s: float
+                  ) -> np.ndarray | None:
+    """Verify the place-recognition candidates of keyframe ``kf_id`` (best first, the first
+    that passes), check consistency with the detections of the keyframes before it, and
+    correct. ``query_s``: how long the database query took. Returns the world-frame
+    correction of that keyframe when a loop was closed."""
     cfg = session.config.loop_closing
     state = session.loops
+    kf = session.map.keyframes[kf_id]
     detection = None
-    if cfg.enabled and kf.id >= cfg.min_keyframes:
-        start = time.perf_counter()
-        detection = detect(session, kf)
-        state.queries += 1
-        state.query_seconds.append(time.perf_counter() - start)
-    session.places.add(kf.id, kf.features.descriptors)
+    start = time.perf_counter()
+    for candidate in candidates:
+        state.candidates_verified += 1
+        detection = verify(session, kf, candidate.key, candidate.score)
+        if detection is not None:
+            break
+    state.queries += 1
+    state.query_seconds.append(query_s + time.perf_counter() - start)
     # Detections too old to be consecutive with this keyframe no longer count.
     state.detections = [d for d in state.detections
-                        if kf.id - d.query < cfg.consistency_window_keyframes]
+                        if 0 <= kf.id - d.query < cfg.consistency_window_keyframes]
     if detection is None:
         return None
     state.detections_total += 1
@@ -110,19 +146,6 @@ def allowed_candidates(session: CloudSession, kf: Keyframe) -> np.ndarray:
     near = ids[shared >= session.config.tracking.covisibility_min_shared]
     allowed[near[near < len(allowed)]] = False
     return allowed
-
-
-def detect(session: CloudSession, kf: Keyframe) -> LoopDetection | None:
-    """Query the database and verify the candidates, best first; the first that passes."""
-    allowed = allowed_candidates(session, kf)
-    if not allowed.any():
-        return None
-    for candidate in session.places.query(kf.features.descriptors, allowed):
-        session.loops.candidates_verified += 1
-        found = verify(session, kf, candidate.key, candidate.score)
-        if found is not None:
-            return found
-    return None
 
 
 def verify(session: CloudSession, kf: Keyframe, candidate: int, score: float

@@ -193,7 +193,9 @@ class CloudSession:
         if mapping is None:
             return {"mode": "inline"}
         return {"mode": "inline (worker failed)" if mapping.broken else "async",
-                **mapping.counts, "request_to_applied": duration_stats(mapping.lag_seconds)}
+                **mapping.counts, "request_to_applied": duration_stats(mapping.lag_seconds),
+                "loop_queries": {**mapping.loop_counts,
+                                 "request_to_answered": duration_stats(mapping.loop_lag_seconds)}}
 
     def record(self, posed: "PosedFrame", features: FeatureFrame, is_keyframe: bool) -> None:
         """Bookkeeping after a frame: motion model, loss counters, repeat detection."""
