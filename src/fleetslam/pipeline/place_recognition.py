@@ -72,11 +72,9 @@ class KeyframeDatabase:
         entry; all if None). At most ``top_k`` (config default), each scoring at least
         ``min_score_ratio`` of the best."""
         cfg = self.config
-        top_k = cfg.top_k if top_k is None else top_k
         n_entries = len(self.keys)
+        allowed = query_scope(n_entries, allowed, descriptors)
         if allowed is None:
-            allowed = np.ones(n_entries, bool)
-        if not n_entries or not allowed.any() or not len(descriptors):
             return []
         rows = np.flatnonzero(allowed[self.owner])
         if not len(rows):
@@ -99,13 +97,32 @@ class KeyframeDatabase:
         q, c = np.nonzero(fresh)
         votes = np.bincount(entry[q, c], minlength=n_entries)
         score = np.bincount(entry[q, c], weights=idf[q], minlength=n_entries) / len(descriptors)
-        order = np.argsort(-score, kind="stable")
-        order = order[score[order] > 0][:top_k]
-        if not len(order):
-            return []
-        best = score[order[0]]
-        return [PlaceCandidate(int(e), self.keys[e], float(score[e]), int(votes[e]))
-                for e in order if score[e] >= cfg.min_score_ratio * best]
+        return best_candidates(self.keys, score, votes, cfg, top_k)
+
+
+def query_scope(n_entries: int, allowed: np.ndarray | None, descriptors: np.ndarray
+                ) -> np.ndarray | None:
+    """The entries a query may return (bool per entry; all if ``allowed`` is None), or None
+    when there is nothing to search or nothing to search with."""
+    if allowed is None:
+        allowed = np.ones(n_entries, bool)
+    if not n_entries or not allowed.any() or not len(descriptors):
+        return None
+    return allowed
+
+
+def best_candidates(keys: list[Hashable], score: np.ndarray, votes: np.ndarray,
+                    config: PlaceRecognitionConfig, top_k: int | None) -> list[PlaceCandidate]:
+    """Entries by score, best first: at most ``top_k`` (config default), each scoring more
+    than 0 and at least ``min_score_ratio`` of the best."""
+    top_k = config.top_k if top_k is None else top_k
+    order = np.argsort(-score, kind="stable")
+    order = order[score[order] > 0][:top_k]
+    if not len(order):
+        return []
+    best = score[order[0]]
+    return [PlaceCandidate(int(e), keys[e], float(score[e]), int(votes[e]))
+            for e in order if score[e] >= config.min_score_ratio * best]
 
 
 def make_database(config: PlaceRecognitionConfig) -> "KeyframeDatabase | BowDatabase":

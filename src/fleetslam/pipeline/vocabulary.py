@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Hashable
 import numpy as np
 
 from fleetslam.config import PlaceRecognitionConfig
-from fleetslam.pipeline.place_recognition import PlaceCandidate
+from fleetslam.pipeline.place_recognition import PlaceCandidate, best_candidates, query_scope
 
 if TYPE_CHECKING:
     from fleetslam.config import Config
@@ -233,12 +233,9 @@ class BowDatabase:
 
     def query(self, descriptors: np.ndarray, allowed: np.ndarray | None = None,
               top_k: int | None = None) -> list[PlaceCandidate]:
-        cfg = self.config
-        top_k = cfg.top_k if top_k is None else top_k
         n_entries = len(self.keys)
+        allowed = query_scope(n_entries, allowed, descriptors)
         if allowed is None:
-            allowed = np.ones(n_entries, bool)
-        if not n_entries or not allowed.any() or not len(descriptors):
             return []
         q_words, q_weights = self.vocabulary.bow(descriptors)
         at = np.searchsorted(q_words, self.words)
@@ -251,13 +248,7 @@ class BowDatabase:
         # DBoW2's L1 score over the words both vectors hold.
         score = 0.5 * np.bincount(owner, weights=v + w - np.abs(v - w), minlength=n_entries)
         votes = np.bincount(owner, minlength=n_entries)
-        order = np.argsort(-score, kind="stable")
-        order = order[score[order] > 0][:top_k]
-        if not len(order):
-            return []
-        best = score[order[0]]
-        return [PlaceCandidate(int(e), self.keys[e], float(score[e]), int(votes[e]))
-                for e in order if score[e] >= cfg.min_score_ratio * best]
+        return best_candidates(self.keys, score, votes, self.config, top_k)
 
 
 
