@@ -199,6 +199,10 @@ class LoopClosingConfig:
     global_ba: bool = True
     global_ba_iterations: tuple[int, int] = (5, 10)
     seed: int = 0
+    # With asynchronous local mapping (a cloud), the database query of each keyframe runs in
+    # the local mapping worker (faiss holds the GIL); verification and correction stay on
+    # the tracking thread. False: the query runs there too, as in-line.
+    query_in_worker: bool = True
 
 
 @dataclass

@@ -78,7 +78,8 @@ def close_loops(session: CloudSession, kf: Keyframe) -> np.ndarray | None:
     candidates = None
     if cfg.enabled and kf.id >= cfg.min_keyframes:
         allowed = allowed_candidates(session, kf)
-        asynchronous = session.local_mapping is not None and not session.local_mapping.broken
+        asynchronous = (cfg.query_in_worker and session.local_mapping is not None
+                        and not session.local_mapping.broken)
         if asynchronous and allowed.any():
             # The database as it is now, without this keyframe (it never finds itself).
             session.local_mapping.request_loop_query(session, kf.id, allowed)
