@@ -179,3 +179,7 @@ def test_a_depth_image_on_its_own_pinhole_is_read_where_the_colour_ray_meets_it(
     plain = Camera(525.0, 525.0, 319.5, 239.5)
     np.testing.assert_array_equal(plain.depth_pixels(keypoints, keypoints + 3), keypoints)
     assert Camera.from_dict(camera.to_dict()) == camera
+    # A camera restored from a checkpoint written before the field existed has none.
+    old = Camera.__new__(Camera)
+    old.__dict__.update({k: v for k, v in plain.__dict__.items() if k != "depth_intrinsics"})
+    assert old.depth_intrinsics == () and old == plain

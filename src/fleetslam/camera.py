@@ -41,7 +41,8 @@ class Camera:
     invalid_depth: tuple[int, ...] = (0,)
     # (fx, fy, cx, cy) of the undistorted pinhole the depth image is registered to, sharing
     # the colour camera's centre; empty = the colour camera's own (distorted) pixel grid.
-    depth_intrinsics: tuple[float, ...] = field(default_factory=tuple)
+    # A class-level default: a checkpoint written before this field restores with it empty.
+    depth_intrinsics: tuple[float, ...] = ()
 
     @property
     def K(self) -> np.ndarray:
