@@ -13,7 +13,8 @@ separate cloud process, as robots do, and times each frame from publish to feedb
   2. paced: fresh sessions, each robot at (load x sustained / robots) frames per second;
      latency median and p95 (publish -> feedback; includes any queueing).
 Both on a cloud with local BA in-line and on one with it in a worker process
-(``--local-mapping``, tracking.local_mapping), one after the other.
+(``--local-mapping``, tracking.local_mapping), one after the other; ``async-query-inline``
+keeps the loop closer's database query on the tracking thread.
 Writes bench/results/fleet.json.
 """
 
@@ -153,7 +154,9 @@ def main() -> None:
     parser.add_argument("--load", type=float, default=0.8,
                         help="paced run: offered rate as a fraction of the sustained rate")
     parser.add_argument("--local-mapping", default="inline,async",
-                        help="cloud runs, side by side: tracking.local_mapping of each")
+                        help="cloud runs, side by side: tracking.local_mapping of each "
+                        "(inline, async, or async-query-inline: the loop query on the "
+                        "tracking thread)")
     parser.add_argument("--out", default="bench/results/fleet.json")
     args = parser.parse_args()
     if not SEQ.exists():
@@ -188,7 +191,12 @@ def run_cloud(mode: str, prepared: list, n_robots: int, load: float, work: Path)
     """Both phases on a fresh cloud process whose local mapping runs ``mode``."""
     work.mkdir(parents=True, exist_ok=True)
     config = work / "cloud.toml"
-    config.write_text(f'[tracking]\nlocal_mapping = "{mode}"\n')
+    # "async-query-inline": local BA in the worker, the loop closer's database query on the
+    # tracking thread (loop_closing.query_in_worker = false), to compare with "async".
+    local_mapping = "async" if mode.startswith("async") else mode
+    config.write_text(f'[tracking]\nlocal_mapping = "{local_mapping}"\n'
+                      + ("[loop_closing]\nquery_in_worker = false\n"
+                         if mode == "async-query-inline" else ""))
     endpoint = free_endpoint()
     cloud = start_cloud(endpoint, work / "cloud", work / "cloud.log", config_path=str(config))
     z = open_connecting(endpoint)
