@@ -12,7 +12,7 @@ from fleetslam.datasets.tum import open_robot
 from fleetslam.evaluation.ate import absolute_trajectory_error
 from fleetslam.pipeline.geometric_verification import ransac_rigid
 from fleetslam.pipeline.loop_closer import LoopDetection, correct
-from fleetslam.pipeline.place_recognition import KeyframeDatabase
+from fleetslam.pipeline.place_recognition import KeyframeDatabase, snapshot
 from fleetslam.pipeline.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.system import track_robot
 from fleetslam.transforms import invert, make_T, random_perturbation, rotation_angle_deg
@@ -42,6 +42,11 @@ def test_place_recognition_finds_the_keyframe_that_shares_the_features():
     allowed[3] = False
     assert all(c.key != "kf3" for c in db.query(query, allowed))
     assert db.query(query, np.zeros(6, bool)) == []
+    # A snapshot (what an asynchronous query searches) does not see later keyframes.
+    frozen = snapshot(db)
+    db.add("kf6", places[3])
+    assert len(frozen) == 6 and frozen.query(query)[0].key == "kf3"
+    assert len(db) == 7 and "kf6" in [c.key for c in db.query(query)]
 
 
 def test_ransac_rigid_recovers_the_transform_among_outliers():

@@ -7,17 +7,11 @@ import numpy as np
 import pytest
 
 from conftest import TUM_RPY, require
+from test_loop_closing import _flip_bits
 from fleetslam.cloud import checkpoint
 from fleetslam.config import PlaceRecognitionConfig
 from fleetslam.pipeline.place_recognition import KeyframeDatabase, make_database
 from fleetslam.pipeline.vocabulary import BowDatabase, Vocabulary, load_vocabulary
-
-
-def _noisy(rng: np.random.Generator, d: np.ndarray, n_bits: int) -> np.ndarray:
-    bits = np.unpackbits(d, axis=1)
-    for row in bits:
-        row[rng.choice(256, n_bits, replace=False)] ^= 1
-    return np.packbits(bits, axis=1)
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +19,7 @@ def world():
     """400 distinct features ("prototypes"); an image sees 60 of them with sensor noise."""
     rng = np.random.default_rng(0)
     prototypes = rng.integers(0, 256, (400, 32), dtype=np.uint8)
-    images = [_noisy(rng, prototypes[rng.choice(400, 60, replace=False)], 8)
+    images = [_flip_bits(rng, prototypes[rng.choice(400, 60, replace=False)], 8)
               for _ in range(120)]
     return rng, prototypes, images
 
@@ -36,7 +30,7 @@ def test_a_vocabulary_gives_a_feature_seen_again_its_word(world):
     assert 100 <= vocabulary.n_words <= 8 ** 3
     # New noisy views of each prototype mostly land in the word of the prototype itself:
     # a word is a feature, not a random bucket (random words would agree 1 in n_words).
-    again = vocabulary.words(_noisy(rng, prototypes, 8))
+    again = vocabulary.words(_flip_bits(rng, prototypes, 8))
     assert np.mean(again == vocabulary.words(prototypes)) > 0.8
     ids, weights = vocabulary.bow(images[0])
     assert np.all(np.diff(ids) > 0) and weights.sum() == pytest.approx(1.0)
@@ -51,8 +45,8 @@ def test_bag_of_words_finds_the_keyframe_that_shares_the_features(world, tmp_pat
     assert isinstance(db, BowDatabase)
     places = [rng.choice(400, 80, replace=False) for _ in range(6)]
     for k, p in enumerate(places):
-        db.add(f"kf{k}", _noisy(rng, prototypes[p], 8))
-    query = _noisy(rng, prototypes[places[3][:50]], 8)
+        db.add(f"kf{k}", _flip_bits(rng, prototypes[p], 8))
+    query = _flip_bits(rng, prototypes[places[3][:50]], 8)
     found = db.query(query)
     assert found and found[0].key == "kf3" and 0 < found[0].score <= 1
     assert found[0].score > 2 * max([c.score for c in found[1:]], default=0)

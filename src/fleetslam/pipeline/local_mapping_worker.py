@@ -24,7 +24,6 @@ one-process ``fleetslam run``, a robot tracking at point 6).
 
 from __future__ import annotations
 
-import copy
 import logging
 import multiprocessing
 import os
@@ -39,6 +38,7 @@ import numpy as np
 
 from fleetslam.config import TrackingConfig
 from fleetslam.pipeline.local_ba import LocalBAProblem, LocalBASolution, solve_local_ba
+from fleetslam.pipeline.place_recognition import snapshot
 
 if TYPE_CHECKING:
     from fleetslam.pipeline.session import CloudSession
@@ -139,15 +139,14 @@ class AsyncLocalMapping:
                            allowed: np.ndarray) -> None:
         """Place recognition for keyframe ``kf_id`` in the worker, against the database as
         it is now; the answer is verified at the frame it lands (``poll``)."""
-        # A copy: the live database grows while the query waits (it is small next to the
-        # search: ~32 kB a keyframe).
-        snapshot = copy.deepcopy(session.places)
+        # The live database grows while the query waits.
+        frozen = snapshot(session.places)
         if self.loop_query is None:
-            self._submit_query(session, kf_id, snapshot, allowed)
+            self._submit_query(session, kf_id, frozen, allowed)
         else:
             if self.loop_waiting is not None:
                 self.loop_counts["superseded"] += 1
-            self.loop_waiting = (kf_id, snapshot, allowed)
+            self.loop_waiting = (kf_id, frozen, allowed)
 
     def request(self, session: "CloudSession", kf_id: int) -> None:
         """Local BA around keyframe ``kf_id``: submitted now, or after the one in flight."""
@@ -213,15 +212,15 @@ class AsyncLocalMapping:
             if correction is not None:
                 session.correct_motion(correction)
         if self.loop_waiting is not None and not self.broken:
-            kf_id, snapshot, allowed = self.loop_waiting
+            kf_id, frozen, allowed = self.loop_waiting
             self.loop_waiting = None
-            self._submit_query(session, kf_id, snapshot, allowed)
+            self._submit_query(session, kf_id, frozen, allowed)
 
-    def _submit_query(self, session: "CloudSession", kf_id: int, snapshot,
+    def _submit_query(self, session: "CloudSession", kf_id: int, frozen,
                       allowed: np.ndarray) -> None:
         try:
             future = self.pool.submit_query(
-                snapshot, session.map.keyframes[kf_id].features.descriptors, allowed)
+                frozen, session.map.keyframes[kf_id].features.descriptors, allowed)
         except (BrokenProcessPool, RuntimeError) as exc:
             self._break(exc)
             self.loop_counts["failed"] += 1

@@ -85,8 +85,7 @@ def close_loops(session: CloudSession, kf: Keyframe) -> np.ndarray | None:
             session.local_mapping.request_loop_query(session, kf.id, allowed)
         else:
             start = time.perf_counter()
-            candidates = session.places.query(kf.features.descriptors, allowed) \
-                if allowed.any() else []
+            candidates = session.places.query(kf.features.descriptors, allowed)
             query_s = time.perf_counter() - start
     session.places.add(kf.id, kf.features.descriptors)
     if candidates is None:

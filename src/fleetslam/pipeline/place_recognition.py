@@ -20,6 +20,7 @@ The database is plain numpy (picklable with the session); faiss objects live onl
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Hashable
 
@@ -123,6 +124,15 @@ def best_candidates(keys: list[Hashable], score: np.ndarray, votes: np.ndarray,
     best = score[order[0]]
     return [PlaceCandidate(int(e), keys[e], float(score[e]), int(votes[e]))
             for e in order if score[e] >= config.min_score_ratio * best]
+
+
+def snapshot(database: "KeyframeDatabase | BowDatabase") -> "KeyframeDatabase | BowDatabase":
+    """The database as it is now, unchanged by later ``add`` calls: both kinds append to
+    ``keys`` in place but replace their arrays rather than write into them, so only the
+    key list is copied (not megabytes of descriptors, on the tracking thread)."""
+    frozen = copy.copy(database)
+    frozen.keys = list(database.keys)
+    return frozen
 
 
 def make_database(config: PlaceRecognitionConfig) -> "KeyframeDatabase | BowDatabase":
