@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml scripts/setup-system.sh
 	sh scripts/setup-system.sh "$(PYTHON)"
 	"$(PYTHON)" -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --upgrade pip
-	$(VENV)/bin/python -m pip install --quiet -e ".[test]"
+	$(VENV)/bin/python -m pip install --quiet -e ".[cloud,test]"
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -28,7 +28,7 @@ from shared_data import SEVEN_SCENES  # noqa: E402
 from fleetslam.datasets.tum import open_robot  # noqa: E402
 from fleetslam.evaluation.fleet import trajectory_ate  # noqa: E402
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop  # noqa: E402
-from fleetslam.report import format_table  # noqa: E402
+from fleetslam.tables import format_table  # noqa: E402
 
 SOURCE = f"{SEVEN_SCENES}:0-599,598-199"
 

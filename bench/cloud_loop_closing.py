@@ -29,7 +29,7 @@ from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import trajectory_ate
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
 from fleetslam.registration.metrics import transform_error
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.transforms import invert
 
 SETTINGS = {"query in worker": "", "query in-line": "[loop_closing]\nquery_in_worker = false\n"}

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, stop
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.transport.certs import make_lab
 
 

@@ -31,7 +31,7 @@ from shared_data import SEVEN_SCENES
 
 from fleetslam.cloud.store import CloudStore
 from fleetslam.demo import run_demo
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 
 PIECES = ["0-199", "130-329", "260-459", "400-599"]
 

@@ -35,9 +35,10 @@ from shared_data import SEVEN_SCENES
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.launch import free_endpoint, start_cloud, stop
-from fleetslam.pipeline.split import TrackingPipeline, run_stages
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.transport import keys
 from fleetslam.transport.protocol import PROTOCOL
 from fleetslam.transport.zenoh_session import open_connecting, put
@@ -56,7 +57,7 @@ def robot_messages(robot_id: str, first: int, frames: int, source: Path = SEQ
     msgs = []
     for n, f in enumerate(seq):
         state = run_stages(stages, CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m),
-                           pipeline.session)
+                           pipeline.sides)
         msgs.append(encode_frame_message(state, K, robot_id, n, seq.camera, Config().wire))
     return msgs, seq.camera.to_dict()
 

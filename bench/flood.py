@@ -36,9 +36,10 @@ from fleetslam.config import Config  # noqa: E402
 from fleetslam.datasets.tum import RgbdSequence, open_robot  # noqa: E402
 from fleetslam.evaluation.fleet import trajectory_ate  # noqa: E402
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop  # noqa: E402
-from fleetslam.pipeline.split import TrackingPipeline, run_stages  # noqa: E402
+from fleetslam.backend.back_end import TrackingPipeline  # noqa: E402
+from fleetslam.pipeline.split import run_stages  # noqa: E402
 from fleetslam.pipeline.states import CapturedFrame  # noqa: E402
-from fleetslam.report import format_table  # noqa: E402
+from fleetslam.tables import format_table  # noqa: E402
 from fleetslam.transport import keys, protocol  # noqa: E402
 from fleetslam.transport.certs import make_lab  # noqa: E402
 from fleetslam.wire.frames import encode_frame_message  # noqa: E402
@@ -58,7 +59,7 @@ def attack_messages(folder: Path) -> list[tuple[str, bytes, str]]:
         if i == 4:
             break
         frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
-        states.append(run_stages(pipeline.split(POINT)[0], frame, pipeline.session))
+        states.append(run_stages(pipeline.split(POINT)[0], frame, pipeline.sides))
         frames.append(f)
     good = states[1]
     nan_kp = good.keypoints.copy()

@@ -62,9 +62,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # shared_data, run as 
 from fleetslam.camera import Camera  # noqa: E402
 from fleetslam.config import Config, WireConfig  # noqa: E402
 from fleetslam.datasets.tum import RgbdSequence  # noqa: E402
-from fleetslam.pipeline.split import TrackingPipeline, run_stages  # noqa: E402
+from fleetslam.backend.back_end import TrackingPipeline  # noqa: E402
+from fleetslam.pipeline.split import run_stages  # noqa: E402
 from fleetslam.pipeline.states import CapturedFrame  # noqa: E402
-from fleetslam.report import format_table  # noqa: E402
+from fleetslam.tables import format_table  # noqa: E402
 from fleetslam.transport import protocol  # noqa: E402
 from fleetslam.transport.protocol import Hello  # noqa: E402
 from fleetslam.wire import binary  # noqa: E402
@@ -190,7 +191,7 @@ def build_context(n_frames: int = 3, small: bool = False) -> Context:
         pipeline = TrackingPipeline(config, camera)
         robot, _ = pipeline.split(k)
         for seq_no, frame in enumerate(frames):
-            state = run_stages(robot, frame, pipeline.session)
+            state = run_stages(robot, frame, pipeline.sides)
             for vname, wire in variants.items():
                 if vname == "jpeg" and k > 1 or vname == "raw" and seq_no != len(frames) - 1:
                     continue  # JPEG only changes images (k <= 1); one uncompressed frame

@@ -31,10 +31,11 @@ import zstandard
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.pipeline.split import TrackingPipeline, run_stages
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.wire.frames import decode_frame_message, encode_frame_message
 from fleetslam.wire.inter import (
     INTER_MAX_HAMMING,
@@ -134,7 +135,7 @@ def measure(name: str, folder: Path, last: int | None) -> dict:
     states = []
     for i, f in enumerate(seq):
         states.append(run_stages(robot, CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m),
-                                 pipeline.session))
+                                 pipeline.sides))
         progress.update(i + 1)
     runs = {}
     for run_name, inter, lag, loss in RUNS:

@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from shared_data import SEVEN_SCENES  # noqa: E402
 
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop  # noqa: E402
-from fleetslam.report import format_table  # noqa: E402
+from fleetslam.tables import format_table  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results" / "live_view.json"
 

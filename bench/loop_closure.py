@@ -38,13 +38,13 @@ from evo.core.units import Unit
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import run_ate
-from fleetslam.pipeline.loop_closer import verify
-from fleetslam.pipeline.place_recognition import make_database
-from fleetslam.pipeline.session import CloudSession
-from fleetslam.pipeline.split import TrackingPipeline
+from fleetslam.backend.loop_closing import verify
+from fleetslam.backend.places import make_database
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.registration.metrics import transform_error
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.system import RobotRun, track_robot
 from fleetslam.transforms import invert
 from shared_data import present_sequences
@@ -158,13 +158,13 @@ def summarise_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def track_session(folder: Path, config: Config) -> tuple[RgbdSequence, CloudSession]:
+def track_session(folder: Path, config: Config) -> tuple[RgbdSequence, BackEndState]:
     """Run the pipeline over a sequence; return the sequence and the final cloud session."""
     seq = RgbdSequence(folder)
     pipeline = TrackingPipeline(config, seq.camera)
     for frame in seq:
         pipeline.track(CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m))
-    return seq, pipeline.session.cloud
+    return seq, pipeline.state
 
 
 def gt_revisits(gt: np.ndarray) -> np.ndarray:
@@ -179,7 +179,7 @@ def gt_revisits(gt: np.ndarray) -> np.ndarray:
 
 
 def place_recognition(name: str, folder: Path,
-                      tracked: tuple[RgbdSequence, CloudSession] | None = None,
+                      tracked: tuple[RgbdSequence, BackEndState] | None = None,
                       database: Any = None) -> dict[str, Any]:
     """Top-1 place recognition over the final keyframes of a loop-closing run (``tracked``,
     else tracked here), with ``database`` (empty; default: the configured method's)."""
@@ -254,7 +254,7 @@ def place_recognition(name: str, folder: Path,
         "precision_after": ratio(tp_after, verified), "recall_after": ratio(tp_after, positives),
         "verified_with_wrong_pose": wrong_pose,
         "query_time": stats(query_ms), "verify_time": stats(verify_ms),
-        "loops_accepted_in_run": session.loop_summary()["loops_accepted"],
+        "loops_accepted_in_run": sum(1 for e in session.loops.events if e["accepted"]),
         "per_query": queries,
     }
 

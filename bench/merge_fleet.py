@@ -31,7 +31,7 @@ from shared_data import SEVEN_SCENES, TUM_RPY  # noqa: E402
 from fleetslam.config import Config  # noqa: E402
 from fleetslam.datasets.synthetic import ensure_scene  # noqa: E402
 from fleetslam.datasets.tum import open_robot  # noqa: E402
-from fleetslam.report import format_table  # noqa: E402
+from fleetslam.tables import format_table  # noqa: E402
 from fleetslam.system import run_fleet  # noqa: E402
 
 FALSE_ROTATION_DEG = 5.0

@@ -36,7 +36,7 @@ from fleetslam.mapping.dense_map import build_dense_map  # noqa: E402
 from fleetslam.registration.baselines import point_to_plane_icp, point_to_point_icp  # noqa: E402
 from fleetslam.registration.fshicp import fshicp  # noqa: E402
 from fleetslam.registration.metrics import transform_error  # noqa: E402
-from fleetslam.report import format_table  # noqa: E402
+from fleetslam.tables import format_table  # noqa: E402
 from fleetslam.transforms import (  # noqa: E402
     invert,
     make_T,

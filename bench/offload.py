@@ -32,7 +32,7 @@ from pathlib import Path
 from fleetslam.datasets.tum import open_robot
 from fleetslam.evaluation.fleet import trajectory_ate
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from shared_data import SEVEN_SCENES
 
 SEQ = SEVEN_SCENES

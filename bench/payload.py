@@ -22,10 +22,10 @@ import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.pipeline.split import TrackingPipeline
+from fleetslam.backend.back_end import TrackingPipeline
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.wire.frames import STATE_TYPES, decode_frame_message, encode_frame_message
 from fleetslam.wire.paper_yaml import paper_yaml_bytes
 from shared_data import present_sequences
@@ -57,7 +57,7 @@ def measure(name: str, folder: Path, last: int | None) -> dict:
         state = CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m)
         states = [state]
         for stage in pipeline.stages:
-            state = stage(state, pipeline.session)
+            state = stage(state, pipeline.sides.part(stage.side))
             states.append(state)
         for k, s in enumerate(states):
             start = time.perf_counter()

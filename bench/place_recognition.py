@@ -29,14 +29,14 @@ import numpy as np
 
 from fleetslam.config import Config, PlaceRecognitionConfig
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.pipeline.place_recognition import KeyframeDatabase
-from fleetslam.pipeline.vocabulary import (
+from fleetslam.backend.place_recognition import KeyframeDatabase
+from fleetslam.backend.vocabulary import (
     BowDatabase,
     Vocabulary,
     image_descriptors,
     training_images,
 )
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from loop_closure import (
     REVISIT_MIN_FRAME_GAP,
     config_for,

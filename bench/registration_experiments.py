@@ -77,8 +77,9 @@ from fleetslam.mapping.dense_map import build_dense_map  # noqa: E402
 from fleetslam.registration.baselines import NORMAL_NEIGHBOURS, IcpMethod, run_icp  # noqa: E402
 from fleetslam.registration.fshicp import FsHicpStep, drop_invalid, fshicp, voxel_filter  # noqa: E402
 from fleetslam.registration.metrics import build_tree, fitness_score, transform_error  # noqa: E402
-from fleetslam.report import format_table  # noqa: E402
-from fleetslam.transforms import invert, make_T, random_perturbation, transform_points  # noqa: E402
+from fleetslam.tables import format_table  # noqa: E402
+from fleetslam.registration.metrics import random_perturbation  # noqa: E402
+from fleetslam.transforms import invert, make_T, transform_points  # noqa: E402
 
 FRAGMENTS = DATA / "3dmatch_7scenes-redkitchen_fragments"
 PERTURB_DEG = 10.0

@@ -19,7 +19,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import run_ate
 from fleetslam.io.trajectory import write_tum_trajectory
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.system import track_robot
 from shared_data import present_sequences
 

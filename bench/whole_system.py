@@ -28,7 +28,7 @@ from fleetslam.datasets.tum import open_robot  # noqa: E402
 from fleetslam.demo import run_demo  # noqa: E402
 from fleetslam.planner.energy_report import whole_system, whole_system_table  # noqa: E402
 from fleetslam.planner.model import Link, candidates, choose  # noqa: E402
-from fleetslam.planner.profile import measure_profile  # noqa: E402
+from fleetslam.planner.profiling import measure_profile  # noqa: E402
 from fleetslam.transport.protocol import SUPPORTED_POINTS  # noqa: E402
 
 SOURCES = [f"{SEVEN_SCENES}:0-299", f"{SEVEN_SCENES}:400-599"]

@@ -38,7 +38,7 @@ from fleetslam.launch import (
     start_worker,
     stop_all,
 )
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 from fleetslam.transport.zenoh_session import open_connecting
 
 TICK = os.sysconf("SC_CLK_TCK")

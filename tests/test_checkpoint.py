@@ -13,14 +13,14 @@ import pytest
 
 from conftest import small_scene
 from fleetslam.camera import Camera
-from fleetslam.cloud import checkpoint
-from fleetslam.cloud.robot_session import SessionState, TrajectoryRow
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.cloud.session_state import CHECKPOINT_CLASSES, SessionState, TrajectoryRow, capture
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.pipeline.split import TrackingPipeline
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport.protocol import Hello
+from fleetslam.wire import data_tree
 
 
 @pytest.fixture(scope="module")
@@ -38,15 +38,15 @@ def test_a_restored_session_tracks_on_exactly_as_the_original(frames, tmp_path):
         rows.append(TrajectoryRow(out.index, out.timestamp, out.T_world_camera, out.tracked,
                                   out.is_keyframe, out.reference_keyframe,
                                   out.T_reference_camera))
-    state = SessionState("r0", Hello(3, camera, "test"), original.session.cloud,
-                         original.session.edge, 9, 9, rows)
+    state = SessionState("r0", Hello(3, camera, "test"), original.state,
+                         original.front_end, 9, 9, rows)
     store = CloudStore(tmp_path)
     store.save_checkpoint("r0", state)
     assert store.robots_with_checkpoints() == ["r0"]
     restored = store.load_checkpoint("r0")
     assert restored.hello == state.hello and len(restored.rows) == 10
-    again = TrackingPipeline(Config(), camera)
-    again.session.cloud, again.session.edge = restored.tracking, restored.front_end
+    again = TrackingPipeline(Config(), camera, front_end=restored.front_end,
+                             state=restored.tracking)
     for frame in captured[10:]:
         a, b = original.track(frame), again.track(frame)
         assert a.T_world_camera.tobytes() == b.T_world_camera.tobytes()
@@ -65,8 +65,8 @@ def _with_tree(tree: dict) -> bytes:
 
 def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp_path):
     hello = Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "s")
-    tree = _tree(checkpoint.dumps(hello))
-    assert checkpoint.loads(_with_tree(tree), "f") == hello
+    tree = _tree(data_tree.dumps(hello, CHECKPOINT_CLASSES))
+    assert data_tree.loads(_with_tree(tree), "f", CHECKPOINT_CLASSES) == hello
     cases = {
         "checkpoint format version 2": {**tree, "version": 2},
         "'Popen' is not part of a session": {**tree, "state": {"__obj__": "Popen",
@@ -75,11 +75,11 @@ def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp
     }
     for message, bad in cases.items():
         with pytest.raises(ValueError, match=f"where.ckpt: .*{message}"):
-            checkpoint.loads(_with_tree(bad), "where.ckpt")
+            data_tree.loads(_with_tree(bad), "where.ckpt", CHECKPOINT_CLASSES)
     with pytest.raises(ValueError, match="where.ckpt: not a fleetslam session checkpoint"):
-        checkpoint.loads(b"garbage", "where.ckpt")
+        data_tree.loads(b"garbage", "where.ckpt", CHECKPOINT_CLASSES)
     with pytest.raises(TypeError, match="cannot be checkpointed"):
-        checkpoint.dumps(object())
+        data_tree.dumps(object(), CHECKPOINT_CLASSES)
     # A pickle left by an older version is never loaded.
     (tmp_path / "r0").mkdir()
     (tmp_path / "r0" / "session.pkl").write_bytes(pickle.dumps({"x": 1}))
@@ -92,8 +92,8 @@ def _session_state(frames, n: int) -> SessionState:
     pipeline = TrackingPipeline(Config(), camera)
     for frame in captured[:n]:
         pipeline.track(frame)
-    return SessionState("r0", Hello(3, camera, "test"), pipeline.session.cloud,
-                        pipeline.session.edge, n - 1, n - 1)
+    return SessionState("r0", Hello(3, camera, "test"), pipeline.state,
+                        pipeline.front_end, n - 1, n - 1)
 
 
 def test_two_writers_of_one_checkpoint_never_break_it(frames, tmp_path):
@@ -102,7 +102,7 @@ def test_two_writers_of_one_checkpoint_never_break_it(frames, tmp_path):
     import threading
 
     store = CloudStore(tmp_path)
-    blobs = [checkpoint.capture(_session_state(frames, n)) for n in (4, 8)]
+    blobs = [capture(_session_state(frames, n)) for n in (4, 8)]
     errors = []
 
     def write(blob) -> None:

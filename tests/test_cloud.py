@@ -21,7 +21,8 @@ from conftest import exact_config, small_scene
 from fleetslam.cloud.server import CloudServer
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.launch import free_endpoint
-from fleetslam.pipeline.split import TrackingPipeline, run_stages
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import keys
 from fleetslam.transport.protocol import PROTOCOL, Code
@@ -51,7 +52,7 @@ def robot_messages(scene, k: int) -> dict:
         msgs, poses = [], []
         for seq_no, f in enumerate(seq):
             frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
-            state = run_stages(robot.split(k)[0], frame, robot.session)
+            state = run_stages(robot.split(k)[0], frame, robot.sides)
             msgs.append(encode_frame_message(state, k, name, seq_no, seq.camera, exact_config().wire))
             poses.append(reference.track(frame).T_world_camera)
         out[name] = (seq, msgs, np.array(poses))
@@ -323,7 +324,7 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
     states, expected = [], []
     for f in seq:
         frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
-        states.append(run_stages(robot_side.split(K)[0], frame, robot_side.session))
+        states.append(run_stages(robot_side.split(K)[0], frame, robot_side.sides))
         expected.append(reference.track(frame).T_world_camera)
     good = states[1]
     n = len(good.keypoints)
@@ -801,7 +802,7 @@ def test_a_missing_reference_is_refused_and_the_robot_falls_back_to_intra(cloud,
     frames = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
     kinds, tracked = [], []
     for seq_no, frame in enumerate(frames):
-        state = run_stages(pipeline.split(K)[0], frame, pipeline.session)
+        state = run_stages(pipeline.split(K)[0], frame, pipeline.sides)
         refs = encoder.choose(seq_no)
         data = encode_frame_message(state, K, "r0", seq_no, seq.camera, config.wire, refs)
         encoder.sent(seq_no, reference_of(state), len(refs))

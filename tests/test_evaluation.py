@@ -8,7 +8,8 @@ import pytest
 from conftest import SHARED_DATA, require
 from fleetslam.evaluation.ate import absolute_trajectory_error, umeyama
 from fleetslam.io.trajectory import read_tum_trajectory, write_tum_trajectory
-from fleetslam.transforms import interpolate_poses, make_T, random_perturbation
+from fleetslam.registration.metrics import random_perturbation
+from fleetslam.transforms import interpolate_poses, make_T
 
 
 def test_umeyama_recovers_a_rigid_transform():

@@ -11,13 +11,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fleetslam.camera import Camera
-from fleetslam.pipeline.local_ba import (
+from fleetslam.backend.local_ba import (
     local_bundle_adjustment,
     reprojection_chi2,
     select_window,
 )
-from fleetslam.pipeline.local_map import LocalMap
-from fleetslam.pipeline.pose_optimizer import CHI2_STEREO
+from fleetslam.backend.local_map import LocalMap
+from fleetslam.backend.pose_optimizer import CHI2_STEREO
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transforms import invert, make_T, rotation_angle_deg
 

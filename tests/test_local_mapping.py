@@ -1,13 +1,12 @@
 """Local mapping off the tracking thread: a local BA solved in the worker process gives the
 same numbers as in-line, a result computed on a map that a loop correction moved since is
-dropped, a dead worker leaves the session with in-line BA, the worker's handle is never
-checkpointed, and on real data the asynchronous cloud (local BA and the loop closer's
+dropped, a dead worker leaves the session with in-line BA, a checkpoint holds the map and no
+handle of the workers, and on real data the asynchronous cloud (local BA and the loop closer's
 database queries in the worker) tracks as well as the in-line one."""
 
 from __future__ import annotations
 
 import os
-import pickle
 import signal
 
 import numpy as np
@@ -18,11 +17,14 @@ from test_local_ba import CAMERA, N_KEYFRAMES, build_scene
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import run_ate
-from fleetslam.pipeline.local_ba import solve_local_ba
-from fleetslam.pipeline.local_mapper import apply_solution, build_problem
-from fleetslam.pipeline.local_mapping_worker import AsyncLocalMapping, LocalMappingPool
-from fleetslam.pipeline.session import CloudSession
+from fleetslam.backend.back_end import CloudBackEnd, new_state
+from fleetslam.backend.local_ba import solve_local_ba
+from fleetslam.backend.local_mapping import LocalMapper, apply_solution, build_problem
+from fleetslam.backend.state import BackEndState
+from fleetslam.backend.workers import LocalMappingPool, SessionWorkers
+from fleetslam.cloud.session_state import CHECKPOINT_CLASSES
 from fleetslam.system import RobotTracker
+from fleetslam.wire import data_tree
 
 NEWEST = N_KEYFRAMES - 1
 
@@ -34,10 +36,14 @@ def pool():
     pool.close()
 
 
-def scene_session(seed: int) -> CloudSession:
-    session = CloudSession(Config(), CAMERA)
+def scene_session(seed: int) -> BackEndState:
+    session = new_state(Config(), CAMERA)
     session.map, _, _ = build_scene(seed)
     return session
+
+
+def mapper(pool: LocalMappingPool, session: BackEndState) -> LocalMapper:
+    return LocalMapper(session, SessionWorkers(pool))
 
 
 def test_a_solve_in_the_worker_equals_the_solve_in_line(pool):
@@ -53,12 +59,11 @@ def test_the_worker_result_lands_in_the_map_as_in_line_would(pool):
     inline, worker = scene_session(2), scene_session(2)
     problem = build_problem(inline, NEWEST)
     apply_solution(inline, problem, solve_local_ba(problem))
-    mapping = AsyncLocalMapping(pool, worker.config.tracking)
-    worker.local_mapping = mapping
-    mapping.request(worker, NEWEST)
-    assert mapping.in_flight is not None  # submitted, not solved on this thread
-    mapping.flush(worker, timeout_s=60)
-    assert mapping.counts["applied"] == 1 and mapping.in_flight is None
+    mapping = mapper(pool, worker)
+    mapping.request(NEWEST)
+    assert not mapping.jobs.idle  # submitted, not solved on this thread
+    mapping.flush(timeout_s=60)
+    assert mapping.counts["applied"] == 1 and mapping.jobs.idle
     np.testing.assert_array_equal(worker.map.keyframe_poses(), inline.map.keyframe_poses())
     np.testing.assert_array_equal(worker.map.xyz, inline.map.xyz)
 
@@ -66,21 +71,21 @@ def test_the_worker_result_lands_in_the_map_as_in_line_would(pool):
 def test_a_result_for_a_map_moved_since_is_dropped(pool):
     session = scene_session(3)
     before = session.map.keyframe_poses().copy()
-    mapping = AsyncLocalMapping(pool, session.config.tracking)
-    mapping.request(session, NEWEST)
+    mapping = mapper(pool, session)
+    mapping.request(NEWEST)
     session.map.epoch += 1  # a loop correction moved the map meanwhile
-    mapping.flush(session, timeout_s=60)
+    mapping.flush(timeout_s=60)
     assert mapping.counts == {**mapping.counts, "stale": 1, "applied": 0}
     np.testing.assert_array_equal(session.map.keyframe_poses(), before)
 
 
 def test_a_newer_keyframe_replaces_the_one_waiting(pool):
     session = scene_session(4)
-    mapping = AsyncLocalMapping(pool, session.config.tracking)
-    mapping.request(session, NEWEST - 2)
-    mapping.request(session, NEWEST - 1)  # waits for the one in flight ...
-    mapping.request(session, NEWEST)  # ... and is replaced by this one
-    mapping.flush(session, timeout_s=60)
+    mapping = mapper(pool, session)
+    mapping.request(NEWEST - 2)
+    mapping.request(NEWEST - 1)  # waits for the one in flight ...
+    mapping.request(NEWEST)  # ... and is replaced by this one
+    mapping.flush(timeout_s=60)
     assert mapping.counts["submitted"] == 2 and mapping.counts["superseded"] == 1
     assert mapping.counts["applied"] == 2
 
@@ -89,28 +94,37 @@ def test_a_dead_worker_leaves_local_ba_in_line():
     pool = LocalMappingPool(1)
     try:
         session, inline = scene_session(5), scene_session(5)
-        mapping = AsyncLocalMapping(pool, session.config.tracking)
-        session.local_mapping = mapping
+        back_end = CloudBackEnd(session.config, CAMERA, session, pool)
+        mapping = back_end.local_mapper
         assert pool.submit(build_problem(session, NEWEST)).result(timeout=60) is not None
         for pid in list(pool._executor._processes):  # the worker dies (OOM killer, a crash)
             os.kill(pid, signal.SIGKILL)
-        mapping.request(session, NEWEST)
-        mapping.flush(session, timeout_s=60)
-        assert mapping.broken and mapping.counts["inline"] == 1
+        mapping.request(NEWEST)
+        mapping.flush(timeout_s=60)
+        assert back_end.workers.broken and mapping.counts["inline"] == 1
         problem = build_problem(inline, NEWEST)
         apply_solution(inline, problem, solve_local_ba(problem))
         np.testing.assert_array_equal(session.map.keyframe_poses(), inline.map.keyframe_poses())
-        assert session.local_mapping_summary()["mode"] == "inline (worker failed)"
+        assert back_end.local_mapping_summary()["mode"] == "inline (worker failed)"
     finally:
         pool.close()
 
 
-def test_the_worker_handle_is_not_checkpointed(pool):
+def test_a_checkpoint_holds_the_map_and_no_worker_handle(pool):
+    """What a cloud checkpoints of a back-end that uses workers: its state as data (no pool,
+    future or process in it: capture refuses any object it does not list), restoring the
+    same map with BA in flight."""
     session = scene_session(6)
-    session.local_mapping = AsyncLocalMapping(pool, session.config.tracking)
-    again = pickle.loads(pickle.dumps(session))
-    assert again.local_mapping is None
-    np.testing.assert_array_equal(again.map.xyz, session.map.xyz)
+    back_end = CloudBackEnd(session.config, CAMERA, session, pool)
+    back_end.local_mapper.request(NEWEST)
+    assert not back_end.local_mapper.jobs.idle
+    blob = data_tree.dumps(session, CHECKPOINT_CLASSES)
+    back_end.local_mapper.flush(timeout_s=60)
+    assert b"Future" not in blob and b"Pool" not in blob
+    again = data_tree.loads(blob, "test", CHECKPOINT_CLASSES)
+    assert type(again) is BackEndState
+    np.testing.assert_array_equal(again.map.xyz, build_scene(6)[0].xyz)
+    np.testing.assert_array_equal(again.map.keyframe_poses(), build_scene(6)[0].keyframe_poses())
 
 
 def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
@@ -122,14 +136,11 @@ def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
     for mode in ("inline", "async"):
         config = Config()
         sequence = RgbdSequence(folder)
-        tracker = RobotTracker("r", str(folder), sequence, config)
-        if mode == "async":
-            tracker.session.local_mapping = AsyncLocalMapping(pool, config.tracking)
+        tracker = RobotTracker("r", str(folder), sequence, config,
+                               pool if mode == "async" else None)
         for i in range(len(sequence)):
             tracker.step(i)
-        if mode == "async":
-            tracker.session.local_mapping.flush(tracker.session, loops=True)
-        run = tracker.finish()
+        run = tracker.finish()  # the last BA and loop queries land first
         ates[mode] = run_ate(run)["rmse_m"]
         summary = run.loop_closing["local_mapping"]
         if mode == "async":

@@ -10,12 +10,13 @@ from conftest import SEVEN_SCENES, require
 from fleetslam.config import Config, PlaceRecognitionConfig
 from fleetslam.datasets.tum import open_robot
 from fleetslam.evaluation.ate import absolute_trajectory_error
-from fleetslam.pipeline.geometric_verification import ransac_rigid
-from fleetslam.pipeline.loop_closer import LoopDetection, correct
-from fleetslam.pipeline.place_recognition import KeyframeDatabase, snapshot
-from fleetslam.pipeline.pose_graph import PoseEdge, optimise_pose_graph
+from fleetslam.backend.geometric_verification import ransac_rigid
+from fleetslam.backend.loop_closing import LoopDetection, correct
+from fleetslam.backend.place_recognition import KeyframeDatabase, snapshot
+from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.system import track_robot
-from fleetslam.transforms import invert, make_T, random_perturbation, rotation_angle_deg
+from fleetslam.registration.metrics import random_perturbation
+from fleetslam.transforms import invert, make_T, rotation_angle_deg
 
 
 def _flip_bits(rng: np.random.Generator, d: np.ndarray, n_bits: int) -> np.ndarray:
@@ -105,11 +106,11 @@ def kitchen_run():
     seq = open_robot(f"{require(SEVEN_SCENES)}:0-199")
     config = Config()
     config.loop_closing.global_ba = False
-    from fleetslam.pipeline.split import TrackingPipeline
+    from fleetslam.backend.back_end import TrackingPipeline
     from fleetslam.pipeline.states import CapturedFrame
     pipeline = TrackingPipeline(config, seq.camera)
     out = [pipeline.track(CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)) for f in seq]
-    return seq, pipeline.session.cloud, out
+    return seq, pipeline.state, out
 
 
 def _final_ate(seq, session, out) -> float:

@@ -15,11 +15,13 @@ from fleetslam.config import Config
 from fleetslam.datasets.tum import open_robot
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.mapping.octomap_export import read_octomap
-from fleetslam.merging.inter_robot import KeyframeSummary, PlaceMatch
+from fleetslam.merging.inter_robot import PlaceMatch
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.system import run_fleet
-from fleetslam.transforms import invert, make_T, random_perturbation, rotation_angle_deg
+from fleetslam.registration.metrics import random_perturbation
+from fleetslam.transforms import invert, make_T, rotation_angle_deg
 
 CAMERA = Camera(525.0, 525.0, 319.5, 239.5)
 

@@ -12,7 +12,8 @@ from fleetslam.cli import main
 from fleetslam.config import Config, PlannerConfig
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.planner.model import Link, candidates, choose, offloading_ratios
-from fleetslam.planner.profile import Profile, measure_profile, paper_profile
+from fleetslam.planner.profile import Profile, paper_profile
+from fleetslam.planner.profiling import measure_profile
 
 PAPER_ENERGY = [6.64, 6.79, 4.30, 3.43, 4.48, 4.81, 5.12]
 PAPER_T_TR = [5.04, 5.04, 3.04, 2.32, 2.96, 3.20, 3.36]

@@ -22,7 +22,8 @@ from fleetslam.registration.fshicp import (
     preprocess,
 )
 from fleetslam.registration.metrics import build_tree, fitness_score, rmse, transform_error
-from fleetslam.transforms import invert, make_T, random_perturbation, transform_points
+from fleetslam.registration.metrics import random_perturbation
+from fleetslam.transforms import invert, make_T, transform_points
 
 FRAGMENTS = Path(__file__).parents[1] / ".." / "shared" / "data" / \
     "3dmatch_7scenes-redkitchen_fragments"

@@ -4,23 +4,22 @@ from __future__ import annotations
 
 import pytest
 
-from fleetslam.edge.robot import parse_offload_point, parse_rate
-from fleetslam.pipeline.stages import default_stages
+from fleetslam.edge.robot import parse_rate
+from fleetslam.pipeline.split import parse_offload_point
 from fleetslam.transport import keys
-
-NAMES = [s.name for s in default_stages()]
 
 
 def test_offloading_points():
-    assert parse_offload_point("paper", NAMES) == 3
-    assert parse_offload_point("match", NAMES) == 3  # the first stage in the cloud
-    assert parse_offload_point("0", NAMES) == 0
-    assert parse_offload_point("6", NAMES) == 6
+    assert parse_offload_point("paper") == 3
+    assert parse_offload_point("match") == 3  # the first stage in the cloud
+    assert parse_offload_point("0") == 0
+    assert parse_offload_point("6") == 6
     for k in ("4", "5", "estimate_pose"):
         with pytest.raises(ValueError, match="splits the tracking map"):
-            parse_offload_point(k, NAMES)
-    with pytest.raises(ValueError, match="give 0..6"):
-        parse_offload_point("later", NAMES)
+            parse_offload_point(k)
+    for k in ("later", "7", "-1"):  # a clear error, never an IndexError
+        with pytest.raises(ValueError, match="give one of 0, 1, 2, 3, 6, 'paper'"):
+            parse_offload_point(k)
 
 
 def test_rates():

@@ -11,7 +11,8 @@ import pytest
 from conftest import SEVEN_SCENES, require
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.pipeline.split import TrackingPipeline, run_stages
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 
 N_FRAMES = 20
@@ -28,9 +29,9 @@ def run_split(camera, frames, k: int) -> np.ndarray:
     robot, cloud = pipeline.split(k)
     poses = []
     for frame in frames:
-        state = run_stages(robot, frame, pipeline.session)
+        state = run_stages(robot, frame, pipeline.sides)
         state = pickle.loads(pickle.dumps(state))  # what crosses the wire
-        poses.append(run_stages(cloud, state, pipeline.session).T_world_camera)
+        poses.append(run_stages(cloud, state, pipeline.sides).T_world_camera)
     return np.array(poses)
 
 

@@ -15,7 +15,8 @@ from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.io.ply import read_ply
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.mapping.octomap_export import read_octomap
-from fleetslam.system import run_fleet, summary_table
+from fleetslam.outputs import summary_table
+from fleetslam.system import run_fleet
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,12 @@ import pytest
 
 from conftest import TUM_RPY, require
 from test_loop_closing import _flip_bits
-from fleetslam.cloud import checkpoint
+from fleetslam.cloud.session_state import CHECKPOINT_CLASSES
+from fleetslam.wire import data_tree
 from fleetslam.config import PlaceRecognitionConfig
-from fleetslam.pipeline.place_recognition import KeyframeDatabase, make_database
-from fleetslam.pipeline.vocabulary import BowDatabase, Vocabulary, load_vocabulary
+from fleetslam.backend.place_recognition import KeyframeDatabase
+from fleetslam.backend.places import make_database
+from fleetslam.backend.vocabulary import BowDatabase, Vocabulary, load_vocabulary
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +57,8 @@ def test_bag_of_words_finds_the_keyframe_that_shares_the_features(world, tmp_pat
     assert all(c.key != "kf3" for c in db.query(query, allowed))
     assert db.query(query, np.zeros(6, bool)) == []
     # A checkpointed database answers the same after restore.
-    restored = checkpoint.loads(checkpoint.dumps(db), "test")
+    restored = data_tree.loads(data_tree.dumps(db, CHECKPOINT_CLASSES), "test",
+                               CHECKPOINT_CLASSES)
     assert [c.key for c in restored.query(query)] == [c.key for c in found]
 
 

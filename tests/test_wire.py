@@ -20,7 +20,8 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config, SyntheticConfig, WireConfig
 from fleetslam.datasets.synthetic import generate_scene
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.pipeline.split import TrackingPipeline, run_stages
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import (
     CapturedFrame,
     FeatureFrame,
@@ -261,14 +262,14 @@ def run_through_wire(camera: Camera, frames: list[CapturedFrame], k: int,
     robot, cloud = pipeline.split(k)
     poses, keyframes, sizes = [], [], []
     for seq, frame in enumerate(frames):
-        state = run_stages(robot, frame, pipeline.session)
+        state = run_stages(robot, frame, pipeline.sides)
         data = encode_frame_message(state, k, ROBOT, seq, camera, config.wire)
         header, decoded = decode_frame_message(data, camera)
         assert (header.split_point, header.seq, header.timestamp) == (k, seq, frame.timestamp)
         # A robot that tracks itself sends its result only (wire/frames.py).
         assert_same_state(state.pose_only() if k == 6 else state, decoded, k)
         sizes.append(len(data))
-        out = run_stages(cloud, decoded, pipeline.session)
+        out = run_stages(cloud, decoded, pipeline.sides)
         poses.append(out.T_world_camera)
         keyframes.append(out.is_keyframe)
     return np.array(poses), keyframes, sizes
@@ -298,7 +299,7 @@ def test_every_split_point_through_the_wire_is_exact(seven_scenes, seven_scenes_
     if k == 3:
         # Compact keypoints: ~32 bytes of descriptor plus ~4.5 of the rest per keypoint.
         pipeline = TrackingPipeline(Config(), camera)
-        n = [len(run_stages(pipeline.stages[:3], f, pipeline.session).keypoints) for f in frames]
+        n = [len(run_stages(pipeline.stages[:3], f, pipeline.sides).keypoints) for f in frames]
         assert all(s < 38 * m + 300 for s, m in zip(sizes, n)), list(zip(sizes, n))
 
 
@@ -318,7 +319,7 @@ def test_synthetic_scene_through_the_wire_is_exact(tmp_path):
 def test_jpeg_frames_decode_and_are_smaller(seven_scenes):
     camera, frames = seven_scenes
     pipeline = TrackingPipeline(Config(), camera)
-    detected = run_stages(pipeline.stages[:1], frames[0], pipeline.session)
+    detected = run_stages(pipeline.stages[:1], frames[0], pipeline.sides)
     jpeg = WireConfig(frame_image_codec="jpeg")
     for k, state in ((0, frames[0]), (1, detected)):
         png_data = encode_frame_message(state, k, ROBOT, 0, camera, WireConfig())
@@ -568,7 +569,7 @@ def run_inter_through_wire(camera: Camera, frames: list[CapturedFrame], k: int, 
     for seq, frame in enumerate(frames):
         while in_flight and in_flight[0] <= seq - ack_lag:
             encoder.acked(in_flight.pop(0))
-        state = run_stages(robot, frame, pipeline.session)
+        state = run_stages(robot, frame, pipeline.sides)
         refs = encoder.choose(seq)
         stats = InterStats()
         data = encode_frame_message(state, k, ROBOT, seq, camera, config.wire, refs, stats)
@@ -585,7 +586,7 @@ def run_inter_through_wire(camera: Camera, frames: list[CapturedFrame], k: int, 
         assert mine.descriptors.tobytes() == theirs.descriptors.tobytes()
         assert mine.angles.tobytes() == theirs.angles.tobytes()
         in_flight.append(seq)
-        out = run_stages(cloud, decoded, pipeline.session)
+        out = run_stages(cloud, decoded, pipeline.sides)
         poses.append(out.T_world_camera)
         keyframes.append(out.is_keyframe)
     return np.array(poses), keyframes, sizes, encoder

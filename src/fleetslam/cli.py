@@ -12,8 +12,7 @@ from typing import Any
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config, load_config
-from fleetslam.planner.model import OBJECTIVES
-from fleetslam.planner.plan import SWEEP_MBPS
+from fleetslam.planner.model import OBJECTIVES, SWEEP_MBPS
 from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
 
@@ -34,7 +33,7 @@ def _scene_dir(config: Config) -> Path:
 
 def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
     from fleetslam.reporting import write_report
-    from fleetslam.system import summary_table
+    from fleetslam.outputs import summary_table
 
     page = write_report(out, show_progress=not quiet)
     print(summary_table(summary))
@@ -209,7 +208,7 @@ def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> 
     import copy
 
     from fleetslam.planner.online import OnlinePlanner, Setting
-    from fleetslam.planner.profile import Profile, measure_profile
+    from fleetslam.planner.profile import Profile
 
     cfg = config.planner
     n = config.orb.n_features
@@ -217,15 +216,31 @@ def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> 
     if args.plan_profile:
         profile = Profile.load(Path(args.plan_profile))
     else:
+        # Measuring runs the back-end: the cloud extra (a robot without it plans from a
+        # saved profile, --plan-profile).
+        from fleetslam.planner.profiling import measure_profile
+
         profile = measure_profile(sequence, args.source, copy.deepcopy(config),
                                   min(cfg.profile_frames, len(sequence)))
     return OnlinePlanner(profile, cfg, Setting(3, n, 1))
 
 
+def _onboard_pipeline(config: Config, camera: Camera) -> Any:
+    """The whole pipeline for a robot that tracks by itself (point 6): its back-end needs
+    the cloud's libraries (``pip install 'fleetslam[cloud]'``)."""
+    try:
+        from fleetslam.backend.back_end import TrackingPipeline
+    except ImportError as exc:
+        raise ValueError(f"a robot that tracks by itself (--offload-at 6) runs the back-end, "
+                         f"which needs the cloud extra: pip install 'fleetslam[cloud]' "
+                         f"({exc})") from None
+    return TrackingPipeline(config, camera)
+
+
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.tum import open_robot
-    from fleetslam.edge.robot import Robot, parse_offload_point
-    from fleetslam.pipeline.stages import default_stages
+    from fleetslam.edge.robot import Robot
+    from fleetslam.pipeline.split import ROBOT_TRACKS, parse_offload_point
 
     _setup_logging(args.quiet)
     for name in ("bandwidth_mbps", "latency_ms", "loss"):
@@ -246,11 +261,13 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
         k = 3
         planner = _online_planner(args, config, sequence)
     else:
-        k = parse_offload_point(args.offload_at, [s.name for s in default_stages()])
+        k = parse_offload_point(args.offload_at)
     robot = Robot(args.id, sequence, args.source, k, config, args.connect, args.rate,
                   show_progress=not args.quiet,
                   paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None,
-                  planner=planner, link_trace=trace)
+                  planner=planner, link_trace=trace,
+                  onboard=_onboard_pipeline(config, sequence.camera) if k == ROBOT_TRACKS
+                  else None)
     report = robot.run()
     if args.report:
         Path(args.report).parent.mkdir(parents=True, exist_ok=True)
@@ -275,7 +292,7 @@ def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[s
 
 
 def cmd_merge(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.system import summary_table
+    from fleetslam.outputs import summary_table
 
     print(summary_table(_ask_cloud(args, config, "merge")))
     return 0
@@ -318,7 +335,7 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
 
 
 def cmd_vocabulary(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.pipeline.vocabulary import Vocabulary, image_descriptors, training_images
+    from fleetslam.backend.vocabulary import Vocabulary, image_descriptors, training_images
     from fleetslam.progress import Progress
 
     out = Path(args.out)
@@ -350,9 +367,10 @@ def cmd_vocabulary(args: argparse.Namespace, config: Config) -> int:
 def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.planner.model import Link
     from fleetslam.planner.plan import plan, report, write_plan
-    from fleetslam.planner.profile import Profile, measure_profile, paper_profile
+    from fleetslam.planner.profile import Profile, paper_profile
+    from fleetslam.planner.profiling import measure_profile
     from fleetslam.progress import Progress
-    from fleetslam.transport.protocol import SUPPORTED_POINTS
+    from fleetslam.pipeline.split import SUPPORTED_POINTS
 
     cfg = config.planner
     offered: tuple[int, ...] | None = SUPPORTED_POINTS

@@ -2,13 +2,12 @@
 by frame, each new keyframe handed to the map merger at once), build each dense map, write
 the global outputs, then score against ground truth where a sequence has it.
 
-The robot/cloud split is the pipeline's ``split(k)`` (see pipeline/split.py); the same work
-as separate processes is cloud/ and edge/.
+The robot/cloud split is an index into the pipeline's stages (pipeline/split.py); the same
+work as separate processes is cloud/ and edge/.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,11 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.config import Config, config_to_dict
+from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import score_fleet
-from fleetslam.io.ply import write_ply
-from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.merging.global_map import (
     GlobalMap,
@@ -28,16 +25,15 @@ from fleetslam.merging.global_map import (
     build_global_map,
     merge_summary,
 )
-from fleetslam.merging.inter_robot import KeyframeSummary, keyframe_summary
+from fleetslam.merging.inter_robot import keyframe_summary
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
-from fleetslam.pipeline.session import CloudSession
-from fleetslam.pipeline.split import TrackingPipeline
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.state import BackEndState
+from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
-from fleetslam.report import format_table
-
-SUMMARY_VERSION = 3
-
+from fleetslam.outputs import fleet_summary, robot_files, write_robot_files, write_summary
 
 @dataclass
 class RobotRun:
@@ -83,9 +79,10 @@ class RobotTracker:
     """One robot's tracking frame by frame (robots of a fleet take turns, so the merger
     sees their keyframes in the order they would arrive)."""
 
-    def __init__(self, name: str, source: str, sequence: RgbdSequence, config: Config) -> None:
+    def __init__(self, name: str, source: str, sequence: RgbdSequence, config: Config,
+                 workers: LocalMappingPool | None = None) -> None:
         self.name, self.source, self.sequence = name, source, sequence
-        self.pipeline = TrackingPipeline(config, sequence.camera)
+        self.pipeline = TrackingPipeline(config, sequence.camera, workers)
         self.poses: list[np.ndarray] = []
         self.tracked: list[bool] = []
         self.refs: list[int] = []
@@ -93,8 +90,8 @@ class RobotTracker:
         self.seconds = 0.0
 
     @property
-    def session(self) -> CloudSession:
-        return self.pipeline.session.cloud
+    def session(self) -> BackEndState:
+        return self.pipeline.state
 
     def step(self, i: int) -> KeyframeSummary | None:
         """Track frame ``i``; the new keyframe's summary if it became one."""
@@ -112,6 +109,7 @@ class RobotTracker:
         return keyframe_summary(self.name, self.session.map.keyframes[-1])
 
     def finish(self) -> RobotRun:
+        self.pipeline.back_end.finish()
         session, sequence = self.session, self.sequence
         kfs = session.map.keyframes
         return RobotRun(
@@ -121,7 +119,7 @@ class RobotTracker:
             self.pipeline.timer.mean_ms(), session.lost_total, session.loss_events,
             session.repeated_frames, session.resets, self.seconds,
             references=np.array(self.refs, np.int64), T_reference_camera=list(self.T_refs),
-            online_poses=np.array(self.poses), loop_closing=session.loop_summary())
+            online_poses=np.array(self.poses), loop_closing=self.pipeline.back_end.summary())
 
 
 def track_robot(name: str, source: str, sequence: RgbdSequence, config: Config,
@@ -181,131 +179,28 @@ def run_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config, out_d
     runs, merger = track_fleet(robots, config, show_progress)
     for run in runs:
         build_robot_map(run, config, show_progress)
-        robot_dir = out_dir / run.name
-        write_tum_trajectory(robot_dir / "trajectory.tum", run.timestamps, run.poses,
-                             comment=f"fleetslam robot {run.name} from {run.source}\n"
-                                     "T_map_camera; map frame = first camera pose")
-        write_tum_trajectory(robot_dir / "keyframes.tum", run.timestamps[run.keyframe_indices],
-                             run.keyframe_poses, comment=f"fleetslam robot {run.name} keyframes")
-        write_ply(robot_dir / "map.ply", run.map_points, run.map_colors)
+        write_robot_files(out_dir / run.name, run.name, run.source, run.timestamps, run.poses,
+                          run.timestamps[run.keyframe_indices], run.keyframe_poses,
+                          run.map_points, run.map_colors)
     global_map = build_global_map(merger, [r.track() for r in runs], config, out_dir) \
         if len(runs) > 1 else None
     summary = make_summary(runs, merger, global_map, config, time.perf_counter() - start)
     # Evaluation: ground truth is read only now, after every output is written.
     score_fleet(summary, out_dir, {r.name: r.sequence for r in runs})
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_summary(out_dir, summary)
     return summary
 
 
 def make_summary(runs: list[RobotRun], merger: MapMerger, global_map: GlobalMap | None,
                  config: Config, wall_s: float) -> dict[str, Any]:
-    return {
-        "version": SUMMARY_VERSION,
-        "wall_time_s": wall_s,
-        "robots": [{
-            "name": r.name, "source": r.source, "camera": r.sequence.camera_source,
-            "frames": len(r.timestamps), "keyframes": len(r.keyframe_indices),
-            "lost_frames": r.lost_frames, "loss_events": r.loss_events,
-            "repeated_frames": r.repeated_frames, "map_resets": r.resets,
-            "ate": None, "tracking_fps": len(r.timestamps) / r.wall_s,
-            "stage_ms": r.stage_ms, "map_points": len(r.map_points),
-            "loop_closing": r.loop_closing,
-            "trajectory": f"{r.name}/trajectory.tum", "map": f"{r.name}/map.ply",
-        } for r in runs],
-        "merge": merge_summary(merger, global_map) if len(runs) > 1 else None,
-        "config": config_to_dict(config),
-    }
-
-
-Table = tuple[list[str], list[list[Any]]]  # headers, rows (the text and the HTML report)
-
-
-def robot_table(summary: dict[str, Any]) -> Table:
-    """One row per robot: frames, losses, loops, ATE (if scored), speed, map size."""
-    rows = []
-    for r in summary["robots"]:
-        ate = r["ate"]["rmse_m"] * 100 if r.get("ate") else None
-        loops = r.get("loop_closing") or {}
-        rows.append([r["name"], r["frames"], r["keyframes"], r["lost_frames"],
-                     loops.get("relocalisations"), loops.get("loops_accepted"), ate,
-                     r.get("tracking_fps"), r["map_points"]])
-    return (["robot", "frames", "keyframes", "lost", "relocalised", "loops", "ATE RMSE cm",
-             "fps", "map points"], rows)
-
-
-def transport_table(summary: dict[str, Any]) -> Table | None:
-    """Robot -> cloud traffic and timing of a deployed run (None in one process)."""
-    deployed = [r for r in summary["robots"] if "transport" in r]
-    if not deployed:
-        return None
-    trows = []
-    for r in deployed:
-        robot = r.get("robot") or {}
-        counts = r["transport"]
-        trows.append([
-            r["name"], r["offload_at"],
-            robot["frame_bytes"] / max(robot["frames"], 1) / 1000 if robot else None,
-            robot.get("frames_lost_on_link"),
-            sum(v for k, v in counts.items() if k.startswith("rejected")),
-            robot.get("keyframe_uploads"), robot.get("upload_retries"),
-            r["cloud_ms_mean"], r["latency_ms_median"], robot.get("round_trip_ms_median"),
-            robot.get("round_trip_ms_p95")])
-    return (["robot", "offload at", "kB/frame", "lost on link", "rejected", "KF uploads",
-             "retries", "cloud ms/frame", "cloud latency ms", "round trip ms", "p95"], trows)
-
-
-def summary_table(summary: dict[str, Any]) -> str:
-    text = format_table(*robot_table(summary))
-    transport = transport_table(summary)
-    if transport:
-        text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + format_table(*transport)
-    merge = summary.get("merge")
-    if merge:
-        text += "\n\n" + merge_table(merge)
-    text += f"\n\nwall time {summary['wall_time_s']:.1f} s"
-    return text
-
-
-def merge_robot_table(merge: dict[str, Any]) -> Table:
-    """Per robot: its group, the frames it joined at, its errors if scored."""
-    evaluation = merge.get("evaluation") or {}
-    relative = {r["robot"]: r for r in evaluation.get("relative_poses", [])}
-    rows = []
-    for name, info in sorted(merge["robots"].items()):
-        joined = info.get("joined")
-        rel = relative.get(name, {})
-        rows.append([name, info["anchor"],
-                     " ".join(f"{r}:{f}" for r, f in joined["frames"].items()) if joined
-                     else None,
-                     rel.get("final_rotation_error_deg"),
-                     None if rel.get("final_translation_error_m") is None
-                     else rel["final_translation_error_m"] * 100,
-                     (merge.get("not_merged") or {}).get(name, "")])
-    return (["robot", "group", "joined at (robot:frame)", "rel. rot err deg",
-             "rel. trans err cm", "not merged because"], rows)
-
-
-def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
-    """(the groups line, the lines after the table: constraints, joint ATE)."""
-    evaluation = merge.get("evaluation") or {}
-    joint = evaluation.get("joint_ate")
-    head = "merge (no ground truth in the run): " + ", ".join(
-        "+".join(m) for m in merge["components"].values())
-    scored = [c for c in evaluation.get("constraints", []) if "rotation_error_deg" in c]
-    kept = [c for c in scored if c["kept"]]
-    line = (f"inter-robot constraints: {len(merge['constraints'])} "
-            f"({sum(c['kept'] is False for c in merge['constraints'])} rejected by GNC)")
-    if kept:
-        worst = max(kept, key=lambda c: c["rotation_error_deg"])
-        line += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
-                 f" / {max(c['translation_error_m'] for c in kept) * 100:.1f} cm")
-    lines = [line]
-    if joint:
-        lines.append(f"joint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm")
-    return head, lines
-
-
-def merge_table(merge: dict[str, Any]) -> str:
-    """Which robots joined, when, with how many constraints; the errors if scored."""
-    head, lines = merge_notes(merge)
-    return "\n".join([head, format_table(*merge_robot_table(merge)), *lines])
+    robots = [{
+        "name": r.name, "source": r.source, "camera": r.sequence.camera_source,
+        "frames": len(r.timestamps), "keyframes": len(r.keyframe_indices),
+        "lost_frames": r.lost_frames, "loss_events": r.loss_events,
+        "repeated_frames": r.repeated_frames, "map_resets": r.resets,
+        "ate": None, "tracking_fps": len(r.timestamps) / r.wall_s,
+        "stage_ms": r.stage_ms, "map_points": len(r.map_points),
+        "loop_closing": r.loop_closing, **robot_files(r.name),
+    } for r in runs]
+    return fleet_summary(robots, merge_summary(merger, global_map) if len(runs) > 1 else None,
+                         config, wall_s)

@@ -4,7 +4,7 @@ graph. A slow query never holds up a robot's frames, and a failure on one keyfra
 logged and counted, never raised into a session.
 
 With several cloud workers, one of them merges (server.py: the live worker whose id sorts
-first); the others publish their robots' keyframes to it (encode_keyframe), and a worker
+first); the others publish their robots' keyframes to it (wire/merger_keyframes.py), and a worker
 that becomes the merger takes every robot's keyframes from the store first.
 """
 
@@ -19,9 +19,8 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from fleetslam.camera import Camera
-from fleetslam.cloud import checkpoint
 from fleetslam.config import Config
-from fleetslam.merging.inter_robot import KeyframeSummary
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
 from fleetslam.visualisation.live_view import NullView
 
@@ -33,29 +32,6 @@ T = TypeVar("T")
 # A robot's keyframes as the merger has them in the store: (camera, summaries, poses), or
 # None (no checkpoint): what fills a gap in keyframes heard from another worker.
 FromStore = Callable[[str], "tuple[Camera, list[KeyframeSummary], np.ndarray] | None"]
-
-
-def encode_keyframe(camera: Camera, summary: KeyframeSummary, poses: np.ndarray) -> bytes:
-    """A keyframe for the merger on another worker (``fleet/cloud/keyframes/<robot>``): data
-    in the checkpoint format, never a pickle."""
-    return checkpoint.dumps({"camera": camera, "summary": summary,
-                             "poses": np.asarray(poses, np.float64)})
-
-
-def decode_keyframe(data: bytes, robot: str) -> tuple[Camera, KeyframeSummary, np.ndarray]:
-    """What :func:`encode_keyframe` wrote, for ``robot``; ValueError saying what is wrong."""
-    where = f"keyframe summary of robot {robot}"
-    tree = checkpoint.loads(data, where)
-    if not isinstance(tree, dict) or not isinstance(tree.get("camera"), Camera) \
-            or not isinstance(tree.get("summary"), KeyframeSummary) \
-            or not isinstance(tree.get("poses"), np.ndarray):
-        raise ValueError(f"{where}: not a camera, a keyframe summary and poses")
-    summary, poses = tree["summary"], tree["poses"]
-    if summary.robot != robot or poses.ndim != 3 or poses.shape[1:] != (4, 4) \
-            or not 0 <= summary.keyframe < len(poses):
-        raise ValueError(f"{where}: robot {summary.robot!r}, keyframe {summary.keyframe} of "
-                         f"poses {poses.shape}")
-    return tree["camera"], summary, poses
 
 
 class MergerService:

@@ -17,22 +17,24 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fleetslam.cloud.checkpoint import Capture
-from fleetslam.cloud.store import CloudStore, snapshot
+from fleetslam.backend.back_end import CloudBackEnd, new_state
+from fleetslam.backend.workers import LocalMappingPool
+from fleetslam.cloud import session_state
+from fleetslam.cloud.session_state import SessionState, TrajectoryRow
+from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.io.ply import write_ply
-from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.merging.global_map import RobotTrack
-from fleetslam.merging.inter_robot import KeyframeSummary, keyframe_summary
-from fleetslam.pipeline.local_mapping_worker import AsyncLocalMapping, LocalMappingPool
-from fleetslam.pipeline.session import CloudSession, EdgeSession, Session
-from fleetslam.pipeline.split import StageTimer, run_stages
-from fleetslam.pipeline.stages import default_stages
+from fleetslam.outputs import robot_files, write_robot_files
+from fleetslam.merging.inter_robot import keyframe_summary
+from fleetslam.wire.merger_keyframes import KeyframeSummary
+from fleetslam.pipeline.front_end import FrontEndState
+from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, ROBOT_TRACKS, StageTimer
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
 from fleetslam.transport import keys, protocol
-from fleetslam.transport.protocol import CLOUD_TRACKS, ROBOT_TRACKS, Hello
+from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
+from fleetslam.wire.data_tree import Capture
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.frames import decode_frame_message
 from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
@@ -52,44 +54,6 @@ MAX_SEQ_JUMP = 100_000
 REJECTION_REPLY_INTERVAL_S = 1.0
 # The longest a reply waits for the checkpoint that must be on disk before it goes out.
 CHECKPOINT_WAIT_S = 30.0
-
-
-@dataclass
-class TrajectoryRow:
-    index: int
-    timestamp: float
-    T_world_camera: np.ndarray
-    tracked: bool
-    is_keyframe: bool
-    # Reference keyframe (-1: none) and the pose relative to it (see CloudSession.final_poses).
-    reference_keyframe: int = -1
-    T_reference_camera: np.ndarray | None = None
-
-
-@dataclass
-class SessionState:
-    """Everything a session must keep across a cloud restart or a takeover by another
-    worker (checkpointed at keyframes and at the end: cloud/checkpoint.py)."""
-
-    robot_id: str
-    hello: Hello
-    tracking: CloudSession
-    # The front end's state, when the robot offloads before its stages end (points 0-2).
-    front_end: EdgeSession | None = None
-    last_seq: int = -1
-    last_index: int = -1
-    rows: list[TrajectoryRow] = field(default_factory=list)
-    # Keyframe poses reported by a robot that tracks itself (offloading point 6).
-    robot_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
-    counts: Counter = field(default_factory=Counter)
-    stage_seconds: dict[str, float] = field(default_factory=dict)
-    cloud_ms: list[float] = field(default_factory=list)
-    latency_ms: list[float] = field(default_factory=list)
-    first_frame_time: float | None = None
-    last_frame_time: float | None = None
-    # The robot ended its stream and the cloud wrote its outputs: a worker restoring the
-    # session (a restart, a failover, the merge) has its finished map without the robot.
-    ended: bool = False
 
 
 @dataclass
@@ -152,12 +116,12 @@ class RobotSession:
         self.config = config
         self.store = store
         self.publish = publish
-        self.stages = default_stages()[state.hello.offload_at:] \
-            if state.hello.offload_at in CLOUD_TRACKS else []
+        # Whether this cloud tracks the robot (else it tracks itself, point 6, and sends its
+        # poses); the back-end's state is kept either way (its counts go in the summary).
+        self.tracks = state.hello.offload_at in CLOUD_TRACKS
+        self.back_end = CloudBackEnd(config, state.hello.camera, state.tracking,
+                                     local_mapping if self.tracks else None)
         self.finished: FinishedMap | None = None
-        if local_mapping is not None and self.stages:
-            # Local BA in the cloud's worker processes (off the frame thread).
-            state.tracking.local_mapping = AsyncLocalMapping(local_mapping, config.tracking)
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
         # session refuses references to frames before it, and the robot sends intra).
         self.references = ReferenceRing(config.wire.reference_frames)
@@ -210,7 +174,7 @@ class RobotSession:
              view: NullView | None = None,
              local_mapping: LocalMappingPool | None = None) -> "RobotSession":
         # The front end's state is made by the first frame that needs it (_on_frame).
-        return RobotSession(SessionState(robot_id, hello, CloudSession(config, hello.camera)),
+        return RobotSession(SessionState(robot_id, hello, new_state(config, hello.camera)),
                             config, store, publish, keyframe_sink, view, local_mapping).start()
 
     @property
@@ -248,7 +212,7 @@ class RobotSession:
         """The state as a checkpoint now; under the counts lock, since the keyframe thread
         counts while this copies."""
         with self._counts_lock:
-            return snapshot(self.state)
+            return session_state.capture(self.state)
 
     def count(self, name: str, n: int = 1) -> None:
         with self._counts_lock:
@@ -447,15 +411,14 @@ class RobotSession:
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
-        stages = self._stages_from(header.split_point)
-        if stages:
+        if self.tracks:
             timer = StageTimer()
-            if st.front_end is None and any(s.side == "edge" for s in stages):
+            if st.front_end is None and header.split_point < FRONT_END_LENGTH:
                 # The robot offloads before its front end ends (points 0-2, or an adaptive
                 # robot that switched there): the cloud holds the front end's state.
-                st.front_end = EdgeSession(self.config, st.hello.camera)
-            session = Session(st.front_end, st.tracking)
-            out: TrackedFrame = run_stages(stages, state, session, timer)
+                st.front_end = FrontEndState(self.config, st.hello.camera)
+            out: TrackedFrame = self.back_end.track(state, header.split_point, st.front_end,
+                                                    timer)
             for name, seconds in timer.seconds.items():
                 st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
         else:
@@ -481,8 +444,8 @@ class RobotSession:
             # on the writer thread); the keyframe's upload is acknowledged, and the keyframe
             # handed to the merger, only once this checkpoint is on disk, so no acknowledged
             # or merged keyframe is one a restart or a takeover forgets.
-            self._checkpoint(out.index, self.newest_keyframe() if self.stages else None)
-            if self.view.enabled and self.stages:  # local BA moved the recent keyframes
+            self._checkpoint(out.index, self.newest_keyframe() if self.tracks else None)
+            if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
                 lmap = st.tracking.map
                 self.view.keyframe_poses(self.robot_id,
                                          [kf.frame_index for kf in lmap.keyframes],
@@ -497,12 +460,6 @@ class RobotSession:
         """Frame indices this session took as keyframes (a robot at point 6 says which)."""
         rows = list(self.state.rows)
         return {r.index for r in rows if r.is_keyframe}
-
-    def _stages_from(self, k: int) -> list:
-        """The cloud's stages for a frame sent at point k (an adaptive robot switches)."""
-        if k == self.state.hello.offload_at:
-            return self.stages
-        return default_stages()[k:] if k in CLOUD_TRACKS else []
 
     def _store_captured_keyframe(self, frame: CapturedFrame, seq: int) -> None:
         depth_raw = self.state.hello.camera.metres_to_depth(frame.depth_m)
@@ -524,7 +481,7 @@ class RobotSession:
     def _keyframe_pose(self, frame_index: int) -> np.ndarray:
         """A keyframe's current pose: in the tracking map, or as its frame was tracked (a
         robot that tracks itself)."""
-        if self.stages:
+        if self.tracks:
             for kf in reversed(list(self.state.tracking.map.keyframes)):
                 if kf.frame_index == frame_index:
                     return kf.T_world_camera.copy()
@@ -600,9 +557,7 @@ class RobotSession:
             except ValueError as exc:
                 return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
             self.state.robot_keyframe_poses.update(poses)
-            if self.state.tracking.local_mapping is not None:
-                # The last keyframes' local BA and loop queries belong in the final map.
-                self.state.tracking.local_mapping.flush(self.state.tracking, loops=True)
+            self.back_end.finish()
             missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
                 self.robot_id, i)]
             if missing:
@@ -656,16 +611,9 @@ class RobotSession:
         out_dir: Path = self.store.robot_dir(self.robot_id)
         rows = st.rows
         timestamps = np.array([r.timestamp for r in rows])
-        write_tum_trajectory(out_dir / "trajectory.tum", timestamps, self.trajectory(),
-                             comment=f"fleetslam robot {self.robot_id} from {st.hello.source}\n"
-                                     "T_map_camera; map frame = first camera pose")
         kf_poses = self.keyframe_poses()
         kf_index = sorted(kf_poses)
         time_of = {r.index: r.timestamp for r in rows}
-        write_tum_trajectory(out_dir / "keyframes.tum",
-                             np.array([time_of.get(i, np.nan) for i in kf_index]),
-                             np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
-                             comment=f"fleetslam robot {self.robot_id} keyframes")
 
         def keyframes():
             for i in kf_index:
@@ -674,7 +622,10 @@ class RobotSession:
                        kf_poses[i], upload.stride)
 
         points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map)
-        write_ply(out_dir / "map.ply", points, colors)
+        write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
+                          np.array([time_of.get(i, np.nan) for i in kf_index]),
+                          np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
+                          points, colors)
         summary = self.summary(len(points))
         (out_dir / "robot.json").write_text(json.dumps(summary, indent=2))
         log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
@@ -715,7 +666,7 @@ class RobotSession:
             "lost_frames": int(sum(not r.tracked for r in st.rows)),
             "loss_events": tracking.loss_events, "repeated_frames": tracking.repeated_frames,
             "map_resets": tracking.resets, "map_points": map_points,
-            "loop_closing": tracking.loop_summary(),
+            "loop_closing": self.back_end.summary(),
             "stage_ms": {k: 1000.0 * v / n for k, v in st.stage_seconds.items()},
             "cloud_ms_mean": float(np.mean(st.cloud_ms)) if st.cloud_ms else None,
             "cloud_ms_median": float(np.median(st.cloud_ms)) if st.cloud_ms else None,
@@ -727,5 +678,5 @@ class RobotSession:
             "transport": {**self.counts(),
                           "frames dropped (session busy)":
                               self._frames.dropped + self._decoded.dropped},
-            "trajectory": f"{self.robot_id}/trajectory.tum", "map": f"{self.robot_id}/map.ply",
+            **robot_files(self.robot_id),
         }

@@ -25,7 +25,7 @@ import numpy as np
 import zenoh
 
 from fleetslam.camera import Camera
-from fleetslam.cloud.merger_service import MergerService, decode_keyframe, encode_keyframe
+from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.placement import Placement
 from fleetslam.cloud.robot_session import (
     REJECTION_REPLY_INTERVAL_S,
@@ -36,9 +36,13 @@ from fleetslam.cloud.robot_session import (
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
 from fleetslam.merging.global_map import build_global_map, merge_summary
-from fleetslam.merging.inter_robot import KeyframeSummary
-from fleetslam.pipeline.local_mapping_worker import LocalMappingPool
-from fleetslam.system import SUMMARY_VERSION
+from fleetslam.wire.merger_keyframes import (
+    KeyframeSummary,
+    decode_merger_keyframe,
+    encode_merger_keyframe,
+)
+from fleetslam.backend.workers import LocalMappingPool
+from fleetslam.outputs import fleet_summary, write_summary
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_connecting, open_listening, put
@@ -185,7 +189,7 @@ class CloudServer:
         elif self.placement is not None:
             session = self.sessions.get(summary.robot)
             if session is not None:
-                self.publish(keys.merge_keyframe(summary.robot), encode_keyframe(
+                self.publish(keys.merge_keyframe(summary.robot), encode_merger_keyframe(
                     session.state.hello.camera, summary, poses))
 
     def _on_remote_keyframe(self, sample: zenoh.Sample) -> None:
@@ -193,7 +197,7 @@ class CloudServer:
             if not self._is_merger():
                 return
             robot_id = keys.check_robot_id(keys.last_chunks(sample.key_expr, 1)[0])
-            self.merger.submit_remote(*decode_keyframe(sample.payload.to_bytes(), robot_id))
+            self.merger.submit_remote(*decode_merger_keyframe(sample.payload.to_bytes(), robot_id))
         except ValueError as exc:
             self._count_unrouted()
             if self._throttle.due("remote keyframe"):
@@ -552,14 +556,10 @@ class CloudServer:
         merge = self.merger.locked(lambda m: merge_summary(m, global_map))
         merge["robots"] = {k: v for k, v in merge["robots"].items()
                            if k in {f.robot_id for f in finished}}
-        summary = {
-            "version": SUMMARY_VERSION,
-            "wall_time_s": time.perf_counter() - start,
-            "robots": [f.summary for f in finished],
-            "merge": merge if len(finished) > 1 else None,
-            "config": config_to_dict(self.config),
-        }
-        (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        summary = fleet_summary([f.summary for f in finished],
+                                merge if len(finished) > 1 else None, self.config,
+                                time.perf_counter() - start)
+        write_summary(self.out_dir, summary)
         self.merger.show()
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
         self._write_report()

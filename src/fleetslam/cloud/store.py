@@ -4,7 +4,7 @@ Layout under the cloud's output folder:
 
     <robot>/keyframes/<frame index>.fskf   KEYFRAME messages as received (checksummed)
     <robot>/session.ckpt                   checkpoint of the robot's cloud session (data:
-                                           JSON + arrays, versioned; see checkpoint.py)
+                                           JSON + arrays, versioned; see session_state.py)
 
 Every write is atomic and durable (temporary file, fsync, rename, fsync of the folder)
 before anyone is told it happened: the cloud acknowledges a keyframe only after this.
@@ -16,9 +16,9 @@ import os
 import re
 import threading
 from pathlib import Path
-from typing import Any
-
-from fleetslam.cloud import checkpoint
+from fleetslam.cloud import session_state
+from fleetslam.cloud.session_state import SessionState
+from fleetslam.wire.data_tree import Capture
 
 _KEYFRAME_FILE = re.compile(r"^(\d+)\.fskf$")
 CHECKPOINT = "session.ckpt"
@@ -41,12 +41,6 @@ def write_durably(path: Path, data: bytes) -> None:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
-
-
-def snapshot(state: Any) -> checkpoint.Capture:
-    """The state as it is now (quick: the file's bytes are made by ``write_checkpoint``),
-    for a later load_checkpoint to turn back into it."""
-    return checkpoint.capture(state)
 
 
 class CloudStore:
@@ -76,17 +70,17 @@ class CloudStore:
         found = (_KEYFRAME_FILE.match(p.name) for p in folder.iterdir())
         return sorted(int(m.group(1)) for m in found if m)
 
-    def save_checkpoint(self, robot_id: str, state: Any) -> None:
-        self.write_checkpoint(robot_id, snapshot(state))
+    def save_checkpoint(self, robot_id: str, state: SessionState) -> None:
+        self.write_checkpoint(robot_id, session_state.capture(state))
 
-    def write_checkpoint(self, robot_id: str, blob: bytes | checkpoint.Capture) -> None:
-        data = blob.to_bytes() if isinstance(blob, checkpoint.Capture) else blob
+    def write_checkpoint(self, robot_id: str, blob: bytes | Capture) -> None:
+        data = blob.to_bytes() if isinstance(blob, Capture) else blob
         write_durably(self.robot_dir(robot_id) / CHECKPOINT, data)
 
     def has_checkpoint(self, robot_id: str) -> bool:
         return (self.robot_dir(robot_id) / CHECKPOINT).exists()
 
-    def load_checkpoint(self, robot_id: str) -> Any | None:
+    def load_checkpoint(self, robot_id: str) -> SessionState | None:
         """The robot's last checkpoint, None if it has none; ValueError naming the file if
         it cannot be restored (damaged, another format version, an old pickle)."""
         path = self.robot_dir(robot_id) / CHECKPOINT
@@ -97,7 +91,7 @@ class CloudStore:
                                  f"never loaded (a pickle can run code). Move it away to "
                                  f"start robot {robot_id}'s session afresh")
             return None
-        return checkpoint.loads(path.read_bytes(), str(path))
+        return session_state.load(path.read_bytes(), str(path))
 
     def robots_with_checkpoints(self) -> list[str]:
         return sorted(p.parent.name for p in self.root.glob(f"*/{CHECKPOINT}"))

@@ -18,22 +18,31 @@ import time
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.pipeline.split import StageTimer, TrackingPipeline, run_stages
+from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
+from fleetslam.pipeline.split import (
+    INTER_POINTS,
+    ROBOT_TRACKS,
+    Sides,
+    Stage,
+    StageTimer,
+    check_point,
+    run_stages,
+)
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.planner.online import OnlinePlanner
 from fleetslam.progress import Progress
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.link import EmulatedLink
-from fleetslam.transport.protocol import ROBOT_TRACKS, SUPPORTED_POINTS, Hello
+from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
-from fleetslam.wire.frames import INTER_POINTS, encode_frame_message
+from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.inter import InterEncoder, InterStats, reference_of
 from fleetslam.wire.messages import KeyframeUpload, decode_feedback, encode_keyframe
 from fleetslam.wire.paper_yaml import write_paper_yaml
@@ -42,26 +51,6 @@ log = logging.getLogger("fleetslam.robot")
 
 # A robot that sends "end" waits this long for its last frames and map (cloud backlog).
 END_TIMEOUT_S = 900.0
-
-
-def parse_offload_point(text: str, stage_names: list[str]) -> int:
-    """A split point: a number 0..6, 'paper' (3, the paper's choice), or the name of the
-    first stage that runs in the cloud ('match' = 3)."""
-    if text == "paper":
-        return 3
-    if text.isdigit():
-        k = int(text)
-    elif text in stage_names:
-        k = stage_names.index(text)
-    else:
-        raise ValueError(f"offloading point {text!r}: give 0..{len(stage_names)}, 'paper', or "
-                         f"the first cloud stage ({', '.join(stage_names)})")
-    if k not in SUPPORTED_POINTS:
-        raise ValueError(
-            f"offloading point {k} ({'after ' + stage_names[k - 1] if k else 'nothing'} on the "
-            f"robot) splits the tracking map between robot and cloud; use "
-            f"{', '.join(map(str, SUPPORTED_POINTS))}")
-    return k
 
 
 def parse_rate(text: str) -> float | None:
@@ -78,6 +67,17 @@ def parse_rate(text: str) -> float | None:
     if not fps > 0:
         raise ValueError(f"rate {text!r}: 'max', 'recorded' or frames per second > 0")
     return fps
+
+
+class OnboardTracker(Protocol):
+    """The whole pipeline on the robot, for a robot that tracks by itself (point 6): the
+    back-end needs the cloud's libraries, so whoever starts such a robot builds it
+    (``fleetslam.backend.back_end.TrackingPipeline``)."""
+
+    stages: list[Stage]
+    sides: Sides
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]: ...
 
 
 @dataclass
@@ -141,11 +141,13 @@ class Robot:
                  config: Config, endpoint: str | None = None, rate: str = "max",
                  show_progress: bool = True, paper_yaml_dir: Path | None = None,
                  planner: OnlinePlanner | None = None,
-                 link_trace: list[tuple[int, float]] | None = None) -> None:
+                 link_trace: list[tuple[int, float]] | None = None,
+                 onboard: OnboardTracker | None = None) -> None:
         self.robot_id = keys.check_robot_id(robot_id)
-        if offload_at not in SUPPORTED_POINTS:
-            raise ValueError(f"offloading point {offload_at} not supported "
-                             f"({', '.join(map(str, SUPPORTED_POINTS))})")
+        check_point(offload_at)
+        if (offload_at == ROBOT_TRACKS) != (onboard is not None):
+            raise ValueError(f"a robot tracks by itself (and is given its onboard pipeline) at "
+                             f"point {ROBOT_TRACKS} only, not at {offload_at}")
         self.fps = parse_rate(rate)
         if paper_yaml_dir is not None and offload_at != 3:
             raise ValueError("the paper's YAML message holds the state at point 3 "
@@ -167,17 +169,14 @@ class Robot:
             raise ValueError(f"an adaptive robot starts at one of "
                              f"{', '.join(map(str, planner.cfg.online_points))}")
         self.link_trace = dict(link_trace or [])
-        self.pipeline = TrackingPipeline(config, sequence.camera)
-        self.robot_stages, _ = self.pipeline.split(offload_at)
-        # Each side of the session lives where its stages run: below point 6 the cloud owns
-        # the tracking map, at point 0 it also runs the front end.
-        sides = {stage.side for stage in self.robot_stages}
-        if planner is not None:
-            sides = {"edge"}  # it may run the front end at any moment, never the back-end
-        if "edge" not in sides:
-            self.pipeline.session.edge = None
-        if "cloud" not in sides:
-            self.pipeline.session.cloud = None
+        # The robot holds the state of the stages it runs: the front end below point 6 (an
+        # adaptive robot may run any part of it at any moment), everything at point 6.
+        self.onboard = onboard
+        if onboard is not None:
+            self.stages, self.sides = onboard.stages, onboard.sides
+        else:
+            self.stages = front_end_stages()
+            self.sides = Sides(edge=FrontEndState(config, sequence.camera))
         self.timer = StageTimer()
         self.report = RobotReport(robot_id, offload_at)
         self._replies: queue.Queue = queue.Queue()
@@ -440,11 +439,10 @@ class Robot:
                     time.sleep(wait)
             self._await_window()
             start = time.perf_counter()
-            stages = self.robot_stages if self.planner is None else self.pipeline.stages[:k]
-            state = run_stages(stages,
+            state = run_stages(self.stages[:k],
                                CapturedFrame(frame.index, frame.timestamp, frame.rgb,
                                              frame.depth_m),
-                               self.pipeline.session, self.timer)
+                               self.sides, self.timer)
             encode_start = time.perf_counter()
             self._next_seq = seq + 1
             refs = self.inter.choose(seq) if k in INTER_POINTS else []
@@ -553,10 +551,9 @@ class Robot:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
         for its 'ended' (trajectory and map written)."""
         self._uploads.join()
-        message = protocol.end(self._last_seq, {
-            str(kf.frame_index): kf.T_world_camera.tolist()
-            for kf in self.pipeline.session.cloud.map.keyframes}
-            if self.offload_at == ROBOT_TRACKS else None)
+        poses = self.onboard.keyframe_poses() if self.onboard is not None else None
+        message = protocol.end(self._last_seq, None if poses is None else {
+            str(index): T.tolist() for index, T in poses.items()})
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
             if self._upload_error:

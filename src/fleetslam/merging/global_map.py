@@ -25,10 +25,9 @@ from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import keyframe_local_cloud, voxel_downsample
 from fleetslam.mapping.octomap_export import write_octomap
 from fleetslam.merging.merger import MapMerger
-from fleetslam.pipeline.session import poses_from_references
+from fleetslam.transforms import poses_from_references, transform_points
 from fleetslam.registration.fshicp import fshicp
 from fleetslam.registration.metrics import transform_error
-from fleetslam.transforms import transform_points
 
 log = logging.getLogger("fleetslam.merge")
 

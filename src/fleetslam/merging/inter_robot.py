@@ -19,23 +19,12 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
-from fleetslam.pipeline.geometric_verification import ransac_rigid
-from fleetslam.pipeline.local_map import Keyframe
-from fleetslam.pipeline.matching import descriptor_match
-from fleetslam.pipeline.pose_optimizer import optimize_pose
+from fleetslam.backend.geometric_verification import ransac_rigid
+from fleetslam.backend.local_map import Keyframe
+from fleetslam.backend.matching import descriptor_match
+from fleetslam.backend.pose_optimizer import optimize_pose
 from fleetslam.pipeline.states import FeatureFrame
-
-
-@dataclass
-class KeyframeSummary:
-    """What the merger learns of one keyframe: its features and where its robot put it."""
-
-    robot: str
-    keyframe: int  # id in the robot's map (0, 1, ... in insertion order)
-    frame_index: int
-    timestamp: float
-    features: FeatureFrame
-    T_map_keyframe: np.ndarray  # 4 x 4, the robot's map frame
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 
 def keyframe_summary(robot: str, keyframe: Keyframe) -> KeyframeSummary:

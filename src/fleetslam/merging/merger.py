@@ -27,13 +27,15 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
-from fleetslam.merging.inter_robot import KeyframeSummary, PlaceMatch, verify_places
-from fleetslam.pipeline.place_recognition import KeyframeDatabase, make_database
-from fleetslam.pipeline.pose_graph import PoseEdge, optimise_pose_graph
+from fleetslam.merging.inter_robot import PlaceMatch, verify_places
+from fleetslam.wire.merger_keyframes import KeyframeSummary
+from fleetslam.backend.place_recognition import KeyframeDatabase
+from fleetslam.backend.places import make_database
+from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.transforms import invert, transforms_agree
 
 if TYPE_CHECKING:
-    from fleetslam.pipeline.vocabulary import BowDatabase
+    from fleetslam.backend.vocabulary import BowDatabase
 
 log = logging.getLogger("fleetslam.merge")
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 from fleetslam.config import PlannerConfig
-from fleetslam.report import format_table
+from fleetslam.tables import format_table
 
 # The paper's numbers (indoor experiment, 2 robots), beside ours.
 PAPER_INDOOR = {"E_l": [221.2, 316.0], "E_localization": 537.2, "E_mapping": 3.15,

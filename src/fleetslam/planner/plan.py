@@ -10,11 +10,7 @@ from typing import Any
 from fleetslam.config import PlannerConfig
 from fleetslam.planner.model import Candidate, Link, candidates, choose
 from fleetslam.planner.profile import Profile
-from fleetslam.report import format_table
-
-# The sweep of `fleetslam plan --sweep` (Mbit/s).
-SWEEP_MBPS = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
-
+from fleetslam.tables import format_table
 
 def candidate_table(cands: list[Candidate], chosen: Candidate, cfg: PlannerConfig) -> str:
     unit = cfg.frames_per_unit

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import small_gicp
+from scipy.spatial.transform import Rotation
 
 from fleetslam.transforms import make_T, orthonormalize, rotation_angle_deg, transform_points
 
@@ -114,3 +115,15 @@ def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> TransformError:
         rotation_deg=rotation_angle_deg(T_est[:3, :3].T @ T_true[:3, :3]),
         translation_m=float(np.linalg.norm(diff[:, 3])),
     )
+
+
+def random_perturbation(rng: np.random.Generator, max_rot_deg: float, max_trans_m: float
+                        ) -> np.ndarray:
+    """A transform with rotation of exactly ``max_rot_deg`` about a random axis and a
+    translation of exactly ``max_trans_m`` in a random direction (worst case of the bound)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    R = Rotation.from_rotvec(axis * np.radians(max_rot_deg)).as_matrix()
+    return make_T(R, direction * max_trans_m)

@@ -7,10 +7,10 @@ import html
 import time
 from typing import Any
 
-from fleetslam.report import _cell
+from fleetslam.tables import _cell
 from fleetslam.reporting.plots import Figure
 from fleetslam.reporting.run import RunData
-from fleetslam.system import merge_notes, merge_robot_table, robot_table, transport_table
+from fleetslam.outputs import merge_notes, merge_robot_table, robot_table, transport_table
 
 STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px;

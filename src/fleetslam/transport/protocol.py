@@ -25,13 +25,9 @@ from typing import Any
 import numpy as np
 
 from fleetslam.camera import Camera
+from fleetslam.pipeline.split import CLOUD_TRACKS, SUPPORTED_POINTS
 
 PROTOCOL = 1
-# Offloading points a distributed run supports. At 4 and 5 the robot would match against a
-# tracking map that the cloud's later stages update: the map would have to live on both.
-CLOUD_TRACKS = (0, 1, 2, 3)
-ROBOT_TRACKS = 6
-SUPPORTED_POINTS = (*CLOUD_TRACKS, ROBOT_TRACKS)
 # Control messages are small JSON; anything bigger is not one.
 MAX_CONTROL_BYTES = 1 << 20
 

@@ -35,10 +35,12 @@ from enum import IntEnum
 
 import zstandard
 
+from fleetslam.pipeline.split import STAGE_NAMES
+
 MAGIC = b"FSLM"
 FORMAT_VERSION = 1
-# Split points 0..6: the pipeline has six stages (pipeline/stages.py), so seven states.
-N_SPLIT_POINTS = 7
+# Split points 0..6: the pipeline has six stages (pipeline/split.py), so seven states.
+N_SPLIT_POINTS = len(STAGE_NAMES) + 1
 MAX_ROBOT_ID_LENGTH = 64
 # No payload is larger than this once decompressed (a full-resolution frame is ~1.5 MB).
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024

@@ -52,6 +52,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import WireConfig
+from fleetslam.pipeline.split import INTER_POINTS
 from fleetslam.pipeline.states import (
     CapturedFrame,
     DescribedFrame,
@@ -724,8 +725,6 @@ class ReferenceSource(Protocol):
     def get(self, seq: int) -> Reference | None: ...
 
 
-# Split points whose state carries descriptors, so may be inter-coded.
-INTER_POINTS = (2, 3, 4, 5)
 
 
 def _read_references(r: Reader, split_point: int, seq: int,

@@ -1,11 +1,12 @@
-"""Session checkpoints as data, never code: one versioned ``.npz`` file holding the object
-tree as JSON and every numpy array as an array (loaded with ``allow_pickle=False``).
+"""Object trees as data, never code: one versioned ``.npz`` holding the tree as JSON and
+every numpy array as an array (loaded with ``allow_pickle=False``). The cloud's session
+checkpoints (cloud/session_state.py) and the keyframes workers send the merger
+(wire/merger_keyframes.py) are written so.
 
-Only the classes a session is made of (listed in ``_CLASSES``) are rebuilt, and they are
-rebuilt by setting their saved attributes, never by running code named in the file; anything
-else in a file is refused. So whoever can write the cloud's output folder cannot make the
-cloud run code, and a checkpoint of another format version is refused with a message that
-names the file.
+Only the classes the caller lists are rebuilt, and they are rebuilt by setting their saved
+attributes, never by running code named in the data; anything else is refused. So whoever
+can write the cloud's output folder cannot make the cloud run code, and data of another
+format version is refused with a message that names the file.
 """
 
 from __future__ import annotations
@@ -24,29 +25,14 @@ VERSION = 1
 _TREE = "__tree__"
 
 
-def _classes() -> dict[str, type]:
-    # Imported here: the classes live in modules that import this package's neighbours.
-    from fleetslam import config
-    from fleetslam.camera import Camera
-    from fleetslam.cloud.robot_session import SessionState, TrajectoryRow
-    from fleetslam.merging.inter_robot import KeyframeSummary
-    from fleetslam.pipeline.local_map import Keyframe, LocalMap
-    from fleetslam.pipeline.loop_closer import LoopClosingState, LoopDetection
-    from fleetslam.pipeline.place_recognition import KeyframeDatabase
-    from fleetslam.pipeline.pose_graph import PoseEdge
-    from fleetslam.pipeline.session import CloudSession, EdgeSession
-    from fleetslam.pipeline.states import FeatureFrame
-    from fleetslam.pipeline.vocabulary import BowDatabase
-    from fleetslam.transport.protocol import Hello
+# The classes a tree may hold, by the name written in the data.
+Classes = dict[str, type]
 
-    configs = [c for c in vars(config).values()
-               if isinstance(c, type) and dataclasses.is_dataclass(c)
-               and c.__module__ == config.__name__]
-    return {c.__name__: c for c in (
-        SessionState, TrajectoryRow, Hello, Camera, CloudSession, EdgeSession, LocalMap,
-        Keyframe, FeatureFrame, KeyframeDatabase, LoopClosingState, LoopDetection, PoseEdge,
-        KeyframeSummary, BowDatabase,
-        *configs)}
+
+def classes_of(*types: type, aliases: dict[str, type] | None = None) -> Classes:
+    """A class list for :func:`capture` / :func:`loads`: each by its name, plus older names
+    still read (``aliases``)."""
+    return {**(aliases or {}), **{t.__name__: t for t in types}}
 
 
 @dataclasses.dataclass
@@ -66,12 +52,13 @@ class Capture:
         return buffer.getvalue()
 
 
-def dumps(state: Any) -> bytes:
-    return capture(state).to_bytes()
+def dumps(state: Any, classes: Classes) -> bytes:
+    return capture(state, classes).to_bytes()
 
 
-def capture(state: Any) -> Capture:
-    classes = _classes()
+def capture(state: Any, classes: Classes) -> Capture:
+    """``state`` as a tree and copies of its arrays; TypeError for anything ``classes`` does
+    not list."""
     arrays: dict[str, np.ndarray] = {}
 
     def enc(v: Any) -> Any:
@@ -97,7 +84,7 @@ def capture(state: Any) -> Capture:
             return [enc(x) for x in v]
         name = type(v).__name__
         if classes.get(name) is type(v):
-            # A class may leave out what cannot be saved (EdgeSession's ORB extractor).
+            # A class may leave out what cannot be saved (the front end's ORB extractor).
             attributes = v.__getstate__() or {}
             return {"__obj__": name, "attributes": {k: enc(x) for k, x in attributes.items()}}
         raise TypeError(f"a {type(v).__module__}.{name} cannot be checkpointed")
@@ -106,9 +93,8 @@ def capture(state: Any) -> Capture:
     return Capture(tree, arrays)
 
 
-def loads(data: bytes, where: str) -> Any:
+def loads(data: bytes, where: str, classes: Classes) -> Any:
     """The state :func:`dumps` saved; ValueError naming ``where`` for anything else."""
-    classes = _classes()
     try:
         files = np.load(io.BytesIO(data), allow_pickle=False)
         tree = json.loads(bytes(files[_TREE]).decode())

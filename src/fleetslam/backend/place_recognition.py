@@ -22,15 +22,14 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Hashable
+from typing import Hashable
 
 import faiss
 import numpy as np
 
+from fleetslam.backend.state import PlaceDatabase
 from fleetslam.config import PlaceRecognitionConfig
 
-if TYPE_CHECKING:
-    from fleetslam.pipeline.vocabulary import BowDatabase
 
 DESCRIPTOR_BITS = 256
 # One thread: a query is a few tens of ms, and faiss's OpenMP threads spin against the
@@ -126,22 +125,10 @@ def best_candidates(keys: list[Hashable], score: np.ndarray, votes: np.ndarray,
             for e in order if score[e] >= config.min_score_ratio * best]
 
 
-def snapshot(database: "KeyframeDatabase | BowDatabase") -> "KeyframeDatabase | BowDatabase":
+def snapshot(database: PlaceDatabase) -> PlaceDatabase:
     """The database as it is now, unchanged by later ``add`` calls: both kinds append to
     ``keys`` in place but replace their arrays rather than write into them, so only the
     key list is copied (not megabytes of descriptors, on the tracking thread)."""
     frozen = copy.copy(database)
     frozen.keys = list(database.keys)
     return frozen
-
-
-def make_database(config: PlaceRecognitionConfig) -> "KeyframeDatabase | BowDatabase":
-    """The keyframe database ``config.method`` names."""
-    if config.method == "nearest_neighbour":
-        return KeyframeDatabase(config)
-    if config.method == "bag_of_words":
-        from fleetslam.pipeline.vocabulary import BowDatabase
-
-        return BowDatabase(config)
-    raise ValueError(f"place_recognition.method: '{config.method}' is not one of "
-                     f"'nearest_neighbour', 'bag_of_words'")

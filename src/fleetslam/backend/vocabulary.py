@@ -19,15 +19,17 @@ import functools
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Hashable
+from typing import Hashable
 
+import cv2
 import numpy as np
 
-from fleetslam.config import PlaceRecognitionConfig
-from fleetslam.pipeline.place_recognition import PlaceCandidate, best_candidates, query_scope
+from fleetslam.backend.place_recognition import PlaceCandidate, best_candidates, query_scope
+from fleetslam.config import Config, PlaceRecognitionConfig
+from fleetslam.datasets.tum import read_file_list
+from fleetslam.pipeline.front_end import Describe, Extract, FrontEndState
+from fleetslam.pipeline.states import CapturedFrame
 
-if TYPE_CHECKING:
-    from fleetslam.config import Config
 
 DESCRIPTOR_BYTES = 32
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
@@ -256,8 +258,6 @@ def training_images(folder: str | Path, every: int = 1) -> list[Path]:
     """The colour images of a folder, every ``every``-th: those listed in ``rgb.txt`` (TUM
     layout, 7-Scenes with index files), else its .png/.jpg files but depth images (7-Scenes'
     ``*.color.*``, a plain image folder), sorted by name."""
-    from fleetslam.datasets.tum import read_file_list
-
     root = Path(folder)
     if not root.is_dir():
         raise ValueError(f"{root}: no such image folder")
@@ -274,18 +274,12 @@ def training_images(folder: str | Path, every: int = 1) -> list[Path]:
     return paths[::max(1, every)]
 
 
-def image_descriptors(path: Path, config: "Config") -> np.ndarray:
+def image_descriptors(path: Path, config: Config) -> np.ndarray:
     """ORB descriptors of one colour image, extracted as the robots extract them."""
-    import cv2
-
-    from fleetslam.pipeline.session import EdgeSession
-    from fleetslam.pipeline.stages import Describe, Extract
-    from fleetslam.pipeline.states import CapturedFrame
-
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ValueError(f"{path}: cannot decode as a colour image")
-    session = EdgeSession(config, None)  # type: ignore[arg-type]  # no camera needed
+    session = FrontEndState(config, None)  # type: ignore[arg-type]  # no camera needed
     rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     depth = np.zeros(rgb.shape[:2], np.float32)
     state = Describe()(Extract()(CapturedFrame(0, 0.0, rgb, depth), session), session)

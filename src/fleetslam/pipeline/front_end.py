@@ -1,32 +1,53 @@
-"""The tracking stages, in the paper's order (Table "Time using of each part"):
+"""The front end: the first three tracking stages, the part a robot runs.
 
-    Extract -> Describe -> AssociateDepth -> Match -> EstimatePose -> DecideKeyframe
+    Extract -> Describe -> AssociateDepth   (then, in the back-end: Match -> EstimatePose
+                                              -> DecideKeyframe, backend/tracking.py)
 
-Stage k maps state k to state k+1 (see states.py). The first three are the front end that
-a robot runs (this module); the last three are the tracker (tracker.py), which hands
-keyframes to the local mapper and the loop closer. Each stage says its side: an "edge"
-stage reads only the ``EdgeSession``, a "cloud" stage only the ``CloudSession``.
+Stage k maps state k to state k+1 (states.py). These stages read and update only a
+``FrontEndState`` (the ORB extractor, the stale-depth check): numpy and OpenCV, nothing of
+the cloud's libraries, so a robot installs only this side.
 """
 
 from __future__ import annotations
 
 import hashlib
 import operator
-from typing import Any, Protocol
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from fleetslam.pipeline.session import EdgeSession
+from fleetslam.camera import Camera
+from fleetslam.config import Config
 from fleetslam.pipeline.states import CapturedFrame, DescribedFrame, DetectedFrame, FeatureFrame
-from fleetslam.pipeline.tracker import DecideKeyframe, EstimatePose, Match
 
 
-class Stage(Protocol):
-    name: str
-    side: str  # "edge" (reads the EdgeSession) or "cloud" (reads the CloudSession)
+@dataclass
+class FrontEndState:
+    """What the front end remembers between frames."""
 
-    def __call__(self, state: Any, session: Any) -> Any: ...
+    config: Config
+    camera: Camera
+    # Digest of the previous depth image, to spot a repeated (stale) one, and how many
+    # frames went on without depth because of it.
+    last_depth_digest: bytes | None = None
+    stale_depth_frames: int = 0
+    _orb: cv2.ORB | None = None
+
+    @property
+    def orb(self) -> cv2.ORB:
+        # Created lazily: cv2 objects cannot be pickled or checkpointed.
+        if self._orb is None:
+            cfg = self.config.orb
+            self._orb = cv2.ORB_create(
+                nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,
+                nlevels=cfg.n_levels, fastThreshold=cfg.fast_threshold)
+        return self._orb
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_orb"] = None
+        return state
 
 
 # OpenCV's Python API hands keypoints over as objects; these two conversions do it column by
@@ -75,7 +96,7 @@ class Extract:
     name = "extract"
     side = "edge"
 
-    def __call__(self, state: CapturedFrame, session: EdgeSession) -> DetectedFrame:
+    def __call__(self, state: CapturedFrame, session: FrontEndState) -> DetectedFrame:
         gray = cv2.cvtColor(state.rgb, cv2.COLOR_RGB2GRAY)
         kps = session.orb.detect(gray, None)
         table = _keypoints_to_array(kps)
@@ -94,7 +115,7 @@ class Describe:
     name = "describe"
     side = "edge"
 
-    def __call__(self, state: DetectedFrame, session: EdgeSession) -> DescribedFrame:
+    def __call__(self, state: DetectedFrame, session: FrontEndState) -> DescribedFrame:
         kps, desc = session.orb.compute(state.gray, _array_to_keypoints(state.keypoints))
         table = _keypoints_to_array(kps)
         if desc is None:
@@ -111,7 +132,7 @@ class AssociateDepth:
     name = "associate_depth"
     side = "edge"
 
-    def __call__(self, state: DescribedFrame, session: EdgeSession) -> FeatureFrame:
+    def __call__(self, state: DescribedFrame, session: FrontEndState) -> FeatureFrame:
         cfg = session.config.tracking
         depth_img = state.depth_m
         h, w = depth_img.shape
@@ -143,5 +164,6 @@ class AssociateDepth:
                             depth, uv)
 
 
-def default_stages() -> list[Stage]:
-    return [Extract(), Describe(), AssociateDepth(), Match(), EstimatePose(), DecideKeyframe()]
+def front_end_stages() -> list[Extract | Describe | AssociateDepth]:
+    """The front end's stages in order: stages 0, 1 and 2 of the pipeline."""
+    return [Extract(), Describe(), AssociateDepth()]

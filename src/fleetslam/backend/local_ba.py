@@ -17,7 +17,7 @@ keyframe carry no information on poses: they stay out of the problem and move ri
 their keyframe.
 
 It comes in three steps so that the solve can run elsewhere (local mapping's worker
-process, see ``local_mapping_worker``): ``local_ba_problem`` copies what the solve needs out
+process, see ``workers``): ``local_ba_problem`` copies what the solve needs out
 of the map, ``solve_local_ba`` optimises it (a pure function of plain numpy, the only place
 gtsam objects live), and ``apply_local_ba`` writes the result back into the map, naming
 observations by (keyframe, landmark) so that rows the map gained meanwhile are untouched.
@@ -33,8 +33,8 @@ import gtsam
 import numpy as np
 
 from fleetslam.camera import Camera
-from fleetslam.pipeline.local_map import LocalMap
-from fleetslam.pipeline.pose_optimizer import CHI2_MONO, CHI2_STEREO
+from fleetslam.backend.local_map import LocalMap
+from fleetslam.backend.pose_optimizer import CHI2_MONO, CHI2_STEREO
 
 # gtsam keys: keyframe poses use their id, landmarks this offset + their id.
 LANDMARK_KEY = 1 << 40

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from fleetslam.pipeline.matching import descriptor_match, match_free_keypoints
-from fleetslam.pipeline.pose_optimizer import optimize_pose, pnp_pose
-from fleetslam.pipeline.session import CloudSession
+from fleetslam.backend.matching import descriptor_match, match_free_keypoints
+from fleetslam.backend.pose_optimizer import optimize_pose, pnp_pose
+from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import FeatureFrame
 
 
-def relocalise(session: CloudSession, f: FeatureFrame
+def relocalise(session: BackEndState, f: FeatureFrame
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(T_world_camera, landmark id per keypoint, inlier mask), or None if no candidate
     keyframe gives enough inliers."""

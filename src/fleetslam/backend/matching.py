@@ -4,16 +4,13 @@ by a predicted pose (candidates near their projection, at a compatible pyramid l
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import FeatureFrame
-
-if TYPE_CHECKING:
-    from fleetslam.pipeline.session import CloudSession
 
 
 def hamming_rows(a: np.ndarray, rows_a: np.ndarray, b: np.ndarray, rows_b: np.ndarray
@@ -120,7 +117,7 @@ def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.nd
     return ids
 
 
-def in_scale_range(session: "CloudSession", ids: np.ndarray, P: np.ndarray) -> np.ndarray:
+def in_scale_range(session: BackEndState, ids: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Landmarks ``ids`` at camera-frame points ``P`` whose distance lies within their
     scale-invariance range, ORB-SLAM's [0.8 d_min, 1.2 d_max] with d_max = d * s^octave,
     d_min = d_max / s^(levels - 1) (d, octave: of the landmark's reference view)."""
@@ -131,7 +128,7 @@ def in_scale_range(session: "CloudSession", ids: np.ndarray, P: np.ndarray) -> n
     return (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
 
 
-def match_free_keypoints(session: "CloudSession", f: FeatureFrame, T_world_camera: np.ndarray,
+def match_free_keypoints(session: BackEndState, f: FeatureFrame, T_world_camera: np.ndarray,
                          matched_ids: np.ndarray, radius_px: float, max_hamming: int,
                          ratio: float, scale_check: bool) -> np.ndarray:
     """``matched_ids`` plus matches of its free keypoints (-1) to the live landmarks not yet

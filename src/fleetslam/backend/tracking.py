@@ -1,28 +1,29 @@
-"""Tracking (ORB-SLAM's Tracking): the cloud-side stages that give every frame its pose.
+"""Tracking (ORB-SLAM's Tracking): the back-end's stages that give every frame its pose.
 
     predict (constant velocity) -> Match -> EstimatePose (PnP + motion-only BA,
-    relocalisation when lost) -> DecideKeyframe (-> local mapper -> loop closer)
+    relocalisation when lost) -> DecideKeyframe
 
-Each stage reads and updates only the ``CloudSession``.
+Each stage reads and updates only the ``BackEndState``. A new keyframe goes to the back-end's
+peers, local mapping and loop closing, through the hook ``DecideKeyframe`` is built with
+(backend/back_end.py wires them).
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Callable
 
 import numpy as np
 
-from fleetslam.pipeline.local_mapper import insert_keyframe
-from fleetslam.pipeline.loop_closer import close_loops
-from fleetslam.pipeline.matching import (
+from fleetslam.backend.matching import (
     descriptor_match,
     guided_match,
     in_scale_range,
     match_free_keypoints,
 )
-from fleetslam.pipeline.pose_optimizer import optimize_pose, pnp_pose
-from fleetslam.pipeline.relocaliser import relocalise
-from fleetslam.pipeline.session import CloudSession
+from fleetslam.backend.pose_optimizer import optimize_pose, pnp_pose
+from fleetslam.backend.relocaliser import relocalise
+from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import FeatureFrame, MatchedFrame, PosedFrame, TrackedFrame
 from fleetslam.transforms import invert, rotation_angle_deg
 
@@ -34,10 +35,7 @@ class Match:
     name = "match"
     side = "cloud"
 
-    def __call__(self, state: FeatureFrame, session: CloudSession) -> MatchedFrame:
-        if session.local_mapping is not None:
-            # A frame boundary: local BA solved meanwhile lands in the map now.
-            session.local_mapping.poll(session)
+    def __call__(self, state: FeatureFrame, session: BackEndState) -> MatchedFrame:
         n = len(state.keypoints)
         ids = np.full(n, -1, np.int64)
         T_pred = session.predict_pose()
@@ -48,7 +46,7 @@ class Match:
         xyz[ids >= 0] = session.map.xyz[ids[ids >= 0]]
         return MatchedFrame(state, ids, xyz, T_pred, repeated)
 
-    def _match(self, state: FeatureFrame, session: CloudSession, T_pred: np.ndarray
+    def _match(self, state: FeatureFrame, session: BackEndState, T_pred: np.ndarray
                ) -> np.ndarray:
         cfg = session.config.tracking
         cam = session.camera
@@ -83,7 +81,7 @@ class EstimatePose:
     name = "estimate_pose"
     side = "cloud"
 
-    def __call__(self, state: MatchedFrame, session: CloudSession) -> PosedFrame:
+    def __call__(self, state: MatchedFrame, session: BackEndState) -> PosedFrame:
         cfg = session.config.tracking
         f = state.features
         n = len(f.keypoints)
@@ -108,7 +106,7 @@ class EstimatePose:
         xyz[ids >= 0] = session.map.xyz[ids[ids >= 0]]
         return PosedFrame(replace(state, landmark_ids=ids, landmark_xyz=xyz), T_wc, good, True)
 
-    def _track(self, state: MatchedFrame, session: CloudSession) -> PosedFrame:
+    def _track(self, state: MatchedFrame, session: BackEndState) -> PosedFrame:
         cfg = session.config.tracking
         f = state.features
         inliers = np.zeros(len(f.keypoints), bool)
@@ -141,7 +139,7 @@ class EstimatePose:
                           tracked)
 
 
-def track_local_map(session: CloudSession, state: MatchedFrame, T_world_camera: np.ndarray,
+def track_local_map(session: BackEndState, state: MatchedFrame, T_world_camera: np.ndarray,
                     inliers: np.ndarray) -> tuple[MatchedFrame, np.ndarray, np.ndarray]:
     """ORB-SLAM's TrackLocalMap: with the pose now known, project the live landmarks not yet
     matched into the frame and search the keypoints left free within a few pixels, then
@@ -165,34 +163,37 @@ def track_local_map(session: CloudSession, state: MatchedFrame, T_world_camera: 
     return replace(state, landmark_ids=ids, landmark_xyz=xyz), T_wc, out
 
 
+# What the back-end does with a new keyframe (local mapping, then loop closing); returns
+# the keyframe's pose after them.
+NewKeyframe = Callable[[PosedFrame], np.ndarray]
+
+
 class DecideKeyframe:
-    """The keyframe decision; a keyframe then goes to the local mapper and the loop closer
-    (both in-line, so every process computes the same poses). Also the motion bookkeeping
-    (the paper's 'Others')."""
+    """The keyframe decision; a keyframe then goes to the back-end's local mapper and loop
+    closer (``new_keyframe``; in-line, so every process computes the same poses). Also the
+    motion bookkeeping (the paper's 'Others')."""
 
     name = "decide_keyframe"
     side = "cloud"
 
-    def __call__(self, state: PosedFrame, session: CloudSession) -> TrackedFrame:
+    def __init__(self, new_keyframe: NewKeyframe) -> None:
+        self.new_keyframe = new_keyframe
+
+    def __call__(self, state: PosedFrame, session: BackEndState) -> TrackedFrame:
         f = state.matched.features
         is_kf = needs_keyframe(session, state)
         if state.tracked and not state.matched.repeated and session.map.keyframes:
             count_views(session, state)
         if is_kf:
-            inserted = insert_keyframe(session, state)
-            # The frame is the keyframe: report its refined pose, and move the previous pose
-            # with it so the constant-velocity model keeps its velocity.
-            session.correct_motion(inserted.correction)
-            loop = close_loops(session, inserted.keyframe)
-            if loop is not None:
-                session.correct_motion(loop)
-            state = replace(state, T_world_camera=inserted.keyframe.T_world_camera.copy())
+            # The frame is the keyframe: report its pose as local mapping and loop closing
+            # left it.
+            state = replace(state, T_world_camera=self.new_keyframe(state))
         reference, T_reference_camera = session.reference_pose(state.T_world_camera)
         session.record(state, f, is_kf)
         return TrackedFrame(state, is_kf, reference, T_reference_camera)
 
 
-def needs_keyframe(session: CloudSession, state: PosedFrame) -> bool:
+def needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
     """Whether this frame becomes a keyframe (and counts a map reset when a long loss
     forces one)."""
     cfg = session.config.tracking
@@ -217,7 +218,7 @@ def needs_keyframe(session: CloudSession, state: PosedFrame) -> bool:
     return False
 
 
-def orb_slam_needs_keyframe(session: CloudSession, state: PosedFrame) -> bool:
+def orb_slam_needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
     """ORB-SLAM's keyframe test for RGB-D (with local mapping always idle, as it runs
     in-line): the frame tracks fewer than a fraction of the landmarks the reference keyframe
     tracks (those with enough observations to be established), or it tracks few close points
@@ -232,7 +233,7 @@ def orb_slam_needs_keyframe(session: CloudSession, state: PosedFrame) -> bool:
     return n_in < cfg.keyframe_reference_ratio * session.reference_tracked or need_close
 
 
-def count_views(session: CloudSession, state: PosedFrame) -> None:
+def count_views(session: BackEndState, state: PosedFrame) -> None:
     """ORB-SLAM's visible/found counters for one tracked frame: landmarks predicted in view
     at the estimated pose (inside the image, within their scale-invariance distance range)
     and the landmarks matched as pose inliers."""

@@ -1,0 +1,151 @@
+"""The back-end of one robot: ORB-SLAM's Tracking, LocalMapping and LoopClosing as peers.
+
+    every frame:  Match -> EstimatePose -> DecideKeyframe          (tracking.py)
+    a keyframe:   -> LocalMapper: insert, fuse, cull, local BA     (local_mapping.py)
+                  -> LoopCloser: query, verify, correct             (loop_closing.py)
+
+All three read and update one ``BackEndState`` (state.py). In-line (one process, a robot at
+point 6, the exactness tests) everything runs on the tracking thread in that order, so every
+process computes the same poses. In a cloud, ``workers`` take local BA and the loop closer's
+database query off the tracking thread; their answers land at the start of a later frame
+(``poll``).
+
+``TrackingPipeline`` is the whole list of stages, front end and back-end, in one process.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fleetslam.backend.jobs import duration_stats
+from fleetslam.backend.local_mapping import LocalMapper
+from fleetslam.backend.loop_closing import LoopCloser
+from fleetslam.backend.places import make_database
+from fleetslam.backend.state import BackEndState
+from fleetslam.backend.tracking import DecideKeyframe, EstimatePose, Match
+from fleetslam.backend.workers import LocalMappingPool, SessionWorkers
+from fleetslam.camera import Camera
+from fleetslam.config import Config
+from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
+from fleetslam.pipeline.split import CLOUD_TRACKS, Sides, Stage, StageTimer, run_stages
+from fleetslam.pipeline.states import CapturedFrame, PosedFrame, TrackedFrame
+
+
+def new_state(config: Config, camera: Camera) -> BackEndState:
+    """A robot's back-end state before its first frame."""
+    return BackEndState(config, camera, make_database(config.place_recognition))
+
+
+class CloudBackEnd:
+    """One robot's back-end (see the module's docstring). ``state``: a restored one (a
+    checkpoint); ``workers``: the cloud's worker processes (None: all in-line)."""
+
+    def __init__(self, config: Config, camera: Camera, state: BackEndState | None = None,
+                 workers: LocalMappingPool | None = None) -> None:
+        self.state = state if state is not None else new_state(config, camera)
+        self.workers = SessionWorkers(workers) if workers is not None else None
+        self.local_mapper = LocalMapper(self.state, self.workers)
+        # A loop correction moves the whole map: local BA in flight lands first.
+        self.loop_closer = LoopCloser(self.state, self.local_mapper.flush, self.workers)
+        self.stages: list[Stage] = [Match(), EstimatePose(), DecideKeyframe(self._new_keyframe)]
+
+    def _new_keyframe(self, posed: PosedFrame) -> np.ndarray:
+        """Local mapping, then loop closing, for a new keyframe; its pose after them."""
+        inserted = self.local_mapper.insert_keyframe(posed)
+        # Local BA moved the keyframe: move the previous pose with it, so the constant
+        # velocity model keeps its velocity (and again for a loop correction).
+        self.state.correct_motion(inserted.correction)
+        loop = self.loop_closer.close_loops(inserted.keyframe)
+        if loop is not None:
+            self.state.correct_motion(loop)
+        return inserted.keyframe.T_world_camera.copy()
+
+    def poll(self) -> None:
+        """A frame boundary: what the workers answered meanwhile lands in the map now."""
+        if self.workers is not None:
+            self.loop_closer.poll()
+            self.local_mapper.poll()
+
+    def stages_from(self, k: int) -> list[Stage]:
+        """The stages a cloud runs for a frame sent at offloading point ``k``."""
+        if k not in CLOUD_TRACKS:
+            raise ValueError(f"the cloud tracks frames sent at points "
+                             f"{', '.join(map(str, CLOUD_TRACKS))}, not {k}")
+        return [*front_end_stages()[k:], *self.stages]
+
+    def track(self, state: Any, k: int, front_end: FrontEndState | None = None,
+              timer: StageTimer | None = None) -> TrackedFrame:
+        """The frame's pose from the state a robot sent at point ``k`` (``front_end``: the
+        state of the front-end stages the cloud runs for it, below point 3)."""
+        self.poll()
+        return run_stages(self.stages_from(k), state, Sides(front_end, self.state), timer)
+
+    def finish(self) -> None:
+        """The last keyframes' loop queries and local BA belong in the final map."""
+        if self.workers is not None:
+            self.loop_closer.flush()
+            self.local_mapper.flush()
+
+    def summary(self) -> dict[str, Any]:
+        """Loop closing and relocalisation counts and times, for summary.json."""
+        state = self.state
+        loops = state.loops
+        return {
+            "loops_accepted": sum(1 for e in loops.events if e["accepted"]),
+            "loops_rejected_by_graph": sum(1 for e in loops.events if not e["accepted"]),
+            "loop_queries": loops.queries, "candidates_verified": loops.candidates_verified,
+            "verified_detections": loops.detections_total,
+            "loop_query": duration_stats(loops.query_seconds),
+            "loop_correction": duration_stats(loops.correction_seconds),
+            "local_ba": duration_stats(state.local_ba_seconds),
+            "local_mapping": self.local_mapping_summary(),
+            "relocalisations": state.relocalisations, "loss_events": state.loss_events,
+            "events": loops.events,
+        }
+
+    def local_mapping_summary(self) -> dict[str, Any]:
+        """Where local BA ran and, in the workers, what became of the requests."""
+        if self.workers is None:
+            return {"mode": "inline"}
+        return {"mode": "inline (worker failed)" if self.workers.broken else "async",
+                **self.local_mapper.summary(), "loop_queries": self.loop_closer.summary()}
+
+
+class TrackingPipeline:
+    """One robot's whole tracking pipeline in one process: the front end's stages, then the
+    back-end's, over their two states."""
+
+    def __init__(self, config: Config, camera: Camera,
+                 workers: LocalMappingPool | None = None,
+                 front_end: FrontEndState | None = None,
+                 state: BackEndState | None = None) -> None:
+        # A restored pipeline goes on from its two states (a checkpoint's).
+        self.front_end = front_end if front_end is not None else FrontEndState(config, camera)
+        self.back_end = CloudBackEnd(config, camera, state, workers)
+        self.stages: list[Stage] = [*front_end_stages(), *self.back_end.stages]
+        self.sides = Sides(self.front_end, self.back_end.state)
+        self.timer = StageTimer()
+
+    @property
+    def state(self) -> BackEndState:
+        return self.back_end.state
+
+    @property
+    def stage_names(self) -> list[str]:
+        return [s.name for s in self.stages]
+
+    def split(self, k: int) -> tuple[list[Stage], list[Stage]]:
+        """(robot stages, cloud stages) for offloading point ``k`` in 0..len(stages)."""
+        if not 0 <= k <= len(self.stages):
+            raise ValueError(f"offloading point {k} outside 0..{len(self.stages)}")
+        return self.stages[:k], self.stages[k:]
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        """Every keyframe's current pose, by frame index."""
+        return {kf.frame_index: kf.T_world_camera for kf in self.state.map.keyframes}
+
+    def track(self, frame: CapturedFrame) -> TrackedFrame:
+        self.back_end.poll()
+        return run_stages(self.stages, frame, self.sides, self.timer)

@@ -1,0 +1,110 @@
+"""A latest-only job slot: at most one job in flight, the newest request waiting behind it.
+
+When the cloud falls behind, the back-end does less rather than queueing, as ORB-SLAM's
+local mapper aborts its bundle adjustment for new keyframes: a request that arrives while
+one waits replaces it (counted "superseded"). A job that does not come back within its
+deadline is dropped; one that comes back after the map moved under it (its epoch is not the
+map's) is the caller's to drop as stale. Used twice by the back-end (backend/workers.py):
+local bundle adjustment and the loop closer's database query.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import Future
+from concurrent.futures import wait as wait_for_futures
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Job:
+    future: Future
+    request: Any  # what the caller asked for (a keyframe id, a query, ...)
+    payload: Any  # what was sent (kept for a fallback or for applying the answer)
+    epoch: int  # the map's epoch when the job left
+    submitted: float  # time.monotonic()
+
+
+class LatestOnly:
+    """One job slot (see the module's docstring). ``counts`` holds "submitted" and
+    "superseded" kept here, and ``overdue``: the name a job dropped at its deadline is
+    counted under; callers add their own outcomes."""
+
+    def __init__(self, what: str, timeout_s: float, counts: dict[str, int],
+                 overdue: str = "abandoned") -> None:
+        self.what = what
+        self.timeout_s = timeout_s
+        self.counts = counts
+        self.overdue = overdue
+        self.in_flight: Job | None = None
+        self.waiting: Any = None
+        # Seconds from submission to the answer put to use (the caller says when).
+        self.lag_seconds: list[float] = []
+
+    @property
+    def idle(self) -> bool:
+        return self.in_flight is None
+
+    def wait(self, request: Any) -> None:
+        """Keep ``request`` until the job in flight is done (replacing an older one)."""
+        if self.waiting is not None:
+            self.counts["superseded"] += 1
+        self.waiting = request
+
+    def take_waiting(self) -> Any:
+        request, self.waiting = self.waiting, None
+        return request
+
+    def started(self, future: Future, request: Any, payload: Any, epoch: int) -> None:
+        self.counts["submitted"] += 1
+        self.in_flight = Job(future, request, payload, epoch, time.monotonic())
+
+    def wait_done(self, wait_s: float) -> bool:
+        """Wait at most ``wait_s`` for the job in flight; whether it is done."""
+        job = self.in_flight
+        if job is None:
+            return True
+        wait_for_futures([job.future], timeout=wait_s)
+        return job.future.done()
+
+    def finished(self, wait_s: float = 0.0) -> Job | None:
+        """The job in flight, taken out of the slot, when it is done (waiting at most
+        ``wait_s``); None while it runs. A job past its deadline is dropped and counted."""
+        job = self.in_flight
+        if job is None:
+            return None
+        if not job.future.done():
+            wait_for_futures([job.future], timeout=wait_s)
+        if job.future.done():
+            self.in_flight = None
+            return job
+        if time.monotonic() - job.submitted > self.timeout_s:
+            log.warning("%s of keyframe %s not back after %.0f s: dropped", self.what,
+                        job.request, self.timeout_s)
+            self.counts[self.overdue] += 1
+            self.in_flight = None
+        return None
+
+    def give_up(self) -> None:
+        """Drop the job in flight and the waiting request (a deadline that ran out)."""
+        if self.in_flight is not None:
+            log.warning("%s of keyframe %s not back in time: dropped", self.what,
+                        self.in_flight.request)
+            self.counts[self.overdue] += 1
+        self.in_flight, self.waiting = None, None
+
+    def landed(self, job: Job) -> None:
+        self.lag_seconds.append(time.monotonic() - job.submitted)
+
+
+def duration_stats(seconds: list[float]) -> dict:
+    """Count, median and p95 (ms) of durations in seconds, for summary.json."""
+    ms = 1000.0 * np.asarray(seconds)
+    return {"n": len(ms), "median_ms": float(np.median(ms)) if len(ms) else None,
+            "p95_ms": float(np.percentile(ms, 95)) if len(ms) else None}

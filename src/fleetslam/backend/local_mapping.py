@@ -1,0 +1,217 @@
+"""Local mapping (ORB-SLAM's LocalMapping): what happens to the map when the tracker makes
+a keyframe.
+
+    insert keyframe -> fuse (known landmarks seen again) -> new landmarks -> cull -> local BA
+
+Insertion, fusion and culling run in-line, at the keyframe, on the thread that tracks.
+Local BA runs in-line too when ``tracking.local_mapping`` is "inline": the next frame is
+matched against the map as local BA left it, so poses are the same in every process and at
+every split point (the exactness tests rely on it). In the cloud it is "async": the problem
+is copied out of the map (``local_ba_problem``) and solved in a worker process
+(backend/workers.py), and the solution is written back at the start of a later frame
+(``LocalMapper.poll``), on the tracking thread, so the map is only ever changed by one
+thread and between frames. At most one solve is in flight; the newest keyframe's waits
+(backend/jobs.py). A solution computed on a map that a loop correction has moved since
+(``LocalMap.epoch``) is dropped.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fleetslam.backend.jobs import Job, LatestOnly, duration_stats
+from fleetslam.backend.local_ba import (
+    LocalBAProblem,
+    LocalBASolution,
+    apply_local_ba,
+    local_ba_problem,
+    reprojection_chi2,
+    solve_local_ba,
+)
+from fleetslam.backend.local_map import Keyframe
+from fleetslam.backend.matching import match_free_keypoints
+from fleetslam.backend.pose_optimizer import CHI2_MONO, CHI2_STEREO
+from fleetslam.backend.state import BackEndState
+from fleetslam.backend.workers import SessionWorkers
+from fleetslam.pipeline.states import FeatureFrame, PosedFrame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class InsertedKeyframe:
+    keyframe: Keyframe
+    # World-frame correction local BA applied to the keyframe: T_new = correction @ T_old.
+    correction: np.ndarray
+
+
+class LocalMapper:
+    """One robot's local mapping: keyframe insertion in-line, local BA in-line or in the
+    cloud's workers (``workers``; None: always in-line)."""
+
+    def __init__(self, session: BackEndState, workers: SessionWorkers | None = None) -> None:
+        self.session = session
+        self.workers = workers
+        self.counts: dict[str, int] = {"submitted": 0, "applied": 0, "superseded": 0,
+                                       "stale": 0, "abandoned": 0, "failed": 0, "inline": 0}
+        # The solve in flight and the newest keyframe whose solve waits for it.
+        self.jobs = LatestOnly("local BA", session.config.tracking.local_ba_timeout_s,
+                               self.counts, overdue="abandoned")
+
+    def insert_keyframe(self, state: PosedFrame) -> InsertedKeyframe:
+        """Add the frame as a keyframe: its inlier matches become observations (plus those
+        fusion finds), its other keypoints with depth become landmarks; then cull recent
+        landmarks and bundle-adjust the keyframe's neighbourhood (or ask a worker to)."""
+        session = self.session
+        cfg = session.config.tracking
+        lmap = session.map
+        f = state.matched.features
+        matched_ids = np.where(state.inliers, state.matched.landmark_ids, -1)
+        if cfg.fuse_at_keyframe and lmap.keyframes and state.tracked:
+            matched_ids = fuse_search(session, f, state.T_world_camera, matched_ids)
+        kf = lmap.add_keyframe(session.camera, f, state.T_world_camera, matched_ids)
+        if cfg.cull_landmarks:
+            session.culled_landmarks += lmap.cull_recent(
+                kf.id, cfg.cull_min_found_ratio, cfg.cull_min_observation_weight,
+                cfg.cull_probation_keyframes)
+        correction = np.eye(4)
+        if cfg.local_ba and kf.id > 0:
+            if self.workers is not None:
+                self.request(kf.id)
+            else:
+                problem = build_problem(session, kf.id)
+                if problem is not None:
+                    correction = apply_solution(session, problem, solve_local_ba(problem))
+        update_reference(session)
+        return InsertedKeyframe(kf, correction)
+
+    # -- in the workers ------------------------------------------------------------------
+
+    def request(self, kf_id: int) -> None:
+        """Local BA around keyframe ``kf_id``: submitted now, or after the one in flight."""
+        self.poll()
+        if self.jobs.idle:
+            self._submit(kf_id)
+        else:
+            self.jobs.wait(kf_id)
+
+    def poll(self) -> None:
+        """Apply a finished solution (never waits); then submit the waiting keyframe's."""
+        job = self.jobs.finished()
+        if job is None:
+            return
+        self._finish(job)
+        if self.jobs.waiting is not None:
+            self._submit(self.jobs.take_waiting())
+
+    def flush(self, timeout_s: float | None = None) -> None:
+        """Wait (at most ``timeout_s``, default the config's) for the solve in flight and the
+        waiting one, and apply them: before a loop correction and at the end of a run."""
+        deadline = time.monotonic() + (self.jobs.timeout_s if timeout_s is None else timeout_s)
+        while not self.jobs.idle:
+            if not self.jobs.wait_done(max(deadline - time.monotonic(), 0.0)):
+                self.jobs.give_up()
+                return
+            self.poll()
+
+    def _submit(self, kf_id: int) -> None:
+        problem = build_problem(self.session, kf_id)
+        if problem is None:
+            return
+        future = self.workers.submit_local_ba(problem) if self.workers is not None else None
+        if future is not None:
+            self.jobs.started(future, kf_id, problem, problem.epoch)
+            return
+        self.counts["inline"] += 1
+        self.land(problem, solve_local_ba(problem))
+
+    def _finish(self, job: Job) -> None:
+        problem: LocalBAProblem = job.payload
+        try:
+            solution: LocalBASolution | None = job.future.result()
+        except BrokenProcessPool as exc:
+            if self.workers is not None:
+                self.workers.fail(exc)
+            self.counts["inline"] += 1
+            solution = solve_local_ba(problem)
+        except Exception as exc:  # a bug in the solve must not end the robot's session
+            log.error("local BA of keyframe %d failed: %r", problem.kf_id, exc)
+            self.counts["failed"] += 1
+            return
+        if problem.epoch != self.session.map.epoch:
+            self.counts["stale"] += 1
+            return
+        self.land(problem, solution)
+        self.counts["applied"] += 1
+        self.jobs.landed(job)
+
+    def land(self, problem: LocalBAProblem, solution: LocalBASolution | None) -> None:
+        """Write a solution into the map. The frames tracked since moved with the map: so
+        does the motion model; and the keyframe test's reference is counted again."""
+        self.session.correct_motion(apply_solution(self.session, problem, solution))
+        update_reference(self.session)
+
+    def summary(self) -> dict[str, Any]:
+        return {**self.counts, "request_to_applied": duration_stats(self.jobs.lag_seconds)}
+
+
+def build_problem(session: BackEndState, kf_id: int) -> LocalBAProblem | None:
+    """The local BA problem around keyframe ``kf_id``, as the config asks."""
+    cfg = session.config.tracking
+    return local_ba_problem(
+        session.map, session.camera, kf_id, baseline_m=cfg.virtual_baseline_m,
+        scale_factor=session.config.orb.scale_factor, window_size=cfg.local_ba_window,
+        min_shared=cfg.covisibility_min_shared, iterations=tuple(cfg.local_ba_iterations))
+
+
+def apply_solution(session: BackEndState, problem: LocalBAProblem,
+                   solution: LocalBASolution | None) -> np.ndarray:
+    """Write a local BA solution into the session's map (None: the solve failed, nothing
+    changes). Returns the world-frame correction of the problem's keyframe."""
+    if solution is None:
+        return np.eye(4)
+    result = apply_local_ba(session.map, problem, solution)
+    session.local_ba_seconds.append(result.seconds)
+    session.local_ba_outliers += result.n_outliers
+    return result.correction
+
+
+def update_reference(session: BackEndState) -> None:
+    """ORB-SLAM's reference for the keyframe test: the newest keyframe's landmarks with
+    enough observations (3, or 2 while the map has at most two keyframes; with depth
+    counts 2)."""
+    lmap = session.map
+    min_weight = 3 if len(lmap.keyframes) > 2 else 2
+    session.reference_tracked = lmap.tracked_by_keyframe(lmap.keyframes[-1].id, min_weight)
+
+
+def fuse_search(session: BackEndState, f: FeatureFrame, T_world_camera: np.ndarray,
+                matched_ids: np.ndarray) -> np.ndarray:
+    """At a keyframe, search the keypoints tracking left unmatched against the live landmarks
+    projected from the keyframe's pose, within a few pixels (ORB-SLAM's Fuse): a match that
+    is also consistent with the keypoint's depth becomes an observation of the old landmark
+    instead of a duplicate landmark. Returns the updated ``matched_ids``."""
+    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    if not (matched_ids < 0).any():
+        return matched_ids
+    ids = match_free_keypoints(session, f, T_world_camera, matched_ids, cfg.fuse_radius_px,
+                               cfg.fuse_max_hamming, 1.0, scale_check=False)
+    kp = np.flatnonzero((ids >= 0) & (matched_ids < 0))
+    if not len(kp):
+        return matched_ids
+    lm = ids[kp]
+    depth = f.depth[kp].astype(np.float64)
+    chi2, z = reprojection_chi2(session.camera, session.camera.fx * cfg.virtual_baseline_m,
+                                np.broadcast_to(T_world_camera, (len(kp), 4, 4)), lmap.xyz[lm],
+                                f.uv[kp], depth, orb.scale_factor ** f.keypoints[kp, 5])
+    ok = (chi2 <= np.where(depth > 0, CHI2_STEREO, CHI2_MONO)) & (z > 0)
+    out = matched_ids.copy()
+    out[kp[ok]] = lm[ok]
+    session.fused_observations += int(ok.sum())
+    return out

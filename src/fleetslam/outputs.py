@@ -1,0 +1,146 @@
+"""A run's outputs, whoever ran it (one process: system.py; separate processes: the cloud's
+robot sessions and its merge, cloud/): the files of each robot and the schema of
+``summary.json``, and the tables printed from it (also the HTML report's).
+
+    <out>/<robot>/trajectory.tum   every frame (TUM; evo reads it)
+    <out>/<robot>/keyframes.tum    the keyframes
+    <out>/<robot>/map.ply          the robot's dense map
+    <out>/summary.json             SUMMARY_VERSION; robots, merge, config
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleetslam.config import Config, config_to_dict
+from fleetslam.io.ply import write_ply
+from fleetslam.io.trajectory import write_tum_trajectory
+from fleetslam.tables import format_table
+
+SUMMARY_VERSION = 3
+
+
+def robot_files(name: str) -> dict[str, str]:
+    """A robot's entries in the summary naming its files (relative to the run folder)."""
+    return {"trajectory": f"{name}/trajectory.tum", "map": f"{name}/map.ply"}
+
+
+def write_robot_files(robot_dir: Path, name: str, source: str, timestamps: np.ndarray,
+                      poses: np.ndarray, keyframe_times: np.ndarray, keyframe_poses: np.ndarray,
+                      points: np.ndarray, colors: np.ndarray) -> None:
+    """A robot's trajectory, keyframes and dense map, in its own map frame."""
+    write_tum_trajectory(robot_dir / "trajectory.tum", timestamps, poses,
+                         comment=f"fleetslam robot {name} from {source}\n"
+                                 "T_map_camera; map frame = first camera pose")
+    write_tum_trajectory(robot_dir / "keyframes.tum", keyframe_times, keyframe_poses,
+                         comment=f"fleetslam robot {name} keyframes")
+    write_ply(robot_dir / "map.ply", points, colors)
+
+
+def fleet_summary(robots: list[dict[str, Any]], merge: dict[str, Any] | None, config: Config,
+                  wall_s: float) -> dict[str, Any]:
+    """The summary of a run: one entry per robot, the merge (None for one robot)."""
+    return {"version": SUMMARY_VERSION, "wall_time_s": wall_s, "robots": robots,
+            "merge": merge, "config": config_to_dict(config)}
+
+
+def write_summary(out_dir: Path, summary: dict[str, Any]) -> None:
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+
+
+Table = tuple[list[str], list[list[Any]]]  # headers, rows (the text and the HTML report)
+
+
+def robot_table(summary: dict[str, Any]) -> Table:
+    """One row per robot: frames, losses, loops, ATE (if scored), speed, map size."""
+    rows = []
+    for r in summary["robots"]:
+        ate = r["ate"]["rmse_m"] * 100 if r.get("ate") else None
+        loops = r.get("loop_closing") or {}
+        rows.append([r["name"], r["frames"], r["keyframes"], r["lost_frames"],
+                     loops.get("relocalisations"), loops.get("loops_accepted"), ate,
+                     r.get("tracking_fps"), r["map_points"]])
+    return (["robot", "frames", "keyframes", "lost", "relocalised", "loops", "ATE RMSE cm",
+             "fps", "map points"], rows)
+
+
+def transport_table(summary: dict[str, Any]) -> Table | None:
+    """Robot -> cloud traffic and timing of a deployed run (None in one process)."""
+    deployed = [r for r in summary["robots"] if "transport" in r]
+    if not deployed:
+        return None
+    trows = []
+    for r in deployed:
+        robot = r.get("robot") or {}
+        counts = r["transport"]
+        trows.append([
+            r["name"], r["offload_at"],
+            robot["frame_bytes"] / max(robot["frames"], 1) / 1000 if robot else None,
+            robot.get("frames_lost_on_link"),
+            sum(v for k, v in counts.items() if k.startswith("rejected")),
+            robot.get("keyframe_uploads"), robot.get("upload_retries"),
+            r["cloud_ms_mean"], r["latency_ms_median"], robot.get("round_trip_ms_median"),
+            robot.get("round_trip_ms_p95")])
+    return (["robot", "offload at", "kB/frame", "lost on link", "rejected", "KF uploads",
+             "retries", "cloud ms/frame", "cloud latency ms", "round trip ms", "p95"], trows)
+
+
+def summary_table(summary: dict[str, Any]) -> str:
+    text = format_table(*robot_table(summary))
+    transport = transport_table(summary)
+    if transport:
+        text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + format_table(*transport)
+    merge = summary.get("merge")
+    if merge:
+        text += "\n\n" + merge_table(merge)
+    text += f"\n\nwall time {summary['wall_time_s']:.1f} s"
+    return text
+
+
+def merge_robot_table(merge: dict[str, Any]) -> Table:
+    """Per robot: its group, the frames it joined at, its errors if scored."""
+    evaluation = merge.get("evaluation") or {}
+    relative = {r["robot"]: r for r in evaluation.get("relative_poses", [])}
+    rows = []
+    for name, info in sorted(merge["robots"].items()):
+        joined = info.get("joined")
+        rel = relative.get(name, {})
+        rows.append([name, info["anchor"],
+                     " ".join(f"{r}:{f}" for r, f in joined["frames"].items()) if joined
+                     else None,
+                     rel.get("final_rotation_error_deg"),
+                     None if rel.get("final_translation_error_m") is None
+                     else rel["final_translation_error_m"] * 100,
+                     (merge.get("not_merged") or {}).get(name, "")])
+    return (["robot", "group", "joined at (robot:frame)", "rel. rot err deg",
+             "rel. trans err cm", "not merged because"], rows)
+
+
+def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
+    """(the groups line, the lines after the table: constraints, joint ATE)."""
+    evaluation = merge.get("evaluation") or {}
+    joint = evaluation.get("joint_ate")
+    head = "merge (no ground truth in the run): " + ", ".join(
+        "+".join(m) for m in merge["components"].values())
+    scored = [c for c in evaluation.get("constraints", []) if "rotation_error_deg" in c]
+    kept = [c for c in scored if c["kept"]]
+    line = (f"inter-robot constraints: {len(merge['constraints'])} "
+            f"({sum(c['kept'] is False for c in merge['constraints'])} rejected by GNC)")
+    if kept:
+        worst = max(kept, key=lambda c: c["rotation_error_deg"])
+        line += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
+                 f" / {max(c['translation_error_m'] for c in kept) * 100:.1f} cm")
+    lines = [line]
+    if joint:
+        lines.append(f"joint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm")
+    return head, lines
+
+
+def merge_table(merge: dict[str, Any]) -> str:
+    """Which robots joined, when, with how many constraints; the errors if scored."""
+    head, lines = merge_notes(merge)
+    return "\n".join([head, format_table(*merge_robot_table(merge)), *lines])

@@ -1,0 +1,62 @@
+"""Measuring a profile (planner/profile.py): the whole pipeline run on real frames, each
+stage timed and the state at every split point encoded as the wire would. It runs the
+back-end, so it needs the cloud's libraries; a robot can plan from a saved profile.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.planner.profile import Profile
+from fleetslam.wire.frames import encode_frame_message
+from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
+
+
+def measure_profile(sequence: RgbdSequence, source: str, config: Config, frames: int,
+                    progress: Callable[[int], None] | None = None) -> Profile:
+    """Run the whole pipeline on the first ``frames`` frames, timing each stage and encoding
+    the state at every split point (and each keyframe's upload) as the wire would."""
+    pipeline = TrackingPipeline(config, sequence.camera)
+    n = min(frames, len(sequence))
+    if n < 2:
+        raise ValueError(f"{source}: a profile needs at least 2 frames, the source has {n}")
+    stage_s: list[list[float]] = [[] for _ in pipeline.stages]
+    sizes: list[list[int]] = [[] for _ in range(len(pipeline.stages) + 1)]
+    keyframe_sizes: list[int] = []
+    keypoints: list[int] = []
+    camera, wire = sequence.camera, config.wire
+    for i in range(n):
+        frame = sequence[i]
+        state: Any = CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m)
+        sizes[0].append(len(encode_frame_message(state, 0, "profile", i, camera, wire)))
+        for k, stage in enumerate(pipeline.stages):
+            start = time.perf_counter()
+            state = stage(state, pipeline.sides.part(stage.side))
+            stage_s[k].append(time.perf_counter() - start)
+            sizes[k + 1].append(len(encode_frame_message(state, k + 1, "profile", i, camera,
+                                                         wire)))
+        keypoints.append(len(state.posed.matched.features.keypoints))
+        if state.is_keyframe:
+            upload = KeyframeUpload.from_frame(frame.index, frame.timestamp, frame.rgb,
+                                               frame.depth_raw, config.map.pixel_stride)
+            keyframe_sizes.append(len(encode_keyframe("profile", i, upload, wire)))
+        if progress is not None:
+            progress(i + 1)
+    # The first frame only builds the map: its times say nothing of tracking.
+    times = [np.array(s[1:]) * 1000 for s in stage_s]
+    return Profile(
+        source=source, label="measured", frames=n, stages=pipeline.stage_names,
+        stage_ms=[float(np.median(t)) for t in times],
+        stage_ms_p95=[float(np.percentile(t, 95)) for t in times],
+        frame_bytes=[float(np.mean(s)) for s in sizes],
+        keyframe_bytes=float(np.mean(keyframe_sizes)) if keyframe_sizes else 0.0,
+        keyframe_fraction=len(keyframe_sizes) / n, keypoints_mean=float(np.mean(keypoints)),
+        host=f"{platform.machine()} {platform.processor() or ''}".strip())

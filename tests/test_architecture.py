@@ -1,0 +1,96 @@
+"""The layers hold: the import-linter contracts of pyproject.toml are kept, no module takes
+part in an import cycle (function-level imports count), and the robot loads nothing of the
+cloud side."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import grimp
+
+ROOT = Path(__file__).resolve().parents[1]
+CLOUD_LIBRARIES = ("gtsam", "faiss", "small_gicp", "scipy", "octomap", "matplotlib",
+                   "cryptography")
+
+
+def test_the_layer_contracts_are_kept():
+    # In its own process: import-linter's command line reconfigures logging.
+    lint = subprocess.run([str(Path(sys.executable).with_name("lint-imports")), "--config",
+                           str(ROOT / "pyproject.toml"), "--no-cache"], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert lint.returncode == 0, lint.stdout + lint.stderr
+    assert "0 broken" in lint.stdout
+
+
+def strongly_connected(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import cycles of ``graph`` (module -> modules it imports): its strongly connected
+    components of more than one module (Tarjan, iteratively)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    cycles.append(sorted(component))
+    return cycles
+
+
+def test_no_module_takes_part_in_an_import_cycle():
+    built = grimp.build_graph("fleetslam", cache_dir=None)
+    graph = {m: built.find_modules_directly_imported_by(m) for m in built.modules}
+    assert strongly_connected(graph) == []
+    # The check finds cycles (two modules, and one through a function-level import).
+    assert strongly_connected({"a": {"b"}, "b": {"a"}, "c": set()}) == [["a", "b"]]
+    assert strongly_connected({"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set()}) \
+        == [["a", "b", "c"]]
+
+
+def test_the_robot_loads_nothing_of_the_cloud_side():
+    code = ("import sys, fleetslam.edge.robot, fleetslam.cli; "
+            f"print(sorted(m for m in {CLOUD_LIBRARIES!r} if m in sys.modules)); "
+            "print(sorted(m for m in sys.modules if m.startswith(('fleetslam.backend', "
+            "'fleetslam.cloud', 'fleetslam.merging', 'fleetslam.mapping'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert out == ["[]", "[]"]
+
+
+def test_the_base_install_is_what_a_robot_needs():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    names = {d.split(">")[0].split("=")[0].strip() for d in project["dependencies"]}
+    assert names == {"numpy", "opencv-python-headless", "eclipse-zenoh", "zstandard"}
+    cloud = {d.split(">")[0].strip() for d in project["optional-dependencies"]["cloud"]}
+    assert {"gtsam", "small_gicp", "faiss-cpu", "scipy", "octomap-python"} <= cloud
