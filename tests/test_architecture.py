@@ -10,6 +10,7 @@ import tomllib
 from pathlib import Path
 
 import grimp
+from conftest import small_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 CLOUD_LIBRARIES = ("gtsam", "faiss", "small_gicp", "scipy", "octomap", "matplotlib",
@@ -94,3 +95,25 @@ def test_the_base_install_is_what_a_robot_needs():
     assert names == {"numpy", "opencv-python-headless", "eclipse-zenoh", "zstandard"}
     cloud = {d.split(">")[0].strip() for d in project["optional-dependencies"]["cloud"]}
     assert {"gtsam", "small_gicp", "faiss-cpu", "scipy", "octomap-python"} <= cloud
+
+
+def test_without_the_cloud_extra_the_robot_runs_and_the_rest_says_what_it_needs(
+        tmp_path_factory):
+    """A robot's install, simulated by making the cloud's libraries unimportable: the robot
+    and its pipeline import; `fleetslam run` and a robot tracking by itself (point 6) name the
+    extra they need instead of a traceback."""
+    source = small_scene(tmp_path_factory, 2)[0]
+    out = tmp_path_factory.mktemp("run") / "out"
+    code = f"""
+import sys
+for name in {CLOUD_LIBRARIES!r}:
+    sys.modules[name] = None  # import raises ModuleNotFoundError
+from fleetslam.cli import main
+import fleetslam.edge.robot, fleetslam.pipeline.front_end, fleetslam.wire.frames
+print(main(["run", "--robot", "{source}", "--out", "{out}"]))
+print(main(["robot", "--id", "r1", "--source", "{source}", "--offload-at", "6"]))
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.stdout.split() == ["2", "2"], run.stderr
+    assert "`fleetslam run` needs the cloud extra: pip install 'fleetslam[cloud]'" in run.stderr
+    assert "(--offload-at 6) runs the back-end, which needs the cloud extra" in run.stderr

@@ -588,6 +588,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# What the cloud extra brings (pyproject.toml), by the name a missing one is imported as.
+CLOUD_EXTRA_MODULES = ("gtsam", "small_gicp", "faiss", "scipy", "octomap", "matplotlib",
+                       "cryptography")
+
+
 def main(argv: list[str] | None = None) -> int:
     # small_gicp's OpenMP threads busy-wait by default, which slows everything else on a
     # 2-core robot or a shared server; they must sleep instead.
@@ -603,6 +608,15 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args, config)
     except (ValueError, FileExistsError, RuntimeError, TimeoutError) as exc:
         print(f"fleetslam: error: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:
+        if exc.name is None or exc.name.split(".")[0] not in CLOUD_EXTRA_MODULES:
+            raise
+        # A robot's install (numpy, OpenCV, Zenoh, zstd) runs `fleetslam robot`; the rest
+        # needs the cloud's libraries.
+        print(f"fleetslam: error: `fleetslam {args.command}` needs the cloud extra: "
+              f"pip install 'fleetslam[cloud]' (no module named {exc.name!r})",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("fleetslam: interrupted", file=sys.stderr)

@@ -227,7 +227,8 @@ class MapConfig:
 
 @dataclass
 class FsHicpConfig:
-    """FS-HICP exactly as paper-notes.md section 2."""
+    """FS-HICP as the paper's section IV.B specifies it (our reading: shared/paper-notes.md
+    section 2, outside this repository)."""
 
     max_depth_m: float = 7.0
     coarse_voxel_m: float = 0.1

@@ -1,6 +1,7 @@
 """Place recognition over keyframes: which stored keyframes show the place a new one shows.
 
-One component, used for loops within a robot and (later) for matches across robots. Every
+One component, used for loops within a robot (backend/loop_closing.py), relocalisation and
+matches across robots (merging/merger.py). Every
 keyframe's ORB descriptors go into the database; a query looks up each of its descriptors'
 nearest neighbours (Hamming, faiss's exact binary index) among the entries it may match,
 and every entry holding a near neighbour gets a vote. A descriptor whose neighbours are

@@ -1,4 +1,5 @@
-"""FS-HICP: fitness-score hierarchical ICP (paper section IV.B; spec in paper-notes.md §2).
+"""FS-HICP: fitness-score hierarchical ICP (paper section IV.B; our reading of it: the
+project's shared/paper-notes.md §2, outside this repository).
 
 One pair: :func:`fshicp` registers a source map onto a target map from an initial guess.
 Many maps: :func:`merge_maps` chains the pairwise results into one global frame.

@@ -1,7 +1,8 @@
 """Registration quality measures: PCL's fitness score, its RMSE, and the paper's eq. 6 error.
 
-Fitness score (paper-notes §2): the paper's text says "sum of squared distances", its eq. 8
-a mean of distances; the paper used PCL's ``getFitnessScore``, which is the *mean of squared*
+Fitness score (the paper's section IV.B; our reading of it: shared/paper-notes.md §2,
+outside this repository): the paper's text says "sum of squared distances", its eq. 8 a
+mean of distances; the paper used PCL's ``getFitnessScore``, which is the *mean of squared*
 nearest-neighbour distances from each (transformed) source point to the target, over the
 points whose neighbour lies within ``max_range``. That is the meaning used here. One
 difference from PCL: PCL compares the *squared* distance with ``max_range``; here

@@ -7,8 +7,10 @@
     fleet/<robot>/control    robot -> cloud  JSON: hello (open or resume the session), end
     fleet/<robot>/feedback   cloud -> robot  FEEDBACK message per tracked frame: pose, keyframe
     fleet/<robot>/reply      cloud -> robot  JSON: welcome, ack (keyframe stored), need, ended
-    fleet/cloud/control      anyone -> cloud JSON: merge (register all finished maps), status
-    fleet/cloud/reply        cloud -> anyone JSON: merged, status
+    fleet/cloud/control      operator -> cloud JSON: merge (register all finished maps), status
+    fleet/cloud/reply        cloud -> operator JSON: merged, status
+
+(who may use which key: transport/access_control.py)
 
 Cloud workers agree among themselves with Zenoh liveliness tokens (no payload: a token is
 there while its worker's Zenoh session lives, and vanishes when the worker dies):
@@ -19,7 +21,7 @@ there while its worker's Zenoh session lives, and vanishes when the worker dies)
     fleet/cloud/owners/<robot>/<worker>    the worker that serves the robot
 
 and the workers that do not merge publish each new keyframe of their robots for the one that
-does (data: a keyframe summary, its robot's keyframe poses and camera):
+does (wire/merger_keyframes.py: a keyframe summary, its robot's keyframe poses and camera):
 
     fleet/cloud/keyframes/<robot>          worker -> the merging worker
 

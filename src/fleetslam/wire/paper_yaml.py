@@ -1,4 +1,5 @@
-"""The paper's per-frame message: an OpenCV FileStorage YAML file (paper-notes.md §1).
+"""The paper's per-frame message: an OpenCV FileStorage YAML file (our reading of the paper:
+shared/paper-notes.md §1, outside this repository).
 
     %YAML:1.0
     KeyPoint: [[x, y, size, angle, response, octave, class_id], ...]
