@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from fleetslam.edge.robot import parse_rate
+from fleetslam.edge.pacing import parse_rate
 from fleetslam.pipeline.split import parse_offload_point
 from fleetslam.transport import keys
 

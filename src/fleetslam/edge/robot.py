@@ -16,7 +16,6 @@ import queue
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -24,6 +23,8 @@ import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
+from fleetslam.edge.report import RobotReport
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
 from fleetslam.pipeline.split import (
     INTER_POINTS,
@@ -47,26 +48,12 @@ from fleetslam.wire.inter import InterEncoder, InterStats, reference_of
 from fleetslam.wire.messages import KeyframeUpload, decode_feedback, encode_keyframe
 from fleetslam.wire.paper_yaml import write_paper_yaml
 
+__all__ = ["END_TIMEOUT_S", "OnboardTracker", "Robot", "RobotReport", "parse_rate"]
+
 log = logging.getLogger("fleetslam.robot")
 
 # A robot that sends "end" waits this long for its last frames and map (cloud backlog).
 END_TIMEOUT_S = 900.0
-
-
-def parse_rate(text: str) -> float | None:
-    """'max' (None: as fast as stages and link allow), 'recorded' (0: at the recording's
-    timestamps) or frames per second."""
-    if text == "max":
-        return None
-    if text == "recorded":
-        return 0.0
-    try:
-        fps = float(text)
-    except ValueError:
-        fps = -1.0
-    if not fps > 0:
-        raise ValueError(f"rate {text!r}: 'max', 'recorded' or frames per second > 0")
-    return fps
 
 
 class OnboardTracker(Protocol):
@@ -78,62 +65,6 @@ class OnboardTracker(Protocol):
     sides: Sides
 
     def keyframe_poses(self) -> dict[int, np.ndarray]: ...
-
-
-@dataclass
-class RobotReport:
-    robot_id: str
-    offload_at: int
-    frames: int = 0
-    first_index: int = 0
-    frames_lost_on_link: int = 0
-    frame_bytes: int = 0
-    control_bytes: int = 0
-    keyframe_uploads: int = 0
-    keyframe_bytes: int = 0
-    upload_retries: int = 0
-    # Uploads the cloud said it no longer needs (keyframes a restarted cloud lost).
-    uploads_not_needed: int = 0
-    # Frame indices of the keyframes the cloud acknowledged (stored and checkpointed).
-    acknowledged: list[int] = field(default_factory=list)
-    feedback: int = 0
-    keyframes: int = 0
-    robot_compute_s: float = 0.0
-    robot_stage_ms: dict[str, float] = field(default_factory=dict)
-    link_busy_s: float = 0.0
-    round_trip_ms_median: float | None = None
-    round_trip_ms_p95: float | None = None
-    streaming_s: float = 0.0  # first frame sent -> last frame sent
-    last_feedback_s: float = 0.0  # first frame sent -> last feedback received
-    total_s: float = 0.0  # first frame sent -> the cloud's "ended" (map built)
-    resumed_at: int | None = None
-    cloud_summary: dict[str, Any] | None = None
-    # An adaptive robot: every re-plan (measured link, chosen point / features / step) and
-    # how many frames went at each point; frames it skipped by its frame step.
-    plan_history: list[dict[str, Any]] = field(default_factory=list)
-    frames_per_point: dict[str, int] = field(default_factory=dict)
-    frames_skipped: int = 0
-    # Flow control: seconds the robot waited for its window of frames in flight, and the
-    # waits that ran out (the cloud did not answer in time).
-    flow_wait_s: float = 0.0
-    flow_timeouts: int = 0
-    # Times a cloud worker took the session over from its checkpoint (failover), and the
-    # longest time between two feedbacks (the pause a takeover costs, or a backlog's).
-    takeovers: int = 0
-    longest_feedback_gap_s: float = 0.0
-    # Every frame and keyframe upload put on the link, for the run report's plots of bytes
-    # and link use over time: [start s, end s, bytes, "frame" | "keyframe", delivered], the
-    # times since the first frame was read (start: handed to the link, which may first
-    # finish earlier messages; end: its last bit sent). Recorded only, never sent.
-    sends: list[tuple[float, float, int, str, bool]] = field(default_factory=list)
-    # Message encoding per frame (inter-frame coding matches descriptors: robot CPU), and
-    # the inter-frame coding's counts (wire/inter.py: intra share, descriptors coded inter).
-    encode_ms_mean: float | None = None
-    encode_ms_p95: float | None = None
-    inter_coding: dict[str, Any] = field(default_factory=dict)
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), indent=2)
 
 
 class Robot:
@@ -408,7 +339,7 @@ class Robot:
         stride = self.config.map.pixel_stride
         t0 = time.monotonic()
         self._t0 = t0
-        first_stamp = None
+        pacer = Pacer(self.fps, t0, start_index)
         # The link sends frame i while the stages work on frame i+1 (a robot's NIC and CPU
         # run side by side); the short queue keeps the robot from running ahead of its link.
         outbox: queue.Queue = queue.Queue(maxsize=2)
@@ -416,7 +347,8 @@ class Robot:
                                   name=f"robot-{self.robot_id}-send", daemon=True)
         sender.start()
         k, step = self.offload_at, 1
-        for i, frame in zip(range(start_index, n), self._read_ahead(start_index)):
+        frames = read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
+        for i, frame in zip(range(start_index, n), frames):
             if i in self.link_trace:  # the emulated link changes (a recorded trace)
                 self.link.set_bandwidth(self.link_trace[i])
             if self.planner is not None and i > start_index \
@@ -430,13 +362,7 @@ class Robot:
             if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
                 outbox.join()
                 seq = max(seq, int(self._hello()["next_seq"]))
-            if self.fps is not None:  # pace: at the recording's times, or at a fixed rate
-                first_stamp = frame.timestamp if first_stamp is None else first_stamp
-                due = (frame.timestamp - first_stamp) if self.fps == 0 \
-                    else (i - start_index) / self.fps
-                wait = t0 + due - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
+            pacer.wait(i, frame.timestamp)  # at the recording's times, or at a fixed rate
             self._await_window()
             start = time.perf_counter()
             state = run_stages(self.stages[:k],
@@ -527,25 +453,6 @@ class Robot:
                     self._in_flight.notify_all()
             outbox.task_done()
         outbox.task_done()
-
-    def _read_ahead(self, start: int, depth: int = 3):
-        """Frames from ``start`` on, decoded by a background thread (as a camera driver
-        delivers them) so reading images does not stall the stages."""
-        frames: queue.Queue = queue.Queue(maxsize=depth)
-
-        def read() -> None:
-            try:
-                for i in range(start, len(self.sequence)):
-                    frames.put(self.sequence[i])
-            except Exception as exc:  # an unreadable image ends the stream with its error
-                frames.put(exc)
-            frames.put(None)
-
-        threading.Thread(target=read, name=f"robot-{self.robot_id}-read", daemon=True).start()
-        while (frame := frames.get()) is not None:
-            if isinstance(frame, Exception):
-                raise frame
-            yield frame
 
     def _finish(self) -> None:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
