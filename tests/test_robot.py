@@ -101,21 +101,21 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
     config.transport.max_frames_in_flight, config.transport.in_flight_wait_s = 4, 30.0
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, config, show_progress=False)
     for seq in range(4):
-        robot._sent_at[seq] = time.monotonic()
-    waiter = threading.Thread(target=robot._await_window)
+        robot.window.sent(seq)
+    waiter = threading.Thread(target=robot.window.wait_for_room)
     waiter.start()
     time.sleep(0.3)
     assert waiter.is_alive()  # 4 in flight: the next frame waits
     data = encode_feedback("r1", 2, Feedback(2, 0.0, True, False, 100, np.eye(4), 5.0))
     robot._on_feedback(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
     waiter.join(5)
-    assert not waiter.is_alive() and list(robot._sent_at) == [3]
+    assert not waiter.is_alive() and robot.window.in_flight() == [3]
     assert robot.report.flow_timeouts == 0
 
     config.transport.in_flight_wait_s = 0.2  # now the cloud goes silent
     for seq in range(4, 7):
-        robot._sent_at[seq] = time.monotonic()
+        robot.window.sent(seq)
     start = time.monotonic()
-    robot._await_window()
+    assert not robot.window.wait_for_room()  # the robot then says hello again
     assert 0.2 <= time.monotonic() - start < 2.0
-    assert robot.report.flow_timeouts == 1 and len(robot._sent_at) < 4
+    assert robot.report.flow_timeouts == 1 and len(robot.window.in_flight()) < 4

@@ -23,6 +23,7 @@ import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
@@ -116,13 +117,7 @@ class Robot:
         self._uploads: queue.Queue = queue.Queue()
         self._buffer: OrderedDict[int, KeyframeUpload] = OrderedDict()
         self._buffer_lock = threading.Lock()
-        # Frames sent and not yet answered (seq -> when), in seq order; the flow-control
-        # window waits on it. Feedback comes in seq order, so a frame older than one with
-        # feedback was lost (link, or dropped by the cloud) and leaves the window.
-        self._sent_at: OrderedDict[int, float] = OrderedDict()
-        self._in_flight = threading.Condition()
-        self._round_trips: list[float] = []
-        self._last_feedback = 0.0
+        self.window = FlowWindow(self.robot_id, config, self.report)
         self._need_hello = threading.Event()
         self._upload_error: str | None = None
         # The point each recent frame went at (an adaptive robot switches).
@@ -141,23 +136,12 @@ class Robot:
         except WireError as exc:
             log.warning("robot %s: feedback rejected: %s", self.robot_id, exc)
             return
-        now = time.monotonic()
-        if self._last_feedback:
-            # The longest the cloud was silent (a worker taking over, a backlog).
-            self.report.longest_feedback_gap_s = max(self.report.longest_feedback_gap_s,
-                                                     now - self._last_feedback)
-        self._last_feedback = now
+        now = self.window.heard()
         self.report.feedback += 1
         self.inter.acked(header.seq)  # as "held", for a cloud that does not send it
-        with self._in_flight:
-            sent = self._sent_at.pop(header.seq, None)
-            while self._sent_at and next(iter(self._sent_at)) < header.seq:
-                self._sent_at.popitem(last=False)
-            self._in_flight.notify_all()
-        if sent is not None:
-            self._round_trips.append(1000.0 * (now - sent))
-            if self.planner is not None:
-                self.planner.meter.round_trip(now - sent)
+        round_trip = self.window.answered(header.seq, now)
+        if round_trip is not None and self.planner is not None:
+            self.planner.meter.round_trip(round_trip)
         if fb.is_keyframe:
             self.report.keyframes += 1
             # A frame sent at point 0 gave the cloud its images already.
@@ -176,9 +160,7 @@ class Robot:
         elif kind == "welcome" and message.get("taken_over"):
             # A worker took the session over from its checkpoint (the one serving it died):
             # the frames in flight went to the dead one, and it holds none as a reference.
-            with self._in_flight:
-                self._sent_at.clear()
-                self._in_flight.notify_all()
+            self.window.clear()
             self.inter.refused(self._next_seq)
             self.report.takeovers += 1
             self._replies.put(message)
@@ -244,9 +226,7 @@ class Robot:
                 # A new or resumed session: no frame acknowledged before is a reference.
                 self.inter.set_cloud_ring(int(welcome.get("reference_frames") or 0))
                 self.inter.restart(int(welcome["next_seq"]))
-                with self._in_flight:  # a new or resumed session answers none of them
-                    self._sent_at.clear()
-                    self._in_flight.notify_all()
+                self.window.clear()  # a new or resumed session answers none of them
                 return welcome
         raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
                            f"{self.endpoint} after {cfg.max_attempts} hellos")
@@ -363,7 +343,10 @@ class Robot:
                 outbox.join()
                 seq = max(seq, int(self._hello()["next_seq"]))
             pacer.wait(i, frame.timestamp)  # at the recording's times, or at a fixed rate
-            self._await_window()
+            if not self.window.wait_for_room():
+                # Nobody may be serving this robot any more (a cloud that lost it, a worker
+                # gone): a hello is heard by every worker and gets it served again.
+                self._need_hello.set()
             start = time.perf_counter()
             state = run_stages(self.stages[:k],
                                CapturedFrame(frame.index, frame.timestamp, frame.rgb,
@@ -393,8 +376,7 @@ class Robot:
                         frame.index, frame.timestamp, frame.rgb, frame.depth_raw, stride)
                     while len(self._buffer) > self.config.transport.keyframe_buffer_frames:
                         self._buffer.popitem(last=False)
-            with self._in_flight:
-                self._sent_at[seq] = time.monotonic()
+            self.window.sent(seq)
             outbox.put((seq, data))
             self.report.frames += 1
             self.report.frame_bytes += len(data)
@@ -406,29 +388,6 @@ class Robot:
         sender.join()
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
-
-    def _await_window(self) -> None:
-        """Flow control: wait while ``transport.max_frames_in_flight`` frames await their
-        feedback (at most ``in_flight_wait_s``; then the oldest is taken as lost)."""
-        cfg = self.config.transport
-        if cfg.max_frames_in_flight <= 0:
-            return
-        start = time.monotonic()
-        with self._in_flight:
-            if self._in_flight.wait_for(lambda: len(self._sent_at) < cfg.max_frames_in_flight,
-                                        cfg.in_flight_wait_s):
-                self.report.flow_wait_s += time.monotonic() - start
-                return
-            self.report.flow_timeouts += 1
-            self.report.flow_wait_s += time.monotonic() - start
-            log.warning("robot %s: no feedback for %.0f s with %d frames in flight; saying "
-                        "hello again and going on", self.robot_id, cfg.in_flight_wait_s,
-                        len(self._sent_at))
-            # Nobody may be serving this robot any more (a cloud that lost it, a worker
-            # gone): a hello is heard by every worker and gets it served again.
-            self._need_hello.set()
-            while len(self._sent_at) >= cfg.max_frames_in_flight:
-                self._sent_at.popitem(last=False)
 
     def _send_measured(self, key: str, data: bytes) -> bool:
         """Send on the link; an adaptive robot learns its link from how long sends take."""
@@ -448,9 +407,7 @@ class Robot:
             seq, data = item
             if not self._send_measured(keys.frame(self.robot_id), data):
                 self.report.frames_lost_on_link += 1
-                with self._in_flight:
-                    self._sent_at.pop(seq, None)
-                    self._in_flight.notify_all()
+                self.window.lost(seq)
             outbox.task_done()
         outbox.task_done()
 
@@ -484,16 +441,13 @@ class Robot:
     def _record_end(self, answer: dict[str, Any]) -> None:
         r = self.report
         r.total_s = time.monotonic() - self._t0
-        r.last_feedback_s = max(0.0, self._last_feedback - self._t0)
         r.link_busy_s = self.link.stats.busy_s
         r.robot_stage_ms = self.timer.mean_ms()
         if self._encode_ms:
             r.encode_ms_mean = float(np.mean(self._encode_ms))
             r.encode_ms_p95 = float(np.percentile(self._encode_ms, 95))
         r.inter_coding = self.inter.counts.summary()
-        if self._round_trips:
-            r.round_trip_ms_median = float(np.median(self._round_trips))
-            r.round_trip_ms_p95 = float(np.percentile(self._round_trips, 95))
+        self.window.record(r, self._t0)
         r.cloud_summary = answer.get("summary")
         if self.planner is not None:
             r.plan_history = self.planner.history
