@@ -26,6 +26,7 @@ from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
+from fleetslam.edge.sender import FrameOutbox, Sender
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
 from fleetslam.pipeline.split import (
     INTER_POINTS,
@@ -111,6 +112,7 @@ class Robot:
             self.sides = Sides(edge=FrontEndState(config, sequence.camera))
         self.timer = StageTimer()
         self.report = RobotReport(robot_id, offload_at)
+        self.sender: Sender | None = None  # the link, once run() has connected
         self._replies: queue.Queue = queue.Queue()
         self._acks: dict[int, threading.Event] = {}
         self._acks_lock = threading.Lock()
@@ -194,13 +196,6 @@ class Robot:
             self.report.uploads_not_needed += 1
             event.set()
 
-    # -- sending --------------------------------------------------------------------------
-
-    def _send_control(self, message: dict[str, Any]) -> None:
-        data = protocol.encode(message)
-        self.report.control_bytes += len(data)
-        self.link.send(keys.control(self.robot_id), data)
-
     def _await_reply(self, kinds: tuple[str, ...], timeout: float) -> dict[str, Any] | None:
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0:
@@ -219,7 +214,7 @@ class Robot:
                         self.planner is not None).message(len(self.sequence))
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
-            self._send_control(message)
+            self.sender.control(message)
             welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
             if welcome is not None:
                 self._need_hello.clear()
@@ -258,7 +253,7 @@ class Robot:
         for attempt in range(cfg.max_attempts):
             if attempt:
                 self.report.upload_retries += 1
-            self._send_measured(keys.keyframe(self.robot_id), data)
+            self.sender.send(keys.keyframe(self.robot_id), data)
             self.report.keyframe_uploads += 1
             self.report.keyframe_bytes += len(data)
             if event.wait(cfg.ack_timeout_s):
@@ -281,7 +276,9 @@ class Robot:
     def run(self) -> RobotReport:
         zs = open_connecting(self.endpoint, self.config.transport.reach_deadline_s,
                              self.config.transport.zenoh_config or None)
-        self.link = EmulatedLink(self.config.link, lambda key, data: put(zs, key, data))
+        self.sender = Sender(self.robot_id,
+                             EmulatedLink(self.config.link, lambda key, data: put(zs, key, data)),
+                             self.report, self.planner)
         subs = [zs.declare_subscriber(keys.feedback(self.robot_id), self._on_feedback),
                 zs.declare_subscriber(keys.reply(self.robot_id), self._on_reply)]
         uploader = threading.Thread(target=self._uploader, name=f"robot-{self.robot_id}-upload",
@@ -293,7 +290,7 @@ class Robot:
         finally:
             self._uploads.put(None)
             uploader.join(5.0)
-            self.link.close()
+            self.sender.close()
             for sub in subs:
                 sub.undeclare()
             zs.close()
@@ -318,19 +315,14 @@ class Robot:
                             n - start_index, enabled=self.show_progress)
         stride = self.config.map.pixel_stride
         t0 = time.monotonic()
-        self._t0 = t0
+        self._t0 = self.sender.t0 = t0
         pacer = Pacer(self.fps, t0, start_index)
-        # The link sends frame i while the stages work on frame i+1 (a robot's NIC and CPU
-        # run side by side); the short queue keeps the robot from running ahead of its link.
-        outbox: queue.Queue = queue.Queue(maxsize=2)
-        sender = threading.Thread(target=self._sender, args=(outbox,),
-                                  name=f"robot-{self.robot_id}-send", daemon=True)
-        sender.start()
+        outbox = FrameOutbox(self.sender, self.window)
         k, step = self.offload_at, 1
         frames = read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
         for i, frame in zip(range(start_index, n), frames):
             if i in self.link_trace:  # the emulated link changes (a recorded trace)
-                self.link.set_bandwidth(self.link_trace[i])
+                self.sender.link.set_bandwidth(self.link_trace[i])
             if self.planner is not None and i > start_index \
                     and (i - start_index) % self.planner.cfg.replan_frames == 0:
                 setting = self.planner.replan(i)
@@ -340,7 +332,7 @@ class Robot:
                 self.report.frames_skipped += 1
                 continue
             if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
-                outbox.join()
+                outbox.drain()
                 seq = max(seq, int(self._hello()["next_seq"]))
             pacer.wait(i, frame.timestamp)  # at the recording's times, or at a fixed rate
             if not self.window.wait_for_room():
@@ -377,39 +369,16 @@ class Robot:
                     while len(self._buffer) > self.config.transport.keyframe_buffer_frames:
                         self._buffer.popitem(last=False)
             self.window.sent(seq)
-            outbox.put((seq, data))
+            outbox.put(seq, data)
             self.report.frames += 1
             self.report.frame_bytes += len(data)
             seq += 1
             progress.update(i + 1 - start_index, f"kf {self.report.keyframes}"
                             + (f" k={k} f={self.config.orb.n_features} step={step}"
                                if self.planner is not None else ""))
-        outbox.put(None)
-        sender.join()
+        outbox.close()
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
-
-    def _send_measured(self, key: str, data: bytes) -> bool:
-        """Send on the link; an adaptive robot learns its link from how long sends take."""
-        start = time.monotonic()
-        delivered = self.link.send(key, data)
-        end = time.monotonic()
-        if self.planner is not None:
-            self.planner.meter.sent(len(data), start, end)
-        # list.append is atomic: the sender and uploader threads both record here.
-        self.report.sends.append((start - self._t0, end - self._t0, len(data),
-                                  "keyframe" if key == keys.keyframe(self.robot_id) else "frame",
-                                  delivered))
-        return delivered
-
-    def _sender(self, outbox: queue.Queue) -> None:
-        while (item := outbox.get()) is not None:
-            seq, data = item
-            if not self._send_measured(keys.frame(self.robot_id), data):
-                self.report.frames_lost_on_link += 1
-                self.window.lost(seq)
-            outbox.task_done()
-        outbox.task_done()
 
     def _finish(self) -> None:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
@@ -422,7 +391,7 @@ class Robot:
         for _ in range(cfg.max_attempts):
             if self._upload_error:
                 raise RuntimeError(self._upload_error)
-            self._send_control(message)
+            self.sender.control(message)
             if self._await_reply(("ending",), cfg.connect_timeout_s) is None:
                 continue  # the end message was lost, or the cloud is restarting
             answer = self._await_reply(("need", "ended"), END_TIMEOUT_S)
@@ -441,7 +410,7 @@ class Robot:
     def _record_end(self, answer: dict[str, Any]) -> None:
         r = self.report
         r.total_s = time.monotonic() - self._t0
-        r.link_busy_s = self.link.stats.busy_s
+        r.link_busy_s = self.sender.link.stats.busy_s
         r.robot_stage_ms = self.timer.mean_ms()
         if self._encode_ms:
             r.encode_ms_mean = float(np.mean(self._encode_ms))
