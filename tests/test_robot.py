@@ -67,17 +67,17 @@ def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
 
     folder = small_scene(tmp_path_factory, 2)[0]
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
-    robot._queue_upload(14)
+    robot.uploader.queue(14)
 
     def reply(message: dict) -> None:
         data = json.dumps(message).encode()
         robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
 
     reply(protocol.error(protocol.Code.REJECTED, "keyframe rejected: too big", frame_index=14))
-    assert not robot._acks[14].is_set()  # another reason: resending may help
+    assert not robot.uploader._acks[14].is_set()  # another reason: resending may help
     reply(protocol.error(protocol.Code.NOT_A_KEYFRAME, "keyframe rejected: frame 14 is not a "
                          "keyframe of this session", frame_index=14))
-    assert robot._acks[14].is_set() and robot.report.uploads_not_needed == 1
+    assert robot.uploader._acks[14].is_set() and robot.report.uploads_not_needed == 1
 
 
 def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_factory):

@@ -15,7 +15,6 @@ import logging
 import queue
 import threading
 import time
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -27,6 +26,7 @@ from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
 from fleetslam.edge.sender import FrameOutbox, Sender
+from fleetslam.edge.uploader import KeyframeUploader
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
 from fleetslam.pipeline.split import (
     INTER_POINTS,
@@ -47,7 +47,7 @@ from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.inter import InterEncoder, InterStats, reference_of
-from fleetslam.wire.messages import KeyframeUpload, decode_feedback, encode_keyframe
+from fleetslam.wire.messages import decode_feedback
 from fleetslam.wire.paper_yaml import write_paper_yaml
 
 __all__ = ["END_TIMEOUT_S", "OnboardTracker", "Robot", "RobotReport", "parse_rate"]
@@ -114,16 +114,10 @@ class Robot:
         self.report = RobotReport(robot_id, offload_at)
         self.sender: Sender | None = None  # the link, once run() has connected
         self._replies: queue.Queue = queue.Queue()
-        self._acks: dict[int, threading.Event] = {}
-        self._acks_lock = threading.Lock()
-        self._uploads: queue.Queue = queue.Queue()
-        self._buffer: OrderedDict[int, KeyframeUpload] = OrderedDict()
-        self._buffer_lock = threading.Lock()
         self.window = FlowWindow(self.robot_id, config, self.report)
         self._need_hello = threading.Event()
-        self._upload_error: str | None = None
-        # The point each recent frame went at (an adaptive robot switches).
-        self._point_of: OrderedDict[int, int] = OrderedDict()
+        self.uploader = KeyframeUploader(self.robot_id, sequence, offload_at, config,
+                                         self.report)
         self._t0 = time.monotonic()  # reset when the first frame is read
         # Inter-frame coding: which frames the cloud acknowledged (feedback) and holds.
         self.inter = InterEncoder(config.wire)
@@ -146,9 +140,7 @@ class Robot:
             self.planner.meter.round_trip(round_trip)
         if fb.is_keyframe:
             self.report.keyframes += 1
-            # A frame sent at point 0 gave the cloud its images already.
-            if self._point_of.get(fb.frame_index, self.offload_at) > 0:
-                self._queue_upload(fb.frame_index)
+            self.uploader.keyframe(fb.frame_index)
 
     def _on_reply(self, sample: Any) -> None:
         try:
@@ -167,17 +159,11 @@ class Robot:
             self.report.takeovers += 1
             self._replies.put(message)
         elif kind == "ack":
-            index = int(message["frame_index"])
-            with self._acks_lock:
-                event = self._acks.get(index)
-                if event is not None and not event.is_set():
-                    self.report.acknowledged.append(index)
-            if event is not None:
-                event.set()
+            self.uploader.acknowledged(int(message["frame_index"]))
         elif kind == "error":
             log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
             if message.get("code") == protocol.Code.NOT_A_KEYFRAME.value:
-                return self._keyframe_not_needed(message.get("frame_index"))
+                return self.uploader.not_needed(message.get("frame_index"))
             if message.get("code") == protocol.Code.REFERENCE_MISSING.value:
                 # Intra frames until a frame sent from now on is acknowledged.
                 return self.inter.refused(self._next_seq)
@@ -186,15 +172,6 @@ class Robot:
             self._replies.put(message)
         else:
             self._replies.put(message)
-
-    def _keyframe_not_needed(self, index: Any) -> None:
-        """The cloud's session does not hold this frame as a keyframe (a cloud restarted from
-        an older checkpoint lost it): resending cannot help, so its upload ends here."""
-        with self._acks_lock:
-            event = self._acks.get(index) if isinstance(index, int) else None
-        if event is not None and not event.is_set():
-            self.report.uploads_not_needed += 1
-            event.set()
 
     def _await_reply(self, kinds: tuple[str, ...], timeout: float) -> dict[str, Any] | None:
         deadline = time.monotonic() + timeout
@@ -226,51 +203,6 @@ class Robot:
         raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
                            f"{self.endpoint} after {cfg.max_attempts} hellos")
 
-    def _keyframe_upload(self, index: int) -> KeyframeUpload:
-        with self._buffer_lock:
-            upload = self._buffer.get(index)
-        if upload is None:  # older than the buffer: read it again from the recording
-            frame = self.sequence[index]
-            upload = KeyframeUpload.from_frame(index, frame.timestamp, frame.rgb, frame.depth_raw,
-                                               self.config.map.pixel_stride)
-        return upload
-
-    def _queue_upload(self, index: int) -> None:
-        """Upload a keyframe once: the cloud's 'need' at the end may name one whose feedback
-        came after the end was sent, and is already on its way."""
-        with self._acks_lock:
-            if index in self._acks:
-                return
-            self._acks[index] = threading.Event()
-        self._uploads.put(index)
-
-    def _upload(self, index: int) -> None:
-        cfg = self.config.transport
-        data = encode_keyframe(self.robot_id, index, self._keyframe_upload(index),
-                               self.config.wire)
-        with self._acks_lock:
-            event = self._acks[index]
-        for attempt in range(cfg.max_attempts):
-            if attempt:
-                self.report.upload_retries += 1
-            self.sender.send(keys.keyframe(self.robot_id), data)
-            self.report.keyframe_uploads += 1
-            self.report.keyframe_bytes += len(data)
-            if event.wait(cfg.ack_timeout_s):
-                return
-        raise RuntimeError(f"keyframe {index} not acknowledged after {cfg.max_attempts} tries")
-
-    def _uploader(self) -> None:
-        while (index := self._uploads.get()) is not None:
-            try:
-                self._upload(index)
-            except Exception as exc:
-                self._upload_error = f"robot {self.robot_id}: {exc}"
-                log.error("%s", self._upload_error)
-            finally:
-                self._uploads.task_done()
-        self._uploads.task_done()
-
     # -- the run --------------------------------------------------------------------------
 
     def run(self) -> RobotReport:
@@ -281,15 +213,12 @@ class Robot:
                              self.report, self.planner)
         subs = [zs.declare_subscriber(keys.feedback(self.robot_id), self._on_feedback),
                 zs.declare_subscriber(keys.reply(self.robot_id), self._on_reply)]
-        uploader = threading.Thread(target=self._uploader, name=f"robot-{self.robot_id}-upload",
-                                    daemon=True)
-        uploader.start()
+        self.uploader.start(self.sender.send)
         try:
             self._stream()
             self._finish()
         finally:
-            self._uploads.put(None)
-            uploader.join(5.0)
+            self.uploader.stop()
             self.sender.close()
             for sub in subs:
                 sub.undeclare()
@@ -313,7 +242,6 @@ class Robot:
         n = len(self.sequence)
         progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
                             n - start_index, enabled=self.show_progress)
-        stride = self.config.map.pixel_stride
         t0 = time.monotonic()
         self._t0 = self.sender.t0 = t0
         pacer = Pacer(self.fps, t0, start_index)
@@ -358,16 +286,8 @@ class Robot:
             self.report.robot_compute_s += now - start
             if self.paper_yaml_dir is not None:
                 write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
-            self._point_of[frame.index] = k
-            while len(self._point_of) > self.config.transport.keyframe_buffer_frames:
-                self._point_of.popitem(last=False)
+            self.uploader.keep(frame, k)
             self.report.frames_per_point[str(k)] = self.report.frames_per_point.get(str(k), 0) + 1
-            if k > 0:
-                with self._buffer_lock:
-                    self._buffer[frame.index] = KeyframeUpload.from_frame(
-                        frame.index, frame.timestamp, frame.rgb, frame.depth_raw, stride)
-                    while len(self._buffer) > self.config.transport.keyframe_buffer_frames:
-                        self._buffer.popitem(last=False)
             self.window.sent(seq)
             outbox.put(seq, data)
             self.report.frames += 1
@@ -383,14 +303,14 @@ class Robot:
     def _finish(self) -> None:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
         for its 'ended' (trajectory and map written)."""
-        self._uploads.join()
+        self.uploader.wait()
         poses = self.onboard.keyframe_poses() if self.onboard is not None else None
         message = protocol.end(self._last_seq, None if poses is None else {
             str(index): T.tolist() for index, T in poses.items()})
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
-            if self._upload_error:
-                raise RuntimeError(self._upload_error)
+            if self.uploader.error:
+                raise RuntimeError(self.uploader.error)
             self.sender.control(message)
             if self._await_reply(("ending",), cfg.connect_timeout_s) is None:
                 continue  # the end message was lost, or the cloud is restarting
@@ -403,8 +323,8 @@ class Robot:
                 return
             log.info("robot %s: cloud needs keyframes %s", self.robot_id, answer["frames"])
             for index in answer["frames"]:
-                self._queue_upload(int(index))
-            self._uploads.join()
+                self.uploader.queue(int(index))
+            self.uploader.wait()
         raise RuntimeError(f"robot {self.robot_id}: the cloud never confirmed the end")
 
     def _record_end(self, answer: dict[str, Any]) -> None:
