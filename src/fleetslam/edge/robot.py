@@ -22,22 +22,14 @@ import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.edge.encoder import FrameEncoder
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
 from fleetslam.edge.sender import FrameOutbox, Sender
 from fleetslam.edge.uploader import KeyframeUploader
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
-from fleetslam.pipeline.split import (
-    INTER_POINTS,
-    ROBOT_TRACKS,
-    Sides,
-    Stage,
-    StageTimer,
-    check_point,
-    run_stages,
-)
-from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.pipeline.split import ROBOT_TRACKS, Sides, Stage, check_point
 from fleetslam.planner.online import OnlinePlanner
 from fleetslam.progress import Progress
 from fleetslam.transport import keys, protocol
@@ -45,10 +37,7 @@ from fleetslam.transport.link import EmulatedLink
 from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
-from fleetslam.wire.frames import encode_frame_message
-from fleetslam.wire.inter import InterEncoder, InterStats, reference_of
 from fleetslam.wire.messages import decode_feedback
-from fleetslam.wire.paper_yaml import write_paper_yaml
 
 __all__ = ["END_TIMEOUT_S", "OnboardTracker", "Robot", "RobotReport", "parse_rate"]
 
@@ -85,8 +74,6 @@ class Robot:
         if paper_yaml_dir is not None and offload_at != 3:
             raise ValueError("the paper's YAML message holds the state at point 3 "
                              f"(--offload-at paper), not {offload_at}")
-        # Also write each frame as the paper's YAML file (inspection, old tools).
-        self.paper_yaml_dir = paper_yaml_dir
         if paper_yaml_dir is not None:
             paper_yaml_dir.mkdir(parents=True, exist_ok=True)
         self.sequence = sequence
@@ -106,25 +93,22 @@ class Robot:
         # adaptive robot may run any part of it at any moment), everything at point 6.
         self.onboard = onboard
         if onboard is not None:
-            self.stages, self.sides = onboard.stages, onboard.sides
+            stages, sides = onboard.stages, onboard.sides
         else:
-            self.stages = front_end_stages()
-            self.sides = Sides(edge=FrontEndState(config, sequence.camera))
-        self.timer = StageTimer()
+            stages, sides = front_end_stages(), Sides(edge=FrontEndState(config, sequence.camera))
         self.report = RobotReport(robot_id, offload_at)
-        self.sender: Sender | None = None  # the link, once run() has connected
-        self._replies: queue.Queue = queue.Queue()
+        self.encoder = FrameEncoder(self.robot_id, sequence.camera, config, stages, sides,
+                                    self.report, paper_yaml_dir)
         self.window = FlowWindow(self.robot_id, config, self.report)
-        self._need_hello = threading.Event()
         self.uploader = KeyframeUploader(self.robot_id, sequence, offload_at, config,
                                          self.report)
+        self.sender: Sender | None = None  # the link, once run() has connected
+        self._replies: queue.Queue = queue.Queue()
+        # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
+        self._need_hello = threading.Event()
         self._t0 = time.monotonic()  # reset when the first frame is read
-        # Inter-frame coding: which frames the cloud acknowledged (feedback) and holds.
-        self.inter = InterEncoder(config.wire)
-        self._next_seq = 0
-        self._encode_ms: list[float] = []
 
-    # -- Zenoh callbacks ------------------------------------------------------------------
+    # -- what the cloud says (Zenoh callbacks) --------------------------------------------
 
     def _on_feedback(self, sample: Any) -> None:
         try:
@@ -134,7 +118,7 @@ class Robot:
             return
         now = self.window.heard()
         self.report.feedback += 1
-        self.inter.acked(header.seq)  # as "held", for a cloud that does not send it
+        self.encoder.held(header.seq)  # as "held", for a cloud that does not send it
         round_trip = self.window.answered(header.seq, now)
         if round_trip is not None and self.planner is not None:
             self.planner.meter.round_trip(round_trip)
@@ -150,28 +134,31 @@ class Robot:
             log.warning("robot %s: reply rejected: %s", self.robot_id, exc)
             return
         if kind == "held":
-            self.inter.acked(int(message["seq"]))
+            self.encoder.held(int(message["seq"]))
         elif kind == "welcome" and message.get("taken_over"):
             # A worker took the session over from its checkpoint (the one serving it died):
             # the frames in flight went to the dead one, and it holds none as a reference.
             self.window.clear()
-            self.inter.refused(self._next_seq)
+            self.encoder.references_lost()
             self.report.takeovers += 1
             self._replies.put(message)
         elif kind == "ack":
             self.uploader.acknowledged(int(message["frame_index"]))
         elif kind == "error":
-            log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
-            if message.get("code") == protocol.Code.NOT_A_KEYFRAME.value:
-                return self.uploader.not_needed(message.get("frame_index"))
-            if message.get("code") == protocol.Code.REFERENCE_MISSING.value:
-                # Intra frames until a frame sent from now on is acknowledged.
-                return self.inter.refused(self._next_seq)
-            if "send a hello" in str(message.get("reason")):
-                self._need_hello.set()
-            self._replies.put(message)
+            self._on_error(message)
         else:
             self._replies.put(message)
+
+    def _on_error(self, message: dict[str, Any]) -> None:
+        log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
+        code = message.get("code")
+        if code == protocol.Code.NOT_A_KEYFRAME.value:
+            return self.uploader.not_needed(message.get("frame_index"))
+        if code == protocol.Code.REFERENCE_MISSING.value:
+            return self.encoder.references_lost()
+        if "send a hello" in str(message.get("reason")):
+            self._need_hello.set()
+        self._replies.put(message)
 
     def _await_reply(self, kinds: tuple[str, ...], timeout: float) -> dict[str, Any] | None:
         deadline = time.monotonic() + timeout
@@ -185,23 +172,6 @@ class Robot:
             if message["type"] == "error" and "hello" in kinds:
                 raise RuntimeError(f"cloud refused robot {self.robot_id}: {message['reason']}")
         return None
-
-    def _hello(self) -> dict[str, Any]:
-        message = Hello(self.offload_at, self.sequence.camera, self.source,
-                        self.planner is not None).message(len(self.sequence))
-        cfg = self.config.transport
-        for _ in range(cfg.max_attempts):
-            self.sender.control(message)
-            welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
-            if welcome is not None:
-                self._need_hello.clear()
-                # A new or resumed session: no frame acknowledged before is a reference.
-                self.inter.set_cloud_ring(int(welcome.get("reference_frames") or 0))
-                self.inter.restart(int(welcome["next_seq"]))
-                self.window.clear()  # a new or resumed session answers none of them
-                return welcome
-        raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
-                           f"{self.endpoint} after {cfg.max_attempts} hellos")
 
     # -- the run --------------------------------------------------------------------------
 
@@ -226,66 +196,30 @@ class Robot:
         return self.report
 
     def _stream(self) -> None:
-        welcome = self._hello()
-        start_index = int(welcome["next_index"])
-        seq = int(welcome["next_seq"])
-        if welcome.get("resumed") and start_index and self.offload_at == ROBOT_TRACKS:
-            raise RuntimeError(
-                f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
-                f"but a robot that tracks itself (point 6) kept its map on the robot and "
-                f"cannot resume it; start again under a new --id")
-        if welcome.get("resumed"):
-            self.report.resumed_at = start_index
-            log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,
-                     start_index)
-        self.report.first_index = start_index
+        """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send."""
+        seq, start_index = self._open_session()
         n = len(self.sequence)
         progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
                             n - start_index, enabled=self.show_progress)
-        t0 = time.monotonic()
-        self._t0 = self.sender.t0 = t0
-        pacer = Pacer(self.fps, t0, start_index)
+        self._t0 = self.sender.t0 = time.monotonic()
+        pacer = Pacer(self.fps, self._t0, start_index)
         outbox = FrameOutbox(self.sender, self.window)
-        k, step = self.offload_at, 1
         frames = read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
+        k, step = self.offload_at, 1
         for i, frame in zip(range(start_index, n), frames):
-            if i in self.link_trace:  # the emulated link changes (a recorded trace)
-                self.sender.link.set_bandwidth(self.link_trace[i])
-            if self.planner is not None and i > start_index \
-                    and (i - start_index) % self.planner.cfg.replan_frames == 0:
-                setting = self.planner.replan(i)
-                k, step = setting.k, setting.frame_step
-                self.config.orb.n_features = setting.features  # read by Extract per frame
+            k, step = self._adapt(i, start_index, k, step)
             if step > 1 and (i - start_index) % step and i != n - 1:
                 self.report.frames_skipped += 1
                 continue
             if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
                 outbox.drain()
                 seq = max(seq, int(self._hello()["next_seq"]))
-            pacer.wait(i, frame.timestamp)  # at the recording's times, or at a fixed rate
+            pacer.wait(i, frame.timestamp)
             if not self.window.wait_for_room():
                 # Nobody may be serving this robot any more (a cloud that lost it, a worker
                 # gone): a hello is heard by every worker and gets it served again.
                 self._need_hello.set()
-            start = time.perf_counter()
-            state = run_stages(self.stages[:k],
-                               CapturedFrame(frame.index, frame.timestamp, frame.rgb,
-                                             frame.depth_m),
-                               self.sides, self.timer)
-            encode_start = time.perf_counter()
-            self._next_seq = seq + 1
-            refs = self.inter.choose(seq) if k in INTER_POINTS else []
-            stats = InterStats()
-            data = encode_frame_message(state, k, self.robot_id, seq,
-                                        self.sequence.camera, self.config.wire, refs, stats)
-            if k in INTER_POINTS:
-                self.inter.sent(seq, reference_of(state), len(refs))
-                self.inter.record(stats)
-            now = time.perf_counter()
-            self._encode_ms.append(1000.0 * (now - encode_start))
-            self.report.robot_compute_s += now - start
-            if self.paper_yaml_dir is not None:
-                write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
+            data = self.encoder.encode(frame, k, seq)
             self.uploader.keep(frame, k)
             self.report.frames_per_point[str(k)] = self.report.frames_per_point.get(str(k), 0) + 1
             self.window.sent(seq)
@@ -297,8 +231,51 @@ class Robot:
                             + (f" k={k} f={self.config.orb.n_features} step={step}"
                                if self.planner is not None else ""))
         outbox.close()
-        self.report.streaming_s = time.monotonic() - t0
+        self.report.streaming_s = time.monotonic() - self._t0
         self._last_seq = seq - 1
+
+    def _adapt(self, i: int, start_index: int, k: int, step: int) -> tuple[int, int]:
+        """Before frame ``i``: the emulated link changes (a recorded trace); an adaptive robot
+        re-plans its point, features and frame step every ``planner.replan_frames`` frames."""
+        if i in self.link_trace:
+            self.sender.link.set_bandwidth(self.link_trace[i])
+        if self.planner is not None and i > start_index \
+                and (i - start_index) % self.planner.cfg.replan_frames == 0:
+            setting = self.planner.replan(i)
+            self.config.orb.n_features = setting.features  # read by Extract per frame
+            return setting.k, setting.frame_step
+        return k, step
+
+    def _open_session(self) -> tuple[int, int]:
+        """Hello: the session's next seq and the frame it starts (or resumes) at."""
+        welcome = self._hello()
+        start_index = int(welcome["next_index"])
+        if welcome.get("resumed") and start_index and self.offload_at == ROBOT_TRACKS:
+            raise RuntimeError(
+                f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
+                f"but a robot that tracks itself (point 6) kept its map on the robot and "
+                f"cannot resume it; start again under a new --id")
+        if welcome.get("resumed"):
+            self.report.resumed_at = start_index
+            log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,
+                     start_index)
+        self.report.first_index = start_index
+        return int(welcome["next_seq"]), start_index
+
+    def _hello(self) -> dict[str, Any]:
+        message = Hello(self.offload_at, self.sequence.camera, self.source,
+                        self.planner is not None).message(len(self.sequence))
+        cfg = self.config.transport
+        for _ in range(cfg.max_attempts):
+            self.sender.control(message)
+            welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
+            if welcome is not None:
+                self._need_hello.clear()
+                self.encoder.restart(welcome)
+                self.window.clear()  # a new or resumed session answers none of them
+                return welcome
+        raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
+                           f"{self.endpoint} after {cfg.max_attempts} hellos")
 
     def _finish(self) -> None:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
@@ -331,12 +308,8 @@ class Robot:
         r = self.report
         r.total_s = time.monotonic() - self._t0
         r.link_busy_s = self.sender.link.stats.busy_s
-        r.robot_stage_ms = self.timer.mean_ms()
-        if self._encode_ms:
-            r.encode_ms_mean = float(np.mean(self._encode_ms))
-            r.encode_ms_p95 = float(np.percentile(self._encode_ms, 95))
-        r.inter_coding = self.inter.counts.summary()
         self.window.record(r, self._t0)
+        self.encoder.record(r)
         r.cloud_summary = answer.get("summary")
         if self.planner is not None:
             r.plan_history = self.planner.history
