@@ -119,3 +119,30 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
     assert not robot.window.wait_for_room()  # the robot then says hello again
     assert 0.2 <= time.monotonic() - start < 2.0
     assert robot.report.flow_timeouts == 1 and len(robot.window.in_flight()) < 4
+
+
+def test_the_robot_says_hello_again_on_the_no_session_code_not_on_words(tmp_path_factory):
+    """The cloud's error code, not its wording, makes the robot say hello again."""
+    import json
+    from types import SimpleNamespace
+
+    from conftest import small_scene
+
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.transport import protocol
+
+    folder = small_scene(tmp_path_factory, 2)[0]
+    robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
+
+    def reply(message: dict) -> None:
+        data = json.dumps(message).encode()
+        robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+
+    reply(protocol.error(protocol.Code.REJECTED, "frame rejected: send a hello, or not"))
+    assert not robot._need_hello.is_set()
+    reply(protocol.error(protocol.Code.NO_SESSION, "frame rejected: no session"))
+    assert robot._need_hello.is_set()
+    # Both reached whoever awaits a reply (a hello fails on an error).
+    assert [robot._replies.get_nowait()["code"] for _ in range(2)] == ["rejected", "no_session"]

@@ -156,7 +156,7 @@ class Robot:
             return self.uploader.not_needed(message.get("frame_index"))
         if code == protocol.Code.REFERENCE_MISSING.value:
             return self.encoder.references_lost()
-        if "send a hello" in str(message.get("reason")):
+        if code == protocol.Code.NO_SESSION.value:  # the cloud lost us: hello again
             self._need_hello.set()
         self._replies.put(message)
 
