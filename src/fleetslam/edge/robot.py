@@ -1,11 +1,21 @@
 """The robot process: read frames, run the stages before the offloading point, send the
 state over the (emulated) link, follow the cloud's feedback, upload keyframes reliably.
 
-Streams and threads:
-- main thread: pace the frames, run the robot stages, ``link.send`` (blocks at link speed);
-- Zenoh callbacks: feedback (pose, keyframe yes/no) and replies (welcome, ack, need, ended);
-- uploader thread: each keyframe's decimated RGB-D, resent until the cloud acknowledges it.
-Frames and uploads share the one link, so a robot never sends faster than its link.
+``Robot`` composes parts with one job each and keeps the per-frame loop (``_stream``) and
+the conversation with the cloud (hello / welcome, replies, end). Its threads:
+- main thread: frames from the read-ahead thread, held back by ``pacing.Pacer`` (``--rate``)
+  and by ``flow.FlowWindow`` (at most ``transport.max_frames_in_flight`` frames without
+  feedback), through the stages and the wire encoding (``encoder.FrameEncoder``), handed to
+  the send thread;
+- read thread (``pacing.read_ahead``): decodes the next images, as a camera driver would;
+- send thread (``sender.FrameOutbox``): frames onto the link, which blocks at link speed;
+- uploader thread (``uploader.KeyframeUploader``): each keyframe's decimated RGB-D, resent
+  until the cloud acknowledges it;
+- Zenoh callbacks: feedback (pose, keyframe yes/no: the window, the encoder's references,
+  the uploader) and replies by type (welcome, held, ack, need, ending, ended) and, for
+  errors, by ``protocol.Code`` (not_a_keyframe, reference_missing, no_session: hello again).
+Frames, uploads and control messages share the one link (``sender.Sender``), so a robot
+never sends faster than its link; each part counts what it did in the ``RobotReport``.
 """
 
 from __future__ import annotations
