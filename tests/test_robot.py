@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from fleetslam.edge.robot import parse_rate
+from fleetslam.edge.pacing import parse_rate
 from fleetslam.pipeline.split import parse_offload_point
 from fleetslam.transport import keys
 
@@ -67,17 +67,17 @@ def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
 
     folder = small_scene(tmp_path_factory, 2)[0]
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
-    robot._queue_upload(14)
+    robot.uploader.queue(14)
 
     def reply(message: dict) -> None:
         data = json.dumps(message).encode()
         robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
 
     reply(protocol.error(protocol.Code.REJECTED, "keyframe rejected: too big", frame_index=14))
-    assert not robot._acks[14].is_set()  # another reason: resending may help
+    assert not robot.uploader._acks[14].is_set()  # another reason: resending may help
     reply(protocol.error(protocol.Code.NOT_A_KEYFRAME, "keyframe rejected: frame 14 is not a "
                          "keyframe of this session", frame_index=14))
-    assert robot._acks[14].is_set() and robot.report.uploads_not_needed == 1
+    assert robot.uploader._acks[14].is_set() and robot.report.uploads_not_needed == 1
 
 
 def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_factory):
@@ -101,21 +101,48 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
     config.transport.max_frames_in_flight, config.transport.in_flight_wait_s = 4, 30.0
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, config, show_progress=False)
     for seq in range(4):
-        robot._sent_at[seq] = time.monotonic()
-    waiter = threading.Thread(target=robot._await_window)
+        robot.window.sent(seq)
+    waiter = threading.Thread(target=robot.window.wait_for_room)
     waiter.start()
     time.sleep(0.3)
     assert waiter.is_alive()  # 4 in flight: the next frame waits
     data = encode_feedback("r1", 2, Feedback(2, 0.0, True, False, 100, np.eye(4), 5.0))
     robot._on_feedback(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
     waiter.join(5)
-    assert not waiter.is_alive() and list(robot._sent_at) == [3]
+    assert not waiter.is_alive() and robot.window.in_flight() == [3]
     assert robot.report.flow_timeouts == 0
 
     config.transport.in_flight_wait_s = 0.2  # now the cloud goes silent
     for seq in range(4, 7):
-        robot._sent_at[seq] = time.monotonic()
+        robot.window.sent(seq)
     start = time.monotonic()
-    robot._await_window()
+    assert not robot.window.wait_for_room()  # the robot then says hello again
     assert 0.2 <= time.monotonic() - start < 2.0
-    assert robot.report.flow_timeouts == 1 and len(robot._sent_at) < 4
+    assert robot.report.flow_timeouts == 1 and len(robot.window.in_flight()) < 4
+
+
+def test_the_robot_says_hello_again_on_the_no_session_code_not_on_words(tmp_path_factory):
+    """The cloud's error code, not its wording, makes the robot say hello again."""
+    import json
+    from types import SimpleNamespace
+
+    from conftest import small_scene
+
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.transport import protocol
+
+    folder = small_scene(tmp_path_factory, 2)[0]
+    robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
+
+    def reply(message: dict) -> None:
+        data = json.dumps(message).encode()
+        robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+
+    reply(protocol.error(protocol.Code.REJECTED, "frame rejected: send a hello, or not"))
+    assert not robot._need_hello.is_set()
+    reply(protocol.error(protocol.Code.NO_SESSION, "frame rejected: no session"))
+    assert robot._need_hello.is_set()
+    # Both reached whoever awaits a reply (a hello fails on an error).
+    assert [robot._replies.get_nowait()["code"] for _ in range(2)] == ["rejected", "no_session"]

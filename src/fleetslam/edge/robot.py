@@ -1,11 +1,21 @@
 """The robot process: read frames, run the stages before the offloading point, send the
 state over the (emulated) link, follow the cloud's feedback, upload keyframes reliably.
 
-Streams and threads:
-- main thread: pace the frames, run the robot stages, ``link.send`` (blocks at link speed);
-- Zenoh callbacks: feedback (pose, keyframe yes/no) and replies (welcome, ack, need, ended);
-- uploader thread: each keyframe's decimated RGB-D, resent until the cloud acknowledges it.
-Frames and uploads share the one link, so a robot never sends faster than its link.
+``Robot`` composes parts with one job each and keeps the per-frame loop (``_stream``) and
+the conversation with the cloud (hello / welcome, replies, end). Its threads:
+- main thread: frames from the read-ahead thread, held back by ``pacing.Pacer`` (``--rate``)
+  and by ``flow.FlowWindow`` (at most ``transport.max_frames_in_flight`` frames without
+  feedback), through the stages and the wire encoding (``encoder.FrameEncoder``), handed to
+  the send thread;
+- read thread (``pacing.read_ahead``): decodes the next images, as a camera driver would;
+- send thread (``sender.FrameOutbox``): frames onto the link, which blocks at link speed;
+- uploader thread (``uploader.KeyframeUploader``): each keyframe's decimated RGB-D, resent
+  until the cloud acknowledges it;
+- Zenoh callbacks: feedback (pose, keyframe yes/no: the window, the encoder's references,
+  the uploader) and replies by type (welcome, held, ack, need, ending, ended) and, for
+  errors, by ``protocol.Code`` (not_a_keyframe, reference_missing, no_session: hello again).
+Frames, uploads and control messages share the one link (``sender.Sender``), so a robot
+never sends faster than its link; each part counts what it did in the ``RobotReport``.
 """
 
 from __future__ import annotations
@@ -15,8 +25,6 @@ import logging
 import queue
 import threading
 import time
-from collections import OrderedDict
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -24,17 +32,14 @@ import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.edge.encoder import FrameEncoder
+from fleetslam.edge.flow import FlowWindow
+from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
+from fleetslam.edge.report import RobotReport
+from fleetslam.edge.sender import FrameOutbox, Sender
+from fleetslam.edge.uploader import KeyframeUploader
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
-from fleetslam.pipeline.split import (
-    INTER_POINTS,
-    ROBOT_TRACKS,
-    Sides,
-    Stage,
-    StageTimer,
-    check_point,
-    run_stages,
-)
-from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.pipeline.split import ROBOT_TRACKS, Sides, Stage, check_point
 from fleetslam.planner.online import OnlinePlanner
 from fleetslam.progress import Progress
 from fleetslam.transport import keys, protocol
@@ -42,31 +47,14 @@ from fleetslam.transport.link import EmulatedLink
 from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
-from fleetslam.wire.frames import encode_frame_message
-from fleetslam.wire.inter import InterEncoder, InterStats, reference_of
-from fleetslam.wire.messages import KeyframeUpload, decode_feedback, encode_keyframe
-from fleetslam.wire.paper_yaml import write_paper_yaml
+from fleetslam.wire.messages import decode_feedback
+
+__all__ = ["END_TIMEOUT_S", "OnboardTracker", "Robot", "RobotReport", "parse_rate"]
 
 log = logging.getLogger("fleetslam.robot")
 
 # A robot that sends "end" waits this long for its last frames and map (cloud backlog).
 END_TIMEOUT_S = 900.0
-
-
-def parse_rate(text: str) -> float | None:
-    """'max' (None: as fast as stages and link allow), 'recorded' (0: at the recording's
-    timestamps) or frames per second."""
-    if text == "max":
-        return None
-    if text == "recorded":
-        return 0.0
-    try:
-        fps = float(text)
-    except ValueError:
-        fps = -1.0
-    if not fps > 0:
-        raise ValueError(f"rate {text!r}: 'max', 'recorded' or frames per second > 0")
-    return fps
 
 
 class OnboardTracker(Protocol):
@@ -78,62 +66,6 @@ class OnboardTracker(Protocol):
     sides: Sides
 
     def keyframe_poses(self) -> dict[int, np.ndarray]: ...
-
-
-@dataclass
-class RobotReport:
-    robot_id: str
-    offload_at: int
-    frames: int = 0
-    first_index: int = 0
-    frames_lost_on_link: int = 0
-    frame_bytes: int = 0
-    control_bytes: int = 0
-    keyframe_uploads: int = 0
-    keyframe_bytes: int = 0
-    upload_retries: int = 0
-    # Uploads the cloud said it no longer needs (keyframes a restarted cloud lost).
-    uploads_not_needed: int = 0
-    # Frame indices of the keyframes the cloud acknowledged (stored and checkpointed).
-    acknowledged: list[int] = field(default_factory=list)
-    feedback: int = 0
-    keyframes: int = 0
-    robot_compute_s: float = 0.0
-    robot_stage_ms: dict[str, float] = field(default_factory=dict)
-    link_busy_s: float = 0.0
-    round_trip_ms_median: float | None = None
-    round_trip_ms_p95: float | None = None
-    streaming_s: float = 0.0  # first frame sent -> last frame sent
-    last_feedback_s: float = 0.0  # first frame sent -> last feedback received
-    total_s: float = 0.0  # first frame sent -> the cloud's "ended" (map built)
-    resumed_at: int | None = None
-    cloud_summary: dict[str, Any] | None = None
-    # An adaptive robot: every re-plan (measured link, chosen point / features / step) and
-    # how many frames went at each point; frames it skipped by its frame step.
-    plan_history: list[dict[str, Any]] = field(default_factory=list)
-    frames_per_point: dict[str, int] = field(default_factory=dict)
-    frames_skipped: int = 0
-    # Flow control: seconds the robot waited for its window of frames in flight, and the
-    # waits that ran out (the cloud did not answer in time).
-    flow_wait_s: float = 0.0
-    flow_timeouts: int = 0
-    # Times a cloud worker took the session over from its checkpoint (failover), and the
-    # longest time between two feedbacks (the pause a takeover costs, or a backlog's).
-    takeovers: int = 0
-    longest_feedback_gap_s: float = 0.0
-    # Every frame and keyframe upload put on the link, for the run report's plots of bytes
-    # and link use over time: [start s, end s, bytes, "frame" | "keyframe", delivered], the
-    # times since the first frame was read (start: handed to the link, which may first
-    # finish earlier messages; end: its last bit sent). Recorded only, never sent.
-    sends: list[tuple[float, float, int, str, bool]] = field(default_factory=list)
-    # Message encoding per frame (inter-frame coding matches descriptors: robot CPU), and
-    # the inter-frame coding's counts (wire/inter.py: intra share, descriptors coded inter).
-    encode_ms_mean: float | None = None
-    encode_ms_p95: float | None = None
-    inter_coding: dict[str, Any] = field(default_factory=dict)
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), indent=2)
 
 
 class Robot:
@@ -152,8 +84,6 @@ class Robot:
         if paper_yaml_dir is not None and offload_at != 3:
             raise ValueError("the paper's YAML message holds the state at point 3 "
                              f"(--offload-at paper), not {offload_at}")
-        # Also write each frame as the paper's YAML file (inspection, old tools).
-        self.paper_yaml_dir = paper_yaml_dir
         if paper_yaml_dir is not None:
             paper_yaml_dir.mkdir(parents=True, exist_ok=True)
         self.sequence = sequence
@@ -173,36 +103,22 @@ class Robot:
         # adaptive robot may run any part of it at any moment), everything at point 6.
         self.onboard = onboard
         if onboard is not None:
-            self.stages, self.sides = onboard.stages, onboard.sides
+            stages, sides = onboard.stages, onboard.sides
         else:
-            self.stages = front_end_stages()
-            self.sides = Sides(edge=FrontEndState(config, sequence.camera))
-        self.timer = StageTimer()
+            stages, sides = front_end_stages(), Sides(edge=FrontEndState(config, sequence.camera))
         self.report = RobotReport(robot_id, offload_at)
+        self.encoder = FrameEncoder(self.robot_id, sequence.camera, config, stages, sides,
+                                    self.report, paper_yaml_dir)
+        self.window = FlowWindow(self.robot_id, config, self.report)
+        self.uploader = KeyframeUploader(self.robot_id, sequence, offload_at, config,
+                                         self.report)
+        self.sender: Sender | None = None  # the link, once run() has connected
         self._replies: queue.Queue = queue.Queue()
-        self._acks: dict[int, threading.Event] = {}
-        self._acks_lock = threading.Lock()
-        self._uploads: queue.Queue = queue.Queue()
-        self._buffer: OrderedDict[int, KeyframeUpload] = OrderedDict()
-        self._buffer_lock = threading.Lock()
-        # Frames sent and not yet answered (seq -> when), in seq order; the flow-control
-        # window waits on it. Feedback comes in seq order, so a frame older than one with
-        # feedback was lost (link, or dropped by the cloud) and leaves the window.
-        self._sent_at: OrderedDict[int, float] = OrderedDict()
-        self._in_flight = threading.Condition()
-        self._round_trips: list[float] = []
-        self._last_feedback = 0.0
+        # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
         self._need_hello = threading.Event()
-        self._upload_error: str | None = None
-        # The point each recent frame went at (an adaptive robot switches).
-        self._point_of: OrderedDict[int, int] = OrderedDict()
         self._t0 = time.monotonic()  # reset when the first frame is read
-        # Inter-frame coding: which frames the cloud acknowledged (feedback) and holds.
-        self.inter = InterEncoder(config.wire)
-        self._next_seq = 0
-        self._encode_ms: list[float] = []
 
-    # -- Zenoh callbacks ------------------------------------------------------------------
+    # -- what the cloud says (Zenoh callbacks) --------------------------------------------
 
     def _on_feedback(self, sample: Any) -> None:
         try:
@@ -210,28 +126,15 @@ class Robot:
         except WireError as exc:
             log.warning("robot %s: feedback rejected: %s", self.robot_id, exc)
             return
-        now = time.monotonic()
-        if self._last_feedback:
-            # The longest the cloud was silent (a worker taking over, a backlog).
-            self.report.longest_feedback_gap_s = max(self.report.longest_feedback_gap_s,
-                                                     now - self._last_feedback)
-        self._last_feedback = now
+        now = self.window.heard()
         self.report.feedback += 1
-        self.inter.acked(header.seq)  # as "held", for a cloud that does not send it
-        with self._in_flight:
-            sent = self._sent_at.pop(header.seq, None)
-            while self._sent_at and next(iter(self._sent_at)) < header.seq:
-                self._sent_at.popitem(last=False)
-            self._in_flight.notify_all()
-        if sent is not None:
-            self._round_trips.append(1000.0 * (now - sent))
-            if self.planner is not None:
-                self.planner.meter.round_trip(now - sent)
+        self.encoder.held(header.seq)  # as "held", for a cloud that does not send it
+        round_trip = self.window.answered(header.seq, now)
+        if round_trip is not None and self.planner is not None:
+            self.planner.meter.round_trip(round_trip)
         if fb.is_keyframe:
             self.report.keyframes += 1
-            # A frame sent at point 0 gave the cloud its images already.
-            if self._point_of.get(fb.frame_index, self.offload_at) > 0:
-                self._queue_upload(fb.frame_index)
+            self.uploader.keyframe(fb.frame_index)
 
     def _on_reply(self, sample: Any) -> None:
         try:
@@ -241,52 +144,31 @@ class Robot:
             log.warning("robot %s: reply rejected: %s", self.robot_id, exc)
             return
         if kind == "held":
-            self.inter.acked(int(message["seq"]))
+            self.encoder.held(int(message["seq"]))
         elif kind == "welcome" and message.get("taken_over"):
             # A worker took the session over from its checkpoint (the one serving it died):
             # the frames in flight went to the dead one, and it holds none as a reference.
-            with self._in_flight:
-                self._sent_at.clear()
-                self._in_flight.notify_all()
-            self.inter.refused(self._next_seq)
+            self.window.clear()
+            self.encoder.references_lost()
             self.report.takeovers += 1
             self._replies.put(message)
         elif kind == "ack":
-            index = int(message["frame_index"])
-            with self._acks_lock:
-                event = self._acks.get(index)
-                if event is not None and not event.is_set():
-                    self.report.acknowledged.append(index)
-            if event is not None:
-                event.set()
+            self.uploader.acknowledged(int(message["frame_index"]))
         elif kind == "error":
-            log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
-            if message.get("code") == protocol.Code.NOT_A_KEYFRAME.value:
-                return self._keyframe_not_needed(message.get("frame_index"))
-            if message.get("code") == protocol.Code.REFERENCE_MISSING.value:
-                # Intra frames until a frame sent from now on is acknowledged.
-                return self.inter.refused(self._next_seq)
-            if "send a hello" in str(message.get("reason")):
-                self._need_hello.set()
-            self._replies.put(message)
+            self._on_error(message)
         else:
             self._replies.put(message)
 
-    def _keyframe_not_needed(self, index: Any) -> None:
-        """The cloud's session does not hold this frame as a keyframe (a cloud restarted from
-        an older checkpoint lost it): resending cannot help, so its upload ends here."""
-        with self._acks_lock:
-            event = self._acks.get(index) if isinstance(index, int) else None
-        if event is not None and not event.is_set():
-            self.report.uploads_not_needed += 1
-            event.set()
-
-    # -- sending --------------------------------------------------------------------------
-
-    def _send_control(self, message: dict[str, Any]) -> None:
-        data = protocol.encode(message)
-        self.report.control_bytes += len(data)
-        self.link.send(keys.control(self.robot_id), data)
+    def _on_error(self, message: dict[str, Any]) -> None:
+        log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
+        code = message.get("code")
+        if code == protocol.Code.NOT_A_KEYFRAME.value:
+            return self.uploader.not_needed(message.get("frame_index"))
+        if code == protocol.Code.REFERENCE_MISSING.value:
+            return self.encoder.references_lost()
+        if code == protocol.Code.NO_SESSION.value:  # the cloud lost us: hello again
+            self._need_hello.set()
+        self._replies.put(message)
 
     def _await_reply(self, kinds: tuple[str, ...], timeout: float) -> dict[str, Any] | None:
         deadline = time.monotonic() + timeout
@@ -301,97 +183,83 @@ class Robot:
                 raise RuntimeError(f"cloud refused robot {self.robot_id}: {message['reason']}")
         return None
 
-    def _hello(self) -> dict[str, Any]:
-        message = Hello(self.offload_at, self.sequence.camera, self.source,
-                        self.planner is not None).message(len(self.sequence))
-        cfg = self.config.transport
-        for _ in range(cfg.max_attempts):
-            self._send_control(message)
-            welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
-            if welcome is not None:
-                self._need_hello.clear()
-                # A new or resumed session: no frame acknowledged before is a reference.
-                self.inter.set_cloud_ring(int(welcome.get("reference_frames") or 0))
-                self.inter.restart(int(welcome["next_seq"]))
-                with self._in_flight:  # a new or resumed session answers none of them
-                    self._sent_at.clear()
-                    self._in_flight.notify_all()
-                return welcome
-        raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
-                           f"{self.endpoint} after {cfg.max_attempts} hellos")
-
-    def _keyframe_upload(self, index: int) -> KeyframeUpload:
-        with self._buffer_lock:
-            upload = self._buffer.get(index)
-        if upload is None:  # older than the buffer: read it again from the recording
-            frame = self.sequence[index]
-            upload = KeyframeUpload.from_frame(index, frame.timestamp, frame.rgb, frame.depth_raw,
-                                               self.config.map.pixel_stride)
-        return upload
-
-    def _queue_upload(self, index: int) -> None:
-        """Upload a keyframe once: the cloud's 'need' at the end may name one whose feedback
-        came after the end was sent, and is already on its way."""
-        with self._acks_lock:
-            if index in self._acks:
-                return
-            self._acks[index] = threading.Event()
-        self._uploads.put(index)
-
-    def _upload(self, index: int) -> None:
-        cfg = self.config.transport
-        data = encode_keyframe(self.robot_id, index, self._keyframe_upload(index),
-                               self.config.wire)
-        with self._acks_lock:
-            event = self._acks[index]
-        for attempt in range(cfg.max_attempts):
-            if attempt:
-                self.report.upload_retries += 1
-            self._send_measured(keys.keyframe(self.robot_id), data)
-            self.report.keyframe_uploads += 1
-            self.report.keyframe_bytes += len(data)
-            if event.wait(cfg.ack_timeout_s):
-                return
-        raise RuntimeError(f"keyframe {index} not acknowledged after {cfg.max_attempts} tries")
-
-    def _uploader(self) -> None:
-        while (index := self._uploads.get()) is not None:
-            try:
-                self._upload(index)
-            except Exception as exc:
-                self._upload_error = f"robot {self.robot_id}: {exc}"
-                log.error("%s", self._upload_error)
-            finally:
-                self._uploads.task_done()
-        self._uploads.task_done()
-
     # -- the run --------------------------------------------------------------------------
 
     def run(self) -> RobotReport:
         zs = open_connecting(self.endpoint, self.config.transport.reach_deadline_s,
                              self.config.transport.zenoh_config or None)
-        self.link = EmulatedLink(self.config.link, lambda key, data: put(zs, key, data))
+        self.sender = Sender(self.robot_id,
+                             EmulatedLink(self.config.link, lambda key, data: put(zs, key, data)),
+                             self.report, self.planner)
         subs = [zs.declare_subscriber(keys.feedback(self.robot_id), self._on_feedback),
                 zs.declare_subscriber(keys.reply(self.robot_id), self._on_reply)]
-        uploader = threading.Thread(target=self._uploader, name=f"robot-{self.robot_id}-upload",
-                                    daemon=True)
-        uploader.start()
+        self.uploader.start(self.sender.send)
         try:
             self._stream()
             self._finish()
         finally:
-            self._uploads.put(None)
-            uploader.join(5.0)
-            self.link.close()
+            self.uploader.stop()
+            self.sender.close()
             for sub in subs:
                 sub.undeclare()
             zs.close()
         return self.report
 
     def _stream(self) -> None:
+        """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send."""
+        seq, start_index = self._open_session()
+        n = len(self.sequence)
+        progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
+                            n - start_index, enabled=self.show_progress)
+        self._t0 = self.sender.t0 = time.monotonic()
+        pacer = Pacer(self.fps, self._t0, start_index)
+        outbox = FrameOutbox(self.sender, self.window)
+        frames = read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
+        k, step = self.offload_at, 1
+        for i, frame in zip(range(start_index, n), frames):
+            k, step = self._adapt(i, start_index, k, step)
+            if step > 1 and (i - start_index) % step and i != n - 1:
+                self.report.frames_skipped += 1
+                continue
+            if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
+                outbox.drain()
+                seq = max(seq, int(self._hello()["next_seq"]))
+            pacer.wait(i, frame.timestamp)
+            if not self.window.wait_for_room():
+                # Nobody may be serving this robot any more (a cloud that lost it, a worker
+                # gone): a hello is heard by every worker and gets it served again.
+                self._need_hello.set()
+            data = self.encoder.encode(frame, k, seq)
+            self.uploader.keep(frame, k)
+            self.report.frames_per_point[str(k)] = self.report.frames_per_point.get(str(k), 0) + 1
+            self.window.sent(seq)
+            outbox.put(seq, data)
+            self.report.frames += 1
+            self.report.frame_bytes += len(data)
+            seq += 1
+            progress.update(i + 1 - start_index, f"kf {self.report.keyframes}"
+                            + (f" k={k} f={self.config.orb.n_features} step={step}"
+                               if self.planner is not None else ""))
+        outbox.close()
+        self.report.streaming_s = time.monotonic() - self._t0
+        self._last_seq = seq - 1
+
+    def _adapt(self, i: int, start_index: int, k: int, step: int) -> tuple[int, int]:
+        """Before frame ``i``: the emulated link changes (a recorded trace); an adaptive robot
+        re-plans its point, features and frame step every ``planner.replan_frames`` frames."""
+        if i in self.link_trace:
+            self.sender.link.set_bandwidth(self.link_trace[i])
+        if self.planner is not None and i > start_index \
+                and (i - start_index) % self.planner.cfg.replan_frames == 0:
+            setting = self.planner.replan(i)
+            self.config.orb.n_features = setting.features  # read by Extract per frame
+            return setting.k, setting.frame_step
+        return k, step
+
+    def _open_session(self) -> tuple[int, int]:
+        """Hello: the session's next seq and the frame it starts (or resumes) at."""
         welcome = self._hello()
         start_index = int(welcome["next_index"])
-        seq = int(welcome["next_seq"])
         if welcome.get("resumed") and start_index and self.offload_at == ROBOT_TRACKS:
             raise RuntimeError(
                 f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
@@ -402,163 +270,35 @@ class Robot:
             log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,
                      start_index)
         self.report.first_index = start_index
-        n = len(self.sequence)
-        progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
-                            n - start_index, enabled=self.show_progress)
-        stride = self.config.map.pixel_stride
-        t0 = time.monotonic()
-        self._t0 = t0
-        first_stamp = None
-        # The link sends frame i while the stages work on frame i+1 (a robot's NIC and CPU
-        # run side by side); the short queue keeps the robot from running ahead of its link.
-        outbox: queue.Queue = queue.Queue(maxsize=2)
-        sender = threading.Thread(target=self._sender, args=(outbox,),
-                                  name=f"robot-{self.robot_id}-send", daemon=True)
-        sender.start()
-        k, step = self.offload_at, 1
-        for i, frame in zip(range(start_index, n), self._read_ahead(start_index)):
-            if i in self.link_trace:  # the emulated link changes (a recorded trace)
-                self.link.set_bandwidth(self.link_trace[i])
-            if self.planner is not None and i > start_index \
-                    and (i - start_index) % self.planner.cfg.replan_frames == 0:
-                setting = self.planner.replan(i)
-                k, step = setting.k, setting.frame_step
-                self.config.orb.n_features = setting.features  # read by Extract per frame
-            if step > 1 and (i - start_index) % step and i != n - 1:
-                self.report.frames_skipped += 1
-                continue
-            if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
-                outbox.join()
-                seq = max(seq, int(self._hello()["next_seq"]))
-            if self.fps is not None:  # pace: at the recording's times, or at a fixed rate
-                first_stamp = frame.timestamp if first_stamp is None else first_stamp
-                due = (frame.timestamp - first_stamp) if self.fps == 0 \
-                    else (i - start_index) / self.fps
-                wait = t0 + due - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-            self._await_window()
-            start = time.perf_counter()
-            state = run_stages(self.stages[:k],
-                               CapturedFrame(frame.index, frame.timestamp, frame.rgb,
-                                             frame.depth_m),
-                               self.sides, self.timer)
-            encode_start = time.perf_counter()
-            self._next_seq = seq + 1
-            refs = self.inter.choose(seq) if k in INTER_POINTS else []
-            stats = InterStats()
-            data = encode_frame_message(state, k, self.robot_id, seq,
-                                        self.sequence.camera, self.config.wire, refs, stats)
-            if k in INTER_POINTS:
-                self.inter.sent(seq, reference_of(state), len(refs))
-                self.inter.record(stats)
-            now = time.perf_counter()
-            self._encode_ms.append(1000.0 * (now - encode_start))
-            self.report.robot_compute_s += now - start
-            if self.paper_yaml_dir is not None:
-                write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
-            self._point_of[frame.index] = k
-            while len(self._point_of) > self.config.transport.keyframe_buffer_frames:
-                self._point_of.popitem(last=False)
-            self.report.frames_per_point[str(k)] = self.report.frames_per_point.get(str(k), 0) + 1
-            if k > 0:
-                with self._buffer_lock:
-                    self._buffer[frame.index] = KeyframeUpload.from_frame(
-                        frame.index, frame.timestamp, frame.rgb, frame.depth_raw, stride)
-                    while len(self._buffer) > self.config.transport.keyframe_buffer_frames:
-                        self._buffer.popitem(last=False)
-            with self._in_flight:
-                self._sent_at[seq] = time.monotonic()
-            outbox.put((seq, data))
-            self.report.frames += 1
-            self.report.frame_bytes += len(data)
-            seq += 1
-            progress.update(i + 1 - start_index, f"kf {self.report.keyframes}"
-                            + (f" k={k} f={self.config.orb.n_features} step={step}"
-                               if self.planner is not None else ""))
-        outbox.put(None)
-        sender.join()
-        self.report.streaming_s = time.monotonic() - t0
-        self._last_seq = seq - 1
+        return int(welcome["next_seq"]), start_index
 
-    def _await_window(self) -> None:
-        """Flow control: wait while ``transport.max_frames_in_flight`` frames await their
-        feedback (at most ``in_flight_wait_s``; then the oldest is taken as lost)."""
+    def _hello(self) -> dict[str, Any]:
+        message = Hello(self.offload_at, self.sequence.camera, self.source,
+                        self.planner is not None).message(len(self.sequence))
         cfg = self.config.transport
-        if cfg.max_frames_in_flight <= 0:
-            return
-        start = time.monotonic()
-        with self._in_flight:
-            if self._in_flight.wait_for(lambda: len(self._sent_at) < cfg.max_frames_in_flight,
-                                        cfg.in_flight_wait_s):
-                self.report.flow_wait_s += time.monotonic() - start
-                return
-            self.report.flow_timeouts += 1
-            self.report.flow_wait_s += time.monotonic() - start
-            log.warning("robot %s: no feedback for %.0f s with %d frames in flight; saying "
-                        "hello again and going on", self.robot_id, cfg.in_flight_wait_s,
-                        len(self._sent_at))
-            # Nobody may be serving this robot any more (a cloud that lost it, a worker
-            # gone): a hello is heard by every worker and gets it served again.
-            self._need_hello.set()
-            while len(self._sent_at) >= cfg.max_frames_in_flight:
-                self._sent_at.popitem(last=False)
-
-    def _send_measured(self, key: str, data: bytes) -> bool:
-        """Send on the link; an adaptive robot learns its link from how long sends take."""
-        start = time.monotonic()
-        delivered = self.link.send(key, data)
-        end = time.monotonic()
-        if self.planner is not None:
-            self.planner.meter.sent(len(data), start, end)
-        # list.append is atomic: the sender and uploader threads both record here.
-        self.report.sends.append((start - self._t0, end - self._t0, len(data),
-                                  "keyframe" if key == keys.keyframe(self.robot_id) else "frame",
-                                  delivered))
-        return delivered
-
-    def _sender(self, outbox: queue.Queue) -> None:
-        while (item := outbox.get()) is not None:
-            seq, data = item
-            if not self._send_measured(keys.frame(self.robot_id), data):
-                self.report.frames_lost_on_link += 1
-                with self._in_flight:
-                    self._sent_at.pop(seq, None)
-                    self._in_flight.notify_all()
-            outbox.task_done()
-        outbox.task_done()
-
-    def _read_ahead(self, start: int, depth: int = 3):
-        """Frames from ``start`` on, decoded by a background thread (as a camera driver
-        delivers them) so reading images does not stall the stages."""
-        frames: queue.Queue = queue.Queue(maxsize=depth)
-
-        def read() -> None:
-            try:
-                for i in range(start, len(self.sequence)):
-                    frames.put(self.sequence[i])
-            except Exception as exc:  # an unreadable image ends the stream with its error
-                frames.put(exc)
-            frames.put(None)
-
-        threading.Thread(target=read, name=f"robot-{self.robot_id}-read", daemon=True).start()
-        while (frame := frames.get()) is not None:
-            if isinstance(frame, Exception):
-                raise frame
-            yield frame
+        for _ in range(cfg.max_attempts):
+            self.sender.control(message)
+            welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
+            if welcome is not None:
+                self._need_hello.clear()
+                self.encoder.restart(welcome)
+                self.window.clear()  # a new or resumed session answers none of them
+                return welcome
+        raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
+                           f"{self.endpoint} after {cfg.max_attempts} hellos")
 
     def _finish(self) -> None:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
         for its 'ended' (trajectory and map written)."""
-        self._uploads.join()
+        self.uploader.wait()
         poses = self.onboard.keyframe_poses() if self.onboard is not None else None
         message = protocol.end(self._last_seq, None if poses is None else {
             str(index): T.tolist() for index, T in poses.items()})
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
-            if self._upload_error:
-                raise RuntimeError(self._upload_error)
-            self._send_control(message)
+            if self.uploader.error:
+                raise RuntimeError(self.uploader.error)
+            self.sender.control(message)
             if self._await_reply(("ending",), cfg.connect_timeout_s) is None:
                 continue  # the end message was lost, or the cloud is restarting
             answer = self._await_reply(("need", "ended"), END_TIMEOUT_S)
@@ -570,23 +310,16 @@ class Robot:
                 return
             log.info("robot %s: cloud needs keyframes %s", self.robot_id, answer["frames"])
             for index in answer["frames"]:
-                self._queue_upload(int(index))
-            self._uploads.join()
+                self.uploader.queue(int(index))
+            self.uploader.wait()
         raise RuntimeError(f"robot {self.robot_id}: the cloud never confirmed the end")
 
     def _record_end(self, answer: dict[str, Any]) -> None:
         r = self.report
         r.total_s = time.monotonic() - self._t0
-        r.last_feedback_s = max(0.0, self._last_feedback - self._t0)
-        r.link_busy_s = self.link.stats.busy_s
-        r.robot_stage_ms = self.timer.mean_ms()
-        if self._encode_ms:
-            r.encode_ms_mean = float(np.mean(self._encode_ms))
-            r.encode_ms_p95 = float(np.percentile(self._encode_ms, 95))
-        r.inter_coding = self.inter.counts.summary()
-        if self._round_trips:
-            r.round_trip_ms_median = float(np.median(self._round_trips))
-            r.round_trip_ms_p95 = float(np.percentile(self._round_trips, 95))
+        r.link_busy_s = self.sender.link.stats.busy_s
+        self.window.record(r, self._t0)
+        self.encoder.record(r)
         r.cloud_summary = answer.get("summary")
         if self.planner is not None:
             r.plan_history = self.planner.history

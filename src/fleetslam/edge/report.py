@@ -1,0 +1,64 @@
+"""What a robot's run did (``fleetslam robot --report``, the run report's plots): its
+counters, times and sends, filled in by the parts of the robot as they work."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+
+@dataclass
+class RobotReport:
+    robot_id: str
+    offload_at: int
+    frames: int = 0
+    first_index: int = 0
+    frames_lost_on_link: int = 0
+    frame_bytes: int = 0
+    control_bytes: int = 0
+    keyframe_uploads: int = 0
+    keyframe_bytes: int = 0
+    upload_retries: int = 0
+    # Uploads the cloud said it no longer needs (keyframes a restarted cloud lost).
+    uploads_not_needed: int = 0
+    # Frame indices of the keyframes the cloud acknowledged (stored and checkpointed).
+    acknowledged: list[int] = field(default_factory=list)
+    feedback: int = 0
+    keyframes: int = 0
+    robot_compute_s: float = 0.0
+    robot_stage_ms: dict[str, float] = field(default_factory=dict)
+    link_busy_s: float = 0.0
+    round_trip_ms_median: float | None = None
+    round_trip_ms_p95: float | None = None
+    streaming_s: float = 0.0  # first frame sent -> last frame sent
+    last_feedback_s: float = 0.0  # first frame sent -> last feedback received
+    total_s: float = 0.0  # first frame sent -> the cloud's "ended" (map built)
+    resumed_at: int | None = None
+    cloud_summary: dict[str, Any] | None = None
+    # An adaptive robot: every re-plan (measured link, chosen point / features / step) and
+    # how many frames went at each point; frames it skipped by its frame step.
+    plan_history: list[dict[str, Any]] = field(default_factory=list)
+    frames_per_point: dict[str, int] = field(default_factory=dict)
+    frames_skipped: int = 0
+    # Flow control: seconds the robot waited for its window of frames in flight, and the
+    # waits that ran out (the cloud did not answer in time).
+    flow_wait_s: float = 0.0
+    flow_timeouts: int = 0
+    # Times a cloud worker took the session over from its checkpoint (failover), and the
+    # longest time between two feedbacks (the pause a takeover costs, or a backlog's).
+    takeovers: int = 0
+    longest_feedback_gap_s: float = 0.0
+    # Every frame and keyframe upload put on the link, for the run report's plots of bytes
+    # and link use over time: [start s, end s, bytes, "frame" | "keyframe", delivered], the
+    # times since the first frame was read (start: handed to the link, which may first
+    # finish earlier messages; end: its last bit sent). Recorded only, never sent.
+    sends: list[tuple[float, float, int, str, bool]] = field(default_factory=list)
+    # Message encoding per frame (inter-frame coding matches descriptors: robot CPU), and
+    # the inter-frame coding's counts (wire/inter.py: intra share, descriptors coded inter).
+    encode_ms_mean: float | None = None
+    encode_ms_p95: float | None = None
+    inter_coding: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2)
