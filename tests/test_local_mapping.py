@@ -6,8 +6,10 @@ database queries in the worker) tracks as well as the in-line one."""
 
 from __future__ import annotations
 
+import dataclasses
+import io
+import json
 import os
-import pickle
 import signal
 
 import numpy as np
@@ -15,6 +17,8 @@ import pytest
 from conftest import TUM_RPY, require
 from test_local_ba import CAMERA, N_KEYFRAMES, build_scene
 
+from fleetslam.cloud.robot_session import SessionState
+from fleetslam.cloud.store import CHECKPOINT, CloudStore, snapshot
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import run_ate
@@ -23,6 +27,7 @@ from fleetslam.pipeline.local_mapper import apply_solution, build_problem
 from fleetslam.pipeline.local_mapping_worker import AsyncLocalMapping, LocalMappingPool
 from fleetslam.pipeline.session import CloudSession
 from fleetslam.system import RobotTracker
+from fleetslam.transport.protocol import Hello
 
 NEWEST = N_KEYFRAMES - 1
 
@@ -105,12 +110,62 @@ def test_a_dead_worker_leaves_local_ba_in_line():
         pool.close()
 
 
-def test_the_worker_handle_is_not_checkpointed(pool):
+def _objects(tree, name: str) -> list[dict]:
+    """The saved attributes of every ``name`` object in a checkpoint's JSON tree."""
+    found = []
+    if isinstance(tree, dict):
+        if tree.get("__obj__") == name:
+            found.append(tree["attributes"])
+        for value in tree.values():
+            found += _objects(value, name)
+    elif isinstance(tree, list):
+        for value in tree:
+            found += _objects(value, name)
+    return found
+
+
+def assert_same(a, b, where: str = "map") -> None:
+    """Equal bit for bit: the same types, arrays of the same dtype, shape and bytes,
+    dataclasses attribute by attribute."""
+    assert type(a) is type(b), f"{where}: {type(a).__name__} != {type(b).__name__}"
+    if isinstance(a, np.ndarray):
+        assert (a.dtype, a.shape) == (b.dtype, b.shape), \
+            f"{where}: {a.dtype} {a.shape} != {b.dtype} {b.shape}"
+        assert a.tobytes() == b.tobytes(), f"{where}: values differ"
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), f"{where}: {len(a)} != {len(b)} items"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif dataclasses.is_dataclass(a):
+        assert vars(a).keys() == vars(b).keys(), f"{where}: attributes differ"
+        for name in vars(a):
+            assert_same(getattr(a, name), getattr(b, name), f"{where}.{name}")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def test_the_worker_handle_is_not_checkpointed(pool, tmp_path):
+    """The cloud checkpoints a session as cloud/checkpoint.py data through its store (the
+    snapshot the frame thread takes, written by the checkpoint writer): the worker handle is
+    not in the file, the restored session has none, and its map is the original's."""
     session = scene_session(6)
-    session.local_mapping = AsyncLocalMapping(pool, session.config.tracking)
-    again = pickle.loads(pickle.dumps(session))
-    assert again.local_mapping is None
-    np.testing.assert_array_equal(again.map.xyz, session.map.xyz)
+    mapping = AsyncLocalMapping(pool, session.config.tracking)
+    session.local_mapping = mapping
+    state = SessionState("r0", Hello(3, CAMERA, "test"), session)
+    store = CloudStore(tmp_path)
+    store.write_checkpoint("r0", snapshot(state))
+    assert session.local_mapping is mapping  # the live session keeps its worker
+
+    blob = (store.robot_dir("r0") / CHECKPOINT).read_bytes()
+    tree = json.loads(bytes(np.load(io.BytesIO(blob))["__tree__"]).decode())
+    (saved,) = _objects(tree, "CloudSession")
+    assert "map" in saved and saved.get("local_mapping") is None
+    assert "LocalMapping" not in json.dumps(tree)
+
+    restored = store.load_checkpoint("r0")
+    assert restored.tracking.local_mapping is None
+    assert restored.tracking.map.n_landmarks == session.map.n_landmarks > 0
+    assert_same(restored.tracking.map, session.map)
 
 
 def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
