@@ -4,7 +4,8 @@ pipeline, for every offloading point k.
 
 Robot and cloud are built as the two processes build them: the robot keeps only the sides
 of the session its stages read (edge/robot.py), the cloud builds its own session from the
-robot's hello (cloud/robot_session.py), and nothing but bytes passes between them."""
+robot's hello (cloud/robot_session.py); nothing passes between them but the hello, the
+welcome's reference-ring size, the frame messages and the cloud's acknowledgements."""
 
 from __future__ import annotations
 
