@@ -170,7 +170,8 @@ def test_an_adaptive_robot_switches_points_frame_by_frame(cloud, scene):
     tracks every frame, and as the front end keeps no state that matters here, the poses are
     the in-memory ones. A robot that did not say it adapts is held to its point."""
     server, client = cloud
-    by_k = {k: robot_messages(scene, k)["r0"] for k in (0, 1, 3)}
+    both = {k: robot_messages(scene, k) for k in (0, 1, 3)}
+    by_k = {k: both[k]["r0"] for k in both}
     seq, _, reference = by_k[3]
     robot = FakeRobot(client, "r0", seq.camera, offload_at=3, adaptive=True)
     robot.hello()
@@ -181,11 +182,16 @@ def test_an_adaptive_robot_switches_points_frame_by_frame(cloud, scene):
     assert [fb.frame_index for fb in got] == list(range(N_FRAMES))
     np.testing.assert_array_equal(np.array([fb.T_world_camera for fb in got]), reference)
     assert server.sessions["r0"].state.counts["errors"] == 0
-    fixed = FakeRobot(client, "r1", seq.camera, offload_at=3)
+    seq1, _, _ = both[3]["r1"]
+    fixed = FakeRobot(client, "r1", seq1.camera, offload_at=3)
     fixed.hello()
-    fixed.send(by_k[1][1][0])
-    time.sleep(0.5)
-    assert server.sessions["r1"].state.counts["rejected frame"] == 1
+    fixed.send(both[1]["r1"][1][0])  # its own frame 0, at point 1: refused ...
+    assert "split point 1, but the session offloads at 3" in fixed.reply("error")["reason"]
+    fixed.send(both[3]["r1"][1][1])  # ... its frame 1 at point 3 is tracked
+    assert [fb.frame_index for fb in fixed.poses(1)] == [1]
+    counts = server.sessions["r1"].state.counts
+    assert counts["rejected frame"] == 1 and counts["frames"] == 1
+    fixed.close()
 
 
 def test_bad_messages_are_rejected_and_no_session_is_harmed(cloud, messages, caplog):

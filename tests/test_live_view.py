@@ -67,8 +67,10 @@ def test_a_cloud_run_with_the_view_saved_loads_back_with_its_entities(viewed_run
                                       if r["name"] == robot) >= 2
         for series in ("split_point", "cloud_ms", "link_kB_per_s"):
             assert f"/robots/{robot}/{series}" in paths
-    if summary["merge"] and summary["merge"]["constraints"]:
-        assert "/world/constraints" in paths
+    # The two robots film one scene: the merge finds inter-robot constraints, and the view
+    # shows them.
+    assert summary["merge"]["constraints"]
+    assert "/world/constraints" in paths
 
 
 def test_the_view_logs_every_pose_and_decimated_keyframe_points(viewed_run):
@@ -85,7 +87,7 @@ def test_the_view_logs_every_pose_and_decimated_keyframe_points(viewed_run):
 
 
 def test_fleetslam_view_writes_a_finished_runs_recording(viewed_run, tmp_path, capsys):
-    run_dir = viewed_run[0] / "cloud"
+    run_dir, summary = viewed_run[0] / "cloud", viewed_run[1]
     out = tmp_path / "run.rrd"
     assert main(["--quiet", "view", str(run_dir), "--save", str(out)]) == 0
     assert f"wrote {out}" in capsys.readouterr().out
@@ -93,8 +95,10 @@ def test_fleetslam_view_writes_a_finished_runs_recording(viewed_run, tmp_path, c
     for robot in ("r0", "r1"):
         assert {f"/world/{robot}/map", f"/world/{robot}/trajectory",
                 f"/world/{robot}/camera", f"/world/{robot}/keyframe_centres"} <= paths
-    if (run_dir / "global_map.ply").exists():
-        assert {"/world/global/map", "/world/global/r0"} <= paths
+    # The merge joined both robots into one global map, which the view shows.
+    assert summary["merge"]["components"] == {"r0": ["r0", "r1"]}
+    assert (run_dir / "global_map.ply").is_file()
+    assert {"/world/global/map", "/world/global/r0", "/world/global/r1"} <= paths
 
 
 def test_fleetslam_view_of_a_folder_that_is_not_a_run_names_it(tmp_path, capsys):

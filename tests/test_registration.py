@@ -13,14 +13,7 @@ from scipy.spatial.transform import Rotation
 from fleetslam.config import FsHicpConfig
 from fleetslam.io.ply import read_ply
 from fleetslam.registration.baselines import point_to_plane_icp, point_to_point_icp
-from fleetslam.registration.fshicp import (
-    apply_transforms,
-    chain_transforms,
-    fshicp,
-    merge_maps,
-    merged_cloud,
-    preprocess,
-)
+from fleetslam.registration.fshicp import fshicp, preprocess
 from fleetslam.registration.metrics import build_tree, fitness_score, rmse, transform_error
 from fleetslam.registration.metrics import random_perturbation
 from fleetslam.transforms import invert, make_T, transform_points
@@ -147,30 +140,6 @@ def test_fshicp_is_deterministic_for_a_seed() -> None:
     np.testing.assert_allclose(c.T_target_source, d.T_target_source, atol=1e-9)
 
 
-def test_merge_maps_chains_into_map0_frame() -> None:
-    rng = np.random.default_rng(13)
-    # Three maps of one room, each in its own frame: map_i = inv(T_world_i) @ world.
-    T_world = [np.eye(4), small_motion(rng, 20.0, 1.0), small_motion(rng, 40.0, 2.0)]
-    maps = [transform_points(invert(T), synthetic_room(rng)) for T in T_world]
-    truth_pairs = [invert(T_world[i - 1]) @ T_world[i] for i in (1, 2)]
-    guesses = [small_motion(rng, 4.0, 0.1) @ T for T in truth_pairs]
-    estimated = merge_maps(maps, guesses, CONFIG)
-    assert len(estimated) == 3 and np.array_equal(estimated[0], np.eye(4))
-    for T_est, T_true in zip(estimated[1:], T_world[1:]):
-        err = transform_error(T_est, T_true)
-        assert err.rotation_deg < 0.3 and err.translation_m < 0.015
-    assert len(merged_cloud(maps, estimated)) == sum(len(m) for m in maps)
-
-
-def test_chain_transforms_composes_on_the_right() -> None:
-    rng = np.random.default_rng(14)
-    A, B = small_motion(rng, 10.0, 1.0), small_motion(rng, 20.0, 0.5)
-    chained = chain_transforms([A, B])
-    np.testing.assert_allclose(chained[2], A @ B)
-    moved = apply_transforms([np.ones((2, 3))] * 3, chained)
-    np.testing.assert_allclose(moved[1], transform_points(A, np.ones((2, 3))))
-
-
 # --- (b), (c) real data -----------------------------------------------------------------------
 
 @pytest.mark.realdata
@@ -232,8 +201,6 @@ def test_bad_input_raises_clear_value_error() -> None:
         fshicp(room, room, bad_T, CONFIG)
     with pytest.raises(ValueError, match="not a rotation"):
         fshicp(room, room, np.diag([2.0, 1.0, 1.0, 1.0]), CONFIG)
-    with pytest.raises(ValueError, match="pairwise initial guesses"):
-        merge_maps([room, room], [], CONFIG)
     with pytest.raises(ValueError, match="target: empty"):
         fitness_score(room, np.zeros((0, 3)))  # small_gicp would crash on an empty tree
     with pytest.raises(ValueError, match="empty"):

@@ -12,19 +12,28 @@ from conftest import SEVEN_SCENES, TUM_RPY, require
 from fleetslam.datasets.tum import RgbdSequence, associate, parse_robot_spec
 
 
+DEPTH_RAW = 5000  # 1 m with the TUM cameras' depth scale
+
+
+def frame_rgb(i: int) -> np.ndarray:
+    """The colour image ``write_tum_folder`` writes for its i-th rgb stamp: one colour, its
+    channels distinct (a swap of red and blue shows), its blue the frame's number."""
+    return np.full((48, 64, 3), (200, 100, 10 + i), np.uint8)
+
+
 def write_tum_folder(root: Path, rgb_times, depth_times, gt: bool = True) -> Path:
     (root / "rgb").mkdir(parents=True)
     (root / "depth").mkdir()
     with open(root / "rgb.txt", "w") as f:
         f.write("# color images\n# timestamp filename\n")
-        for t in rgb_times:
+        for i, t in enumerate(rgb_times):
             name = f"rgb/{t:.6f}.png"
-            cv2.imwrite(str(root / name), np.full((48, 64, 3), 100, np.uint8))
+            cv2.imwrite(str(root / name), cv2.cvtColor(frame_rgb(i), cv2.COLOR_RGB2BGR))
             f.write(f"{t:.6f} {name}\n")
     with open(root / "depth.txt", "w") as f:
         for t in depth_times:
             name = f"depth/{t:.6f}.png"
-            cv2.imwrite(str(root / name), np.full((48, 64), 5000, np.uint16))
+            cv2.imwrite(str(root / name), np.full((48, 64), DEPTH_RAW, np.uint16))
             f.write(f"{t:.6f} {name}\n")
     if gt:
         with open(root / "groundtruth.txt", "w") as f:
@@ -89,7 +98,12 @@ def test_bad_ground_truth_is_reported_by_evaluation_only(tmp_path):
     root = write_tum_folder(tmp_path / "seq", [0.1, 0.2], [0.1, 0.2])
     (root / "groundtruth.txt").write_text("0 1 2\n")
     sequence = RgbdSequence(root)  # the running system never reads ground truth
-    assert sequence[1].rgb is not None
+    frame = sequence[1]  # and reads its frames as if the ground truth were fine
+    assert (frame.index, frame.timestamp) == (1, 0.2)
+    np.testing.assert_array_equal(frame.rgb, frame_rgb(1), strict=True)  # frame 1, RGB order
+    np.testing.assert_array_equal(frame.depth_raw, np.full((48, 64), DEPTH_RAW, np.uint16),
+                                  strict=True)
+    np.testing.assert_array_equal(frame.depth_m, np.ones((48, 64), np.float32), strict=True)
     with pytest.raises(ValueError, match="groundtruth.txt:1: expected 8 values"):
         sequence.gt_poses
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import signal
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +42,7 @@ class Worker:
         self.load = load
         self.won: list[str] = []
         self.event = threading.Event()
+        self.closed = False
         self.placement = Placement(self.z, name, PlacementConfig(settle_s=0.3), lambda: self.load,
                                    self._won, lambda robot: None, lambda robot: True).start()
 
@@ -52,8 +52,10 @@ class Worker:
         self.event.set()
 
     def close(self) -> None:
-        self.placement.close()
-        self.z.close()
+        if not self.closed:
+            self.closed = True
+            self.placement.close()
+            self.z.close()
 
 
 def test_bids_rank_by_load_then_spread():
@@ -69,25 +71,36 @@ def test_one_winner_the_least_loaded_and_a_dead_workers_robot_moves():
     router = open_router(endpoint)
     busy, idle = Worker(endpoint, "w0", load=3), Worker(endpoint, "w1", load=0)
     try:
-        time.sleep(0.3)  # both see each other's tokens
-        assert busy.placement.live_workers() == ["w0", "w1"]
+        wait_for(lambda: busy.placement.live_workers() == idle.placement.live_workers()
+                 == ["w0", "w1"], 10, "both workers to see each other's tokens")
         for w in (busy, idle):  # both hear the robot's hello at once
             w.placement.claim("r7")
         wait_for(lambda: idle.placement.serves("r7"), 10, "the idle worker to serve r7")
-        time.sleep(1.0)  # the loser withdraws; nobody else wins
+        # The loser counts its lost round and hears the winner's owner token: its election
+        # is over, without a win.
+        wait_for(lambda: busy.placement.elections["lost"] == 1
+                 and busy.placement.owner("r7") == "w1", 10, "the busy worker to lose r7")
         assert idle.won == ["r7"] and busy.won == []
-        assert busy.placement.owner("r7") == idle.placement.owner("r7") == "w1"
-        busy.placement.claim("r7")  # served: no bid
-        time.sleep(0.6)
-        assert busy.won == []
+        assert idle.placement.owner("r7") == "w1"
+        # A claim for a served robot makes no bid. Elections run one after another on the
+        # placement thread, so once the claim for r8 queued behind it is won, the claim
+        # for r7 was dealt with.
+        busy.placement.claim("r7")
+        busy.placement.claim("r8")
+        wait_for(lambda: busy.won, 10, "the busy worker's election for r8")
+        assert busy.won == ["r8"] and idle.won == ["r7"]
+        assert busy.placement.elections == {"won": 1, "lost": 1, "failovers": 0,
+                                            "given_up": 0}
+        assert busy.placement.owner("r7") == "w1"
         # The serving worker dies (its Zenoh session ends, like SIGKILL): the other one
         # sees its owner token vanish and takes the robot.
         idle.close()
         wait_for(lambda: busy.placement.serves("r7"), 10, "the other worker to take r7 over")
-        assert busy.won == ["r7"] and busy.placement.elections["failovers"] == 1
-        assert busy.placement.table() == {"r7": "w0"}
+        assert busy.won == ["r8", "r7"] and busy.placement.elections["failovers"] == 1
+        assert busy.placement.table() == {"r7": "w0", "r8": "w0"}
     finally:
-        busy.close()
+        for w in (busy, idle):  # (idle: a failure before its planned death)
+            w.close()
         router.close()
 
 

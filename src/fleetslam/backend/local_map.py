@@ -84,10 +84,6 @@ class LocalMap:
         return len(self.xyz)
 
     @property
-    def n_alive(self) -> int:
-        return int(self.alive.sum())
-
-    @property
     def n_observations(self) -> int:
         return len(self.obs_keyframe)
 

@@ -99,13 +99,16 @@ class Robot:
             raise ValueError(f"an adaptive robot starts at one of "
                              f"{', '.join(map(str, planner.cfg.online_points))}")
         self.link_trace = dict(link_trace or [])
-        # The robot holds the state of the stages it runs: the front end below point 6 (an
-        # adaptive robot may run any part of it at any moment), everything at point 6.
+        # The robot holds the state of the stages it runs: the front end at points 1-3 (an
+        # adaptive robot may run any part of it at any moment), nothing at point 0 (the
+        # cloud runs the front end), everything at point 6.
         self.onboard = onboard
         if onboard is not None:
             stages, sides = onboard.stages, onboard.sides
         else:
-            stages, sides = front_end_stages(), Sides(edge=FrontEndState(config, sequence.camera))
+            runs_front_end = offload_at > 0 or planner is not None
+            stages = front_end_stages()
+            sides = Sides(edge=FrontEndState(config, sequence.camera) if runs_front_end else None)
         self.report = RobotReport(robot_id, offload_at)
         self.encoder = FrameEncoder(self.robot_id, sequence.camera, config, stages, sides,
                                     self.report, paper_yaml_dir)

@@ -1,8 +1,8 @@
 """FS-HICP: fitness-score hierarchical ICP (paper section IV.B; our reading of it: the
 project's shared/paper-notes.md §2, outside this repository).
 
-One pair: :func:`fshicp` registers a source map onto a target map from an initial guess.
-Many maps: :func:`merge_maps` chains the pairwise results into one global frame.
+:func:`fshicp` registers a source map onto a target map from an initial guess (the merge
+refines each joined robot's map with it: merging/global_map.py).
 
 Reading of the paper taken here, where it is loose:
 
@@ -47,7 +47,6 @@ import small_gicp
 
 from fleetslam.config import FsHicpConfig
 from fleetslam.registration.metrics import as_points, as_rigid_transform, squared_nn_distances
-from fleetslam.transforms import transform_points
 
 # ICP needs a few points to fix 6 degrees of freedom; fewer than this after filtering is an error.
 MIN_POINTS = 10
@@ -277,53 +276,3 @@ def fshicp(source: np.ndarray, target: np.ndarray, T_init: np.ndarray,
         rmse=math.sqrt(inlier_fitness), inlier_fraction=inlier_fraction,
         coarse_steps=coarse_steps, fine_steps=fine_steps,
         seconds=time.perf_counter() - start, history=history)
-
-
-# --- many maps ------------------------------------------------------------------------------
-
-def register_chain(maps: list[np.ndarray], initial_guesses: list[np.ndarray],
-                   config: FsHicpConfig | None = None, camera_frame: bool = False,
-                   ) -> list[FsHicpResult]:
-    """FS-HICP on each neighbouring pair: map i (source) onto map i-1 (target), i = 1..n-1.
-    ``initial_guesses[i-1]`` is the guess of T_{i-1}_{i} (map i into map i-1's frame)."""
-    if len(maps) < 1:
-        raise ValueError("merge: no maps given")
-    if len(initial_guesses) != len(maps) - 1:
-        raise ValueError(f"merge: {len(maps)} maps need {len(maps) - 1} pairwise initial "
-                         f"guesses T_(i-1)_i, got {len(initial_guesses)}")
-    return [fshicp(maps[i], maps[i - 1], initial_guesses[i - 1], config, camera_frame)
-            for i in range(1, len(maps))]
-
-
-def chain_transforms(T_prev_next: list[np.ndarray]) -> list[np.ndarray]:
-    """Pairwise T_{i-1}_{i} to T_world_map_i, where map 0 defines the world frame:
-    T_world_i = T_world_{i-1} @ T_{i-1}_{i}."""
-    T_world = [np.eye(4)]
-    for T in T_prev_next:
-        T_world.append(T_world[-1] @ T)
-    return T_world
-
-
-def merge_maps(maps: list[np.ndarray], initial_guesses: list[np.ndarray],
-               config: FsHicpConfig | None = None, camera_frame: bool = False,
-               ) -> list[np.ndarray]:
-    """T_world_map_i for every map, map 0 being the world frame.
-
-    Chaining: the paper registers data[i-1] onto data[i] one pair at a time. We register the
-    other way round, map i onto map i-1, so the growing chain always ends in a map that is
-    already in the world frame and each new transform composes on the right. Errors add up
-    along the chain, as in the paper; pairs must overlap their neighbour in the list."""
-    results = register_chain(maps, initial_guesses, config, camera_frame)
-    return chain_transforms([r.T_target_source for r in results])
-
-
-def apply_transforms(maps: list[np.ndarray], T_world_maps: list[np.ndarray]) -> list[np.ndarray]:
-    """Each map moved into the world frame."""
-    if len(maps) != len(T_world_maps):
-        raise ValueError(f"{len(maps)} maps but {len(T_world_maps)} transforms")
-    return [transform_points(T, as_points(m)) for m, T in zip(maps, T_world_maps)]
-
-
-def merged_cloud(maps: list[np.ndarray], T_world_maps: list[np.ndarray]) -> np.ndarray:
-    """All maps in the world frame, stacked into one (N, 3) cloud."""
-    return np.vstack(apply_transforms(maps, T_world_maps))
