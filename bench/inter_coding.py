@@ -36,6 +36,7 @@ from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
 from fleetslam.tables import format_table
+from fleetslam.wire import inter as wire_inter
 from fleetslam.wire.frames import decode_frame_message, encode_frame_message
 from fleetslam.wire.inter import (
     INTER_MAX_HAMMING,
@@ -49,9 +50,13 @@ from shared_data import present_sequences
 
 ROBOT = "bench"
 K = 3
+OPENCV_RUN = "inter, ack lag 1, OpenCV matcher (no faiss)"
 RUNS = [  # (name, inter, ack lag in frames, loss)
     ("intra", False, 1, 0.0),
     ("inter, ack lag 1", True, 1, 0.0),
+    # A robot's base install has no faiss: OpenCV's brute-force matcher finds the same rows
+    # (the bytes are compared with the run above), in more of the robot's time.
+    (OPENCV_RUN, True, 1, 0.0),
     ("inter, ack lag 3", True, 3, 0.0),
     ("intra, 10 % lost", False, 1, 0.1),
     ("inter, ack lag 1, 10 % lost", True, 1, 0.1),
@@ -73,7 +78,9 @@ def same(a, b) -> bool:
         (a.depth, b.depth), (a.uv, b.uv)))
 
 
-def run(states: list, camera, config: Config, inter: bool, lag: int, loss: float) -> dict:
+def run(states: list, camera, config: Config, inter: bool, lag: int, loss: float,
+        messages: list[bytes] | None = None) -> dict:
+    """One run; ``messages`` collects every message's bytes."""
     wire = config.wire
     wire.inter_frame = inter
     encoder = InterEncoder(wire, wire.reference_frames)
@@ -91,6 +98,8 @@ def run(states: list, camera, config: Config, inter: bool, lag: int, loss: float
         encoder.record(info)
         enc_ms.append(1000 * (time.perf_counter() - start))
         sizes.append(len(data))
+        if messages is not None:
+            messages.append(data)
         if len(state.keypoints) == config.orb.n_features:
             full.append(len(data))
         if seq and rng.random() < loss:
@@ -127,7 +136,9 @@ def entropy_bound(states: list, refs_per_frame: int) -> dict:
 
 
 def measure(name: str, folder: Path, last: int | None) -> dict:
-    seq = RgbdSequence(folder, last=last)
+    # --frames beyond a sequence's end takes all of it.
+    seq = RgbdSequence(folder, last=None if last is None or last >= len(RgbdSequence(folder))
+                       else last)
     camera = seq.camera
     pipeline = TrackingPipeline(Config(), camera)
     robot, _ = pipeline.split(K)
@@ -138,11 +149,22 @@ def measure(name: str, folder: Path, last: int | None) -> dict:
                                  pipeline.sides))
         progress.update(i + 1)
     runs = {}
+    messages: dict[str, list[bytes]] = {}
     for run_name, inter, lag, loss in RUNS:
-        runs[run_name] = {"inter": inter, "ack_lag": lag, "loss": loss,
-                          **run(states, camera, Config(), inter, lag, loss)}
+        messages[run_name] = []
+        with_faiss = wire_inter._faiss
+        if run_name == OPENCV_RUN:
+            wire_inter._faiss = lambda: None  # as on a robot without faiss
+        try:
+            runs[run_name] = {"inter": inter, "ack_lag": lag, "loss": loss,
+                              **run(states, camera, Config(), inter, lag, loss,
+                                    messages[run_name])}
+        finally:
+            wire_inter._faiss = with_faiss
         r = runs[run_name]
         print(f"  {run_name}: {r['bytes']['mean'] / 1e3:.2f} kB/frame", flush=True)
+    if messages[OPENCV_RUN] != messages["inter, ack lag 1"]:
+        raise AssertionError("OpenCV's matcher and faiss coded a frame differently")
     return {"sequence": name, "frames": len(seq),
             "mean_keypoints": float(np.mean([len(s.keypoints) for s in states])),
             "runs": runs, "entropy": entropy_bound(states, Config().wire.inter_references)}

@@ -170,8 +170,9 @@ NewKeyframe = Callable[[PosedFrame], np.ndarray]
 
 class DecideKeyframe:
     """The keyframe decision; a keyframe then goes to the back-end's local mapper and loop
-    closer (``new_keyframe``; in-line, so every process computes the same poses). Also the
-    motion bookkeeping (the paper's 'Others')."""
+    closer (``new_keyframe``, on this thread; with the cloud's workers their local BA and
+    database query land at later frames: back_end.py). Also the motion bookkeeping (the
+    paper's 'Others')."""
 
     name = "decide_keyframe"
     side = "cloud"
@@ -219,8 +220,8 @@ def needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
 
 
 def orb_slam_needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
-    """ORB-SLAM's keyframe test for RGB-D (with local mapping always idle, as it runs
-    in-line): the frame tracks fewer than a fraction of the landmarks the reference keyframe
+    """ORB-SLAM's keyframe test for RGB-D, as if local mapping were always idle (ORB-SLAM
+    also waits for a busy mapper; here it never refuses a keyframe): the frame tracks fewer than a fraction of the landmarks the reference keyframe
     tracks (those with enough observations to be established), or it tracks few close points
     while many close points could be created."""
     cfg = session.config.tracking
