@@ -374,7 +374,7 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
 
 
 def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
-    from fleetslam.cloud.robot_session import WorkQueue
+    from fleetslam.cloud.inbox import WorkQueue
 
     q = WorkQueue(max_frames=3)
     for i in range(3):

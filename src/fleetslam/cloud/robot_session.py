@@ -10,7 +10,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -20,6 +20,7 @@ import numpy as np
 from fleetslam.backend.back_end import CloudBackEnd, new_state
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud import session_state
+from fleetslam.cloud.inbox import Admission, WorkQueue
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
@@ -50,8 +51,6 @@ log = logging.getLogger("fleetslam.cloud")
 
 # A robot's seq may skip frames lost on the link, but not this many at once.
 MAX_SEQ_JUMP = 100_000
-# A robot is told why a message was rejected at most this often.
-REJECTION_REPLY_INTERVAL_S = 1.0
 # The longest a reply waits for the checkpoint that must be on disk before it goes out.
 CHECKPOINT_WAIT_S = 30.0
 
@@ -63,40 +62,6 @@ class FinishedMap:
     colors: np.ndarray
     track: RobotTrack
     summary: dict[str, Any]
-
-
-class WorkQueue:
-    """A session's inbox: frames and control messages in arrival order, at most ``max_frames``
-    frames. Frames are best effort, so when a robot sends faster than its session tracks, the
-    oldest waiting frame is dropped (and counted); control messages are never dropped."""
-
-    def __init__(self, max_frames: int) -> None:
-        self.max_frames = max_frames
-        self.dropped = 0
-        self._items: deque[Any] = deque()
-        self._frames = 0
-        self._ready = threading.Condition()
-
-    def put(self, item: Any) -> None:
-        with self._ready:
-            if item is not None and item[0] == "frame":
-                if self._frames >= self.max_frames:
-                    oldest = next(i for i, x in enumerate(self._items)
-                                  if x is not None and x[0] == "frame")
-                    del self._items[oldest]
-                    self._frames -= 1
-                    self.dropped += 1
-                self._frames += 1
-            self._items.append(item)
-            self._ready.notify()
-
-    def get(self) -> Any:
-        with self._ready:
-            self._ready.wait_for(lambda: bool(self._items))
-            item = self._items.popleft()
-            if item is not None and item[0] == "frame":
-                self._frames -= 1
-            return item
 
 
 Publish = Callable[[str, bytes], None]
@@ -125,11 +90,10 @@ class RobotSession:
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
         # session refuses references to frames before it, and the robot sends intra).
         self.references = ReferenceRing(config.wire.reference_frames)
-        self._last_rejection_reply = -float("inf")
-        self._rejected_since_reply = 0
-        self._paused_until = -float("inf")
         # The frame and keyframe threads both count, and status reads the counts.
         self._counts_lock = threading.Lock()
+        self.admission = Admission(state.robot_id, config.transport, state.counts,
+                                   self._counts_lock)
         self.last_heard = time.monotonic()
         # Frames and control in arrival order: the receive thread decodes each frame (and
         # tells the robot it holds it as a reference) and passes it on to the tracking
@@ -186,7 +150,7 @@ class RobotSession:
     def submit_frame(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
         self.view.received(self.robot_id, len(data))
-        if not self._paused():
+        if not self.admission.paused():
             self._frames.put(("frame", data, arrival))
 
     def submit_control(self, message: dict[str, Any], arrival: float) -> None:
@@ -196,17 +160,8 @@ class RobotSession:
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
         self.view.received(self.robot_id, len(data))
-        if not self._paused():
+        if not self.admission.paused():
             self._keyframes.put(("keyframe", data, arrival))
-
-    def _paused(self) -> bool:
-        """A robot whose messages keep being rejected (a broken or hostile client) has its
-        frames and uploads dropped unread for a while: decoding them would take the CPU
-        the other robots' sessions need. Control messages still pass."""
-        if time.monotonic() >= self._paused_until:
-            return False
-        self.count("dropped unread (too many rejected)")
-        return True
 
     def _snapshot(self) -> Capture:
         """The state as a checkpoint now; under the counts lock, since the keyframe thread
@@ -347,38 +302,11 @@ class RobotSession:
 
     def _reject(self, what: str, reason: str,
                 code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
-        # The log gives every reason, except while the robot is paused for flooding; the
-        # robot hears why at most once per interval (a flood of bad messages must not
-        # become a flood of replies).
-        cfg = self.config.transport
-        now = time.monotonic()
-        with self._counts_lock:  # the frame and keyframe threads both reject
-            self.state.counts[f"rejected {what}"] += 1
-            if now >= self._paused_until:
-                log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
-            due = now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S
-            if due:
-                burst, self._rejected_since_reply = self._rejected_since_reply, 0
-                self._last_rejection_reply = now
-            else:
-                # Counted since the last reason, so within one interval.
-                self._rejected_since_reply += 1
-                if self._rejected_since_reply >= \
-                        cfg.max_rejections_per_s * REJECTION_REPLY_INTERVAL_S:
-                    self._rejected_since_reply = 0
-                    paused = now < self._paused_until  # (its backlog is still rejected)
-                    self._paused_until = now + cfg.misbehaving_pause_s
-                    if not paused:
-                        self.state.counts["pauses (too many rejected)"] += 1
-                        log.warning("robot %s: over %.0f rejected messages per second: "
-                                    "its frames and uploads are dropped unread for %.1f s",
-                                    self.robot_id, cfg.max_rejections_per_s,
-                                    cfg.misbehaving_pause_s)
-        if not due:
-            return
-        more = f" ({burst} more rejected since the last reason)" if burst else ""
-        self._reply(protocol.error(code, f"{what} rejected: {reason}{more}", rejected=what,
-                                   **extra))
+        """Count and log a rejected message; the robot hears why unless it heard a reason
+        less than a second ago (inbox.Admission)."""
+        told = self.admission.rejected(what, reason)
+        if told is not None:
+            self._reply(protocol.error(code, told, rejected=what, **extra))
 
     def _reply(self, message: dict[str, Any]) -> None:
         self.publish(keys.reply(self.robot_id), protocol.encode(message))

@@ -25,14 +25,10 @@ import numpy as np
 import zenoh
 
 from fleetslam.camera import Camera
+from fleetslam.cloud.inbox import REJECTION_REPLY_INTERVAL_S
 from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.placement import Placement
-from fleetslam.cloud.robot_session import (
-    REJECTION_REPLY_INTERVAL_S,
-    FinishedMap,
-    RobotSession,
-    SessionState,
-)
+from fleetslam.cloud.robot_session import FinishedMap, RobotSession, SessionState
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
 from fleetslam.merging.global_map import build_global_map, merge_summary
