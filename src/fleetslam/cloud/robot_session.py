@@ -20,6 +20,7 @@ import numpy as np
 from fleetslam.backend.back_end import CloudBackEnd, new_state
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud import session_state
+from fleetslam.cloud.checkpoint_writer import CheckpointWriter, KeyframeSink
 from fleetslam.cloud.inbox import Admission, WorkQueue
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
 from fleetslam.cloud.store import CloudStore
@@ -51,8 +52,6 @@ log = logging.getLogger("fleetslam.cloud")
 
 # A robot's seq may skip frames lost on the link, but not this many at once.
 MAX_SEQ_JUMP = 100_000
-# The longest a reply waits for the checkpoint that must be on disk before it goes out.
-CHECKPOINT_WAIT_S = 30.0
 
 
 @dataclass
@@ -65,8 +64,6 @@ class FinishedMap:
 
 
 Publish = Callable[[str, bytes], None]
-# Where a session hands each new keyframe (and its robot's latest keyframe poses): the merger.
-KeyframeSink = Callable[[KeyframeSummary, np.ndarray], None]
 
 
 class RobotSession:
@@ -77,7 +74,6 @@ class RobotSession:
         self.state = state
         # The live view (off: a NullView); its calls only enqueue, never wait.
         self.view = view or NullView()
-        self.keyframe_sink = keyframe_sink
         self.config = config
         self.store = store
         self.publish = publish
@@ -102,14 +98,9 @@ class RobotSession:
         self._decoded = WorkQueue(config.transport.max_queued_frames)
         self._decoded_seq = state.last_seq  # newest frame put in the reference ring
         self._keyframes: queue.Queue = queue.Queue()
-        self._checkpoints: queue.Queue = queue.Queue()
-        # Newest frame index covered by a checkpoint on disk (a restored session: all of it).
-        self._durable_index = state.last_index
-        # Checkpoints queued and written, counted: the end's checkpoint is awaited by number
-        # (it may cover no newer frame than the last keyframe's).
-        self._checkpoints_queued = 0
-        self._checkpoints_written = 0
-        self._durable = threading.Condition()
+        # A restored session's checkpoint on disk covers all of it.
+        self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
+                                            state.last_index, keyframe_sink)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
@@ -117,8 +108,6 @@ class RobotSession:
                              name=f"cloud-{state.robot_id}", daemon=True),
             threading.Thread(target=self._serve, args=(self._keyframes, self._on_keyframe),
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
-            threading.Thread(target=self._write_checkpoints,
-                             name=f"cloud-{state.robot_id}-checkpoints", daemon=True),
         ]
 
     def start(self) -> "RobotSession":
@@ -128,6 +117,7 @@ class RobotSession:
             self.finished = self.finished_map()
         for t in self._threads:
             t.start()
+        self.checkpoints.start()
         return self
 
     # -- construction ------------------------------------------------------------------
@@ -183,15 +173,13 @@ class RobotSession:
         is closed this way and restored from it when its robot speaks again)."""
         self._frames.put(None)
         self._keyframes.put(None)
-        for t in self._threads[:3]:
+        for t in self._threads:
             if t.is_alive():
                 t.join(timeout)
         if final_checkpoint:
-            self._checkpoint(self.state.last_index)
+            self.checkpoints.checkpoint(self.state.last_index)
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
-        self._checkpoints.put(None)
-        if self._threads[3].is_alive():
-            self._threads[3].join(timeout)
+        self.checkpoints.close(timeout)
 
     def drain(self, timeout: float = 60.0) -> None:
         """Wait until everything submitted so far is processed (tests, shutdown)."""
@@ -254,51 +242,6 @@ class RobotSession:
                 self.references.put(header.seq, reference)
                 self._reply(protocol.held(header.seq))
         return ("frame", (header, state), arrival)
-
-    def _checkpoint(self, frame_index: int, keyframe: tuple | None = None) -> int:
-        """Queue a checkpoint of the state now for the writer thread; its number.
-        ``keyframe``: what the merger gets of the new keyframe, handed on once this
-        checkpoint is on disk."""
-        with self._durable:
-            self._checkpoints_queued += 1
-            number = self._checkpoints_queued
-        self._checkpoints.put((frame_index, number, self._snapshot(), keyframe))
-        return number
-
-    def _write_checkpoints(self) -> None:
-        while (item := self._checkpoints.get()) is not None:
-            index, number, blob, keyframe = item
-            keyframes = [keyframe]
-            while not self._checkpoints.empty():  # only the newest one matters
-                newer = self._checkpoints.get()
-                if newer is None:
-                    self._checkpoints.put(None)
-                    break
-                index, number, blob, keyframe = newer
-                keyframes.append(keyframe)
-            try:
-                self.store.write_checkpoint(self.robot_id, blob)
-            except OSError:
-                log.exception("robot %s: checkpoint not written", self.robot_id)
-            else:
-                with self._durable:
-                    self._durable_index = max(self._durable_index, index)
-                    self._checkpoints_written = max(self._checkpoints_written, number)
-                    self._durable.notify_all()
-            # The merger holds no keyframe the store lacks (unless a write failed, logged
-            # above): a worker taking the session over from the store goes on from the
-            # keyframes the merger has, never from an older map beside them.
-            for kf in keyframes:
-                if kf is not None and self.keyframe_sink is not None:
-                    try:
-                        self.keyframe_sink(*kf)
-                    except Exception:  # the merger's loss, never the checkpoints'
-                        log.exception("robot %s: keyframe not handed to the merger",
-                                      self.robot_id)
-
-    def _await_checkpoint(self, frame_index: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
-        with self._durable:
-            return self._durable.wait_for(lambda: self._durable_index >= frame_index, timeout)
 
     def _reject(self, what: str, reason: str,
                 code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
@@ -372,7 +315,8 @@ class RobotSession:
             # on the writer thread); the keyframe's upload is acknowledged, and the keyframe
             # handed to the merger, only once this checkpoint is on disk, so no acknowledged
             # or merged keyframe is one a restart or a takeover forgets.
-            self._checkpoint(out.index, self.newest_keyframe() if self.tracks else None)
+            self.checkpoints.checkpoint(out.index,
+                                        self.newest_keyframe() if self.tracks else None)
             if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
                 lmap = st.tracking.map
                 self.view.keyframe_poses(self.robot_id,
@@ -451,7 +395,7 @@ class RobotSession:
             self._show_keyframe(upload)
         # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
         # (a resent one is acknowledged again).
-        if not self._await_checkpoint(upload.frame_index):
+        if not self.checkpoints.wait_for_frame(upload.frame_index):
             return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
                                             f"covers it yet (not acknowledged; resend)")
         self._reply(protocol.ack(upload.frame_index))
@@ -493,11 +437,8 @@ class RobotSession:
             self.finished = self.finish()
             # Durable before the robot hears "ended": another worker restores it finished.
             self.state.ended = True
-            number = self._checkpoint(self.state.last_index)
-            with self._durable:
-                written = self._durable.wait_for(
-                    lambda: self._checkpoints_written >= number, CHECKPOINT_WAIT_S)
-            if not written:
+            number = self.checkpoints.checkpoint(self.state.last_index)
+            if not self.checkpoints.wait_for_number(number):
                 log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
             self._reply(protocol.ended(self.finished.summary))
         else:
