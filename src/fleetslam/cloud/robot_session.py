@@ -5,14 +5,11 @@ its own worker thread, so one robot's bad message or slow map never touches anot
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -22,16 +19,14 @@ from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud import session_state
 from fleetslam.cloud.checkpoint_writer import CheckpointWriter, KeyframeSink
 from fleetslam.cloud.inbox import Admission, WorkQueue
+from fleetslam.cloud.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.mapping.dense_map import build_dense_map
-from fleetslam.merging.global_map import RobotTrack
-from fleetslam.outputs import robot_files, write_robot_files
 from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.pipeline.front_end import FrontEndState
-from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, ROBOT_TRACKS, StageTimer
+from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, StageTimer
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
@@ -54,15 +49,6 @@ log = logging.getLogger("fleetslam.cloud")
 MAX_SEQ_JUMP = 100_000
 
 
-@dataclass
-class FinishedMap:
-    robot_id: str
-    points: np.ndarray
-    colors: np.ndarray
-    track: RobotTrack
-    summary: dict[str, Any]
-
-
 Publish = Callable[[str, bytes], None]
 
 
@@ -82,6 +68,8 @@ class RobotSession:
         self.tracks = state.hello.offload_at in CLOUD_TRACKS
         self.back_end = CloudBackEnd(config, state.hello.camera, state.tracking,
                                      local_mapping if self.tracks else None)
+        self.outputs = SessionOutputs(state, config, store, self.back_end,
+                                      self._transport_counts)
         self.finished: FinishedMap | None = None
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
         # session refuses references to frames before it, and the robot sends intra).
@@ -114,7 +102,7 @@ class RobotSession:
         """Start the session's threads; a session restored after its robot ended has its
         finished map for the merge (its outputs were written before that checkpoint)."""
         if self.state.ended and self.finished is None:
-            self.finished = self.finished_map()
+            self.finished = self.outputs.finished_map()
         for t in self._threads:
             t.start()
         self.checkpoints.start()
@@ -430,11 +418,11 @@ class RobotSession:
                 return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
             self.state.robot_keyframe_poses.update(poses)
             self.back_end.finish()
-            missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
+            missing = [i for i in self.outputs.keyframe_poses() if not self.store.has_keyframe(
                 self.robot_id, i)]
             if missing:
                 return self._reply(protocol.need(missing))
-            self.finished = self.finish()
+            self.finished = self.outputs.finish()
             # Durable before the robot hears "ended": another worker restores it finished.
             self.state.ended = True
             number = self.checkpoints.checkpoint(self.state.last_index)
@@ -458,94 +446,7 @@ class RobotSession:
         lmap = self.state.tracking.map
         return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
 
-    def keyframe_poses(self) -> dict[int, np.ndarray]:
-        """Final pose of every keyframe (after local BA), by frame index."""
-        if self.state.hello.offload_at == ROBOT_TRACKS:
-            return dict(self.state.robot_keyframe_poses)
-        return {kf.frame_index: kf.T_world_camera for kf in self.state.tracking.map.keyframes}
-
-    def trajectory(self) -> np.ndarray:
-        """Every frame's final pose (N x 4 x 4): relative to its reference keyframe, so loop
-        and bundle-adjustment corrections reach every frame; as sent at point 6."""
-        rows = self.state.rows
-        online = np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4)
-        if self.state.hello.offload_at == ROBOT_TRACKS:
-            return online
-        return self.state.tracking.final_poses([r.reference_keyframe for r in rows],
-                                               [r.T_reference_camera for r in rows], online)
-
-    def finish(self) -> FinishedMap:
-        """Write the trajectory, keyframes and dense map; return the map for the merge."""
-        st = self.state
-        out_dir: Path = self.store.robot_dir(self.robot_id)
-        rows = st.rows
-        timestamps = np.array([r.timestamp for r in rows])
-        kf_poses = self.keyframe_poses()
-        kf_index = sorted(kf_poses)
-        time_of = {r.index: r.timestamp for r in rows}
-
-        def keyframes():
-            for i in kf_index:
-                _, upload = decode_keyframe(self.store.keyframe(self.robot_id, i))
-                yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
-                       kf_poses[i], upload.stride)
-
-        points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map)
-        write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
-                          np.array([time_of.get(i, np.nan) for i in kf_index]),
-                          np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
-                          points, colors)
-        summary = self.summary(len(points))
-        (out_dir / "robot.json").write_text(json.dumps(summary, indent=2))
-        log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
-                 len(rows), len(kf_index), len(points))
-        return FinishedMap(self.robot_id, points, colors, self.track(timestamps), summary)
-
-    def finished_map(self) -> FinishedMap:
-        """A finished session's map for the merge, as its worker wrote it (robot.json),
-        without writing anything: another worker's robot, read from the store."""
-        rows = self.state.rows
-        written = self.store.robot_dir(self.robot_id) / "robot.json"
-        summary = json.loads(written.read_text()) if written.exists() else self.summary(0)
-        return FinishedMap(self.robot_id, np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
-                           self.track(np.array([r.timestamp for r in rows])), summary)
-
-    def track(self, timestamps: np.ndarray) -> RobotTrack:
-        """What the global map needs of this robot; keyframe images from the store."""
-        rows = self.state.rows
-        camera = self.state.hello.camera
-
-        def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int]:
-            _, upload = decode_keyframe(self.store.keyframe(self.robot_id, index))
-            return upload.rgb, camera.depth_to_metres(upload.depth_raw), upload.stride
-
-        return RobotTrack(self.robot_id, camera, timestamps, self.trajectory(),
-                          np.array([r.reference_keyframe for r in rows], np.int64),
-                          [r.T_reference_camera for r in rows], keyframe_image)
-
-    def summary(self, map_points: int) -> dict[str, Any]:
-        st = self.state
-        tracking = st.tracking
-        n = max(len(st.rows), 1)
-        span = ((st.last_frame_time or 0.0) - (st.first_frame_time or 0.0))
-        return {
-            "name": self.robot_id, "source": st.hello.source,
-            "offload_at": st.hello.offload_at,
-            "frames": len(st.rows), "keyframes": len(self.keyframe_poses()),
-            "lost_frames": int(sum(not r.tracked for r in st.rows)),
-            "loss_events": tracking.loss_events, "repeated_frames": tracking.repeated_frames,
-            "map_resets": tracking.resets, "map_points": map_points,
-            "loop_closing": self.back_end.summary(),
-            "stage_ms": {k: 1000.0 * v / n for k, v in st.stage_seconds.items()},
-            "cloud_ms_mean": float(np.mean(st.cloud_ms)) if st.cloud_ms else None,
-            "cloud_ms_median": float(np.median(st.cloud_ms)) if st.cloud_ms else None,
-            "cloud_ms_p95": float(np.percentile(st.cloud_ms, 95)) if st.cloud_ms else None,
-            "cloud_s_total": float(np.sum(st.cloud_ms)) / 1000.0,
-            "latency_ms_median": float(np.median(st.latency_ms)) if st.latency_ms else None,
-            "latency_ms_p95": float(np.percentile(st.latency_ms, 95)) if st.latency_ms else None,
-            "tracking_fps": len(st.rows) / span if span > 0 else None,
-            "transport": {**self.counts(),
-                          "frames dropped (session busy)":
-                              self._frames.dropped + self._decoded.dropped},
-            **robot_files(self.robot_id),
-        }
+    def _transport_counts(self) -> dict[str, int]:
+        """The counts as the summary's ``transport`` has them."""
+        return {**self.counts(),
+                "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped}

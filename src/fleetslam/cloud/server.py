@@ -28,7 +28,9 @@ from fleetslam.camera import Camera
 from fleetslam.cloud.inbox import REJECTION_REPLY_INTERVAL_S
 from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.placement import Placement
-from fleetslam.cloud.robot_session import FinishedMap, RobotSession, SessionState
+from fleetslam.cloud.robot_session import RobotSession
+from fleetslam.cloud.session_outputs import FinishedMap
+from fleetslam.cloud.session_state import SessionState
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config, config_to_dict
 from fleetslam.merging.global_map import build_global_map, merge_summary
@@ -575,7 +577,7 @@ class CloudServer:
             state = session.state
             self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
                                   state.tracking.map.keyframe_poses())
-            found.append(session.finished_map())
+            found.append(session.outputs.finished_map())
         return found
 
     def _write_report(self) -> None:
