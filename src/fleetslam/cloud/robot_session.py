@@ -1,6 +1,17 @@
-"""One robot's session in the cloud: its tracking (the stages after the offloading point),
-its trajectory, its keyframes and its dense map. Sessions share nothing, and each runs on
-its own worker thread, so one robot's bad message or slow map never touches another's.
+"""One robot's session in the cloud: the tracking of its frames (the stages after the
+offloading point), its keyframe uploads and the control protocol with its robot. Sessions
+share nothing, and each runs on threads of its own, so one robot's bad message or slow map
+never touches another's. Zenoh's callbacks only enqueue (submit_*); then
+
+- the receive thread decodes each frame as it comes and tells the robot it holds it as a
+  reference (inter-frame coding), even while the tracker is busy;
+- the tracking thread takes frames and control messages in arrival order;
+- the keyframe thread stores keyframe uploads, acknowledged once a checkpoint covers them;
+- the checkpoint writer (checkpoint_writer.py) writes the checkpoints taken at keyframes,
+  at the end and on closing, then hands each new keyframe to the merger.
+
+Its other parts: inbox.py (the inbox; admission: a flooding robot is paused), session_outputs.py
+(the robot's files and summary when it ends), session_state.py (what a checkpoint holds).
 """
 
 from __future__ import annotations
@@ -32,7 +43,7 @@ from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
 from fleetslam.wire.data_tree import Capture
-from fleetslam.wire.envelope import WireError
+from fleetslam.wire.envelope import Header, WireError
 from fleetslam.wire.frames import decode_frame_message
 from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
 from fleetslam.wire.messages import (
@@ -98,6 +109,17 @@ class RobotSession:
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
         ]
 
+    @staticmethod
+    def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
+             publish: Publish, keyframe_sink: KeyframeSink | None = None,
+             view: NullView | None = None,
+             local_mapping: LocalMappingPool | None = None) -> "RobotSession":
+        # The front end's state is made by the first frame that needs it (_track).
+        return RobotSession(SessionState(robot_id, hello, new_state(config, hello.camera)),
+                            config, store, publish, keyframe_sink, view, local_mapping).start()
+
+    # -- lifecycle ------------------------------------------------------------------------
+
     def start(self) -> "RobotSession":
         """Start the session's threads; a session restored after its robot ended has its
         finished map for the merge (its outputs were written before that checkpoint)."""
@@ -108,16 +130,25 @@ class RobotSession:
         self.checkpoints.start()
         return self
 
-    # -- construction ------------------------------------------------------------------
+    def close(self, timeout: float = 5.0, final_checkpoint: bool = False) -> None:
+        """Stop the session's threads once the work already queued is done; with
+        ``final_checkpoint``, the state as it is then goes to disk first (an idle session
+        is closed this way and restored from it when its robot speaks again)."""
+        self._frames.put(None)
+        self._keyframes.put(None)
+        for t in self._threads:
+            if t.is_alive():
+                t.join(timeout)
+        if final_checkpoint:
+            self.checkpoints.checkpoint(self.state.last_index)
+        # Only now: the frame thread may still have queued a keyframe's checkpoint.
+        self.checkpoints.close(timeout)
 
-    @staticmethod
-    def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
-             publish: Publish, keyframe_sink: KeyframeSink | None = None,
-             view: NullView | None = None,
-             local_mapping: LocalMappingPool | None = None) -> "RobotSession":
-        # The front end's state is made by the first frame that needs it (_on_frame).
-        return RobotSession(SessionState(robot_id, hello, new_state(config, hello.camera)),
-                            config, store, publish, keyframe_sink, view, local_mapping).start()
+    def drain(self, timeout: float = 60.0) -> None:
+        """Wait until everything submitted so far is processed (tests, shutdown)."""
+        done = threading.Event()
+        self._frames.put(("call", done.set, 0.0))
+        done.wait(timeout)
 
     @property
     def robot_id(self) -> str:
@@ -141,11 +172,7 @@ class RobotSession:
         if not self.admission.paused():
             self._keyframes.put(("keyframe", data, arrival))
 
-    def _snapshot(self) -> Capture:
-        """The state as a checkpoint now; under the counts lock, since the keyframe thread
-        counts while this copies."""
-        with self._counts_lock:
-            return session_state.capture(self.state)
+    # -- counts -------------------------------------------------------------------------
 
     def count(self, name: str, n: int = 1) -> None:
         with self._counts_lock:
@@ -155,27 +182,18 @@ class RobotSession:
         with self._counts_lock:
             return Counter(self.state.counts)
 
-    def close(self, timeout: float = 5.0, final_checkpoint: bool = False) -> None:
-        """Stop the session's threads once the work already queued is done; with
-        ``final_checkpoint``, the state as it is then goes to disk first (an idle session
-        is closed this way and restored from it when its robot speaks again)."""
-        self._frames.put(None)
-        self._keyframes.put(None)
-        for t in self._threads:
-            if t.is_alive():
-                t.join(timeout)
-        if final_checkpoint:
-            self.checkpoints.checkpoint(self.state.last_index)
-        # Only now: the frame thread may still have queued a keyframe's checkpoint.
-        self.checkpoints.close(timeout)
+    def _transport_counts(self) -> dict[str, int]:
+        """The counts as the summary's ``transport`` has them."""
+        return {**self.counts(),
+                "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped}
 
-    def drain(self, timeout: float = 60.0) -> None:
-        """Wait until everything submitted so far is processed (tests, shutdown)."""
-        done = threading.Event()
-        self._frames.put(("call", done.set, 0.0))
-        done.wait(timeout)
+    def _snapshot(self) -> Capture:
+        """The state as a checkpoint now; under the counts lock, since the keyframe thread
+        counts while this copies."""
+        with self._counts_lock:
+            return session_state.capture(self.state)
 
-    # -- workers --------------------------------------------------------------------------
+    # -- threads ------------------------------------------------------------------------
 
     def _serve(self, q: queue.Queue | WorkQueue, handle: Callable[[str, Any, float], None]
                ) -> None:
@@ -208,6 +226,27 @@ class RobotSession:
             if item is None:
                 return
 
+    def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
+        if kind == "frame":
+            self._on_frame(payload, arrival)
+        elif kind == "control":
+            self._on_control(payload, arrival)
+        elif kind == "call":
+            payload()
+
+    def _reject(self, what: str, reason: str,
+                code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
+        """Count and log a rejected message; the robot hears why unless it heard a reason
+        less than a second ago (inbox.Admission)."""
+        told = self.admission.rejected(what, reason)
+        if told is not None:
+            self._reply(protocol.error(code, told, rejected=what, **extra))
+
+    def _reply(self, message: dict[str, Any]) -> None:
+        self.publish(keys.reply(self.robot_id), protocol.encode(message))
+
+    # -- frames (receive thread: _decode; tracking thread: the rest) ----------------------
+
     def _decode(self, data: bytes, arrival: float) -> tuple | None:
         """("frame", (header, state), arrival), or None if rejected. The seq and timestamp
         checks against the tracked trajectory stay on the tracking thread."""
@@ -231,58 +270,64 @@ class RobotSession:
                 self._reply(protocol.held(header.seq))
         return ("frame", (header, state), arrival)
 
-    def _reject(self, what: str, reason: str,
-                code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
-        """Count and log a rejected message; the robot hears why unless it heard a reason
-        less than a second ago (inbox.Admission)."""
-        told = self.admission.rejected(what, reason)
-        if told is not None:
-            self._reply(protocol.error(code, told, rejected=what, **extra))
-
-    def _reply(self, message: dict[str, Any]) -> None:
-        self.publish(keys.reply(self.robot_id), protocol.encode(message))
-
-    def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
-        if kind == "frame":
-            self._on_frame(payload, arrival)
-        elif kind == "control":
-            self._on_control(payload, arrival)
-        elif kind == "call":
-            payload()
-
     def _on_frame(self, decoded: tuple, arrival: float) -> None:
+        """Track a decoded frame, record it, checkpoint at a keyframe, send the feedback."""
         st = self.state
         header, state = decoded
         switching = st.hello.adaptive and header.split_point in CLOUD_TRACKS
         if header.split_point != st.hello.offload_at and not switching:
             return self._reject("frame", f"split point {header.split_point}, but the session "
                                          f"offloads at {st.hello.offload_at} (send a hello)")
-        if header.seq <= st.last_seq:
-            what = "duplicate" if header.seq == st.last_seq else "out of order"
-            return self._reject("frame", f"{what}: seq {header.seq} after {st.last_seq}")
-        if st.last_seq >= 0 and header.seq > st.last_seq + MAX_SEQ_JUMP:
-            # A forged far-future seq would make every later real frame "out of order".
-            return self._reject("frame", f"seq jumps from {st.last_seq} to {header.seq} "
-                                         f"(more than {MAX_SEQ_JUMP} frames lost?)")
-        if st.rows and header.timestamp <= st.rows[-1].timestamp:
-            return self._reject("frame", f"timestamp {header.timestamp:.6f} is not after the "
-                                         f"last frame's {st.rows[-1].timestamp:.6f}")
+        out_of_sequence = self._out_of_sequence(header)
+        if out_of_sequence is not None:
+            return self._reject("frame", out_of_sequence)
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
-        if self.tracks:
-            timer = StageTimer()
-            if st.front_end is None and header.split_point < FRONT_END_LENGTH:
-                # The robot offloads before its front end ends (points 0-2, or an adaptive
-                # robot that switched there): the cloud holds the front end's state.
-                st.front_end = FrontEndState(self.config, st.hello.camera)
-            out: TrackedFrame = self.back_end.track(state, header.split_point, st.front_end,
-                                                    timer)
-            for name, seconds in timer.seconds.items():
-                st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
-        else:
-            out = state  # the robot tracked (point 6): the cloud records its result
+        out = self._track(state, header.split_point)
         cloud_ms = 1000.0 * (time.perf_counter() - start)
+        self._record(header, out, cloud_ms)
+        if out.is_keyframe:
+            self._on_new_keyframe(state, header.seq, out.index)
+        feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
+                            out.n_inliers, out.T_world_camera, cloud_ms)
+        self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
+                                                                   feedback))
+        st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
+
+    def _out_of_sequence(self, header: Header) -> str | None:
+        """Why a frame does not follow the tracked ones (seq, timestamp), or None."""
+        st = self.state
+        if header.seq <= st.last_seq:
+            what = "duplicate" if header.seq == st.last_seq else "out of order"
+            return f"{what}: seq {header.seq} after {st.last_seq}"
+        if st.last_seq >= 0 and header.seq > st.last_seq + MAX_SEQ_JUMP:
+            # A forged far-future seq would make every later real frame "out of order".
+            return (f"seq jumps from {st.last_seq} to {header.seq} "
+                    f"(more than {MAX_SEQ_JUMP} frames lost?)")
+        if st.rows and header.timestamp <= st.rows[-1].timestamp:
+            return (f"timestamp {header.timestamp:.6f} is not after the "
+                    f"last frame's {st.rows[-1].timestamp:.6f}")
+        return None
+
+    def _track(self, state: Any, split_point: int) -> TrackedFrame:
+        """The stages after ``split_point`` (timed per stage), or the robot's own result."""
+        st = self.state
+        if not self.tracks:
+            return state  # the robot tracked (point 6): the cloud records its result
+        timer = StageTimer()
+        if st.front_end is None and split_point < FRONT_END_LENGTH:
+            # The robot offloads before its front end ends (points 0-2, or an adaptive
+            # robot that switched there): the cloud holds the front end's state.
+            st.front_end = FrontEndState(self.config, st.hello.camera)
+        out: TrackedFrame = self.back_end.track(state, split_point, st.front_end, timer)
+        for name, seconds in timer.seconds.items():
+            st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
+        return out
+
+    def _record(self, header: Header, out: TrackedFrame, cloud_ms: float) -> None:
+        """The tracked frame in the trajectory, the counts and the live view."""
+        st = self.state
         st.last_seq = header.seq
         st.last_index = out.index
         self.count("frames")
@@ -295,26 +340,69 @@ class RobotSession:
         st.last_frame_time = now
         self.view.frame(self.robot_id, out.index, st.rows[-1].T_world_camera, out.tracked,
                         out.is_keyframe, header.split_point, cloud_ms)
-        if out.is_keyframe:
-            if isinstance(state, CapturedFrame):
-                # Total offloading: the cloud already has the keyframe's RGB-D.
-                self._store_captured_keyframe(state, header.seq)
-            # Checkpoint the session as it is now (the snapshot here, the slow durable write
-            # on the writer thread); the keyframe's upload is acknowledged, and the keyframe
-            # handed to the merger, only once this checkpoint is on disk, so no acknowledged
-            # or merged keyframe is one a restart or a takeover forgets.
-            self.checkpoints.checkpoint(out.index,
-                                        self.newest_keyframe() if self.tracks else None)
-            if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
-                lmap = st.tracking.map
-                self.view.keyframe_poses(self.robot_id,
-                                         [kf.frame_index for kf in lmap.keyframes],
-                                         lmap.keyframe_poses())
-        feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
-                            out.n_inliers, out.T_world_camera, cloud_ms)
-        self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
-                                                                   feedback))
-        st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
+
+    def _on_new_keyframe(self, state: Any, seq: int, frame_index: int) -> None:
+        """The frame became a keyframe: its RGB-D to the store if the cloud has it, and a
+        checkpoint of the session as it is now (the snapshot here, the slow durable write on
+        the writer thread). The keyframe's upload is acknowledged, and the keyframe handed to
+        the merger, only once this checkpoint is on disk, so no acknowledged or merged
+        keyframe is one a restart or a takeover forgets."""
+        if isinstance(state, CapturedFrame):
+            # Total offloading: the cloud already has the keyframe's RGB-D.
+            self._store_captured_keyframe(state, seq)
+        self.checkpoints.checkpoint(frame_index,
+                                    self.newest_keyframe() if self.tracks else None)
+        if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
+            lmap = self.state.tracking.map
+            self.view.keyframe_poses(self.robot_id, [kf.frame_index for kf in lmap.keyframes],
+                                     lmap.keyframe_poses())
+
+    # -- keyframes (the keyframe thread: uploads; the tracking thread: the rest) ----------
+
+    def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
+        """A keyframe's upload: checked, stored, acknowledged once a checkpoint covers it."""
+        try:
+            header, upload = decode_keyframe(data, self.state.hello.camera)
+        except WireError as exc:
+            return self._reject("keyframe", str(exc))
+        if header.robot_id != self.robot_id:
+            return self._reject("keyframe", f"header names robot {header.robot_id!r}")
+        wrong_size = self._wrong_size(upload)
+        if wrong_size is not None:
+            return self._reject("keyframe", wrong_size)
+        if upload.frame_index not in self._keyframe_frames():
+            return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
+                                            f"this session", protocol.Code.NOT_A_KEYFRAME,
+                                frame_index=upload.frame_index)
+        if self.store.has_keyframe(self.robot_id, upload.frame_index):
+            self.count("duplicate keyframe uploads")
+        elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:
+            return self._reject("keyframe", f"the session stores at most "
+                                            f"{self.config.transport.max_keyframes} keyframes "
+                                            f"(transport.max_keyframes)")
+        else:
+            self.store.put_keyframe(self.robot_id, upload.frame_index, data)
+            self.count("keyframes stored")
+            self._show_keyframe(upload)
+        # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
+        # (a resent one is acknowledged again).
+        if not self.checkpoints.wait_for_frame(upload.frame_index):
+            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
+                                            f"covers it yet (not acknowledged; resend)")
+        self._reply(protocol.ack(upload.frame_index))
+
+    def _wrong_size(self, upload: KeyframeUpload) -> str | None:
+        """Why an upload's images are not the map's (decimation, size), or None."""
+        if upload.stride not in (1, self.config.map.pixel_stride):
+            return (f"decimated by {upload.stride}, the map samples "
+                    f"every {self.config.map.pixel_stride} pixels")
+        camera = self.state.hello.camera
+        expected = (-(-camera.height // upload.stride), -(-camera.width // upload.stride))
+        if upload.rgb.shape[:2] != expected or upload.depth_raw.shape != expected:
+            return (f"frame {upload.frame_index}: images of "
+                    f"{upload.rgb.shape[:2]} / {upload.depth_raw.shape}, "
+                    f"the camera decimated by {upload.stride} gives {expected}")
+        return None
 
     def _keyframe_frames(self) -> set[int]:
         """Frame indices this session took as keyframes (a robot at point 6 says which)."""
@@ -350,45 +438,18 @@ class RobotSession:
                 return row.T_world_camera
         return np.eye(4)
 
-    def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
-        try:
-            header, upload = decode_keyframe(data, self.state.hello.camera)
-        except WireError as exc:
-            return self._reject("keyframe", str(exc))
-        if header.robot_id != self.robot_id:
-            return self._reject("keyframe", f"header names robot {header.robot_id!r}")
-        if upload.stride not in (1, self.config.map.pixel_stride):
-            return self._reject("keyframe", f"decimated by {upload.stride}, the map samples "
-                                            f"every {self.config.map.pixel_stride} pixels")
-        camera = self.state.hello.camera
-        expected = (-(-camera.height // upload.stride), -(-camera.width // upload.stride))
-        if upload.rgb.shape[:2] != expected or upload.depth_raw.shape != expected:
-            return self._reject("keyframe", f"frame {upload.frame_index}: images of "
-                                            f"{upload.rgb.shape[:2]} / {upload.depth_raw.shape}, "
-                                            f"the camera decimated by {upload.stride} gives "
-                                            f"{expected}")
-        if upload.frame_index not in self._keyframe_frames():
-            return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
-                                            f"this session", protocol.Code.NOT_A_KEYFRAME,
-                                frame_index=upload.frame_index)
-        if self.store.has_keyframe(self.robot_id, upload.frame_index):
-            self.count("duplicate keyframe uploads")
-        elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:
-            return self._reject("keyframe", f"the session stores at most "
-                                            f"{self.config.transport.max_keyframes} keyframes "
-                                            f"(transport.max_keyframes)")
-        else:
-            self.store.put_keyframe(self.robot_id, upload.frame_index, data)
-            self.count("keyframes stored")
-            self._show_keyframe(upload)
-        # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
-        # (a resent one is acknowledged again).
-        if not self.checkpoints.wait_for_frame(upload.frame_index):
-            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
-                                            f"covers it yet (not acknowledged; resend)")
-        self._reply(protocol.ack(upload.frame_index))
+    def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
+        """The newest keyframe as the merger takes it, and every keyframe's current pose."""
+        lmap = self.state.tracking.map
+        return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
+            lmap.keyframe_poses()
 
-    # -- control ------------------------------------------------------------------------
+    def all_keyframes(self) -> list[KeyframeSummary]:
+        """Every keyframe as the merger takes it (a restored session re-joins the merger)."""
+        lmap = self.state.tracking.map
+        return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
+
+    # -- control (the tracking thread, in order with the frames) --------------------------
 
     def welcome(self, resumed: bool, taken_over: bool = False) -> None:
         st = self.state
@@ -401,52 +462,40 @@ class RobotSession:
         if kind == "hello":
             self.welcome(resumed=True)
         elif kind == "end":
-            last_seq = message.get("last_seq")
-            # The grace period runs from when this session first got to the end (behind any
-            # backlog of frames), not from its arrival: a busy session must not give up on
-            # a last frame that arrived while it was still working through earlier ones.
-            first_handled = message.setdefault("_handled_at", time.monotonic())
-            if (isinstance(last_seq, int) and last_seq > self.state.last_seq
-                    and time.monotonic() - first_handled < self.config.transport.end_grace_s):
-                # Frames travel on another key than control messages and may arrive after
-                # the end that follows them: look again once those in flight are in.
-                threading.Timer(0.05, self.submit_control, (message, arrival)).start()
-                return
-            try:
-                poses = protocol.keyframe_poses(message)
-            except ValueError as exc:
-                return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
-            self.state.robot_keyframe_poses.update(poses)
-            self.back_end.finish()
-            missing = [i for i in self.outputs.keyframe_poses() if not self.store.has_keyframe(
-                self.robot_id, i)]
-            if missing:
-                return self._reply(protocol.need(missing))
-            self.finished = self.outputs.finish()
-            # Durable before the robot hears "ended": another worker restores it finished.
-            self.state.ended = True
-            number = self.checkpoints.checkpoint(self.state.last_index)
-            if not self.checkpoints.wait_for_number(number):
-                log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
-            self._reply(protocol.ended(self.finished.summary))
+            self._on_end(message, arrival)
         else:
             self._reply(protocol.error(protocol.Code.UNKNOWN_TYPE,
                                        f"unknown control message {kind!r}"))
 
-    # -- outputs ------------------------------------------------------------------------
-
-    def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
-        """The newest keyframe as the merger takes it, and every keyframe's current pose."""
-        lmap = self.state.tracking.map
-        return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
-            lmap.keyframe_poses()
-
-    def all_keyframes(self) -> list[KeyframeSummary]:
-        """Every keyframe as the merger takes it (a restored session re-joins the merger)."""
-        lmap = self.state.tracking.map
-        return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
-
-    def _transport_counts(self) -> dict[str, int]:
-        """The counts as the summary's ``transport`` has them."""
-        return {**self.counts(),
-                "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped}
+    def _on_end(self, message: dict[str, Any], arrival: float) -> None:
+        """The robot's end: once its last frame is in and every keyframe uploaded, the
+        robot's outputs are written and a final checkpoint is on disk before it hears
+        "ended" (with its summary); "need" names the uploads still missing."""
+        last_seq = message.get("last_seq")
+        # The grace period runs from when this session first got to the end (behind any
+        # backlog of frames), not from its arrival: a busy session must not give up on
+        # a last frame that arrived while it was still working through earlier ones.
+        first_handled = message.setdefault("_handled_at", time.monotonic())
+        if (isinstance(last_seq, int) and last_seq > self.state.last_seq
+                and time.monotonic() - first_handled < self.config.transport.end_grace_s):
+            # Frames travel on another key than control messages and may arrive after
+            # the end that follows them: look again once those in flight are in.
+            threading.Timer(0.05, self.submit_control, (message, arrival)).start()
+            return
+        try:
+            poses = protocol.keyframe_poses(message)
+        except ValueError as exc:
+            return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
+        self.state.robot_keyframe_poses.update(poses)
+        self.back_end.finish()
+        missing = [i for i in self.outputs.keyframe_poses()
+                   if not self.store.has_keyframe(self.robot_id, i)]
+        if missing:
+            return self._reply(protocol.need(missing))
+        self.finished = self.outputs.finish()
+        # Durable before the robot hears "ended": another worker restores it finished.
+        self.state.ended = True
+        number = self.checkpoints.checkpoint(self.state.last_index)
+        if not self.checkpoints.wait_for_number(number):
+            log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
+        self._reply(protocol.ended(self.finished.summary))
