@@ -276,8 +276,10 @@ class RobotSession:
         header, state = decoded
         switching = st.hello.adaptive and header.split_point in CLOUD_TRACKS
         if header.split_point != st.hello.offload_at and not switching:
+            # No session at this point: the robot says hello again (on the code).
             return self._reject("frame", f"split point {header.split_point}, but the session "
-                                         f"offloads at {st.hello.offload_at} (send a hello)")
+                                         f"offloads at {st.hello.offload_at} (send a hello)",
+                                protocol.Code.NO_SESSION)
         out_of_sequence = self._out_of_sequence(header)
         if out_of_sequence is not None:
             return self._reject("frame", out_of_sequence)
