@@ -12,7 +12,6 @@ restores the winner's sessions from their checkpoints in the store.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import socket
@@ -25,14 +24,15 @@ import numpy as np
 import zenoh
 
 from fleetslam.camera import Camera
+from fleetslam.cloud.idle_reaper import IdleReaper
 from fleetslam.cloud.inbox import REJECTION_REPLY_INTERVAL_S
 from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.placement import Placement
 from fleetslam.cloud.robot_session import RobotSession
 from fleetslam.cloud.session_outputs import FinishedMap
-from fleetslam.cloud.session_state import SessionState
+from fleetslam.cloud.sessions import SessionTable
 from fleetslam.cloud.store import CloudStore
-from fleetslam.config import Config, config_to_dict
+from fleetslam.config import Config
 from fleetslam.merging.global_map import build_global_map, merge_summary
 from fleetslam.wire.merger_keyframes import (
     KeyframeSummary,
@@ -108,11 +108,13 @@ class CloudServer:
         self.worker_id = keys.check_worker_id(config.placement.worker_id or default_worker_id())
         self.placement: Placement | None = None
         self.store = CloudStore(self.out_dir)
-        self.sessions: dict[str, RobotSession] = {}
+        self.sessions = SessionTable(config, self.store, self.publish, self.view,
+                                     self._keyframe_sink, self._joined)
         self._merges: dict[str, bytes] = {}
         self.merger = MergerService(config, self.view, self._keyframes_in_store)
         self._merging = False  # this worker runs the fleet's merger (see _is_merger)
-        self._lock = threading.Lock()
+        # The session table's lock guards what the server keeps per robot too.
+        self._lock = self.sessions.lock
         self._zenoh: zenoh.Session | None = None
         self._subscribers: list[Any] = []
         self._robot_subscribers: dict[str, list[Any]] = {}
@@ -120,8 +122,7 @@ class CloudServer:
         self.stopped = threading.Event()
         self.unrouted = 0  # messages on keys that name no valid robot
         self._throttle = Throttle(REJECTION_REPLY_INTERVAL_S)
-        self._reaper = threading.Thread(target=self._close_idle_sessions, name="cloud-idle",
-                                        daemon=True)
+        self._reaper = IdleReaper(self.sessions, config.transport, self.stopped)
         self.local_mapping: LocalMappingPool | None = None
 
     # -- lifecycle ----------------------------------------------------------------------
@@ -133,6 +134,7 @@ class CloudServer:
                              f"'async' or 'inline'")
         if tracking.local_mapping == "async" and tracking.local_ba:
             self.local_mapping = LocalMappingPool(tracking.local_mapping_workers)
+            self.sessions.local_mapping = self.local_mapping
         transport = self.config.transport
         if self.connect:
             self._zenoh = open_connecting(self.connect, transport.reach_deadline_s,
@@ -205,13 +207,21 @@ class CloudServer:
                             ) -> tuple[Camera, list[KeyframeSummary], np.ndarray] | None:
         """A robot's keyframes for the merger: its live session's here, else its checkpoint
         in the store (read only)."""
-        with self._lock:
-            session = self.sessions.get(robot_id)
-        session = session or self._stored_session(robot_id)
+        session = self.sessions.live(robot_id) or self.sessions.stored(robot_id)
         if session is None:
             return None
         return (session.state.hello.camera, session.all_keyframes(),
                 session.state.tracking.map.keyframe_poses())
+
+    def _joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
+        """A session opened here (``restored``: from its checkpoint, with the keyframes it
+        already has): the merger, if this worker runs it, takes the robot."""
+        if self._is_merger():
+            if restored is None:
+                self.merger.add_robot(robot_id, camera)
+            else:
+                self.merger.add_robot(robot_id, camera, restored.all_keyframes(),
+                                      restored.state.tracking.map.keyframe_poses())
 
     # -- placement (which worker serves which robot) ----------------------------------------
 
@@ -220,7 +230,7 @@ class CloudServer:
         session whose robot went quiet holds memory, not CPU)."""
         now = time.monotonic()
         active_s = self.config.placement.active_s
-        return sum(1 for _, s in self._sessions_now()
+        return sum(1 for _, s in self.sessions.now()
                    if s.finished is None and now - s.last_heard < active_s)
 
     def _worth_serving(self, robot_id: str) -> bool:
@@ -256,7 +266,7 @@ class CloudServer:
                 ]
             pending = self._pending.pop(robot_id, None)
             existed = robot_id in self.sessions
-        session = self._session(robot_id)
+        session = self.sessions.session(robot_id)
         restored = session is not None and not existed
         if restored and session.finished is None:
             # Taken over mid-stream: the robot's frames in flight went to the dead worker.
@@ -271,7 +281,7 @@ class CloudServer:
         """Another worker serves ``robot_id`` too (a partition healed): drop ours unsaved."""
         with self._lock:
             subs = self._robot_subscribers.pop(robot_id, [])
-            session = self.sessions.pop(robot_id, None)
+            session = self.sessions.remove(robot_id)
         for sub in subs:
             sub.undeclare()
         if session is not None:
@@ -281,9 +291,8 @@ class CloudServer:
         """Stop; every session's state goes to the store first, then this worker's robots
         are given back (another worker restores them from there)."""
         self.stopped.set()
-        if self._reaper.is_alive():
-            self._reaper.join(30.0)
-        for _, session in self._sessions_now():
+        self._reaper.join(30.0)
+        for _, session in self.sessions.now():
             session.close(final_checkpoint=True)
         if self.placement is not None:
             self.placement.close()
@@ -322,7 +331,7 @@ class CloudServer:
                     return  # another worker's robot (a router-worker hears every robot)
                 if self._worth_serving(robot_id):
                     return placement.claim(robot_id)  # a restart: restore, then serve
-            session = self._session(robot_id)
+            session = self.sessions.session(robot_id)
             if session is None:
                 self._error(keys.reply(robot_id), protocol.Code.NO_SESSION,
                             f"{kind} rejected: no session: send a hello first")
@@ -339,75 +348,12 @@ class CloudServer:
             self._count_unrouted()
             log.exception("message on %s failed", sample.key_expr)
 
-    def _sessions_now(self) -> list[tuple[str, RobotSession]]:
-        """The session table as it is now (Zenoh callbacks and the idle closer change it)."""
-        with self._lock:
-            return list(self.sessions.items())
-
     def _count_unrouted(self) -> None:
         with self._lock:  # Zenoh calls back on several threads
             self._count_unrouted_locked()
 
     def _count_unrouted_locked(self) -> None:
         self.unrouted += 1
-
-    def _close_idle_sessions(self) -> None:
-        """Checkpoint and close every unfinished session that has heard nothing from its
-        robot for ``transport.idle_session_s``: its threads and memory are freed, and its
-        robot's next message restores it from that checkpoint. A finished session stays: its
-        map waits for the merge."""
-        idle_s = self.config.transport.idle_session_s
-        while not self.stopped.wait(min(idle_s / 4.0, 5.0)):
-            now = time.monotonic()
-            # Under the lock: a message arriving meanwhile must find either the live session
-            # or the checkpoint written here, never an older one.
-            with self._lock:
-                for robot_id, session in list(self.sessions.items()):
-                    if session.finished is None and now - session.last_heard > idle_s:
-                        del self.sessions[robot_id]
-                        session.close(final_checkpoint=True)
-                        log.info("robot %s: session closed after %.0f s without a message "
-                                 "(checkpointed; its next message restores it)", robot_id,
-                                 now - session.last_heard)
-
-    def _stored_state(self, robot_id: str) -> SessionState | None:
-        """The robot's session as its last checkpoint has it; None without one, or if it
-        cannot be restored (logged with the file and why)."""
-        try:
-            return self.store.load_checkpoint(robot_id)
-        except ValueError as exc:
-            log.error("%s", exc)
-            return None
-
-    def _stored_session(self, robot_id: str) -> RobotSession | None:
-        """The robot's session from the store, read only: not started (no threads, nothing
-        written), not served here."""
-        state = self._stored_state(robot_id)
-        return None if state is None else RobotSession(state, self.config, self.store,
-                                                      self.publish)
-
-    def _session(self, robot_id: str) -> RobotSession | None:
-        """The live session, or the one restored from its checkpoint after a restart."""
-        with self._lock:
-            session = self.sessions.get(robot_id)
-            if session is None:
-                state = self._stored_state(robot_id)
-                if state is None:
-                    return None
-                session = RobotSession(state, self.config, self.store, self.publish,
-                                       self._keyframe_sink, self.view,
-                                       self.local_mapping).start()
-                self.sessions[robot_id] = session
-                self.view.robot(robot_id, state.hello.camera)
-                # The merger is rebuilt from the keyframes the session already has (none for
-                # a robot that tracks itself).
-                if self._is_merger():
-                    self.merger.add_robot(robot_id, state.hello.camera,
-                                          session.all_keyframes(),
-                                          state.tracking.map.keyframe_poses())
-                log.info("robot %s: session restored from its checkpoint (frame %d)",
-                         robot_id, state.last_index)
-            return session
 
     def _error(self, key: str, code: protocol.Code, reason: str, **extra: Any) -> None:
         """Tell the sender on ``key`` why, and log it. A flood of the same bad message must
@@ -433,7 +379,7 @@ class CloudServer:
                 self._count_unrouted_locked()
                 return
             self._pending[robot_id] = (data, arrival)
-            full = len(self.sessions) >= self.config.transport.max_sessions
+            full = self.sessions.full()
         if not full:  # a full worker does not bid; a robot nobody can take hears it below
             placement.claim(robot_id)
         elif len(placement.live_workers()) == 1:
@@ -447,7 +393,7 @@ class CloudServer:
         except ValueError as exc:
             return self._error(reply, protocol.Code.BAD_MESSAGE,
                                f"control message rejected: {exc}")
-        session = self._session(robot_id)
+        session = self.sessions.session(robot_id)
         if hello is not None and session is not None \
                 and session.state.hello.offload_at != hello.offload_at:
             return self._error(reply, protocol.Code.REFUSED,
@@ -457,19 +403,11 @@ class CloudServer:
             if hello is None:
                 return self._error(reply, protocol.Code.NO_SESSION,
                                    "no session: send a hello first")
-            with self._lock:
-                if robot_id not in self.sessions and \
-                        len(self.sessions) >= self.config.transport.max_sessions:
-                    reason = (f"the cloud serves at most {self.config.transport.max_sessions} "
-                              f"robots at once (transport.max_sessions)")
-                    return self._error(reply, protocol.Code.REFUSED, reason)
-                session = self.sessions.get(robot_id) or RobotSession.open(
-                    robot_id, hello, self.config, self.store, self.publish,
-                    self._keyframe_sink, self.view, self.local_mapping)
-                self.sessions[robot_id] = session
-                self.view.robot(robot_id, hello.camera)
-                if self._is_merger():
-                    self.merger.add_robot(robot_id, hello.camera)
+            session = self.sessions.open(robot_id, hello)
+            if session is None:
+                reason = (f"the cloud serves at most {self.config.transport.max_sessions} "
+                          f"robots at once (transport.max_sessions)")
+                return self._error(reply, protocol.Code.REFUSED, reason)
             log.info("robot %s: new session, offloading at %d, source %s", robot_id,
                      hello.offload_at, hello.source)
             session.welcome(resumed=False)
@@ -493,7 +431,7 @@ class CloudServer:
         elif message["type"] == "status":
             robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
                           "worker": self.worker_id}
-                      for r, s in self._sessions_now()}
+                      for r, s in self.sessions.now()}
             placement = self.placement
             self.publish(keys.CLOUD_REPLY, protocol.encode(protocol.status(
                 rid, robots, self.merger.status(), worker=self.worker_id,
@@ -542,7 +480,7 @@ class CloudServer:
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
                                f"within {timeout_s:.0f} s; ask again")
-        finished = sorted([*(s.finished for _, s in self._sessions_now() if s.finished),
+        finished = sorted([*(s.finished for _, s in self.sessions.now() if s.finished),
                            *self._finished_elsewhere()], key=lambda f: f.robot_id)
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not taken the other workers' robots within "
@@ -566,12 +504,12 @@ class CloudServer:
     def _finished_elsewhere(self) -> list[FinishedMap]:
         """The finished robots other workers serve (or served), read from the store; the
         merger takes their keyframes as a restored session hands them over."""
-        here = {robot_id for robot_id, _ in self._sessions_now()}
+        here = {robot_id for robot_id, _ in self.sessions.now()}
         found = []
         for robot_id in self.store.robots_with_checkpoints():
             if robot_id in here:
                 continue
-            session = self._stored_session(robot_id)
+            session = self.sessions.stored(robot_id)
             if session is None or not session.state.ended:
                 continue
             state = session.state
