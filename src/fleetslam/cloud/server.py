@@ -20,27 +20,17 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
 
-from fleetslam.camera import Camera
+from fleetslam.backend.workers import LocalMappingPool
+from fleetslam.cloud.fleet_merge import FleetMerge, MergeRequests
 from fleetslam.cloud.idle_reaper import IdleReaper
 from fleetslam.cloud.inbox import REJECTION_REPLY_INTERVAL_S
-from fleetslam.cloud.merger_service import MergerService
+from fleetslam.cloud.merge_role import MergeRole
 from fleetslam.cloud.placement import Placement
-from fleetslam.cloud.robot_session import RobotSession
-from fleetslam.cloud.session_outputs import FinishedMap
 from fleetslam.cloud.sessions import SessionTable
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.merging.global_map import build_global_map, merge_summary
-from fleetslam.wire.merger_keyframes import (
-    KeyframeSummary,
-    decode_merger_keyframe,
-    encode_merger_keyframe,
-)
-from fleetslam.backend.workers import LocalMappingPool
-from fleetslam.outputs import fleet_summary, write_summary
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_connecting, open_listening, put
@@ -48,10 +38,6 @@ from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.cloud")
 
-# A merge request still running, and how many answered merge requests are remembered (so
-# a resent request gets the reply again instead of a second merge).
-MERGE_RUNNING = b""
-MERGES_REMEMBERED = 16
 # Control messages of robots nobody serves yet, kept for the election's winner (per robot:
 # the newest), and at most this many robots' at once.
 PENDING_ROBOTS = 256
@@ -108,11 +94,17 @@ class CloudServer:
         self.worker_id = keys.check_worker_id(config.placement.worker_id or default_worker_id())
         self.placement: Placement | None = None
         self.store = CloudStore(self.out_dir)
-        self.sessions = SessionTable(config, self.store, self.publish, self.view,
-                                     self._keyframe_sink, self._joined)
-        self._merges: dict[str, bytes] = {}
-        self.merger = MergerService(config, self.view, self._keyframes_in_store)
-        self._merging = False  # this worker runs the fleet's merger (see _is_merger)
+        # The table hands the merge role each new keyframe and robot; the role reads the table.
+        self.sessions = SessionTable(
+            config, self.store, self.publish, self.view,
+            keyframe_sink=lambda summary, poses: self.merging.keyframe_sink(summary, poses),
+            joined=lambda robot, camera, restored: self.merging.joined(robot, camera, restored))
+        self.merging = MergeRole(config, self.view, self.worker_id, self.sessions, self.publish,
+                                 lambda: self.placement)
+        self.merger = self.merging.merger
+        self.fleet_merge = FleetMerge(config, self.out_dir, self.sessions, self.merger)
+        # Through self.merge, whatever it is when a request comes (a test slows it down).
+        self.merge_requests = MergeRequests(lambda: self.merge(), self.publish)
         # The session table's lock guards what the server keeps per robot too.
         self._lock = self.sessions.lock
         self._zenoh: zenoh.Session | None = None
@@ -163,65 +155,17 @@ class CloudServer:
                  self.out_dir)
         return self
 
-    # -- the fleet's merger (one worker merges every worker's robots) ----------------------
-
-    def _is_merger(self) -> bool:
-        """The live worker whose id sorts first merges; a worker that becomes it (the last
-        one died or stopped) first takes every other robot's keyframes from the store."""
-        placement = self.placement
-        merging = placement is None or placement.live_workers()[0] == self.worker_id
-        if merging and not self._merging:
-            # Its own robots' keyframes went to the merger that was; all robots are taken
-            # (its own from their sessions here). No lock: callers may hold it.
-            robots = sorted(set(self.store.robots_with_checkpoints()) | set(list(self.sessions)))
-            if robots:
-                log.info("worker %s merges now: robots %s from the store", self.worker_id,
-                         ", ".join(robots))
-                self.merger.rebuild_from_store(robots)
-        self._merging = merging
-        return merging
-
-    def _keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
-        """A session's new keyframe: to the merger here, or published for the worker that
-        merges."""
-        if self._is_merger():
-            self.merger.submit(summary, poses)
-        elif self.placement is not None:
-            session = self.sessions.get(summary.robot)
-            if session is not None:
-                self.publish(keys.merge_keyframe(summary.robot), encode_merger_keyframe(
-                    session.state.hello.camera, summary, poses))
-
     def _on_remote_keyframe(self, sample: zenoh.Sample) -> None:
+        """Another worker's keyframe for the merger: taken if this worker merges."""
         try:
-            if not self._is_merger():
+            if not self.merging.is_merger():
                 return
             robot_id = keys.check_robot_id(keys.last_chunks(sample.key_expr, 1)[0])
-            self.merger.submit_remote(*decode_merger_keyframe(sample.payload.to_bytes(), robot_id))
+            self.merging.take_remote(sample.payload.to_bytes(), robot_id)
         except ValueError as exc:
             self._count_unrouted()
             if self._throttle.due("remote keyframe"):
                 log.warning("keyframe on %s rejected: %s", sample.key_expr, exc)
-
-    def _keyframes_in_store(self, robot_id: str
-                            ) -> tuple[Camera, list[KeyframeSummary], np.ndarray] | None:
-        """A robot's keyframes for the merger: its live session's here, else its checkpoint
-        in the store (read only)."""
-        session = self.sessions.live(robot_id) or self.sessions.stored(robot_id)
-        if session is None:
-            return None
-        return (session.state.hello.camera, session.all_keyframes(),
-                session.state.tracking.map.keyframe_poses())
-
-    def _joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
-        """A session opened here (``restored``: from its checkpoint, with the keyframes it
-        already has): the merger, if this worker runs it, takes the robot."""
-        if self._is_merger():
-            if restored is None:
-                self.merger.add_robot(robot_id, camera)
-            else:
-                self.merger.add_robot(robot_id, camera, restored.all_keyframes(),
-                                      restored.state.tracking.map.keyframe_poses())
 
     # -- placement (which worker serves which robot) ----------------------------------------
 
@@ -425,9 +369,9 @@ class CloudServer:
                                f"control message rejected: {exc}")
         rid = protocol.request_id(message)
         if message["type"] == "merge":
-            if not self._is_merger():
+            if not self.merging.is_merger():
                 return  # one worker merges: the live one whose id sorts first
-            self._request_merge(rid)
+            self.merge_requests.request(rid)
         elif message["type"] == "status":
             robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
                           "worker": self.worker_id}
@@ -444,86 +388,7 @@ class CloudServer:
 
     # -- merge and outputs ----------------------------------------------------------------
 
-    def _request_merge(self, rid: str | None) -> None:
-        """Start a merge, unless this request id already did: a client resends its request
-        until the reply arrives, and a resent merge must not merge again."""
-        with self._lock:
-            known = self._merges.get(rid) if rid is not None else None
-            if known is None and rid is not None:
-                self._merges[rid] = MERGE_RUNNING
-                while len(self._merges) > MERGES_REMEMBERED:
-                    self._merges.pop(next(iter(self._merges)))
-        if known == MERGE_RUNNING:
-            return  # its reply comes when it is done
-        if known is not None:
-            self.publish(keys.CLOUD_REPLY, known)  # the reply was lost: send it again
-            return
-        # Merging takes seconds: not on Zenoh's callback thread.
-        threading.Thread(target=self._merge_and_reply, args=(rid,), daemon=True).start()
-
-    def _merge_and_reply(self, rid: str | None) -> None:
-        try:
-            reply = protocol.encode(protocol.merged(rid, self.merge()))
-        except Exception as exc:
-            log.exception("merge failed")
-            reply = protocol.encode(protocol.error(protocol.Code.FAILED, f"merge failed: {exc}",
-                                                   id=rid))
-        if rid is not None:
-            with self._lock:
-                self._merges[rid] = reply
-        self.publish(keys.CLOUD_REPLY, reply)
-
     def merge(self, timeout_s: float = 300.0) -> dict[str, Any]:
         """Write the global outputs of the finished robots (global trajectories, map, OctoMap)
         and summary.json; return the summary."""
-        start = time.perf_counter()
-        if not self.merger.drain(timeout_s):
-            raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
-                               f"within {timeout_s:.0f} s; ask again")
-        finished = sorted([*(s.finished for _, s in self.sessions.now() if s.finished),
-                           *self._finished_elsewhere()], key=lambda f: f.robot_id)
-        if not self.merger.drain(timeout_s):
-            raise RuntimeError(f"the merger has not taken the other workers' robots within "
-                               f"{timeout_s:.0f} s; ask again")
-        global_map = None
-        if len(finished) > 1:
-            global_map = self.merger.locked(lambda m: build_global_map(
-                m, [f.track for f in finished], self.config, self.out_dir))
-        merge = self.merger.locked(lambda m: merge_summary(m, global_map))
-        merge["robots"] = {k: v for k, v in merge["robots"].items()
-                           if k in {f.robot_id for f in finished}}
-        summary = fleet_summary([f.summary for f in finished],
-                                merge if len(finished) > 1 else None, self.config,
-                                time.perf_counter() - start)
-        write_summary(self.out_dir, summary)
-        self.merger.show()
-        log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
-        self._write_report()
-        return summary
-
-    def _finished_elsewhere(self) -> list[FinishedMap]:
-        """The finished robots other workers serve (or served), read from the store; the
-        merger takes their keyframes as a restored session hands them over."""
-        here = {robot_id for robot_id, _ in self.sessions.now()}
-        found = []
-        for robot_id in self.store.robots_with_checkpoints():
-            if robot_id in here:
-                continue
-            session = self.sessions.stored(robot_id)
-            if session is None or not session.state.ended:
-                continue
-            state = session.state
-            self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
-                                  state.tracking.map.keyframe_poses())
-            found.append(session.outputs.finished_map())
-        return found
-
-    def _write_report(self) -> None:
-        """The run report of what was just merged, in the cloud's folder, without ground
-        truth (the cloud never reads it). A plot that fails costs the report, not the merge."""
-        from fleetslam.reporting import write_report
-
-        try:
-            log.info("report: %s", write_report(self.out_dir, ground_truth=False))
-        except Exception:
-            log.exception("the run report could not be written")
+        return self.fleet_merge.merge(timeout_s)
