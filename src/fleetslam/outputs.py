@@ -6,7 +6,9 @@ robot sessions and its merge, cloud/): the files of each robot and the schema of
     <out>/<robot>/keyframes.tum    the keyframes
     <out>/<robot>/map.ply          the robot's dense map
     <out>/<robot>/robot.json       the robot's entry of summary.json (the cloud, as it ends)
-    <out>/summary.json             SUMMARY_VERSION; robots, merge, config
+    <out>/<robot>/robot_report.json  the robot process's own report (a deployed run)
+    <out>/summary.json             SUMMARY_VERSION; robots, merge, config; a deployed run (the
+                                   demo) adds each robot's report and the deployment
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from fleetslam.tables import format_table
 
 SUMMARY_VERSION = 3
 ROBOT_SUMMARY = "robot.json"
+ROBOT_REPORT = "robot_report.json"
 
 
 def robot_files(name: str) -> dict[str, str]:
@@ -87,6 +90,29 @@ def fleet_summary(robots: list[dict[str, Any]], merge: dict[str, Any] | None, co
     """The summary of a run: one entry per robot, the merge (None for one robot)."""
     return {"version": SUMMARY_VERSION, "wall_time_s": wall_s, "robots": robots,
             "merge": merge, "config": config_to_dict(config)}
+
+
+def add_robot_reports(summary: dict[str, Any], out_dir: Path) -> None:
+    """A deployed run: each robot's own report (``<robot>/robot_report.json``) in its entry,
+    without what the file keeps for itself (the cloud's summary as the robot heard it, and
+    every message it sent)."""
+    for robot in summary["robots"]:
+        report = out_dir / robot["name"] / ROBOT_REPORT
+        if report.exists():
+            robot["robot"] = json.loads(report.read_text())
+            robot["robot"].pop("cloud_summary", None)
+            robot["robot"].pop("sends", None)
+
+
+def add_deployment(summary: dict[str, Any], wall_s: float, endpoint: str, processes: int,
+                   workers: int, offload_at: str, link: list[str]) -> None:
+    """A deployed run: the cloud's merge took ``wall_time_s`` of the cloud's summary, the run
+    ``wall_s`` in all; how it was deployed."""
+    summary["merge_wall_time_s"] = summary["wall_time_s"]
+    summary["wall_time_s"] = wall_s
+    summary["deployment"] = {"endpoint": endpoint, "tls": endpoint.startswith("tls/"),
+                             "processes": processes, "workers": workers,
+                             "offload_at": offload_at, "link": link}
 
 
 def write_summary(out_dir: Path, summary: dict[str, Any]) -> None:
