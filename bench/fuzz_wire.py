@@ -742,7 +742,7 @@ GENERATORS: dict[str, Callable[[Context, Rng], tuple[str, bytes]]] = {
 
 
 def handle_control(data: bytes) -> None:
-    """What the cloud does with a control message before acting on it (server.py and
+    """What the cloud does with a control message before acting on it (routing.py and
     robot_session.py): parse; a hello's fields, an end's keyframe poses, a request's id."""
     message = protocol.parse_control(data)
     if message["type"] == "hello":

@@ -138,8 +138,8 @@ def test_the_merger_gets_a_keyframe_only_once_its_checkpoint_is_on_disk(frames, 
                            sink).start()
     try:
         keyframe = session.newest_keyframe()
-        session._checkpoint(7, keyframe)
-        session._checkpoint(7)  # coalesced with the one before: its keyframe still goes
+        session.checkpoints.checkpoint(7, keyframe)
+        session.checkpoints.checkpoint(7)  # coalesced with the one before: its keyframe still goes
     finally:
         session.close()  # waits for the writer
     assert [(s.keyframe, index) for s, index in seen] == [(keyframe[0].keyframe, 7)]

@@ -253,6 +253,26 @@ def test_frames_without_a_session_and_bad_control_get_a_clear_error(cloud, messa
     robot.close()
 
 
+def test_every_reply_that_asks_for_a_hello_carries_the_no_session_code(cloud, messages):
+    """A robot says hello again on Code.NO_SESSION, not on a reply's words: a frame or a
+    control message before any hello, and a frame at another point than its session's."""
+    server, client = cloud
+    seq0, msgs0, _ = messages["r0"]
+    robot = FakeRobot(client, "r0", seq0.camera, offload_at=1)
+    time.sleep(0.3)
+    robot.send(msgs0[0])  # no session yet
+    replies = [robot.reply("error")]
+    client.put(keys.control("r0"), json.dumps({"type": "end", "last_seq": 0}).encode())
+    replies.append(robot.reply("error"))
+    robot.hello()  # a session at point 1
+    robot.send(msgs0[0])  # a frame at point 3
+    replies.append(robot.reply("error"))
+    assert [r["code"] for r in replies] == [Code.NO_SESSION.value] * 3, replies
+    assert all("send a hello" in r["reason"] for r in replies), replies
+    assert "split point 3" in replies[-1]["reason"]
+    robot.close()
+
+
 def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path):
     from fleetslam.cloud.robot_session import RobotSession
     from fleetslam.cloud.store import CloudStore
@@ -380,7 +400,7 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
 
 
 def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
-    from fleetslam.cloud.robot_session import WorkQueue
+    from fleetslam.cloud.inbox import WorkQueue
 
     q = WorkQueue(max_frames=3)
     for i in range(3):

@@ -4,7 +4,6 @@ ground truth (the cloud never sees ground truth) and writes summary.json."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import time
@@ -23,6 +22,7 @@ from fleetslam.launch import (
     stop,
     stop_all,
 )
+from fleetslam.outputs import ROBOT_REPORT, add_deployment, add_robot_reports, write_summary
 from fleetslam.progress import Progress
 from fleetslam.transport.certs import make_lab
 
@@ -86,7 +86,7 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         _await_workers(client, workers, 60.0)
         for name, source in zip(names, sources):
             robots[name] = start_robot(endpoint, name, source, offload_at, logs / f"{name}.log",
-                                       out / name / "robot_report.json", config_path,
+                                       out / name / ROBOT_REPORT, config_path,
                                        link_args, configs[name])
         sequences = {name: open_robot(source) for name, source in zip(names, sources)}
         total = sum(len(s) for s in sequences.values())
@@ -131,17 +131,9 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
             client.close()
         stop_all([*cloud_workers, cloud])
     score_fleet(summary, out, sequences)  # ground truth, read only now
-    for robot in summary["robots"]:
-        report = out / robot["name"] / "robot_report.json"
-        if report.exists():
-            robot["robot"] = json.loads(report.read_text())
-            robot["robot"].pop("cloud_summary", None)
-            robot["robot"].pop("sends", None)  # per message: robot_report.json keeps it
-    summary["merge_wall_time_s"] = summary["wall_time_s"]
-    summary["wall_time_s"] = time.perf_counter() - started
-    summary["deployment"] = {"endpoint": endpoint, "tls": endpoint.startswith("tls/"),
-                             "processes": 1 + len(cloud_workers) + len(robots),
-                             "workers": max(workers, 1),
-                             "offload_at": offload_at, "link": link_args or []}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    add_robot_reports(summary, out)
+    add_deployment(summary, time.perf_counter() - started, endpoint,
+                   processes=1 + len(cloud_workers) + len(robots), workers=max(workers, 1),
+                   offload_at=offload_at, link=link_args or [])
+    write_summary(out, summary)
     return summary

@@ -5,7 +5,10 @@ robot sessions and its merge, cloud/): the files of each robot and the schema of
     <out>/<robot>/trajectory.tum   every frame (TUM; evo reads it)
     <out>/<robot>/keyframes.tum    the keyframes
     <out>/<robot>/map.ply          the robot's dense map
-    <out>/summary.json             SUMMARY_VERSION; robots, merge, config
+    <out>/<robot>/robot.json       the robot's entry of summary.json (the cloud, as it ends)
+    <out>/<robot>/robot_report.json  the robot process's own report (a deployed run)
+    <out>/summary.json             SUMMARY_VERSION; robots, merge, config; a deployed run (the
+                                   demo) adds each robot's report and the deployment
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.tables import format_table
 
 SUMMARY_VERSION = 3
+ROBOT_SUMMARY = "robot.json"
+ROBOT_REPORT = "robot_report.json"
 
 
 def robot_files(name: str) -> dict[str, str]:
@@ -41,11 +46,73 @@ def write_robot_files(robot_dir: Path, name: str, source: str, timestamps: np.nd
     write_ply(robot_dir / "map.ply", points, colors)
 
 
+def cloud_robot_summary(name: str, source: str, offload_at: int, *, frames: int,
+                        keyframes: int, lost_frames: int, loss_events: int,
+                        repeated_frames: int, map_resets: int, map_points: int,
+                        loop_closing: dict[str, Any], stage_seconds: dict[str, float],
+                        cloud_ms: list[float], latency_ms: list[float], span_s: float,
+                        transport: dict[str, int]) -> dict[str, Any]:
+    """A robot's entry of the summary as the cloud tracked it: ``stage_seconds`` summed over
+    the frames, the cloud's ms per frame and latency per frame, the seconds from its first
+    frame to its last, the transport's counts."""
+    n = max(frames, 1)
+    return {
+        "name": name, "source": source, "offload_at": offload_at,
+        "frames": frames, "keyframes": keyframes, "lost_frames": lost_frames,
+        "loss_events": loss_events, "repeated_frames": repeated_frames,
+        "map_resets": map_resets, "map_points": map_points,
+        "loop_closing": loop_closing,
+        "stage_ms": {k: 1000.0 * v / n for k, v in stage_seconds.items()},
+        "cloud_ms_mean": float(np.mean(cloud_ms)) if cloud_ms else None,
+        "cloud_ms_median": float(np.median(cloud_ms)) if cloud_ms else None,
+        "cloud_ms_p95": float(np.percentile(cloud_ms, 95)) if cloud_ms else None,
+        "cloud_s_total": float(np.sum(cloud_ms)) / 1000.0,
+        "latency_ms_median": float(np.median(latency_ms)) if latency_ms else None,
+        "latency_ms_p95": float(np.percentile(latency_ms, 95)) if latency_ms else None,
+        "tracking_fps": frames / span_s if span_s > 0 else None,
+        "transport": transport,
+        **robot_files(name),
+    }
+
+
+def write_robot_summary(robot_dir: Path, summary: dict[str, Any]) -> None:
+    (robot_dir / ROBOT_SUMMARY).write_text(json.dumps(summary, indent=2))
+
+
+def read_robot_summary(robot_dir: Path) -> dict[str, Any] | None:
+    """A robot's entry as written when it ended; None if it has not."""
+    path = robot_dir / ROBOT_SUMMARY
+    return json.loads(path.read_text()) if path.exists() else None
+
+
 def fleet_summary(robots: list[dict[str, Any]], merge: dict[str, Any] | None, config: Config,
                   wall_s: float) -> dict[str, Any]:
     """The summary of a run: one entry per robot, the merge (None for one robot)."""
     return {"version": SUMMARY_VERSION, "wall_time_s": wall_s, "robots": robots,
             "merge": merge, "config": config_to_dict(config)}
+
+
+def add_robot_reports(summary: dict[str, Any], out_dir: Path) -> None:
+    """A deployed run: each robot's own report (``<robot>/robot_report.json``) in its entry,
+    without what the file keeps for itself (the cloud's summary as the robot heard it, and
+    every message it sent)."""
+    for robot in summary["robots"]:
+        report = out_dir / robot["name"] / ROBOT_REPORT
+        if report.exists():
+            robot["robot"] = json.loads(report.read_text())
+            robot["robot"].pop("cloud_summary", None)
+            robot["robot"].pop("sends", None)
+
+
+def add_deployment(summary: dict[str, Any], wall_s: float, endpoint: str, processes: int,
+                   workers: int, offload_at: str, link: list[str]) -> None:
+    """A deployed run: the cloud's merge took ``wall_time_s`` of the cloud's summary, the run
+    ``wall_s`` in all; how it was deployed."""
+    summary["merge_wall_time_s"] = summary["wall_time_s"]
+    summary["wall_time_s"] = wall_s
+    summary["deployment"] = {"endpoint": endpoint, "tls": endpoint.startswith("tls/"),
+                             "processes": processes, "workers": workers,
+                             "offload_at": offload_at, "link": link}
 
 
 def write_summary(out_dir: Path, summary: dict[str, Any]) -> None:

@@ -1,18 +1,26 @@
-"""One robot's session in the cloud: its tracking (the stages after the offloading point),
-its trajectory, its keyframes and its dense map. Sessions share nothing, and each runs on
-its own worker thread, so one robot's bad message or slow map never touches another's.
+"""One robot's session in the cloud: the tracking of its frames (the stages after the
+offloading point), its keyframe uploads and the control protocol with its robot. Sessions
+share nothing, and each runs on threads of its own, so one robot's bad message or slow map
+never touches another's. Zenoh's callbacks only enqueue (submit_*); then
+
+- the receive thread decodes each frame as it comes and tells the robot it holds it as a
+  reference (inter-frame coding), even while the tracker is busy;
+- the tracking thread takes frames and control messages in arrival order;
+- the keyframe thread stores keyframe uploads, acknowledged once a checkpoint covers them;
+- the checkpoint writer (checkpoint_writer.py) writes the checkpoints taken at keyframes,
+  at the end and on closing, then hands each new keyframe to the merger.
+
+Its other parts: inbox.py (the inbox; admission: a flooding robot is paused), session_outputs.py
+(the robot's files and summary when it ends), session_state.py (what a checkpoint holds).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
 import time
-from collections import Counter, deque
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections import Counter
 from typing import Any, Callable
 
 import numpy as np
@@ -20,22 +28,22 @@ import numpy as np
 from fleetslam.backend.back_end import CloudBackEnd, new_state
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud import session_state
+from fleetslam.cloud.checkpoint_writer import CheckpointWriter, KeyframeSink
+from fleetslam.cloud.inbox import Admission, WorkQueue
+from fleetslam.cloud.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.mapping.dense_map import build_dense_map
-from fleetslam.merging.global_map import RobotTrack
-from fleetslam.outputs import robot_files, write_robot_files
 from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.pipeline.front_end import FrontEndState
-from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, ROBOT_TRACKS, StageTimer
+from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, StageTimer
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
 from fleetslam.wire.data_tree import Capture
-from fleetslam.wire.envelope import WireError
+from fleetslam.wire.envelope import Header, WireError
 from fleetslam.wire.frames import decode_frame_message
 from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
 from fleetslam.wire.messages import (
@@ -50,58 +58,9 @@ log = logging.getLogger("fleetslam.cloud")
 
 # A robot's seq may skip frames lost on the link, but not this many at once.
 MAX_SEQ_JUMP = 100_000
-# A robot is told why a message was rejected at most this often.
-REJECTION_REPLY_INTERVAL_S = 1.0
-# The longest a reply waits for the checkpoint that must be on disk before it goes out.
-CHECKPOINT_WAIT_S = 30.0
-
-
-@dataclass
-class FinishedMap:
-    robot_id: str
-    points: np.ndarray
-    colors: np.ndarray
-    track: RobotTrack
-    summary: dict[str, Any]
-
-
-class WorkQueue:
-    """A session's inbox: frames and control messages in arrival order, at most ``max_frames``
-    frames. Frames are best effort, so when a robot sends faster than its session tracks, the
-    oldest waiting frame is dropped (and counted); control messages are never dropped."""
-
-    def __init__(self, max_frames: int) -> None:
-        self.max_frames = max_frames
-        self.dropped = 0
-        self._items: deque[Any] = deque()
-        self._frames = 0
-        self._ready = threading.Condition()
-
-    def put(self, item: Any) -> None:
-        with self._ready:
-            if item is not None and item[0] == "frame":
-                if self._frames >= self.max_frames:
-                    oldest = next(i for i, x in enumerate(self._items)
-                                  if x is not None and x[0] == "frame")
-                    del self._items[oldest]
-                    self._frames -= 1
-                    self.dropped += 1
-                self._frames += 1
-            self._items.append(item)
-            self._ready.notify()
-
-    def get(self) -> Any:
-        with self._ready:
-            self._ready.wait_for(lambda: bool(self._items))
-            item = self._items.popleft()
-            if item is not None and item[0] == "frame":
-                self._frames -= 1
-            return item
 
 
 Publish = Callable[[str, bytes], None]
-# Where a session hands each new keyframe (and its robot's latest keyframe poses): the merger.
-KeyframeSink = Callable[[KeyframeSummary, np.ndarray], None]
 
 
 class RobotSession:
@@ -112,7 +71,6 @@ class RobotSession:
         self.state = state
         # The live view (off: a NullView); its calls only enqueue, never wait.
         self.view = view or NullView()
-        self.keyframe_sink = keyframe_sink
         self.config = config
         self.store = store
         self.publish = publish
@@ -121,15 +79,16 @@ class RobotSession:
         self.tracks = state.hello.offload_at in CLOUD_TRACKS
         self.back_end = CloudBackEnd(config, state.hello.camera, state.tracking,
                                      local_mapping if self.tracks else None)
+        self.outputs = SessionOutputs(state, config, store, self.back_end,
+                                      self._transport_counts)
         self.finished: FinishedMap | None = None
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
         # session refuses references to frames before it, and the robot sends intra).
         self.references = ReferenceRing(config.wire.reference_frames)
-        self._last_rejection_reply = -float("inf")
-        self._rejected_since_reply = 0
-        self._paused_until = -float("inf")
         # The frame and keyframe threads both count, and status reads the counts.
         self._counts_lock = threading.Lock()
+        self.admission = Admission(state.robot_id, config.transport, state.counts,
+                                   self._counts_lock)
         self.last_heard = time.monotonic()
         # Frames and control in arrival order: the receive thread decodes each frame (and
         # tells the robot it holds it as a reference) and passes it on to the tracking
@@ -138,14 +97,9 @@ class RobotSession:
         self._decoded = WorkQueue(config.transport.max_queued_frames)
         self._decoded_seq = state.last_seq  # newest frame put in the reference ring
         self._keyframes: queue.Queue = queue.Queue()
-        self._checkpoints: queue.Queue = queue.Queue()
-        # Newest frame index covered by a checkpoint on disk (a restored session: all of it).
-        self._durable_index = state.last_index
-        # Checkpoints queued and written, counted: the end's checkpoint is awaited by number
-        # (it may cover no newer frame than the last keyframe's).
-        self._checkpoints_queued = 0
-        self._checkpoints_written = 0
-        self._durable = threading.Condition()
+        # A restored session's checkpoint on disk covers all of it.
+        self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
+                                            state.last_index, keyframe_sink)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
@@ -153,29 +107,48 @@ class RobotSession:
                              name=f"cloud-{state.robot_id}", daemon=True),
             threading.Thread(target=self._serve, args=(self._keyframes, self._on_keyframe),
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
-            threading.Thread(target=self._write_checkpoints,
-                             name=f"cloud-{state.robot_id}-checkpoints", daemon=True),
         ]
-
-    def start(self) -> "RobotSession":
-        """Start the session's threads; a session restored after its robot ended has its
-        finished map for the merge (its outputs were written before that checkpoint)."""
-        if self.state.ended and self.finished is None:
-            self.finished = self.finished_map()
-        for t in self._threads:
-            t.start()
-        return self
-
-    # -- construction ------------------------------------------------------------------
 
     @staticmethod
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
              publish: Publish, keyframe_sink: KeyframeSink | None = None,
              view: NullView | None = None,
              local_mapping: LocalMappingPool | None = None) -> "RobotSession":
-        # The front end's state is made by the first frame that needs it (_on_frame).
+        # The front end's state is made by the first frame that needs it (_track).
         return RobotSession(SessionState(robot_id, hello, new_state(config, hello.camera)),
                             config, store, publish, keyframe_sink, view, local_mapping).start()
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def start(self) -> "RobotSession":
+        """Start the session's threads; a session restored after its robot ended has its
+        finished map for the merge (its outputs were written before that checkpoint)."""
+        if self.state.ended and self.finished is None:
+            self.finished = self.outputs.finished_map()
+        for t in self._threads:
+            t.start()
+        self.checkpoints.start()
+        return self
+
+    def close(self, timeout: float = 5.0, final_checkpoint: bool = False) -> None:
+        """Stop the session's threads once the work already queued is done; with
+        ``final_checkpoint``, the state as it is then goes to disk first (an idle session
+        is closed this way and restored from it when its robot speaks again)."""
+        self._frames.put(None)
+        self._keyframes.put(None)
+        for t in self._threads:
+            if t.is_alive():
+                t.join(timeout)
+        if final_checkpoint:
+            self.checkpoints.checkpoint(self.state.last_index)
+        # Only now: the frame thread may still have queued a keyframe's checkpoint.
+        self.checkpoints.close(timeout)
+
+    def drain(self, timeout: float = 60.0) -> None:
+        """Wait until everything submitted so far is processed (tests, shutdown)."""
+        done = threading.Event()
+        self._frames.put(("call", done.set, 0.0))
+        done.wait(timeout)
 
     @property
     def robot_id(self) -> str:
@@ -186,7 +159,7 @@ class RobotSession:
     def submit_frame(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
         self.view.received(self.robot_id, len(data))
-        if not self._paused():
+        if not self.admission.paused():
             self._frames.put(("frame", data, arrival))
 
     def submit_control(self, message: dict[str, Any], arrival: float) -> None:
@@ -196,23 +169,10 @@ class RobotSession:
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
         self.view.received(self.robot_id, len(data))
-        if not self._paused():
+        if not self.admission.paused():
             self._keyframes.put(("keyframe", data, arrival))
 
-    def _paused(self) -> bool:
-        """A robot whose messages keep being rejected (a broken or hostile client) has its
-        frames and uploads dropped unread for a while: decoding them would take the CPU
-        the other robots' sessions need. Control messages still pass."""
-        if time.monotonic() >= self._paused_until:
-            return False
-        self.count("dropped unread (too many rejected)")
-        return True
-
-    def _snapshot(self) -> Capture:
-        """The state as a checkpoint now; under the counts lock, since the keyframe thread
-        counts while this copies."""
-        with self._counts_lock:
-            return session_state.capture(self.state)
+    # -- counts -------------------------------------------------------------------------
 
     def count(self, name: str, n: int = 1) -> None:
         with self._counts_lock:
@@ -222,29 +182,18 @@ class RobotSession:
         with self._counts_lock:
             return Counter(self.state.counts)
 
-    def close(self, timeout: float = 5.0, final_checkpoint: bool = False) -> None:
-        """Stop the session's threads once the work already queued is done; with
-        ``final_checkpoint``, the state as it is then goes to disk first (an idle session
-        is closed this way and restored from it when its robot speaks again)."""
-        self._frames.put(None)
-        self._keyframes.put(None)
-        for t in self._threads[:3]:
-            if t.is_alive():
-                t.join(timeout)
-        if final_checkpoint:
-            self._checkpoint(self.state.last_index)
-        # Only now: the frame thread may still have queued a keyframe's checkpoint.
-        self._checkpoints.put(None)
-        if self._threads[3].is_alive():
-            self._threads[3].join(timeout)
+    def _transport_counts(self) -> dict[str, int]:
+        """The counts as the summary's ``transport`` has them."""
+        return {**self.counts(),
+                "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped}
 
-    def drain(self, timeout: float = 60.0) -> None:
-        """Wait until everything submitted so far is processed (tests, shutdown)."""
-        done = threading.Event()
-        self._frames.put(("call", done.set, 0.0))
-        done.wait(timeout)
+    def _snapshot(self) -> Capture:
+        """The state as a checkpoint now; under the counts lock, since the keyframe thread
+        counts while this copies."""
+        with self._counts_lock:
+            return session_state.capture(self.state)
 
-    # -- workers --------------------------------------------------------------------------
+    # -- threads ------------------------------------------------------------------------
 
     def _serve(self, q: queue.Queue | WorkQueue, handle: Callable[[str, Any, float], None]
                ) -> None:
@@ -277,6 +226,27 @@ class RobotSession:
             if item is None:
                 return
 
+    def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
+        if kind == "frame":
+            self._on_frame(payload, arrival)
+        elif kind == "control":
+            self._on_control(payload, arrival)
+        elif kind == "call":
+            payload()
+
+    def _reject(self, what: str, reason: str,
+                code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
+        """Count and log a rejected message; the robot hears why unless it heard a reason
+        less than a second ago (inbox.Admission)."""
+        told = self.admission.rejected(what, reason)
+        if told is not None:
+            self._reply(protocol.error(code, told, rejected=what, **extra))
+
+    def _reply(self, message: dict[str, Any]) -> None:
+        self.publish(keys.reply(self.robot_id), protocol.encode(message))
+
+    # -- frames (receive thread: _decode; tracking thread: the rest) ----------------------
+
     def _decode(self, data: bytes, arrival: float) -> tuple | None:
         """("frame", (header, state), arrival), or None if rejected. The seq and timestamp
         checks against the tracked trajectory stay on the tracking thread."""
@@ -300,130 +270,66 @@ class RobotSession:
                 self._reply(protocol.held(header.seq))
         return ("frame", (header, state), arrival)
 
-    def _checkpoint(self, frame_index: int, keyframe: tuple | None = None) -> int:
-        """Queue a checkpoint of the state now for the writer thread; its number.
-        ``keyframe``: what the merger gets of the new keyframe, handed on once this
-        checkpoint is on disk."""
-        with self._durable:
-            self._checkpoints_queued += 1
-            number = self._checkpoints_queued
-        self._checkpoints.put((frame_index, number, self._snapshot(), keyframe))
-        return number
-
-    def _write_checkpoints(self) -> None:
-        while (item := self._checkpoints.get()) is not None:
-            index, number, blob, keyframe = item
-            keyframes = [keyframe]
-            while not self._checkpoints.empty():  # only the newest one matters
-                newer = self._checkpoints.get()
-                if newer is None:
-                    self._checkpoints.put(None)
-                    break
-                index, number, blob, keyframe = newer
-                keyframes.append(keyframe)
-            try:
-                self.store.write_checkpoint(self.robot_id, blob)
-            except OSError:
-                log.exception("robot %s: checkpoint not written", self.robot_id)
-            else:
-                with self._durable:
-                    self._durable_index = max(self._durable_index, index)
-                    self._checkpoints_written = max(self._checkpoints_written, number)
-                    self._durable.notify_all()
-            # The merger holds no keyframe the store lacks (unless a write failed, logged
-            # above): a worker taking the session over from the store goes on from the
-            # keyframes the merger has, never from an older map beside them.
-            for kf in keyframes:
-                if kf is not None and self.keyframe_sink is not None:
-                    try:
-                        self.keyframe_sink(*kf)
-                    except Exception:  # the merger's loss, never the checkpoints'
-                        log.exception("robot %s: keyframe not handed to the merger",
-                                      self.robot_id)
-
-    def _await_checkpoint(self, frame_index: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
-        with self._durable:
-            return self._durable.wait_for(lambda: self._durable_index >= frame_index, timeout)
-
-    def _reject(self, what: str, reason: str,
-                code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
-        # The log gives every reason, except while the robot is paused for flooding; the
-        # robot hears why at most once per interval (a flood of bad messages must not
-        # become a flood of replies).
-        cfg = self.config.transport
-        now = time.monotonic()
-        with self._counts_lock:  # the frame and keyframe threads both reject
-            self.state.counts[f"rejected {what}"] += 1
-            if now >= self._paused_until:
-                log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
-            due = now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S
-            if due:
-                burst, self._rejected_since_reply = self._rejected_since_reply, 0
-                self._last_rejection_reply = now
-            else:
-                # Counted since the last reason, so within one interval.
-                self._rejected_since_reply += 1
-                if self._rejected_since_reply >= \
-                        cfg.max_rejections_per_s * REJECTION_REPLY_INTERVAL_S:
-                    self._rejected_since_reply = 0
-                    paused = now < self._paused_until  # (its backlog is still rejected)
-                    self._paused_until = now + cfg.misbehaving_pause_s
-                    if not paused:
-                        self.state.counts["pauses (too many rejected)"] += 1
-                        log.warning("robot %s: over %.0f rejected messages per second: "
-                                    "its frames and uploads are dropped unread for %.1f s",
-                                    self.robot_id, cfg.max_rejections_per_s,
-                                    cfg.misbehaving_pause_s)
-        if not due:
-            return
-        more = f" ({burst} more rejected since the last reason)" if burst else ""
-        self._reply(protocol.error(code, f"{what} rejected: {reason}{more}", rejected=what,
-                                   **extra))
-
-    def _reply(self, message: dict[str, Any]) -> None:
-        self.publish(keys.reply(self.robot_id), protocol.encode(message))
-
-    def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
-        if kind == "frame":
-            self._on_frame(payload, arrival)
-        elif kind == "control":
-            self._on_control(payload, arrival)
-        elif kind == "call":
-            payload()
-
     def _on_frame(self, decoded: tuple, arrival: float) -> None:
+        """Track a decoded frame, record it, checkpoint at a keyframe, send the feedback."""
         st = self.state
         header, state = decoded
         switching = st.hello.adaptive and header.split_point in CLOUD_TRACKS
         if header.split_point != st.hello.offload_at and not switching:
+            # No session at this point: the robot says hello again (on the code).
             return self._reject("frame", f"split point {header.split_point}, but the session "
-                                         f"offloads at {st.hello.offload_at} (send a hello)")
-        if header.seq <= st.last_seq:
-            what = "duplicate" if header.seq == st.last_seq else "out of order"
-            return self._reject("frame", f"{what}: seq {header.seq} after {st.last_seq}")
-        if st.last_seq >= 0 and header.seq > st.last_seq + MAX_SEQ_JUMP:
-            # A forged far-future seq would make every later real frame "out of order".
-            return self._reject("frame", f"seq jumps from {st.last_seq} to {header.seq} "
-                                         f"(more than {MAX_SEQ_JUMP} frames lost?)")
-        if st.rows and header.timestamp <= st.rows[-1].timestamp:
-            return self._reject("frame", f"timestamp {header.timestamp:.6f} is not after the "
-                                         f"last frame's {st.rows[-1].timestamp:.6f}")
+                                         f"offloads at {st.hello.offload_at} (send a hello)",
+                                protocol.Code.NO_SESSION)
+        out_of_sequence = self._out_of_sequence(header)
+        if out_of_sequence is not None:
+            return self._reject("frame", out_of_sequence)
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
-        if self.tracks:
-            timer = StageTimer()
-            if st.front_end is None and header.split_point < FRONT_END_LENGTH:
-                # The robot offloads before its front end ends (points 0-2, or an adaptive
-                # robot that switched there): the cloud holds the front end's state.
-                st.front_end = FrontEndState(self.config, st.hello.camera)
-            out: TrackedFrame = self.back_end.track(state, header.split_point, st.front_end,
-                                                    timer)
-            for name, seconds in timer.seconds.items():
-                st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
-        else:
-            out = state  # the robot tracked (point 6): the cloud records its result
+        out = self._track(state, header.split_point)
         cloud_ms = 1000.0 * (time.perf_counter() - start)
+        self._record(header, out, cloud_ms)
+        if out.is_keyframe:
+            self._on_new_keyframe(state, header.seq, out.index)
+        feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
+                            out.n_inliers, out.T_world_camera, cloud_ms)
+        self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
+                                                                   feedback))
+        st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
+
+    def _out_of_sequence(self, header: Header) -> str | None:
+        """Why a frame does not follow the tracked ones (seq, timestamp), or None."""
+        st = self.state
+        if header.seq <= st.last_seq:
+            what = "duplicate" if header.seq == st.last_seq else "out of order"
+            return f"{what}: seq {header.seq} after {st.last_seq}"
+        if st.last_seq >= 0 and header.seq > st.last_seq + MAX_SEQ_JUMP:
+            # A forged far-future seq would make every later real frame "out of order".
+            return (f"seq jumps from {st.last_seq} to {header.seq} "
+                    f"(more than {MAX_SEQ_JUMP} frames lost?)")
+        if st.rows and header.timestamp <= st.rows[-1].timestamp:
+            return (f"timestamp {header.timestamp:.6f} is not after the "
+                    f"last frame's {st.rows[-1].timestamp:.6f}")
+        return None
+
+    def _track(self, state: Any, split_point: int) -> TrackedFrame:
+        """The stages after ``split_point`` (timed per stage), or the robot's own result."""
+        st = self.state
+        if not self.tracks:
+            return state  # the robot tracked (point 6): the cloud records its result
+        timer = StageTimer()
+        if st.front_end is None and split_point < FRONT_END_LENGTH:
+            # The robot offloads before its front end ends (points 0-2, or an adaptive
+            # robot that switched there): the cloud holds the front end's state.
+            st.front_end = FrontEndState(self.config, st.hello.camera)
+        out: TrackedFrame = self.back_end.track(state, split_point, st.front_end, timer)
+        for name, seconds in timer.seconds.items():
+            st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
+        return out
+
+    def _record(self, header: Header, out: TrackedFrame, cloud_ms: float) -> None:
+        """The tracked frame in the trajectory, the counts and the live view."""
+        st = self.state
         st.last_seq = header.seq
         st.last_index = out.index
         self.count("frames")
@@ -436,25 +342,69 @@ class RobotSession:
         st.last_frame_time = now
         self.view.frame(self.robot_id, out.index, st.rows[-1].T_world_camera, out.tracked,
                         out.is_keyframe, header.split_point, cloud_ms)
-        if out.is_keyframe:
-            if isinstance(state, CapturedFrame):
-                # Total offloading: the cloud already has the keyframe's RGB-D.
-                self._store_captured_keyframe(state, header.seq)
-            # Checkpoint the session as it is now (the snapshot here, the slow durable write
-            # on the writer thread); the keyframe's upload is acknowledged, and the keyframe
-            # handed to the merger, only once this checkpoint is on disk, so no acknowledged
-            # or merged keyframe is one a restart or a takeover forgets.
-            self._checkpoint(out.index, self.newest_keyframe() if self.tracks else None)
-            if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
-                lmap = st.tracking.map
-                self.view.keyframe_poses(self.robot_id,
-                                         [kf.frame_index for kf in lmap.keyframes],
-                                         lmap.keyframe_poses())
-        feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
-                            out.n_inliers, out.T_world_camera, cloud_ms)
-        self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
-                                                                   feedback))
-        st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
+
+    def _on_new_keyframe(self, state: Any, seq: int, frame_index: int) -> None:
+        """The frame became a keyframe: its RGB-D to the store if the cloud has it, and a
+        checkpoint of the session as it is now (the snapshot here, the slow durable write on
+        the writer thread). The keyframe's upload is acknowledged, and the keyframe handed to
+        the merger, only once this checkpoint is on disk, so no acknowledged or merged
+        keyframe is one a restart or a takeover forgets."""
+        if isinstance(state, CapturedFrame):
+            # Total offloading: the cloud already has the keyframe's RGB-D.
+            self._store_captured_keyframe(state, seq)
+        self.checkpoints.checkpoint(frame_index,
+                                    self.newest_keyframe() if self.tracks else None)
+        if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
+            lmap = self.state.tracking.map
+            self.view.keyframe_poses(self.robot_id, [kf.frame_index for kf in lmap.keyframes],
+                                     lmap.keyframe_poses())
+
+    # -- keyframes (the keyframe thread: uploads; the tracking thread: the rest) ----------
+
+    def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
+        """A keyframe's upload: checked, stored, acknowledged once a checkpoint covers it."""
+        try:
+            header, upload = decode_keyframe(data, self.state.hello.camera)
+        except WireError as exc:
+            return self._reject("keyframe", str(exc))
+        if header.robot_id != self.robot_id:
+            return self._reject("keyframe", f"header names robot {header.robot_id!r}")
+        wrong_size = self._wrong_size(upload)
+        if wrong_size is not None:
+            return self._reject("keyframe", wrong_size)
+        if upload.frame_index not in self._keyframe_frames():
+            return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
+                                            f"this session", protocol.Code.NOT_A_KEYFRAME,
+                                frame_index=upload.frame_index)
+        if self.store.has_keyframe(self.robot_id, upload.frame_index):
+            self.count("duplicate keyframe uploads")
+        elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:
+            return self._reject("keyframe", f"the session stores at most "
+                                            f"{self.config.transport.max_keyframes} keyframes "
+                                            f"(transport.max_keyframes)")
+        else:
+            self.store.put_keyframe(self.robot_id, upload.frame_index, data)
+            self.count("keyframes stored")
+            self._show_keyframe(upload)
+        # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
+        # (a resent one is acknowledged again).
+        if not self.checkpoints.wait_for_frame(upload.frame_index):
+            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
+                                            f"covers it yet (not acknowledged; resend)")
+        self._reply(protocol.ack(upload.frame_index))
+
+    def _wrong_size(self, upload: KeyframeUpload) -> str | None:
+        """Why an upload's images are not the map's (decimation, size), or None."""
+        if upload.stride not in (1, self.config.map.pixel_stride):
+            return (f"decimated by {upload.stride}, the map samples "
+                    f"every {self.config.map.pixel_stride} pixels")
+        camera = self.state.hello.camera
+        expected = (-(-camera.height // upload.stride), -(-camera.width // upload.stride))
+        if upload.rgb.shape[:2] != expected or upload.depth_raw.shape != expected:
+            return (f"frame {upload.frame_index}: images of "
+                    f"{upload.rgb.shape[:2]} / {upload.depth_raw.shape}, "
+                    f"the camera decimated by {upload.stride} gives {expected}")
+        return None
 
     def _keyframe_frames(self) -> set[int]:
         """Frame indices this session took as keyframes (a robot at point 6 says which)."""
@@ -490,45 +440,18 @@ class RobotSession:
                 return row.T_world_camera
         return np.eye(4)
 
-    def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
-        try:
-            header, upload = decode_keyframe(data, self.state.hello.camera)
-        except WireError as exc:
-            return self._reject("keyframe", str(exc))
-        if header.robot_id != self.robot_id:
-            return self._reject("keyframe", f"header names robot {header.robot_id!r}")
-        if upload.stride not in (1, self.config.map.pixel_stride):
-            return self._reject("keyframe", f"decimated by {upload.stride}, the map samples "
-                                            f"every {self.config.map.pixel_stride} pixels")
-        camera = self.state.hello.camera
-        expected = (-(-camera.height // upload.stride), -(-camera.width // upload.stride))
-        if upload.rgb.shape[:2] != expected or upload.depth_raw.shape != expected:
-            return self._reject("keyframe", f"frame {upload.frame_index}: images of "
-                                            f"{upload.rgb.shape[:2]} / {upload.depth_raw.shape}, "
-                                            f"the camera decimated by {upload.stride} gives "
-                                            f"{expected}")
-        if upload.frame_index not in self._keyframe_frames():
-            return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
-                                            f"this session", protocol.Code.NOT_A_KEYFRAME,
-                                frame_index=upload.frame_index)
-        if self.store.has_keyframe(self.robot_id, upload.frame_index):
-            self.count("duplicate keyframe uploads")
-        elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:
-            return self._reject("keyframe", f"the session stores at most "
-                                            f"{self.config.transport.max_keyframes} keyframes "
-                                            f"(transport.max_keyframes)")
-        else:
-            self.store.put_keyframe(self.robot_id, upload.frame_index, data)
-            self.count("keyframes stored")
-            self._show_keyframe(upload)
-        # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
-        # (a resent one is acknowledged again).
-        if not self._await_checkpoint(upload.frame_index):
-            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
-                                            f"covers it yet (not acknowledged; resend)")
-        self._reply(protocol.ack(upload.frame_index))
+    def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
+        """The newest keyframe as the merger takes it, and every keyframe's current pose."""
+        lmap = self.state.tracking.map
+        return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
+            lmap.keyframe_poses()
 
-    # -- control ------------------------------------------------------------------------
+    def all_keyframes(self) -> list[KeyframeSummary]:
+        """Every keyframe as the merger takes it (a restored session re-joins the merger)."""
+        lmap = self.state.tracking.map
+        return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
+
+    # -- control (the tracking thread, in order with the frames) --------------------------
 
     def welcome(self, resumed: bool, taken_over: bool = False) -> None:
         st = self.state
@@ -541,142 +464,40 @@ class RobotSession:
         if kind == "hello":
             self.welcome(resumed=True)
         elif kind == "end":
-            last_seq = message.get("last_seq")
-            # The grace period runs from when this session first got to the end (behind any
-            # backlog of frames), not from its arrival: a busy session must not give up on
-            # a last frame that arrived while it was still working through earlier ones.
-            first_handled = message.setdefault("_handled_at", time.monotonic())
-            if (isinstance(last_seq, int) and last_seq > self.state.last_seq
-                    and time.monotonic() - first_handled < self.config.transport.end_grace_s):
-                # Frames travel on another key than control messages and may arrive after
-                # the end that follows them: look again once those in flight are in.
-                threading.Timer(0.05, self.submit_control, (message, arrival)).start()
-                return
-            try:
-                poses = protocol.keyframe_poses(message)
-            except ValueError as exc:
-                return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
-            self.state.robot_keyframe_poses.update(poses)
-            self.back_end.finish()
-            missing = [i for i in self.keyframe_poses() if not self.store.has_keyframe(
-                self.robot_id, i)]
-            if missing:
-                return self._reply(protocol.need(missing))
-            self.finished = self.finish()
-            # Durable before the robot hears "ended": another worker restores it finished.
-            self.state.ended = True
-            number = self._checkpoint(self.state.last_index)
-            with self._durable:
-                written = self._durable.wait_for(
-                    lambda: self._checkpoints_written >= number, CHECKPOINT_WAIT_S)
-            if not written:
-                log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
-            self._reply(protocol.ended(self.finished.summary))
+            self._on_end(message, arrival)
         else:
             self._reply(protocol.error(protocol.Code.UNKNOWN_TYPE,
                                        f"unknown control message {kind!r}"))
 
-    # -- outputs ------------------------------------------------------------------------
-
-    def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
-        """The newest keyframe as the merger takes it, and every keyframe's current pose."""
-        lmap = self.state.tracking.map
-        return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
-            lmap.keyframe_poses()
-
-    def all_keyframes(self) -> list[KeyframeSummary]:
-        """Every keyframe as the merger takes it (a restored session re-joins the merger)."""
-        lmap = self.state.tracking.map
-        return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
-
-    def keyframe_poses(self) -> dict[int, np.ndarray]:
-        """Final pose of every keyframe (after local BA), by frame index."""
-        if self.state.hello.offload_at == ROBOT_TRACKS:
-            return dict(self.state.robot_keyframe_poses)
-        return {kf.frame_index: kf.T_world_camera for kf in self.state.tracking.map.keyframes}
-
-    def trajectory(self) -> np.ndarray:
-        """Every frame's final pose (N x 4 x 4): relative to its reference keyframe, so loop
-        and bundle-adjustment corrections reach every frame; as sent at point 6."""
-        rows = self.state.rows
-        online = np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4)
-        if self.state.hello.offload_at == ROBOT_TRACKS:
-            return online
-        return self.state.tracking.final_poses([r.reference_keyframe for r in rows],
-                                               [r.T_reference_camera for r in rows], online)
-
-    def finish(self) -> FinishedMap:
-        """Write the trajectory, keyframes and dense map; return the map for the merge."""
-        st = self.state
-        out_dir: Path = self.store.robot_dir(self.robot_id)
-        rows = st.rows
-        timestamps = np.array([r.timestamp for r in rows])
-        kf_poses = self.keyframe_poses()
-        kf_index = sorted(kf_poses)
-        time_of = {r.index: r.timestamp for r in rows}
-
-        def keyframes():
-            for i in kf_index:
-                _, upload = decode_keyframe(self.store.keyframe(self.robot_id, i))
-                yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
-                       kf_poses[i], upload.stride)
-
-        points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map)
-        write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
-                          np.array([time_of.get(i, np.nan) for i in kf_index]),
-                          np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
-                          points, colors)
-        summary = self.summary(len(points))
-        (out_dir / "robot.json").write_text(json.dumps(summary, indent=2))
-        log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
-                 len(rows), len(kf_index), len(points))
-        return FinishedMap(self.robot_id, points, colors, self.track(timestamps), summary)
-
-    def finished_map(self) -> FinishedMap:
-        """A finished session's map for the merge, as its worker wrote it (robot.json),
-        without writing anything: another worker's robot, read from the store."""
-        rows = self.state.rows
-        written = self.store.robot_dir(self.robot_id) / "robot.json"
-        summary = json.loads(written.read_text()) if written.exists() else self.summary(0)
-        return FinishedMap(self.robot_id, np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
-                           self.track(np.array([r.timestamp for r in rows])), summary)
-
-    def track(self, timestamps: np.ndarray) -> RobotTrack:
-        """What the global map needs of this robot; keyframe images from the store."""
-        rows = self.state.rows
-        camera = self.state.hello.camera
-
-        def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int]:
-            _, upload = decode_keyframe(self.store.keyframe(self.robot_id, index))
-            return upload.rgb, camera.depth_to_metres(upload.depth_raw), upload.stride
-
-        return RobotTrack(self.robot_id, camera, timestamps, self.trajectory(),
-                          np.array([r.reference_keyframe for r in rows], np.int64),
-                          [r.T_reference_camera for r in rows], keyframe_image)
-
-    def summary(self, map_points: int) -> dict[str, Any]:
-        st = self.state
-        tracking = st.tracking
-        n = max(len(st.rows), 1)
-        span = ((st.last_frame_time or 0.0) - (st.first_frame_time or 0.0))
-        return {
-            "name": self.robot_id, "source": st.hello.source,
-            "offload_at": st.hello.offload_at,
-            "frames": len(st.rows), "keyframes": len(self.keyframe_poses()),
-            "lost_frames": int(sum(not r.tracked for r in st.rows)),
-            "loss_events": tracking.loss_events, "repeated_frames": tracking.repeated_frames,
-            "map_resets": tracking.resets, "map_points": map_points,
-            "loop_closing": self.back_end.summary(),
-            "stage_ms": {k: 1000.0 * v / n for k, v in st.stage_seconds.items()},
-            "cloud_ms_mean": float(np.mean(st.cloud_ms)) if st.cloud_ms else None,
-            "cloud_ms_median": float(np.median(st.cloud_ms)) if st.cloud_ms else None,
-            "cloud_ms_p95": float(np.percentile(st.cloud_ms, 95)) if st.cloud_ms else None,
-            "cloud_s_total": float(np.sum(st.cloud_ms)) / 1000.0,
-            "latency_ms_median": float(np.median(st.latency_ms)) if st.latency_ms else None,
-            "latency_ms_p95": float(np.percentile(st.latency_ms, 95)) if st.latency_ms else None,
-            "tracking_fps": len(st.rows) / span if span > 0 else None,
-            "transport": {**self.counts(),
-                          "frames dropped (session busy)":
-                              self._frames.dropped + self._decoded.dropped},
-            **robot_files(self.robot_id),
-        }
+    def _on_end(self, message: dict[str, Any], arrival: float) -> None:
+        """The robot's end: once its last frame is in and every keyframe uploaded, the
+        robot's outputs are written and a final checkpoint is on disk before it hears
+        "ended" (with its summary); "need" names the uploads still missing."""
+        last_seq = message.get("last_seq")
+        # The grace period runs from when this session first got to the end (behind any
+        # backlog of frames), not from its arrival: a busy session must not give up on
+        # a last frame that arrived while it was still working through earlier ones.
+        first_handled = message.setdefault("_handled_at", time.monotonic())
+        if (isinstance(last_seq, int) and last_seq > self.state.last_seq
+                and time.monotonic() - first_handled < self.config.transport.end_grace_s):
+            # Frames travel on another key than control messages and may arrive after
+            # the end that follows them: look again once those in flight are in.
+            threading.Timer(0.05, self.submit_control, (message, arrival)).start()
+            return
+        try:
+            poses = protocol.keyframe_poses(message)
+        except ValueError as exc:
+            return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
+        self.state.robot_keyframe_poses.update(poses)
+        self.back_end.finish()
+        missing = [i for i in self.outputs.keyframe_poses()
+                   if not self.store.has_keyframe(self.robot_id, i)]
+        if missing:
+            return self._reply(protocol.need(missing))
+        self.finished = self.outputs.finish()
+        # Durable before the robot hears "ended": another worker restores it finished.
+        self.state.ended = True
+        number = self.checkpoints.checkpoint(self.state.last_index)
+        if not self.checkpoints.wait_for_number(number):
+            log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
+        self._reply(protocol.ended(self.finished.summary))

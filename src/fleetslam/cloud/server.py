@@ -8,11 +8,19 @@ a worker hears a robot's frames only while it serves that robot. Zenoh callbacks
 the key and enqueue; each robot's work happens on its session's own threads. A worker that
 starts (a restart, a new worker) or sees a worker die bids for the robots nobody serves and
 restores the winner's sessions from their checkpoints in the store.
+
+The server composes its parts and runs their lifecycle:
+
+    sessions.py     SessionTable: the robots' sessions (open, restore, read from the store)
+    routing.py      Router: each message to its session, the status or the merge
+    placement.py    Placement: which worker serves which robot
+    idle_reaper.py  IdleReaper: checkpoint and close the sessions of quiet robots
+    merge_role.py   MergeRole: which worker merges; the keyframes its merger gets
+    fleet_merge.py  FleetMerge, MergeRequests: the merge a client asks for, once per request
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import socket
@@ -21,78 +29,27 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
 
-from fleetslam.camera import Camera
-from fleetslam.cloud.merger_service import MergerService
-from fleetslam.cloud.placement import Placement
-from fleetslam.cloud.robot_session import (
-    REJECTION_REPLY_INTERVAL_S,
-    FinishedMap,
-    RobotSession,
-    SessionState,
-)
-from fleetslam.cloud.store import CloudStore
-from fleetslam.config import Config, config_to_dict
-from fleetslam.merging.global_map import build_global_map, merge_summary
-from fleetslam.wire.merger_keyframes import (
-    KeyframeSummary,
-    decode_merger_keyframe,
-    encode_merger_keyframe,
-)
 from fleetslam.backend.workers import LocalMappingPool
-from fleetslam.outputs import fleet_summary, write_summary
+from fleetslam.cloud.fleet_merge import FleetMerge, MergeRequests
+from fleetslam.cloud.idle_reaper import IdleReaper
+from fleetslam.cloud.merge_role import MergeRole
+from fleetslam.cloud.placement import Placement
+from fleetslam.cloud.routing import Router
+from fleetslam.cloud.sessions import SessionTable
+from fleetslam.cloud.store import CloudStore
+from fleetslam.config import Config
 from fleetslam.transport import keys, protocol
-from fleetslam.transport.protocol import Hello
 from fleetslam.transport.zenoh_session import open_connecting, open_listening, put
 from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.cloud")
 
-# A merge request still running, and how many answered merge requests are remembered (so
-# a resent request gets the reply again instead of a second merge).
-MERGE_RUNNING = b""
-MERGES_REMEMBERED = 16
-# Control messages of robots nobody serves yet, kept for the election's winner (per robot:
-# the newest), and at most this many robots' at once.
-PENDING_ROBOTS = 256
-
-
-def _is_hello(data: bytes) -> bool:
-    try:
-        return protocol.parse_control(data)["type"] == "hello"
-    except ValueError:
-        return False
-
 
 def default_worker_id() -> str:
     host = "".join(c if c.isalnum() or c in "-_" else "-" for c in socket.gethostname())
     return f"w-{host[:40]}-{os.getpid()}"
-
-
-class Throttle:
-    """Says whether something keyed (a reply key, a log topic) is due again: at most once
-    per interval per key. The table forgets old keys, so a flood of made-up ids cannot grow
-    it without bound."""
-
-    MAX_KEYS = 4096
-
-    def __init__(self, interval_s: float) -> None:
-        self.interval_s = interval_s
-        self._last: dict[str, float] = {}
-        self._lock = threading.Lock()
-
-    def due(self, key: str) -> bool:
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last.get(key, -float("inf")) < self.interval_s:
-                return False
-            if len(self._last) >= self.MAX_KEYS:
-                self._last = {k: t for k, t in self._last.items()
-                              if now - t < self.interval_s}
-            self._last[key] = now
-            return True
 
 
 class CloudServer:
@@ -110,21 +67,29 @@ class CloudServer:
         self.worker_id = keys.check_worker_id(config.placement.worker_id or default_worker_id())
         self.placement: Placement | None = None
         self.store = CloudStore(self.out_dir)
-        self.sessions: dict[str, RobotSession] = {}
-        self._merges: dict[str, bytes] = {}
-        self.merger = MergerService(config, self.view, self._keyframes_in_store)
-        self._merging = False  # this worker runs the fleet's merger (see _is_merger)
-        self._lock = threading.Lock()
-        self._zenoh: zenoh.Session | None = None
-        self._subscribers: list[Any] = []
-        self._robot_subscribers: dict[str, list[Any]] = {}
-        self._pending: dict[str, tuple[bytes, float]] = {}
         self.stopped = threading.Event()
-        self.unrouted = 0  # messages on keys that name no valid robot
-        self._throttle = Throttle(REJECTION_REPLY_INTERVAL_S)
-        self._reaper = threading.Thread(target=self._close_idle_sessions, name="cloud-idle",
-                                        daemon=True)
+        self._zenoh: zenoh.Session | None = None
         self.local_mapping: LocalMappingPool | None = None
+        # The table hands the merge role each new keyframe and robot; the role reads the table.
+        self.sessions = SessionTable(
+            config, self.store, self.publish, self.view,
+            keyframe_sink=lambda summary, poses: self.merging.keyframe_sink(summary, poses),
+            joined=lambda robot, camera, restored: self.merging.joined(robot, camera, restored))
+        self.merging = MergeRole(config, self.view, self.worker_id, self.sessions, self.publish,
+                                 lambda: self.placement)
+        self.merger = self.merging.merger
+        self.fleet_merge = FleetMerge(config, self.out_dir, self.sessions, self.merger)
+        # Through self.merge, whatever it is when a request comes (a test slows it down).
+        self.merge_requests = MergeRequests(lambda: self.merge(), self.publish)
+        self.router = Router(config, self.sessions, self.merging, self.publish,
+                             lambda: self.placement, self.stopped, self._merge_request,
+                             self._status)
+        self._reaper = IdleReaper(self.sessions, config.transport, self.stopped)
+
+    @property
+    def unrouted(self) -> int:
+        """Messages on keys that name no valid robot."""
+        return self.router.unrouted
 
     # -- lifecycle ----------------------------------------------------------------------
 
@@ -135,6 +100,7 @@ class CloudServer:
                              f"'async' or 'inline'")
         if tracking.local_mapping == "async" and tracking.local_ba:
             self.local_mapping = LocalMappingPool(tracking.local_mapping_workers)
+            self.sessions.local_mapping = self.local_mapping
         transport = self.config.transport
         if self.connect:
             self._zenoh = open_connecting(self.connect, transport.reach_deadline_s,
@@ -142,20 +108,10 @@ class CloudServer:
         else:
             self._zenoh = open_listening(self.endpoint, transport.zenoh_config or None)
         z = self._zenoh
-        self._subscribers = [
-            z.declare_subscriber(keys.ALL_CONTROL, lambda s: self._route(s, "control")),
-            z.declare_subscriber(f"{keys.MERGE_KEYFRAMES}/*", self._on_remote_keyframe),
-        ]
-        if not self.connect:
-            # The router itself hears every robot's frames at no cost to the network (they
-            # pass through it): it serves its own and tells a robot nobody serves to say
-            # hello. A worker behind a router hears only the robots it serves (_take).
-            self._subscribers += [
-                z.declare_subscriber(keys.ALL_FRAMES, lambda s: self._route(s, "frame")),
-                z.declare_subscriber(keys.ALL_KEYFRAMES, lambda s: self._route(s, "keyframe")),
-            ]
+        self.router.listen(z, every_robot=not self.connect)
         self.placement = Placement(z, self.worker_id, self.config.placement, self._load,
-                                   self._take, self._give_up, self._worth_serving).start()
+                                   self.router.take, self.router.give_up,
+                                   self.router.worth_serving).start()
         self._reaper.start()
         threading.Thread(target=self._claim_orphans, name="cloud-orphans", daemon=True).start()
         log.info("cloud worker %s %s %s, store %s", self.worker_id,
@@ -163,57 +119,28 @@ class CloudServer:
                  self.out_dir)
         return self
 
-    # -- the fleet's merger (one worker merges every worker's robots) ----------------------
+    def close(self) -> None:
+        """Stop; every session's state goes to the store first, then this worker's robots
+        are given back (another worker restores them from there)."""
+        self.stopped.set()
+        self._reaper.join(30.0)
+        for _, session in self.sessions.now():
+            session.close(final_checkpoint=True)
+        if self.placement is not None:
+            self.placement.close()
+        self.router.close_robots()
+        self.merger.close()
+        if self.local_mapping is not None:
+            self.local_mapping.close()
+        self.view.close()
+        self.router.close()
+        if self._zenoh is not None:
+            self._zenoh.close()
+            self._zenoh = None
 
-    def _is_merger(self) -> bool:
-        """The live worker whose id sorts first merges; a worker that becomes it (the last
-        one died or stopped) first takes every other robot's keyframes from the store."""
-        placement = self.placement
-        merging = placement is None or placement.live_workers()[0] == self.worker_id
-        if merging and not self._merging:
-            # Its own robots' keyframes went to the merger that was; all robots are taken
-            # (its own from their sessions here). No lock: callers may hold it.
-            robots = sorted(set(self.store.robots_with_checkpoints()) | set(list(self.sessions)))
-            if robots:
-                log.info("worker %s merges now: robots %s from the store", self.worker_id,
-                         ", ".join(robots))
-                self.merger.rebuild_from_store(robots)
-        self._merging = merging
-        return merging
-
-    def _keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
-        """A session's new keyframe: to the merger here, or published for the worker that
-        merges."""
-        if self._is_merger():
-            self.merger.submit(summary, poses)
-        elif self.placement is not None:
-            session = self.sessions.get(summary.robot)
-            if session is not None:
-                self.publish(keys.merge_keyframe(summary.robot), encode_merger_keyframe(
-                    session.state.hello.camera, summary, poses))
-
-    def _on_remote_keyframe(self, sample: zenoh.Sample) -> None:
-        try:
-            if not self._is_merger():
-                return
-            robot_id = keys.check_robot_id(keys.last_chunks(sample.key_expr, 1)[0])
-            self.merger.submit_remote(*decode_merger_keyframe(sample.payload.to_bytes(), robot_id))
-        except ValueError as exc:
-            self._count_unrouted()
-            if self._throttle.due("remote keyframe"):
-                log.warning("keyframe on %s rejected: %s", sample.key_expr, exc)
-
-    def _keyframes_in_store(self, robot_id: str
-                            ) -> tuple[Camera, list[KeyframeSummary], np.ndarray] | None:
-        """A robot's keyframes for the merger: its live session's here, else its checkpoint
-        in the store (read only)."""
-        with self._lock:
-            session = self.sessions.get(robot_id)
-        session = session or self._stored_session(robot_id)
-        if session is None:
-            return None
-        return (session.state.hello.camera, session.all_keyframes(),
-                session.state.tracking.map.keyframe_poses())
+    def publish(self, key: str, data: bytes) -> None:
+        if self._zenoh is not None:
+            put(self._zenoh, key, data)
 
     # -- placement (which worker serves which robot) ----------------------------------------
 
@@ -222,13 +149,8 @@ class CloudServer:
         session whose robot went quiet holds memory, not CPU)."""
         now = time.monotonic()
         active_s = self.config.placement.active_s
-        return sum(1 for _, s in self._sessions_now()
+        return sum(1 for _, s in self.sessions.now()
                    if s.finished is None and now - s.last_heard < active_s)
-
-    def _worth_serving(self, robot_id: str) -> bool:
-        """A robot whose worker died is taken over when it has a checkpoint to restore (not
-        by a worker that is stopping itself: workers stopped together would swap robots)."""
-        return not self.stopped.is_set() and self.store.has_checkpoint(robot_id)
 
     def _claim_orphans(self) -> None:
         """Bid for every robot of the store that nobody serves: a restarted (or a new)
@@ -240,354 +162,25 @@ class CloudServer:
             if self.placement is not None and self.placement.owner(robot_id) is None:
                 self.placement.claim(robot_id)
 
-    def _take(self, robot_id: str) -> None:
-        """This worker won ``robot_id``: hear its frames and uploads, restore its session
-        if the store has one, and answer what it said meanwhile."""
-        z = self._zenoh
-        if z is None or self.stopped.is_set():
-            if self.placement is not None:
-                self.placement.release(robot_id)  # stopping: another worker takes it
-            return
-        with self._lock:
-            if self.connect and robot_id not in self._robot_subscribers:
-                self._robot_subscribers[robot_id] = [
-                    z.declare_subscriber(keys.frame(robot_id),
-                                         lambda s: self._route(s, "frame")),
-                    z.declare_subscriber(keys.keyframe(robot_id),
-                                         lambda s: self._route(s, "keyframe")),
-                ]
-            pending = self._pending.pop(robot_id, None)
-            existed = robot_id in self.sessions
-        session = self._session(robot_id)
-        restored = session is not None and not existed
-        if restored and session.finished is None:
-            # Taken over mid-stream: the robot's frames in flight went to the dead worker.
-            # A welcome tells it to stop waiting for them (and to send intra frames).
-            session.welcome(resumed=True, taken_over=True)
-        if pending is not None and not (restored and _is_hello(pending[0])):
-            # What the robot said while nobody served it (a hello kept from an election
-            # lost long ago is answered by the welcome above).
-            self._on_robot_control(robot_id, *pending)
-
-    def _give_up(self, robot_id: str) -> None:
-        """Another worker serves ``robot_id`` too (a partition healed): drop ours unsaved."""
-        with self._lock:
-            subs = self._robot_subscribers.pop(robot_id, [])
-            session = self.sessions.pop(robot_id, None)
-        for sub in subs:
-            sub.undeclare()
-        if session is not None:
-            session.close()
-
-    def close(self) -> None:
-        """Stop; every session's state goes to the store first, then this worker's robots
-        are given back (another worker restores them from there)."""
-        self.stopped.set()
-        if self._reaper.is_alive():
-            self._reaper.join(30.0)
-        for _, session in self._sessions_now():
-            session.close(final_checkpoint=True)
-        if self.placement is not None:
-            self.placement.close()
-        for subs in self._robot_subscribers.values():
-            for sub in subs:
-                sub.undeclare()
-        self.merger.close()
-        if self.local_mapping is not None:
-            self.local_mapping.close()
-        self.view.close()
-        for sub in self._subscribers:
-            sub.undeclare()
-        if self._zenoh is not None:
-            self._zenoh.close()
-            self._zenoh = None
-
-    def publish(self, key: str, data: bytes) -> None:
-        if self._zenoh is not None:
-            put(self._zenoh, key, data)
-
-    # -- routing ------------------------------------------------------------------------
-
-    def _route(self, sample: zenoh.Sample, kind: str) -> None:
-        arrival = time.monotonic()
-        key = str(sample.key_expr)
-        try:
-            data = sample.payload.to_bytes()
-            if key == keys.CLOUD_CONTROL:
-                return self._on_cloud_control(data)
-            robot_id = keys.check_robot_id(keys.robot_of(key))
-            if kind == "control":
-                return self._on_control_of(robot_id, data, arrival)
-            placement = self.placement
-            if placement is not None and not placement.serves(robot_id):
-                if placement.owner(robot_id) is not None:
-                    return  # another worker's robot (a router-worker hears every robot)
-                if self._worth_serving(robot_id):
-                    return placement.claim(robot_id)  # a restart: restore, then serve
-            session = self._session(robot_id)
-            if session is None:
-                self._error(keys.reply(robot_id), protocol.Code.NO_SESSION,
-                            f"{kind} rejected: no session: send a hello first")
-                return
-            if kind == "frame":
-                session.submit_frame(data, arrival)
-            else:
-                session.submit_keyframe(data, arrival)
-        except ValueError as exc:
-            self._count_unrouted()
-            if self._throttle.due("unrouted"):
-                log.warning("message on %s rejected: %s", sample.key_expr, exc)
-        except Exception:
-            self._count_unrouted()
-            log.exception("message on %s failed", sample.key_expr)
-
-    def _sessions_now(self) -> list[tuple[str, RobotSession]]:
-        """The session table as it is now (Zenoh callbacks and the idle closer change it)."""
-        with self._lock:
-            return list(self.sessions.items())
-
-    def _count_unrouted(self) -> None:
-        with self._lock:  # Zenoh calls back on several threads
-            self._count_unrouted_locked()
-
-    def _count_unrouted_locked(self) -> None:
-        self.unrouted += 1
-
-    def _close_idle_sessions(self) -> None:
-        """Checkpoint and close every unfinished session that has heard nothing from its
-        robot for ``transport.idle_session_s``: its threads and memory are freed, and its
-        robot's next message restores it from that checkpoint. A finished session stays: its
-        map waits for the merge."""
-        idle_s = self.config.transport.idle_session_s
-        while not self.stopped.wait(min(idle_s / 4.0, 5.0)):
-            now = time.monotonic()
-            # Under the lock: a message arriving meanwhile must find either the live session
-            # or the checkpoint written here, never an older one.
-            with self._lock:
-                for robot_id, session in list(self.sessions.items()):
-                    if session.finished is None and now - session.last_heard > idle_s:
-                        del self.sessions[robot_id]
-                        session.close(final_checkpoint=True)
-                        log.info("robot %s: session closed after %.0f s without a message "
-                                 "(checkpointed; its next message restores it)", robot_id,
-                                 now - session.last_heard)
-
-    def _stored_state(self, robot_id: str) -> SessionState | None:
-        """The robot's session as its last checkpoint has it; None without one, or if it
-        cannot be restored (logged with the file and why)."""
-        try:
-            return self.store.load_checkpoint(robot_id)
-        except ValueError as exc:
-            log.error("%s", exc)
-            return None
-
-    def _stored_session(self, robot_id: str) -> RobotSession | None:
-        """The robot's session from the store, read only: not started (no threads, nothing
-        written), not served here."""
-        state = self._stored_state(robot_id)
-        return None if state is None else RobotSession(state, self.config, self.store,
-                                                      self.publish)
-
-    def _session(self, robot_id: str) -> RobotSession | None:
-        """The live session, or the one restored from its checkpoint after a restart."""
-        with self._lock:
-            session = self.sessions.get(robot_id)
-            if session is None:
-                state = self._stored_state(robot_id)
-                if state is None:
-                    return None
-                session = RobotSession(state, self.config, self.store, self.publish,
-                                       self._keyframe_sink, self.view,
-                                       self.local_mapping).start()
-                self.sessions[robot_id] = session
-                self.view.robot(robot_id, state.hello.camera)
-                # The merger is rebuilt from the keyframes the session already has (none for
-                # a robot that tracks itself).
-                if self._is_merger():
-                    self.merger.add_robot(robot_id, state.hello.camera,
-                                          session.all_keyframes(),
-                                          state.tracking.map.keyframe_poses())
-                log.info("robot %s: session restored from its checkpoint (frame %d)",
-                         robot_id, state.last_index)
-            return session
-
-    def _error(self, key: str, code: protocol.Code, reason: str, **extra: Any) -> None:
-        """Tell the sender on ``key`` why, and log it. A flood of the same bad message must
-        not become a flood of replies and log lines: the same reason at most once per
-        interval per key; replies to a request id always go (a client waits for those)."""
-        if "id" not in extra and not self._throttle.due(f"{key} {reason}"):
-            return
-        log.warning("%s: %s", key, reason)
-        self.publish(key, protocol.encode(protocol.error(code, reason, **extra)))
-
-    def _on_control_of(self, robot_id: str, data: bytes, arrival: float) -> None:
-        """A robot's control message: handled if this worker serves the robot, ignored if
-        another one does, else kept while the workers bid for the robot."""
-        placement = self.placement
-        if placement is None or placement.serves(robot_id):
-            return self._on_robot_control(robot_id, data, arrival)
-        if placement.owner(robot_id) is not None:
-            with self._lock:  # another worker's robot: nothing of it to keep here
-                self._pending.pop(robot_id, None)
-            return
-        with self._lock:
-            if robot_id not in self._pending and len(self._pending) >= PENDING_ROBOTS:
-                self._count_unrouted_locked()
-                return
-            self._pending[robot_id] = (data, arrival)
-            full = len(self.sessions) >= self.config.transport.max_sessions
-        if not full:  # a full worker does not bid; a robot nobody can take hears it below
-            placement.claim(robot_id)
-        elif len(placement.live_workers()) == 1:
-            self._on_robot_control(robot_id, *self._pending.pop(robot_id))
-
-    def _on_robot_control(self, robot_id: str, data: bytes, arrival: float) -> None:
-        reply = keys.reply(robot_id)
-        try:
-            message = protocol.parse_control(data)
-            hello = Hello.parse(message) if message["type"] == "hello" else None
-        except ValueError as exc:
-            return self._error(reply, protocol.Code.BAD_MESSAGE,
-                               f"control message rejected: {exc}")
-        session = self._session(robot_id)
-        if hello is not None and session is not None \
-                and session.state.hello.offload_at != hello.offload_at:
-            return self._error(reply, protocol.Code.REFUSED,
-                               f"session offloads at {session.state.hello.offload_at}; a robot "
-                               f"cannot change its offloading point within a session")
-        if session is None:
-            if hello is None:
-                return self._error(reply, protocol.Code.NO_SESSION,
-                                   "no session: send a hello first")
-            with self._lock:
-                if robot_id not in self.sessions and \
-                        len(self.sessions) >= self.config.transport.max_sessions:
-                    reason = (f"the cloud serves at most {self.config.transport.max_sessions} "
-                              f"robots at once (transport.max_sessions)")
-                    return self._error(reply, protocol.Code.REFUSED, reason)
-                session = self.sessions.get(robot_id) or RobotSession.open(
-                    robot_id, hello, self.config, self.store, self.publish,
-                    self._keyframe_sink, self.view, self.local_mapping)
-                self.sessions[robot_id] = session
-                self.view.robot(robot_id, hello.camera)
-                if self._is_merger():
-                    self.merger.add_robot(robot_id, hello.camera)
-            log.info("robot %s: new session, offloading at %d, source %s", robot_id,
-                     hello.offload_at, hello.source)
-            session.welcome(resumed=False)
-            return
-        if message["type"] == "end":
-            # Heard at once; the answer (need / ended) comes when its frames are done.
-            self.publish(reply, protocol.encode(protocol.ending()))
-        session.submit_control(message, arrival)
-
-    def _on_cloud_control(self, data: bytes) -> None:
-        try:
-            message = protocol.parse_control(data)
-        except ValueError as exc:
-            return self._error(keys.CLOUD_REPLY, protocol.Code.BAD_MESSAGE,
-                               f"control message rejected: {exc}")
-        rid = protocol.request_id(message)
-        if message["type"] == "merge":
-            if not self._is_merger():
-                return  # one worker merges: the live one whose id sorts first
-            self._request_merge(rid)
-        elif message["type"] == "status":
-            robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
-                          "worker": self.worker_id}
-                      for r, s in self._sessions_now()}
-            placement = self.placement
-            self.publish(keys.CLOUD_REPLY, protocol.encode(protocol.status(
-                rid, robots, self.merger.status(), worker=self.worker_id,
-                workers=placement.live_workers() if placement else [self.worker_id],
-                placement=placement.table() if placement else {},
-                elections=dict(placement.elections) if placement else {})))
-        else:
-            self._error(keys.CLOUD_REPLY, protocol.Code.UNKNOWN_TYPE,
-                        f"unknown request {message['type']!r}", id=rid)
-
-    # -- merge and outputs ----------------------------------------------------------------
-
-    def _request_merge(self, rid: str | None) -> None:
-        """Start a merge, unless this request id already did: a client resends its request
-        until the reply arrives, and a resent merge must not merge again."""
-        with self._lock:
-            known = self._merges.get(rid) if rid is not None else None
-            if known is None and rid is not None:
-                self._merges[rid] = MERGE_RUNNING
-                while len(self._merges) > MERGES_REMEMBERED:
-                    self._merges.pop(next(iter(self._merges)))
-        if known == MERGE_RUNNING:
-            return  # its reply comes when it is done
-        if known is not None:
-            self.publish(keys.CLOUD_REPLY, known)  # the reply was lost: send it again
-            return
-        # Merging takes seconds: not on Zenoh's callback thread.
-        threading.Thread(target=self._merge_and_reply, args=(rid,), daemon=True).start()
-
-    def _merge_and_reply(self, rid: str | None) -> None:
-        try:
-            reply = protocol.encode(protocol.merged(rid, self.merge()))
-        except Exception as exc:
-            log.exception("merge failed")
-            reply = protocol.encode(protocol.error(protocol.Code.FAILED, f"merge failed: {exc}",
-                                                   id=rid))
-        if rid is not None:
-            with self._lock:
-                self._merges[rid] = reply
-        self.publish(keys.CLOUD_REPLY, reply)
+    # -- the operator's requests ------------------------------------------------------------
 
     def merge(self, timeout_s: float = 300.0) -> dict[str, Any]:
         """Write the global outputs of the finished robots (global trajectories, map, OctoMap)
         and summary.json; return the summary."""
-        start = time.perf_counter()
-        if not self.merger.drain(timeout_s):
-            raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
-                               f"within {timeout_s:.0f} s; ask again")
-        finished = sorted([*(s.finished for _, s in self._sessions_now() if s.finished),
-                           *self._finished_elsewhere()], key=lambda f: f.robot_id)
-        if not self.merger.drain(timeout_s):
-            raise RuntimeError(f"the merger has not taken the other workers' robots within "
-                               f"{timeout_s:.0f} s; ask again")
-        global_map = None
-        if len(finished) > 1:
-            global_map = self.merger.locked(lambda m: build_global_map(
-                m, [f.track for f in finished], self.config, self.out_dir))
-        merge = self.merger.locked(lambda m: merge_summary(m, global_map))
-        merge["robots"] = {k: v for k, v in merge["robots"].items()
-                           if k in {f.robot_id for f in finished}}
-        summary = fleet_summary([f.summary for f in finished],
-                                merge if len(finished) > 1 else None, self.config,
-                                time.perf_counter() - start)
-        write_summary(self.out_dir, summary)
-        self.merger.show()
-        log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
-        self._write_report()
-        return summary
+        return self.fleet_merge.merge(timeout_s)
 
-    def _finished_elsewhere(self) -> list[FinishedMap]:
-        """The finished robots other workers serve (or served), read from the store; the
-        merger takes their keyframes as a restored session hands them over."""
-        here = {robot_id for robot_id, _ in self._sessions_now()}
-        found = []
-        for robot_id in self.store.robots_with_checkpoints():
-            if robot_id in here:
-                continue
-            session = self._stored_session(robot_id)
-            if session is None or not session.state.ended:
-                continue
-            state = session.state
-            self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
-                                  state.tracking.map.keyframe_poses())
-            found.append(session.finished_map())
-        return found
+    def _merge_request(self, rid: str | None) -> None:
+        if not self.merging.is_merger():
+            return  # one worker merges: the live one whose id sorts first
+        self.merge_requests.request(rid)
 
-    def _write_report(self) -> None:
-        """The run report of what was just merged, in the cloud's folder, without ground
-        truth (the cloud never reads it). A plot that fails costs the report, not the merge."""
-        from fleetslam.reporting import write_report
-
-        try:
-            log.info("report: %s", write_report(self.out_dir, ground_truth=False))
-        except Exception:
-            log.exception("the run report could not be written")
+    def _status(self, rid: str | None) -> dict[str, Any]:
+        robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
+                      "worker": self.worker_id}
+                  for r, s in self.sessions.now()}
+        placement = self.placement
+        return protocol.status(
+            rid, robots, self.merger.status(), worker=self.worker_id,
+            workers=placement.live_workers() if placement else [self.worker_id],
+            placement=placement.table() if placement else {},
+            elections=dict(placement.elections) if placement else {})

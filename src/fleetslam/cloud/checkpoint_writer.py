@@ -1,0 +1,109 @@
+"""A robot session's checkpoints, written on a thread of their own: the session snapshots its
+state where it stands (quick), this writes it durably to the store (slow), and the session's
+replies wait until the checkpoint they depend on is on disk. A new keyframe goes to the
+merger only after the checkpoint that holds it: a worker taking the session over from the
+store never finds the merger ahead of the store.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from typing import Callable
+
+import numpy as np
+
+from fleetslam.cloud.store import CloudStore
+from fleetslam.wire.data_tree import Capture
+from fleetslam.wire.merger_keyframes import KeyframeSummary
+
+log = logging.getLogger("fleetslam.cloud")
+
+# The longest a reply waits for the checkpoint that must be on disk before it goes out.
+CHECKPOINT_WAIT_S = 30.0
+
+# Where a session hands each new keyframe (and its robot's latest keyframe poses): the merger.
+KeyframeSink = Callable[[KeyframeSummary, np.ndarray], None]
+# What the merger gets of a new keyframe (the arguments of a KeyframeSink).
+NewKeyframe = tuple[KeyframeSummary, np.ndarray]
+
+
+class CheckpointWriter:
+    def __init__(self, robot_id: str, store: CloudStore, snapshot: Callable[[], Capture],
+                 durable_index: int, keyframe_sink: KeyframeSink | None = None) -> None:
+        """``snapshot``: the session's state as a checkpoint now; ``durable_index``: the
+        newest frame index a checkpoint on disk covers already (a restored session: all)."""
+        self.robot_id = robot_id
+        self.store = store
+        self.keyframe_sink = keyframe_sink
+        self._snapshot = snapshot
+        self._queue: queue.Queue = queue.Queue()
+        self._durable_index = durable_index
+        # Checkpoints queued and written, counted: the end's checkpoint is awaited by number
+        # (it may cover no newer frame than the last keyframe's).
+        self._queued = 0
+        self._written = 0
+        self._durable = threading.Condition()
+        self._thread = threading.Thread(target=self._write, name=f"cloud-{robot_id}-checkpoints",
+                                        daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self, timeout: float) -> None:
+        """Stop once every checkpoint queued so far is written."""
+        self._queue.put(None)
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def checkpoint(self, frame_index: int, keyframe: NewKeyframe | None = None) -> int:
+        """Queue a checkpoint of the state now (covering frames up to ``frame_index``); its
+        number. ``keyframe``: what the merger gets of the new keyframe, handed on once this
+        checkpoint is on disk."""
+        with self._durable:
+            self._queued += 1
+            number = self._queued
+        self._queue.put((frame_index, number, self._snapshot(), keyframe))
+        return number
+
+    def wait_for_frame(self, frame_index: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
+        """Until a checkpoint on disk covers ``frame_index``; whether one does."""
+        with self._durable:
+            return self._durable.wait_for(lambda: self._durable_index >= frame_index, timeout)
+
+    def wait_for_number(self, number: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
+        """Until checkpoint ``number`` (or a later one) is on disk; whether it is."""
+        with self._durable:
+            return self._durable.wait_for(lambda: self._written >= number, timeout)
+
+    def _write(self) -> None:
+        while (item := self._queue.get()) is not None:
+            index, number, blob, keyframe = item
+            keyframes = [keyframe]
+            while not self._queue.empty():  # only the newest one matters
+                newer = self._queue.get()
+                if newer is None:
+                    self._queue.put(None)
+                    break
+                index, number, blob, keyframe = newer
+                keyframes.append(keyframe)
+            try:
+                self.store.write_checkpoint(self.robot_id, blob)
+            except OSError:
+                log.exception("robot %s: checkpoint not written", self.robot_id)
+            else:
+                with self._durable:
+                    self._durable_index = max(self._durable_index, index)
+                    self._written = max(self._written, number)
+                    self._durable.notify_all()
+            # The merger holds no keyframe the store lacks (unless a write failed, logged
+            # above): a worker taking the session over from the store goes on from the
+            # keyframes the merger has, never from an older map beside them.
+            for kf in keyframes:
+                if kf is not None and self.keyframe_sink is not None:
+                    try:
+                        self.keyframe_sink(*kf)
+                    except Exception:  # the merger's loss, never the checkpoints'
+                        log.exception("robot %s: keyframe not handed to the merger",
+                                      self.robot_id)

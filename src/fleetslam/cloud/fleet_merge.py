@@ -1,0 +1,131 @@
+"""The merge a client asks for (``fleetslam merge``): the global outputs of the finished
+robots, every worker's (global trajectories, map, OctoMap, summary.json; outputs.py keeps
+the summary's schema) and the run report. MergeRequests answers each request id once: a
+client resends its request until the reply arrives.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from fleetslam.cloud.merger_service import MergerService
+from fleetslam.cloud.robot_session import Publish
+from fleetslam.cloud.session_outputs import FinishedMap
+from fleetslam.cloud.sessions import SessionTable
+from fleetslam.config import Config
+from fleetslam.merging.global_map import build_global_map, merge_summary
+from fleetslam.outputs import fleet_summary, write_summary
+from fleetslam.transport import keys, protocol
+
+log = logging.getLogger("fleetslam.cloud")
+
+# A merge request still running, and how many answered merge requests are remembered (so
+# a resent request gets the reply again instead of a second merge).
+MERGE_RUNNING = b""
+MERGES_REMEMBERED = 16
+
+
+class MergeRequests:
+    def __init__(self, merge: Callable[[], dict[str, Any]], publish: Publish) -> None:
+        """``merge``: merges and returns the summary (raises if it cannot)."""
+        self._merge = merge
+        self.publish = publish
+        self._replies: dict[str, bytes] = {}
+        self._lock = threading.Lock()
+
+    def request(self, rid: str | None) -> None:
+        """Start a merge, unless this request id already did: a client resends its request
+        until the reply arrives, and a resent merge must not merge again."""
+        with self._lock:
+            known = self._replies.get(rid) if rid is not None else None
+            if known is None and rid is not None:
+                self._replies[rid] = MERGE_RUNNING
+                while len(self._replies) > MERGES_REMEMBERED:
+                    self._replies.pop(next(iter(self._replies)))
+        if known == MERGE_RUNNING:
+            return  # its reply comes when it is done
+        if known is not None:
+            self.publish(keys.CLOUD_REPLY, known)  # the reply was lost: send it again
+            return
+        # Merging takes seconds: not on Zenoh's callback thread.
+        threading.Thread(target=self._merge_and_reply, args=(rid,), daemon=True).start()
+
+    def _merge_and_reply(self, rid: str | None) -> None:
+        try:
+            reply = protocol.encode(protocol.merged(rid, self._merge()))
+        except Exception as exc:
+            log.exception("merge failed")
+            reply = protocol.encode(protocol.error(protocol.Code.FAILED, f"merge failed: {exc}",
+                                                   id=rid))
+        if rid is not None:
+            with self._lock:
+                self._replies[rid] = reply
+        self.publish(keys.CLOUD_REPLY, reply)
+
+
+class FleetMerge:
+    def __init__(self, config: Config, out_dir: Path, sessions: SessionTable,
+                 merger: MergerService) -> None:
+        self.config = config
+        self.out_dir = out_dir
+        self.sessions = sessions
+        self.merger = merger
+
+    def merge(self, timeout_s: float = 300.0) -> dict[str, Any]:
+        """Write the global outputs of the finished robots (global trajectories, map, OctoMap)
+        and summary.json; return the summary."""
+        start = time.perf_counter()
+        if not self.merger.drain(timeout_s):
+            raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
+                               f"within {timeout_s:.0f} s; ask again")
+        finished = sorted([*(s.finished for _, s in self.sessions.now() if s.finished),
+                           *self._finished_elsewhere()], key=lambda f: f.robot_id)
+        if not self.merger.drain(timeout_s):
+            raise RuntimeError(f"the merger has not taken the other workers' robots within "
+                               f"{timeout_s:.0f} s; ask again")
+        global_map = None
+        if len(finished) > 1:
+            global_map = self.merger.locked(lambda m: build_global_map(
+                m, [f.track for f in finished], self.config, self.out_dir))
+        merge = self.merger.locked(lambda m: merge_summary(m, global_map))
+        merge["robots"] = {k: v for k, v in merge["robots"].items()
+                           if k in {f.robot_id for f in finished}}
+        summary = fleet_summary([f.summary for f in finished],
+                                merge if len(finished) > 1 else None, self.config,
+                                time.perf_counter() - start)
+        write_summary(self.out_dir, summary)
+        self.merger.show()
+        log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
+        self._write_report()
+        return summary
+
+    def _finished_elsewhere(self) -> list[FinishedMap]:
+        """The finished robots other workers serve (or served), read from the store; the
+        merger takes their keyframes as a restored session hands them over."""
+        here = {robot_id for robot_id, _ in self.sessions.now()}
+        found = []
+        for robot_id in self.sessions.store.robots_with_checkpoints():
+            if robot_id in here:
+                continue
+            session = self.sessions.stored(robot_id)
+            if session is None or not session.state.ended:
+                continue
+            state = session.state
+            self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
+                                  state.tracking.map.keyframe_poses())
+            found.append(session.outputs.finished_map())
+        return found
+
+    def _write_report(self) -> None:
+        """The run report of what was just merged, in the cloud's folder, without ground
+        truth (the cloud never reads it). A plot that fails costs the report, not the merge."""
+        from fleetslam.reporting import write_report
+
+        try:
+            log.info("report: %s", write_report(self.out_dir, ground_truth=False))
+        except Exception:
+            log.exception("the run report could not be written")

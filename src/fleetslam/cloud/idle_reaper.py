@@ -1,0 +1,51 @@
+"""Closing the sessions whose robots went quiet: every unfinished session that has heard
+nothing from its robot for ``transport.idle_session_s`` is checkpointed and closed, so its
+threads and memory are freed; the robot's next message restores it from that checkpoint. A
+finished session stays: its map waits for the merge.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from fleetslam.cloud.sessions import SessionTable
+from fleetslam.config import TransportConfig
+
+log = logging.getLogger("fleetslam.cloud")
+
+
+class IdleReaper:
+    def __init__(self, sessions: SessionTable, transport: TransportConfig,
+                 stopped: threading.Event) -> None:
+        """Looks every quarter of the idle time (at most every 5 s) until ``stopped``."""
+        self.sessions = sessions
+        self.transport = transport
+        self.stopped = stopped
+        self._thread = threading.Thread(target=self._run, name="cloud-idle", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def join(self, timeout: float) -> None:
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        idle_s = self.transport.idle_session_s
+        while not self.stopped.wait(min(idle_s / 4.0, 5.0)):
+            self.close_idle(idle_s)
+
+    def close_idle(self, idle_s: float) -> None:
+        now = time.monotonic()
+        # Under the table's lock: a message arriving meanwhile must find either the live
+        # session or the checkpoint written here, never an older one.
+        with self.sessions.lock:
+            for robot_id, session in self.sessions.now():
+                if session.finished is None and now - session.last_heard > idle_s:
+                    self.sessions.remove(robot_id)
+                    session.close(final_checkpoint=True)
+                    log.info("robot %s: session closed after %.0f s without a message "
+                             "(checkpointed; its next message restores it)", robot_id,
+                             now - session.last_heard)

@@ -1,0 +1,116 @@
+"""A robot session's way in: its inbox (frames best effort, control messages never dropped)
+and its admission (what a robot hears of its rejected messages, and when a robot rejected
+too often is paused). Used by robot_session.py; nothing here decodes or tracks.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, deque
+from typing import Any
+
+from fleetslam.config import TransportConfig
+
+log = logging.getLogger("fleetslam.cloud")
+
+# A robot is told why a message was rejected at most this often.
+REJECTION_REPLY_INTERVAL_S = 1.0
+
+
+class WorkQueue:
+    """A session's inbox: frames and control messages in arrival order, at most ``max_frames``
+    frames. Frames are best effort, so when a robot sends faster than its session tracks, the
+    oldest waiting frame is dropped (and counted); control messages are never dropped."""
+
+    def __init__(self, max_frames: int) -> None:
+        self.max_frames = max_frames
+        self.dropped = 0
+        self._items: deque[Any] = deque()
+        self._frames = 0
+        self._ready = threading.Condition()
+
+    def put(self, item: Any) -> None:
+        with self._ready:
+            if item is not None and item[0] == "frame":
+                if self._frames >= self.max_frames:
+                    oldest = next(i for i, x in enumerate(self._items)
+                                  if x is not None and x[0] == "frame")
+                    del self._items[oldest]
+                    self._frames -= 1
+                    self.dropped += 1
+                self._frames += 1
+            self._items.append(item)
+            self._ready.notify()
+
+    def get(self) -> Any:
+        with self._ready:
+            self._ready.wait_for(lambda: bool(self._items))
+            item = self._items.popleft()
+            if item is not None and item[0] == "frame":
+                self._frames -= 1
+            return item
+
+
+class Admission:
+    """Whether a robot is heard, and what it hears of its rejected messages. A robot rejected
+    more than ``transport.max_rejections_per_s`` times a second (a broken or hostile client)
+    has its frames and uploads dropped unread for ``transport.misbehaving_pause_s``: decoding
+    them would take the CPU the other robots' sessions need. It is told why a message was
+    rejected at most once per REJECTION_REPLY_INTERVAL_S (a flood of bad messages must not
+    become a flood of replies); the log gives every reason, except while it is paused.
+
+    ``counts`` is the session's (SessionState.counts), changed only under ``counts_lock``:
+    several of the session's threads reject, and status and checkpoints read the counts."""
+
+    def __init__(self, robot_id: str, transport: TransportConfig, counts: Counter,
+                 counts_lock: threading.Lock) -> None:
+        self.robot_id = robot_id
+        self.transport = transport
+        self._counts = counts
+        self._counts_lock = counts_lock
+        self._last_rejection_reply = -float("inf")
+        self._rejected_since_reply = 0
+        self._paused_until = -float("inf")
+
+    def paused(self) -> bool:
+        """Whether the robot's frames and uploads are dropped unread now (counted so).
+        Control messages always pass."""
+        if time.monotonic() >= self._paused_until:
+            return False
+        with self._counts_lock:
+            self._counts["dropped unread (too many rejected)"] += 1
+        return True
+
+    def rejected(self, what: str, reason: str) -> str | None:
+        """Count and log a rejected message (``what``: "frame", "keyframe"); what the robot
+        is to hear of it, or None when it heard a reason less than an interval ago."""
+        cfg = self.transport
+        now = time.monotonic()
+        with self._counts_lock:
+            self._counts[f"rejected {what}"] += 1
+            if now >= self._paused_until:
+                log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
+            due = now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S
+            if due:
+                burst, self._rejected_since_reply = self._rejected_since_reply, 0
+                self._last_rejection_reply = now
+            else:
+                # Counted since the last reason, so within one interval.
+                self._rejected_since_reply += 1
+                if self._rejected_since_reply >= \
+                        cfg.max_rejections_per_s * REJECTION_REPLY_INTERVAL_S:
+                    self._rejected_since_reply = 0
+                    paused = now < self._paused_until  # (its backlog is still rejected)
+                    self._paused_until = now + cfg.misbehaving_pause_s
+                    if not paused:
+                        self._counts["pauses (too many rejected)"] += 1
+                        log.warning("robot %s: over %.0f rejected messages per second: "
+                                    "its frames and uploads are dropped unread for %.1f s",
+                                    self.robot_id, cfg.max_rejections_per_s,
+                                    cfg.misbehaving_pause_s)
+        if not due:
+            return None
+        more = f" ({burst} more rejected since the last reason)" if burst else ""
+        return f"{what} rejected: {reason}{more}"

@@ -1,0 +1,93 @@
+"""Which worker merges, and the keyframes its merger gets. Of the fleet's workers the live
+one whose id sorts first runs the map merger (merger_service.py); it takes its own sessions'
+keyframes as they are checkpointed, the other workers publish theirs to it
+(``fleet/cloud/keyframes/<robot>``), and a worker that becomes the merger (the last one died or
+stopped) first takes every robot's keyframes from the store. A lone cloud is the merger.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Callable
+
+import numpy as np
+
+from fleetslam.camera import Camera
+from fleetslam.cloud.merger_service import MergerService
+from fleetslam.cloud.placement import Placement
+from fleetslam.cloud.robot_session import Publish, RobotSession
+from fleetslam.cloud.sessions import SessionTable
+from fleetslam.config import Config
+from fleetslam.transport import keys
+from fleetslam.visualisation.live_view import NullView
+from fleetslam.wire.merger_keyframes import (
+    KeyframeSummary,
+    decode_merger_keyframe,
+    encode_merger_keyframe,
+)
+
+log = logging.getLogger("fleetslam.cloud")
+
+
+class MergeRole:
+    def __init__(self, config: Config, view: NullView, worker_id: str, sessions: SessionTable,
+                 publish: Publish, placement: Callable[[], Placement | None]) -> None:
+        """``placement``: the worker's placement once it has one (None: a lone cloud)."""
+        self.worker_id = worker_id
+        self.sessions = sessions
+        self.store = sessions.store
+        self.publish = publish
+        self._placement = placement
+        self.merger = MergerService(config, view, self.keyframes_in_store)
+        self._merging = False  # this worker runs the fleet's merger (see is_merger)
+
+    def is_merger(self) -> bool:
+        """The live worker whose id sorts first merges; a worker that becomes it (the last
+        one died or stopped) first takes every other robot's keyframes from the store."""
+        placement = self._placement()
+        merging = placement is None or placement.live_workers()[0] == self.worker_id
+        if merging and not self._merging:
+            # Its own robots' keyframes went to the merger that was; all robots are taken
+            # (its own from their sessions here). No lock: callers may hold it.
+            robots = sorted(set(self.store.robots_with_checkpoints()) | set(list(self.sessions)))
+            if robots:
+                log.info("worker %s merges now: robots %s from the store", self.worker_id,
+                         ", ".join(robots))
+                self.merger.rebuild_from_store(robots)
+        self._merging = merging
+        return merging
+
+    def joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
+        """A session opened here (``restored``: from its checkpoint, with the keyframes it
+        already has): the merger, if this worker runs it, takes the robot."""
+        if self.is_merger():
+            if restored is None:
+                self.merger.add_robot(robot_id, camera)
+            else:
+                self.merger.add_robot(robot_id, camera, restored.all_keyframes(),
+                                      restored.state.tracking.map.keyframe_poses())
+
+    def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
+        """A session's new keyframe: to the merger here, or published for the worker that
+        merges."""
+        if self.is_merger():
+            self.merger.submit(summary, poses)
+        elif self._placement() is not None:
+            session = self.sessions.get(summary.robot)
+            if session is not None:
+                self.publish(keys.merge_keyframe(summary.robot), encode_merger_keyframe(
+                    session.state.hello.camera, summary, poses))
+
+    def take_remote(self, data: bytes, robot_id: str) -> None:
+        """Another worker's keyframe of ``robot_id`` (ValueError if it is not one)."""
+        self.merger.submit_remote(*decode_merger_keyframe(data, robot_id))
+
+    def keyframes_in_store(self, robot_id: str
+                           ) -> tuple[Camera, list[KeyframeSummary], np.ndarray] | None:
+        """A robot's keyframes for the merger: its live session's here, else its checkpoint
+        in the store (read only)."""
+        session = self.sessions.live(robot_id) or self.sessions.stored(robot_id)
+        if session is None:
+            return None
+        return (session.state.hello.camera, session.all_keyframes(),
+                session.state.tracking.map.keyframe_poses())

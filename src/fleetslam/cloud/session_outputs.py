@@ -1,0 +1,134 @@
+"""A robot session's outputs: when its robot ends, the robot's files (trajectory, keyframes,
+dense map; outputs.py) and its entry of the summary (robot.json); for the merge, the finished
+map and what the global map needs of the robot. The files are named and the summary's
+schema kept by outputs.py, for the cloud as for one process (system.py).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from fleetslam.backend.back_end import CloudBackEnd
+from fleetslam.cloud.session_state import SessionState
+from fleetslam.cloud.store import CloudStore
+from fleetslam.config import Config
+from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.merging.global_map import RobotTrack
+from fleetslam.outputs import (
+    cloud_robot_summary,
+    read_robot_summary,
+    write_robot_files,
+    write_robot_summary,
+)
+from fleetslam.pipeline.split import ROBOT_TRACKS
+from fleetslam.wire.messages import decode_keyframe
+
+log = logging.getLogger("fleetslam.cloud")
+
+
+@dataclass
+class FinishedMap:
+    robot_id: str
+    points: np.ndarray
+    colors: np.ndarray
+    track: RobotTrack
+    summary: dict[str, Any]
+
+
+class SessionOutputs:
+    def __init__(self, state: SessionState, config: Config, store: CloudStore,
+                 back_end: CloudBackEnd, transport: Callable[[], dict[str, int]]) -> None:
+        """``transport``: the session's transport counts as they are now (for the summary)."""
+        self.state = state
+        self.config = config
+        self.store = store
+        self.back_end = back_end
+        self._transport = transport
+
+    @property
+    def robot_id(self) -> str:
+        return self.state.robot_id
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        """Final pose of every keyframe (after local BA), by frame index."""
+        if self.state.hello.offload_at == ROBOT_TRACKS:
+            return dict(self.state.robot_keyframe_poses)
+        return {kf.frame_index: kf.T_world_camera for kf in self.state.tracking.map.keyframes}
+
+    def trajectory(self) -> np.ndarray:
+        """Every frame's final pose (N x 4 x 4): relative to its reference keyframe, so loop
+        and bundle-adjustment corrections reach every frame; as sent at point 6."""
+        rows = self.state.rows
+        online = np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4)
+        if self.state.hello.offload_at == ROBOT_TRACKS:
+            return online
+        return self.state.tracking.final_poses([r.reference_keyframe for r in rows],
+                                               [r.T_reference_camera for r in rows], online)
+
+    def finish(self) -> FinishedMap:
+        """Write the trajectory, keyframes and dense map; return the map for the merge."""
+        st = self.state
+        out_dir = self.store.robot_dir(self.robot_id)
+        rows = st.rows
+        timestamps = np.array([r.timestamp for r in rows])
+        kf_poses = self.keyframe_poses()
+        kf_index = sorted(kf_poses)
+        time_of = {r.index: r.timestamp for r in rows}
+
+        def keyframes():
+            for i in kf_index:
+                _, upload = decode_keyframe(self.store.keyframe(self.robot_id, i))
+                yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
+                       kf_poses[i], upload.stride)
+
+        points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map)
+        write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
+                          np.array([time_of.get(i, np.nan) for i in kf_index]),
+                          np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
+                          points, colors)
+        summary = self.summary(len(points))
+        write_robot_summary(out_dir, summary)
+        log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
+                 len(rows), len(kf_index), len(points))
+        return FinishedMap(self.robot_id, points, colors, self.track(timestamps), summary)
+
+    def finished_map(self) -> FinishedMap:
+        """A finished session's map for the merge, as its worker wrote it (robot.json),
+        without writing anything: another worker's robot, read from the store."""
+        rows = self.state.rows
+        written = read_robot_summary(self.store.robot_dir(self.robot_id))
+        summary = written if written is not None else self.summary(0)
+        return FinishedMap(self.robot_id, np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
+                           self.track(np.array([r.timestamp for r in rows])), summary)
+
+    def track(self, timestamps: np.ndarray) -> RobotTrack:
+        """What the global map needs of this robot; keyframe images from the store."""
+        rows = self.state.rows
+        camera = self.state.hello.camera
+
+        def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int]:
+            _, upload = decode_keyframe(self.store.keyframe(self.robot_id, index))
+            return upload.rgb, camera.depth_to_metres(upload.depth_raw), upload.stride
+
+        return RobotTrack(self.robot_id, camera, timestamps, self.trajectory(),
+                          np.array([r.reference_keyframe for r in rows], np.int64),
+                          [r.T_reference_camera for r in rows], keyframe_image)
+
+    def summary(self, map_points: int) -> dict[str, Any]:
+        """The robot's entry of summary.json."""
+        st = self.state
+        tracking = st.tracking
+        return cloud_robot_summary(
+            self.robot_id, st.hello.source, st.hello.offload_at,
+            frames=len(st.rows), keyframes=len(self.keyframe_poses()),
+            lost_frames=int(sum(not r.tracked for r in st.rows)),
+            loss_events=tracking.loss_events, repeated_frames=tracking.repeated_frames,
+            map_resets=tracking.resets, map_points=map_points,
+            loop_closing=self.back_end.summary(), stage_seconds=st.stage_seconds,
+            cloud_ms=st.cloud_ms, latency_ms=st.latency_ms,
+            span_s=(st.last_frame_time or 0.0) - (st.first_frame_time or 0.0),
+            transport=self._transport())

@@ -1,0 +1,127 @@
+"""The robot sessions one cloud worker serves, by robot id: opened on a robot's hello,
+restored from its checkpoint in the store (a restart, a takeover, a session closed while
+idle), or read from the store without serving it (another worker's robot, for the merge).
+Read it as a mapping; every change goes through its methods, under its lock.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator, Mapping
+from typing import Callable
+
+from fleetslam.backend.workers import LocalMappingPool
+from fleetslam.camera import Camera
+from fleetslam.cloud.checkpoint_writer import KeyframeSink
+from fleetslam.cloud.robot_session import Publish, RobotSession
+from fleetslam.cloud.session_state import SessionState
+from fleetslam.cloud.store import CloudStore
+from fleetslam.config import Config
+from fleetslam.transport.protocol import Hello
+from fleetslam.visualisation.live_view import NullView
+
+log = logging.getLogger("fleetslam.cloud")
+
+# Told of every session opened or restored here: (robot, camera, the restored session or
+# None for a new one). The merge role: a restored session brings the keyframes it has.
+Joined = Callable[[str, Camera, "RobotSession | None"], None]
+
+
+class SessionTable(Mapping[str, RobotSession]):
+    def __init__(self, config: Config, store: CloudStore, publish: Publish, view: NullView,
+                 keyframe_sink: KeyframeSink, joined: Joined) -> None:
+        self.config = config
+        self.store = store
+        self.publish = publish
+        self.view = view
+        self.keyframe_sink = keyframe_sink
+        self._joined = joined
+        # The local-mapping workers sessions opened from now on use (None: in-line).
+        self.local_mapping: LocalMappingPool | None = None
+        self._live: dict[str, RobotSession] = {}
+        # Every change of the table; a caller whose change must go with others (the routing's
+        # subscribers and pending messages, the idle reaper's final checkpoint) holds it
+        # around them all (re-entrant: the table's methods take it again).
+        self.lock = threading.RLock()
+
+    # -- reading (a Zenoh callback, the merge or status may read while another changes it) --
+
+    def __getitem__(self, robot_id: str) -> RobotSession:
+        return self._live[robot_id]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._live)
+
+    def __len__(self) -> int:
+        return len(self._live)
+
+    def now(self) -> list[tuple[str, RobotSession]]:
+        """The table as it is now (Zenoh callbacks and the idle reaper change it)."""
+        with self.lock:
+            return list(self._live.items())
+
+    def live(self, robot_id: str) -> RobotSession | None:
+        with self.lock:
+            return self._live.get(robot_id)
+
+    def full(self) -> bool:
+        return len(self._live) >= self.config.transport.max_sessions
+
+    # -- changing ---------------------------------------------------------------------------
+
+    def open(self, robot_id: str, hello: Hello) -> RobotSession | None:
+        """A new session for the robot's hello (the live one if a hello just opened it); None
+        if the worker serves ``transport.max_sessions`` robots already."""
+        with self.lock:
+            if robot_id not in self._live and self.full():
+                return None
+            session = self._live.get(robot_id) or RobotSession.open(
+                robot_id, hello, self.config, self.store, self.publish, self.keyframe_sink,
+                self.view, self.local_mapping)
+            self._live[robot_id] = session
+            self.view.robot(robot_id, hello.camera)
+            self._joined(robot_id, hello.camera, None)
+            return session
+
+    def session(self, robot_id: str) -> RobotSession | None:
+        """The live session, or the one restored from its checkpoint after a restart."""
+        with self.lock:
+            session = self._live.get(robot_id)
+            if session is None:
+                state = self.stored_state(robot_id)
+                if state is None:
+                    return None
+                session = RobotSession(state, self.config, self.store, self.publish,
+                                       self.keyframe_sink, self.view, self.local_mapping).start()
+                self._live[robot_id] = session
+                self.view.robot(robot_id, state.hello.camera)
+                # The merger is rebuilt from the keyframes the session already has (none for
+                # a robot that tracks itself).
+                self._joined(robot_id, state.hello.camera, session)
+                log.info("robot %s: session restored from its checkpoint (frame %d)",
+                         robot_id, state.last_index)
+            return session
+
+    def remove(self, robot_id: str) -> RobotSession | None:
+        """Out of the table (the caller closes it)."""
+        with self.lock:
+            return self._live.pop(robot_id, None)
+
+    # -- the store ------------------------------------------------------------------------
+
+    def stored_state(self, robot_id: str) -> SessionState | None:
+        """The robot's session as its last checkpoint has it; None without one, or if it
+        cannot be restored (logged with the file and why)."""
+        try:
+            return self.store.load_checkpoint(robot_id)
+        except ValueError as exc:
+            log.error("%s", exc)
+            return None
+
+    def stored(self, robot_id: str) -> RobotSession | None:
+        """The robot's session from the store, read only: not started (no threads, nothing
+        written), not served here."""
+        state = self.stored_state(robot_id)
+        return None if state is None else RobotSession(state, self.config, self.store,
+                                                      self.publish)
