@@ -21,6 +21,7 @@ from fleetslam.evaluation.ate import umeyama
 from fleetslam.evaluation.fleet import ground_truth_at, same_world
 from fleetslam.io.ply import read_ply
 from fleetslam.io.trajectory import read_tum_trajectory
+from fleetslam.outputs import ROBOT_REPORT
 
 
 @dataclass
@@ -114,7 +115,7 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
         run.robots.append(RobotData(
             name, str(r.get("source")), own, glob, int(r.get("frames", 0)),
             dict(r.get("stage_ms") or {}), dict(robot.get("robot_stage_ms") or {}),
-            _read_sends(folder / name / "robot_report.json"),
+            _read_sends(folder / name / ROBOT_REPORT),
             (r.get("ate") or {}).get("rmse_m"), r.get("offload_at"), note))
     if ground_truth:
         missing = [f"{r.name}: {r.gt_note}" for r in run.robots if r.gt_note]
