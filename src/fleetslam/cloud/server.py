@@ -108,10 +108,13 @@ class CloudServer:
         else:
             self._zenoh = open_listening(self.endpoint, transport.zenoh_config or None)
         z = self._zenoh
-        self.router.listen(z, every_robot=not self.connect)
+        # Placement first: a hello heard before it existed was served at once, unowned, and
+        # the robot's next frames were dropped while this worker then bid for it (seen in
+        # test_processes when a robot's hello met a cloud starting).
         self.placement = Placement(z, self.worker_id, self.config.placement, self._load,
                                    self.router.take, self.router.give_up,
                                    self.router.worth_serving).start()
+        self.router.listen(z, every_robot=not self.connect)
         self._reaper.start()
         threading.Thread(target=self._claim_orphans, name="cloud-orphans", daemon=True).start()
         log.info("cloud worker %s %s %s, store %s", self.worker_id,
