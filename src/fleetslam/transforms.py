@@ -120,17 +120,16 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray) -
     between the two poses around each query). ``query`` must lie within
     [times[0], times[-1]]."""
     times, query = np.asarray(times, np.float64), np.asarray(query, np.float64)
-    R = poses[:, :3, :3]
-    i = np.clip(np.searchsorted(times, query, side="right") - 1, 0, len(times) - 2) \
-        if len(times) > 1 else np.zeros(len(query), int)
     out = np.tile(np.eye(4), (len(query), 1, 1))
-    if len(times) > 1:
+    R = poses[:, :3, :3]
+    if len(times) == 1:  # the one pose, wherever asked
+        out[:, :3, :3] = R[0]
+    else:
+        i = np.clip(np.searchsorted(times, query, side="right") - 1, 0, len(times) - 2)
         span = times[i + 1] - times[i]
         fraction = np.where(span > 0, (query - times[i]) / np.where(span > 0, span, 1.0), 0.0)
         delta = rotation_log(np.transpose(R[i], (0, 2, 1)) @ R[i + 1])
         out[:, :3, :3] = R[i] @ rotation_exp(delta * fraction[:, None])
-    else:
-        out[:, :3, :3] = R[i]
     for k in range(3):
         out[:, k, 3] = np.interp(query, times, poses[:, k, 3])
     return out

@@ -70,7 +70,8 @@ class LatestOnly:
         job = self.in_flight
         if job is None:
             return True
-        wait_for_futures([job.future], timeout=wait_s)
+        if not job.future.done():
+            wait_for_futures([job.future], timeout=wait_s)
         return job.future.done()
 
     def finished(self, wait_s: float = 0.0) -> Job | None:
@@ -79,9 +80,7 @@ class LatestOnly:
         job = self.in_flight
         if job is None:
             return None
-        if not job.future.done():
-            wait_for_futures([job.future], timeout=wait_s)
-        if job.future.done():
+        if self.wait_done(wait_s):
             self.in_flight = None
             return job
         if time.monotonic() - job.submitted > self.timeout_s:

@@ -99,9 +99,6 @@ class BackEndState:
     _keyframe_was_last: bool = False
     _last_features: FeatureFrame | None = None
 
-    def __getstate__(self) -> dict:
-        return self.__dict__.copy()
-
     def predict_pose(self) -> np.ndarray:
         if self.T_last is None:
             return np.eye(4)

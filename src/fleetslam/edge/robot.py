@@ -119,7 +119,6 @@ class Robot:
         self._replies: queue.Queue = queue.Queue()
         # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
         self._need_hello = threading.Event()
-        self._t0 = time.monotonic()  # reset when the first frame is read
 
     # -- what the cloud says (Zenoh callbacks) --------------------------------------------
 
@@ -214,8 +213,8 @@ class Robot:
         n = len(self.sequence)
         progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
                             n - start_index, enabled=self.show_progress)
-        self._t0 = self.sender.t0 = time.monotonic()
-        pacer = Pacer(self.fps, self._t0, start_index)
+        t0 = self.sender.t0 = time.monotonic()
+        pacer = Pacer(self.fps, t0, start_index)
         outbox = FrameOutbox(self.sender, self.window)
         frames = read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
         k, step = self.offload_at, 1
@@ -244,7 +243,7 @@ class Robot:
                             + (f" k={k} f={self.config.orb.n_features} step={step}"
                                if self.planner is not None else ""))
         outbox.close()
-        self.report.streaming_s = time.monotonic() - self._t0
+        self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
 
     def _adapt(self, i: int, start_index: int, k: int, step: int) -> tuple[int, int]:
@@ -319,9 +318,9 @@ class Robot:
 
     def _record_end(self, answer: dict[str, Any]) -> None:
         r = self.report
-        r.total_s = time.monotonic() - self._t0
+        r.total_s = time.monotonic() - self.sender.t0
         r.link_busy_s = self.sender.link.stats.busy_s
-        self.window.record(r, self._t0)
+        self.window.record(r, self.sender.t0)
         self.encoder.record(r)
         r.cloud_summary = answer.get("summary")
         if self.planner is not None:
