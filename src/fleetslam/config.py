@@ -356,6 +356,22 @@ class SyntheticConfig:
 
 
 @dataclass
+class SourceConfig:
+    """Where a robot's frames come from besides a sequence folder (datasets/): ROS bags,
+    ROS 2 topics, live cameras."""
+
+    # Colour and depth images are paired when their stamps are at most this far apart
+    # (TUM's associate.py: 20 ms); unpaired images are counted.
+    pair_tolerance_s: float = 0.02
+    # Topics of a bag or of live ROS 2; empty: found when the bag has one of each.
+    rgb_topic: str = ""
+    depth_topic: str = ""
+    camera_info_topic: str = ""
+    # A live camera that delivers no frame this long ends the robot's run with an error.
+    live_frame_timeout_s: float = 10.0
+
+
+@dataclass
 class WireConfig:
     """The binary message between robot and cloud (wire/)."""
 
@@ -507,6 +523,7 @@ class Config:
     merge: MergeConfig = field(default_factory=MergeConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    source: SourceConfig = field(default_factory=SourceConfig)
     wire: WireConfig = field(default_factory=WireConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)

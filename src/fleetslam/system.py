@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from fleetslam.config import Config
-from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.datasets.source import RecordedSource
 from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.merging.global_map import (
@@ -41,7 +41,7 @@ class RobotRun:
 
     name: str
     source: str
-    sequence: RgbdSequence
+    sequence: RecordedSource
     timestamps: np.ndarray
     poses: np.ndarray  # N x 4 x 4 T_map_camera
     tracked: np.ndarray  # N bool
@@ -79,7 +79,7 @@ class RobotTracker:
     """One robot's tracking frame by frame (robots of a fleet take turns, so the merger
     sees their keyframes in the order they would arrive)."""
 
-    def __init__(self, name: str, source: str, sequence: RgbdSequence, config: Config,
+    def __init__(self, name: str, source: str, sequence: RecordedSource, config: Config,
                  workers: LocalMappingPool | None = None) -> None:
         self.name, self.source, self.sequence = name, source, sequence
         self.pipeline = TrackingPipeline(config, sequence.camera, workers)
@@ -122,7 +122,7 @@ class RobotTracker:
             online_poses=np.array(self.poses), loop_closing=self.pipeline.back_end.summary())
 
 
-def track_robot(name: str, source: str, sequence: RgbdSequence, config: Config,
+def track_robot(name: str, source: str, sequence: RecordedSource, config: Config,
                 show_progress: bool = True) -> RobotRun:
     """One robot alone, start to end."""
     tracker = RobotTracker(name, source, sequence, config)
@@ -134,7 +134,7 @@ def track_robot(name: str, source: str, sequence: RgbdSequence, config: Config,
     return tracker.finish()
 
 
-def track_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config,
+def track_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config,
                 show_progress: bool = True) -> tuple[list[RobotRun], MapMerger]:
     """Every robot tracked, taking turns frame by frame; each new keyframe goes to the
     merger at once, so robots join as soon as they share a place (as in the cloud)."""
@@ -170,7 +170,7 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
     run.map_points, run.map_colors = build_dense_map(run.sequence.camera, keyframes(), config.map)
 
 
-def run_fleet(robots: list[tuple[str, str, RgbdSequence]], config: Config, out_dir: Path,
+def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,
               show_progress: bool = True) -> dict[str, Any]:
     """Track, map and merge; write everything under ``out_dir``; score against ground truth
     where a sequence has it (after the run); return the summary."""

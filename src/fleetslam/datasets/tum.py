@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import functools
 import re
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from fleetslam.camera import TUM_CAMERAS, Camera
+from fleetslam.datasets.source import Frame
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.transforms import interpolate_poses
 
@@ -26,17 +27,6 @@ from fleetslam.transforms import interpolate_poses
 MAX_ASSOCIATION_DIFF_S = 0.02
 # Ground truth is interpolated only across gaps shorter than this (mocap drop-outs).
 MAX_GT_GAP_S = 0.2
-
-
-@dataclass
-class Frame:
-    """One RGB-D frame as read from disk."""
-
-    index: int
-    timestamp: float
-    rgb: np.ndarray  # H x W x 3 uint8, RGB order
-    depth_raw: np.ndarray  # H x W uint16, as stored
-    depth_m: np.ndarray  # H x W float32 metres, 0 = no measurement
 
 
 def read_file_list(path: Path) -> list[tuple[float, str]]:

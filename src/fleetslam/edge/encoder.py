@@ -11,7 +11,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
-from fleetslam.datasets.tum import Frame
+from fleetslam.datasets.source import Frame
 from fleetslam.edge.report import RobotReport
 from fleetslam.pipeline.split import INTER_POINTS, Sides, Stage, StageTimer, run_stages
 from fleetslam.pipeline.states import CapturedFrame

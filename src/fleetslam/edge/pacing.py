@@ -9,7 +9,7 @@ import threading
 import time
 from collections.abc import Iterator
 
-from fleetslam.datasets.tum import Frame, RgbdSequence
+from fleetslam.datasets.source import Frame, RecordedSource
 
 
 def parse_rate(text: str) -> float | None:
@@ -50,7 +50,7 @@ class Pacer:
             time.sleep(wait)
 
 
-def read_ahead(sequence: RgbdSequence, start: int, name: str,
+def read_ahead(sequence: RecordedSource, start: int, name: str,
                depth: int = 3) -> Iterator[Frame]:
     """Frames from ``start`` on, decoded by a background thread (named ``name``) so reading
     images does not stall the stages; an unreadable image ends the stream with its error."""

@@ -31,7 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from fleetslam.config import Config
-from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.datasets.source import RecordedSource
 from fleetslam.edge.encoder import FrameEncoder
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
@@ -69,7 +69,7 @@ class OnboardTracker(Protocol):
 
 
 class Robot:
-    def __init__(self, robot_id: str, sequence: RgbdSequence, source: str, offload_at: int,
+    def __init__(self, robot_id: str, sequence: RecordedSource, source: str, offload_at: int,
                  config: Config, endpoint: str | None = None, rate: str = "max",
                  show_progress: bool = True, paper_yaml_dir: Path | None = None,
                  planner: OnlinePlanner | None = None,

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 from fleetslam.config import Config
-from fleetslam.datasets.tum import Frame, RgbdSequence
+from fleetslam.datasets.source import Frame, RecordedSource
 from fleetslam.edge.report import RobotReport
 from fleetslam.transport import keys
 from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
@@ -25,7 +25,7 @@ class KeyframeUploader:
     keyframe is read again from the recording) and the point each went at; uploads each
     keyframe once, resending it every ``ack_timeout_s`` up to ``max_attempts`` times."""
 
-    def __init__(self, robot_id: str, sequence: RgbdSequence, offload_at: int, config: Config,
+    def __init__(self, robot_id: str, sequence: RecordedSource, offload_at: int, config: Config,
                  report: RobotReport) -> None:
         self.robot_id = robot_id
         self.sequence = sequence

@@ -13,14 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.datasets.source import RecordedSource
 from fleetslam.evaluation.ate import absolute_trajectory_error
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.registration.metrics import transform_error
 from fleetslam.transforms import invert
 
 
-def ground_truth_at(times: np.ndarray, sequence: RgbdSequence) -> tuple[np.ndarray, np.ndarray]:
+def ground_truth_at(times: np.ndarray, sequence: RecordedSource) -> tuple[np.ndarray, np.ndarray]:
     """(mask of ``times`` that are frames of ``sequence``, their ground-truth poses)."""
     if not sequence.has_ground_truth or not len(times):
         return np.zeros(len(times), bool), np.zeros((0, 4, 4))
@@ -52,7 +52,7 @@ def run_ate(run: Any) -> dict[str, Any] | None:
     return None if gt is None else ate_summary(run.poses, gt)
 
 
-def trajectory_ate(trajectory: Path, sequence: RgbdSequence) -> dict[str, Any] | None:
+def trajectory_ate(trajectory: Path, sequence: RecordedSource) -> dict[str, Any] | None:
     """ATE of a written TUM trajectory against the sequence's ground truth, frames paired by
     timestamp (a cloud's trajectory misses frames the link lost)."""
     times, poses = read_tum_trajectory(trajectory)
@@ -60,7 +60,7 @@ def trajectory_ate(trajectory: Path, sequence: RgbdSequence) -> dict[str, Any] |
     return ate_summary(poses[ok], gt)
 
 
-def same_world(a: RgbdSequence, b: RgbdSequence) -> bool:
+def same_world(a: RecordedSource, b: RecordedSource) -> bool:
     """Two robots' ground truths share a frame when they play the same recording, or
     recordings of one generated scene (its ``scene.json`` declares one world frame)."""
     fa, fb = a.folder.resolve(), b.folder.resolve()
@@ -68,7 +68,7 @@ def same_world(a: RgbdSequence, b: RgbdSequence) -> bool:
     return shared and a.has_ground_truth and b.has_ground_truth
 
 
-def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdSequence]
+def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, RecordedSource]
                 ) -> dict[str, Any]:
     """Errors of the merge against ground truth (see the module docstring)."""
     result: dict[str, Any] = {"constraints": [], "relative_poses": [], "joint_ate": None}
@@ -118,7 +118,7 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdS
     return result
 
 
-def score_fleet(summary: dict[str, Any], out_dir: Path, sequences: dict[str, RgbdSequence]
+def score_fleet(summary: dict[str, Any], out_dir: Path, sequences: dict[str, RecordedSource]
                 ) -> None:
     """Add ground-truth scores to ``summary`` in place (robots' ATE, merge evaluation)."""
     for robot in summary["robots"]:

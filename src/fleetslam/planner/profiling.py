@@ -13,14 +13,14 @@ import numpy as np
 
 from fleetslam.backend.back_end import TrackingPipeline
 from fleetslam.config import Config
-from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.datasets.source import RecordedSource
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.planner.profile import Profile
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 
 
-def measure_profile(sequence: RgbdSequence, source: str, config: Config, frames: int,
+def measure_profile(sequence: RecordedSource, source: str, config: Config, frames: int,
                     progress: Callable[[int], None] | None = None) -> Profile:
     """Run the whole pipeline on the first ``frames`` frames, timing each stage and encoding
     the state at every split point (and each keyframe's upload) as the wire would."""

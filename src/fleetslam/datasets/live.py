@@ -1,0 +1,90 @@
+"""Live sources run on the camera's clock: frames arrive whether or not the robot keeps up.
+
+A camera thread (the device's, a Zenoh subscriber's, a replay's) puts each frame into a
+``NewestFrame`` slot; the robot takes the newest one when it is ready for the next. A frame
+overwritten before it was taken is skipped and counted, so a robot slower than its camera
+holds one waiting frame, never a growing queue.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Protocol, runtime_checkable
+
+from fleetslam.camera import Camera
+from fleetslam.datasets.source import Frame
+
+
+class NewestFrame:
+    """A one-frame slot between a camera thread (``put``) and the robot (``take``)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._frame: Frame | None = None
+        self._closed = False
+        self._error: BaseException | None = None
+        self.delivered = 0  # frames the camera put
+        self.taken = 0  # frames the robot took
+        self.skipped = 0  # frames overwritten before the robot took them
+
+    def put(self, frame: Frame) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            if self._frame is not None:
+                self.skipped += 1
+            self._frame = frame
+            self.delivered += 1
+            self._cond.notify_all()
+
+    def close(self, error: BaseException | None = None) -> None:
+        """The stream ended (``error``: why it broke); a waiting ``take`` returns."""
+        with self._cond:
+            self._closed = True
+            self._error = self._error or error
+            self._cond.notify_all()
+
+    def take(self, timeout: float) -> Frame | None:
+        """The newest frame not taken yet, waiting up to ``timeout`` seconds for one; None
+        once the stream has ended and its last frame was taken. Raises the camera's error,
+        or ``TimeoutError`` when no frame came in time."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._frame is None:
+                if self._error is not None:
+                    raise self._error
+                if self._closed:
+                    return None
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"no frame from the camera in {timeout:.1f} s")
+                self._cond.wait(left)
+            frame, self._frame = self._frame, None
+            self.taken += 1
+            return frame
+
+
+@runtime_checkable
+class LiveSource(Protocol):
+    """A camera the robot cannot hold back (``datasets.replay``, ``datasets.realsense``,
+    ``datasets.ros2_topics``)."""
+
+    description: str  # what it is, for logs and the summary (e.g. "RealSense D435 #123")
+    camera: Camera  # known once ``start`` returned
+    camera_source: str
+
+    def start(self, timeout: float) -> None:
+        """Open the camera and wait (up to ``timeout`` s) until its camera model is known."""
+        ...
+
+    def take(self, timeout: float) -> Frame | None:
+        """The newest frame (``NewestFrame.take``); frame indices count taken frames."""
+        ...
+
+    @property
+    def skipped(self) -> int:
+        """Frames the camera delivered that the robot never took."""
+        ...
+
+    def close(self) -> None: ...
