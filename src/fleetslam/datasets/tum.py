@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from fleetslam.camera import TUM_CAMERAS, Camera
+from fleetslam.datasets.ranges import parse_robot_spec, play_order
 from fleetslam.datasets.source import Frame
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.transforms import interpolate_poses
@@ -132,23 +133,14 @@ class RgbdSequence:
             raise ValueError(
                 f"{self.folder}: no rgb/depth pair closer than {MAX_ASSOCIATION_DIFF_S * 1000:.0f} ms "
                 f"(rgb.txt {rgb_t[0]:.3f}..{rgb_t[-1]:.3f}, depth.txt {depth_t[0]:.3f}..{depth_t[-1]:.3f})")
-        total = len(pairs)
-        last = total - 1 if last is None else last
-        segments = segments or [(first, last)]
-        order: list[int] = []
-        for a, b in segments:
-            if not (0 <= a < total and 0 <= b < total):
-                raise ValueError(f"{self.folder}: frame range {a}-{b} outside 0-{total - 1}")
-            order += list(range(a, b + 1) if a <= b else range(a, b - 1, -1))
         recorded = np.array([rgb_t[i] for i, _ in pairs])
-        pairs = [pairs[i] for i in order]
-        self.first = order[0]
-        self.recorded_timestamps = recorded[order]
-        self.timestamps = self.recorded_timestamps.copy()
-        self.retimed = bool(np.any(np.diff(self.timestamps) <= 0))
-        if self.retimed:
-            dt = float(np.median(np.diff(recorded))) if len(recorded) > 1 else 1 / 30
-            self.timestamps = recorded[order[0]] + dt * np.arange(len(order))
+        played = play_order(recorded, segments or [(first, len(pairs) - 1 if last is None
+                                                    else last)], str(self.folder))
+        pairs = [pairs[i] for i in played.order]
+        self.first = int(played.order[0])
+        self.recorded_timestamps = played.recorded_timestamps
+        self.timestamps = played.timestamps
+        self.retimed = played.retimed
         self.rgb_paths = [self.folder / rgb[i][1] for i, _ in pairs]
         self.depth_paths = [self.folder / depth[j][1] for _, j in pairs]
         for path in self.rgb_paths + self.depth_paths:
@@ -208,22 +200,6 @@ class RgbdSequence:
     def __iter__(self):
         for i in range(len(self)):
             yield self[i]
-
-
-_RANGES = re.compile(r"^(?P<path>.+?):(?P<ranges>\d+-\d+(?:,\d+-\d+)*)$")
-
-
-def parse_robot_spec(spec: str) -> tuple[Path, list[tuple[int, int]] | None]:
-    """``DIR``, ``DIR:first-last`` (inclusive) or ``DIR:a-b,c-d,...`` (ranges played in
-    turn; ``c > d`` plays backwards) to (folder, ranges or None for all frames)."""
-    match = _RANGES.match(spec)
-    if not match:
-        return Path(spec), None
-    ranges = [tuple(int(v) for v in r.split("-")) for r in match["ranges"].split(",")]
-    if len(ranges) == 1 and ranges[0][1] < ranges[0][0]:
-        raise ValueError(f"robot '{spec}': frame range {ranges[0][0]}-{ranges[0][1]} is empty "
-                         f"(to play backwards, follow a forward range: DIR:0-99,98-0)")
-    return Path(match["path"]), ranges  # type: ignore[return-value]
 
 
 def open_robot(spec: str, camera: Camera | None = None) -> RgbdSequence:
