@@ -103,6 +103,22 @@ def _compressed_colour(msg: Any, where: str) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def image_format(msg: Any) -> str:
+    """An Image's encoding or a CompressedImage's format, as the message says it."""
+    return str(msg.format) if hasattr(msg, "format") else str(msg.encoding)
+
+
+def image_role(msg: Any) -> str | None:
+    """"colour" or "depth" by the message's encoding or format; None if fleetslam reads
+    neither (e.g. yuv422)."""
+    if hasattr(msg, "format"):
+        return "depth" if "compresseddepth" in str(msg.format).lower() else "colour"
+    encoding = str(msg.encoding)
+    if encoding in COLOUR_ENCODINGS:
+        return "colour"
+    return "depth" if encoding in DEPTH_ENCODINGS else None
+
+
 def depth_image_scale(msg: Any, where: str) -> float:
     """Raw depth values a metre for the wire's 16-bit images of this depth topic."""
     encoding = _depth_encoding(msg, where)
