@@ -25,7 +25,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
 from shared_data import SEVEN_SCENES  # noqa: E402
 
-from fleetslam.datasets.tum import open_robot  # noqa: E402
+from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.evaluation.fleet import trajectory_ate  # noqa: E402
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
@@ -53,7 +53,7 @@ def run(label: str, offload_at: str, trace: str, out: Path, timeout_s: float) ->
         stop(cloud)
     report = json.loads(report_path.read_text())
     cloud_robot = json.loads((folder / "cloud" / "r0" / "robot.json").read_text())
-    ate = trajectory_ate(folder / "cloud" / "r0" / "trajectory.tum", open_robot(SOURCE))
+    ate = trajectory_ate(folder / "cloud" / "r0" / "trajectory.tum", open_source(SOURCE))
     return {
         "label": label, "offload_at": offload_at, "total_s": report["total_s"],
         "streaming_s": report["streaming_s"], "frames_sent": report["frames"],

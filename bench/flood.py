@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from shared_data import SEVEN_SCENES  # noqa: E402
 
 from fleetslam.config import Config  # noqa: E402
-from fleetslam.datasets.tum import RgbdSequence, open_robot  # noqa: E402
+from fleetslam.datasets.recording import open_source  # noqa: E402
+from fleetslam.datasets.tum import RgbdSequence  # noqa: E402
 from fleetslam.evaluation.fleet import trajectory_ate  # noqa: E402
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop  # noqa: E402
 from fleetslam.backend.back_end import TrackingPipeline  # noqa: E402
@@ -189,7 +190,7 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
         stop(cloud)
     flood_stats = result.get(timeout=10.0) if flood_args is not None else {}
     robot_json = json.loads((out / VICTIM / "robot.json").read_text())
-    ate = trajectory_ate(out / VICTIM / "trajectory.tum", open_robot(source))
+    ate = trajectory_ate(out / VICTIM / "trajectory.tum", open_source(source))
     rss = np.array([s[1] for s in samples])
     return {"run": name, "frames": robot_json["frames"], "keyframes": robot_json["keyframes"],
             "transport": robot_json["transport"], "ate_m": ate["rmse_m"] if ate else None,

@@ -30,7 +30,7 @@ from shared_data import SEVEN_SCENES, TUM_RPY  # noqa: E402
 
 from fleetslam.config import Config  # noqa: E402
 from fleetslam.datasets.synthetic import ensure_scene  # noqa: E402
-from fleetslam.datasets.tum import open_robot  # noqa: E402
+from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
 from fleetslam.system import run_fleet  # noqa: E402
 
@@ -51,7 +51,7 @@ def cases(synthetic: Path) -> dict[str, list[str]]:
 
 
 def run_case(name: str, specs: list[str], out: Path) -> dict[str, Any]:
-    robots = [(f"r{i}", spec, open_robot(spec)) for i, spec in enumerate(specs)]
+    robots = [(f"r{i}", spec, open_source(spec)) for i, spec in enumerate(specs)]
     start = time.perf_counter()
     summary = run_fleet(robots, Config(), out / name, show_progress=False)
     merge = summary["merge"]

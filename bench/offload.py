@@ -29,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-from fleetslam.datasets.tum import open_robot
+from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.fleet import trajectory_ate
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
 from fleetslam.tables import format_table
@@ -73,7 +73,7 @@ def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter",
         stop(cloud)
     r = json.loads(report_path.read_text())
     cloud_summary = r["cloud_summary"]
-    ate = trajectory_ate(out / "r0" / "trajectory.tum", open_robot(spec))
+    ate = trajectory_ate(out / "r0" / "trajectory.tum", open_source(spec))
     robot_s, trans_s, cloud_s = r["robot_compute_s"], r["link_busy_s"], cloud_summary["cloud_s_total"]
     return {
         "point": k, "coding": coding, "rate": rate, "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,

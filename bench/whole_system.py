@@ -24,7 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 from shared_data import SEVEN_SCENES  # noqa: E402
 
 from fleetslam.config import Config  # noqa: E402
-from fleetslam.datasets.tum import open_robot  # noqa: E402
+from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.demo import run_demo  # noqa: E402
 from fleetslam.planner.energy_report import whole_system, whole_system_table  # noqa: E402
 from fleetslam.planner.model import Link, candidates, choose  # noqa: E402
@@ -41,7 +41,7 @@ def main() -> None:
     parser.add_argument("--runs", default="/tmp/fleetslam-whole-system")
     args = parser.parse_args()
     config = Config()
-    profile = measure_profile(open_robot(SOURCES[0]), SOURCES[0], config, 60)
+    profile = measure_profile(open_source(SOURCES[0]), SOURCES[0], config, 60)
     chosen = choose(candidates(profile, Link(args.bandwidth_mbps), config.planner,
                                SUPPORTED_POINTS), config.planner)
     runs = Path(args.runs) / time.strftime("%Y%m%d-%H%M%S")

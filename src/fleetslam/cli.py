@@ -118,6 +118,23 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
                         "(keyframe uploads are resent until acknowledged)")
 
 
+def _add_topic_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--rgb-topic", help="a bag's colour image topic (default: its only "
+                        "colour Image or CompressedImage topic)")
+    parser.add_argument("--depth-topic", help="a bag's depth image topic (default: its only "
+                        "16UC1 / 32FC1 / compressedDepth topic)")
+    parser.add_argument("--camera-info-topic", help="a bag's CameraInfo for the colour camera "
+                        "(default: camera_info beside the colour topic, else the only one)")
+
+
+def _apply_topics(args: argparse.Namespace, config: Config) -> None:
+    """--rgb-topic, --depth-topic, --camera-info-topic into config.source."""
+    for name in ("rgb_topic", "depth_topic", "camera_info_topic"):
+        value = getattr(args, name, None)
+        if value:
+            setattr(config.source, name, value)
+
+
 def _add_view_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--view", action="store_true", help="live view in rerun: spawn a "
                         "viewer if this machine has a display, else serve it over gRPC and "
@@ -238,7 +255,7 @@ def _onboard_pipeline(config: Config, camera: Camera) -> Any:
 
 
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.datasets.tum import open_robot
+    from fleetslam.datasets.recording import open_source
     from fleetslam.edge.robot import Robot
     from fleetslam.pipeline.split import ROBOT_TRACKS, parse_offload_point
 
@@ -250,7 +267,8 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     if args.link_seed is not None:
         config.link.seed = args.link_seed
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
-    sequence = open_robot(args.source, camera)
+    _apply_topics(args, config)
+    sequence = open_source(args.source, camera, config.source)
     trace = parse_link_trace(args.link_trace) if args.link_trace else None
     if trace:
         if trace[0][0] != 0:
@@ -317,17 +335,18 @@ def cmd_status(args: argparse.Namespace, config: Config) -> int:
 
 
 def cmd_run(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.datasets.tum import open_robot
+    from fleetslam.datasets.recording import open_source
     from fleetslam.system import run_fleet
 
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
+    _apply_topics(args, config)
     names = args.name or []
     if names and len(names) != len(args.robot):
         raise ValueError(f"{len(names)} --name for {len(args.robot)} --robot")
     robots = []
     for i, spec in enumerate(args.robot):
         name = names[i] if names else f"r{i}"
-        robots.append((name, spec, open_robot(spec, camera)))
+        robots.append((name, spec, open_source(spec, camera, config.source)))
     out = Path(args.out) if args.out else _default_out("run")
     summary = run_fleet(robots, config, out, show_progress=not args.quiet)
     _finish(summary, out, args.quiet)
@@ -384,14 +403,15 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
         profile = Profile.load(Path(args.profile))
     else:
         from fleetslam.datasets.synthetic import ensure_scene
-        from fleetslam.datasets.tum import open_robot
+        from fleetslam.datasets.recording import open_source
 
+        _apply_topics(args, config)
         if args.source:
             source = args.source
         else:
             scene = ensure_scene(_scene_dir(config), config.synthetic)
             source = str(scene[0])
-        sequence = open_robot(source)
+        sequence = open_source(source, None, config.source)
         frames = args.frames or cfg.profile_frames
         progress = Progress(f"profile {source}", min(frames, len(sequence)),
                             enabled=not args.quiet)
@@ -460,11 +480,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view_options(demo)
     demo.set_defaults(func=cmd_demo)
 
-    run = sub.add_parser("run", help="run robots on TUM-layout folders")
-    run.add_argument("--robot", action="append", required=True, metavar="DIR[:FIRST-LAST]",
-                     help="a TUM-layout folder, optionally a frame range of it; repeat per robot")
+    run = sub.add_parser("run", help="run robots on TUM-layout folders or ROS bags")
+    run.add_argument("--robot", action="append", required=True, metavar="SOURCE[:FIRST-LAST]",
+                     help="a TUM-layout folder or a ROS bag (.bag, ROS 2 bag folder, .mcap), "
+                     "optionally frame ranges of it (a-b,c-d); repeat per robot")
     run.add_argument("--name", action="append", help="robot name, once per --robot")
     run.add_argument("--camera", help="camera.json overriding the detected camera")
+    _add_topic_options(run)
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
     run.set_defaults(func=cmd_run)
 
@@ -492,13 +514,15 @@ def build_parser() -> argparse.ArgumentParser:
                         help="another router to join (repeatable)")
     router.set_defaults(func=cmd_router)
 
-    robot = sub.add_parser("robot", help="stream a recorded sequence to the cloud")
+    robot = sub.add_parser("robot", help="stream a recorded sequence or bag to the cloud")
     robot.add_argument("--connect", default=None, metavar="ENDPOINT",
                        help="the cloud's Zenoh endpoint (default tcp/127.0.0.1:7447)")
     robot.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ -)")
-    robot.add_argument("--source", required=True, metavar="DIR[:FIRST-LAST]",
-                       help="TUM-layout folder (a synthetic scene's robot folder works too)")
+    robot.add_argument("--source", required=True, metavar="SOURCE[:FIRST-LAST]",
+                       help="TUM-layout folder (a synthetic scene's robot folder works too) "
+                       "or a ROS bag (.bag, ROS 2 bag folder, .mcap), optionally frame ranges")
     robot.add_argument("--camera", help="camera.json overriding the detected camera")
+    _add_topic_options(robot)
     robot.add_argument("--offload-at", default="paper",
                        help="split point: 0-3 (cloud tracks) or 6 (robot tracks), 'paper' "
                        "(3), the first cloud stage's name (e.g. match), or 'auto' (re-plan "
@@ -532,9 +556,10 @@ def build_parser() -> argparse.ArgumentParser:
     planner.add_argument("--paper", action="store_true",
                          help="the paper's own stage times, payloads and parameters")
     planner.add_argument("--profile", help="a saved profile (JSON) to plan with")
-    planner.add_argument("--source", metavar="DIR[:FIRST-LAST]",
-                         help="measure a profile on this sequence (default: the built-in "
-                         "synthetic scene)")
+    planner.add_argument("--source", metavar="SOURCE[:FIRST-LAST]",
+                         help="measure a profile on this sequence folder or ROS bag "
+                         "(default: the built-in synthetic scene)")
+    _add_topic_options(planner)
     planner.add_argument("--frames", type=int, help="frames to measure (default from config)")
     planner.add_argument("--save-profile", help="write the measured profile here (JSON)")
     planner.add_argument("--bandwidth-mbps", type=float,

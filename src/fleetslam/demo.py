@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from fleetslam.datasets.tum import open_robot
+from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.launch import (
     CloudClient,
@@ -88,7 +88,7 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
             robots[name] = start_robot(endpoint, name, source, offload_at, logs / f"{name}.log",
                                        out / name / ROBOT_REPORT, config_path,
                                        link_args, configs[name])
-        sequences = {name: open_robot(source) for name, source in zip(names, sources)}
+        sequences = {name: open_source(source) for name, source in zip(names, sources)}
         total = sum(len(s) for s in sequences.values())
         progress = Progress(f"cloud tracking {len(names)} robots ({endpoint})", total,
                             enabled=show_progress)

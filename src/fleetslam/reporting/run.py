@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.datasets.tum import RgbdSequence, open_robot
+from fleetslam.datasets.recording import open_source, spec_is_bag, spec_path
+from fleetslam.datasets.source import RecordedSource
 from fleetslam.evaluation.ate import umeyama
 from fleetslam.evaluation.fleet import ground_truth_at, same_world
 from fleetslam.io.ply import read_ply
@@ -95,7 +96,7 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
     except ValueError as exc:
         raise ValueError(f"{path}: not JSON: {exc}") from exc
     run = RunData(folder, summary, [], ground_truth_read=ground_truth)
-    sequences: dict[str, RgbdSequence] = {}
+    sequences: dict[str, RecordedSource] = {}
     merge = summary.get("merge") or {}
     global_files = merge.get("global_trajectories") or {}
     for r in summary.get("robots", []):
@@ -143,12 +144,14 @@ def _read_trajectory(path: Path, notes: list[str]) -> Trajectory | None:
     return Trajectory(times, poses)
 
 
-def _open_source(source: str | None) -> tuple[RgbdSequence | None, str]:
+def _open_source(source: str | None) -> tuple[RecordedSource | None, str]:
     """The robot's recording, for its ground truth; (None, why) if there is none."""
     if not source:
         return None, "the summary names no source"
+    if spec_is_bag(source):  # not opened: indexing a bag only to find no ground truth
+        return None, f"{spec_path(source)} is a ROS bag (a bag carries no ground truth)"
     try:
-        sequence = open_robot(source)
+        sequence = open_source(source)
     except (ValueError, OSError) as exc:
         return None, f"source not readable here ({exc})"
     if not sequence.has_ground_truth:
@@ -156,7 +159,7 @@ def _open_source(source: str | None) -> tuple[RgbdSequence | None, str]:
     return sequence, ""
 
 
-def _gt_at(times: np.ndarray, sequence: RgbdSequence) -> np.ndarray:
+def _gt_at(times: np.ndarray, sequence: RecordedSource) -> np.ndarray:
     """Ground truth at each of ``times`` (NaN where the sequence has none)."""
     ok, gt = ground_truth_at(times, sequence)
     out = np.full((len(times), 4, 4), np.nan)
