@@ -96,7 +96,44 @@ def test_every_bag_kind_plays_its_frames_with_the_camera_info(tmp_path, flavour)
     frame = seq[2]
     assert frame.depth_raw[0, 0] == 400 and frame.depth_m[0, 0] == pytest.approx(0.4)
     assert frame.rgb[0, 0].tolist() == [35, 35, 35]
+    # The frame's images are its own, as a folder's are (not read-only views of a message).
+    assert frame.rgb.flags.writeable and frame.depth_raw.flags.writeable
     assert seq.gt_poses is None and not seq.has_ground_truth
+
+
+def test_compressed_depth_plays_at_its_encodings_scale(tmp_path):
+    import struct
+
+    import cv2
+
+    ts = bw.typestore_for("mcap")
+    messages = []
+    for k in range(3):
+        ns = 1_600_000_000 * 10**9 + k * 33_333_333
+        mm = np.full((H, W), (k + 1) * 100, np.uint16)
+        payload = struct.pack("<iff", 0, 0.0, 0.0) + cv2.imencode(".png", mm)[1].tobytes()
+        messages += [
+            ("/cam/rgb/image", bw.IMAGE, ns, bw.image(ts, ns, "bgr8",
+                                                       np.full((H, W, 3), (1, 2, 3), np.uint8))),
+            ("/cam/depth/image/compressedDepth", bw.COMPRESSED, ns,
+             bw.compressed(ts, ns, "16UC1; compressedDepth png", payload)),
+            ("/cam/rgb/camera_info", bw.CAMERA_INFO, ns,
+             bw.camera_info(ts, ns, 50.0, 50.0, 3.5, 2.5, W, H))]
+    seq = open_source(str(bw.write_bag(tmp_path / "b", "mcap", messages)))
+    assert seq.depth_topic == "/cam/depth/image/compressedDepth"
+    assert seq.camera.depth_scale == MILLIMETRE_DEPTH_SCALE
+    assert seq[2].depth_raw[0, 0] == 300 and seq[2].rgb[0, 0].tolist() == [3, 2, 1]
+
+
+def test_a_depth_camera_info_with_its_own_distortion_is_named(tmp_path):
+    from fleetslam.datasets.ros_messages import RosMessageError, camera_from_info
+
+    ts = bw.typestore_for("ros1")
+    colour = bw.camera_info(ts, 0, 50.0, 50.0, 3.5, 2.5, W, H, (0.1, 0.01, 0.0, 0.0, 0.0))
+    depth = bw.camera_info(ts, 0, 50.0, 50.0, 3.5, 2.5, W, H, (0.1,) + (0.0,) * 7)
+    with pytest.raises(RosMessageError, match="^depth.bag topic /d: depth camera with its "
+                       "own distortion"):
+        camera_from_info(colour, "c.bag topic /c", 1000.0, depth, "depth.bag topic /d")
 
 
 def test_32fc1_depth_is_carried_at_5000_a_metre(tmp_path):
@@ -124,6 +161,12 @@ def test_a_given_camera_overrides_and_keeps_the_depth_topics_scale(tmp_path):
     seq = open_source(str(path), Camera(40.0, 40.0, 4.0, 3.0, W, H))
     assert seq.camera_source.startswith("given") and seq.camera.fx == 40.0
     assert seq.camera.depth_scale == MILLIMETRE_DEPTH_SCALE
+
+
+def test_a_missing_bag_is_named_as_a_bag(tmp_path):
+    with pytest.raises(BagError) as exc:
+        open_source(f"{tmp_path / 'gone.bag'}:0-9")
+    one_line_error(exc, tmp_path / "gone.bag", "no such bag")
 
 
 def test_a_bag_without_image_topics_is_refused(tmp_path):

@@ -51,9 +51,11 @@ class BagError(ValueError):
 
 
 def is_bag(path: Path) -> bool:
-    """A ROS 1 bag file, a ROS 2 bag folder, or a lone ROS 2 storage file."""
-    return (path.is_file() and path.suffix in BAG_SUFFIXES) or \
-        (path.is_dir() and (path / "metadata.yaml").is_file())
+    """A ROS 1 bag file, a ROS 2 bag folder, or a lone ROS 2 storage file (a missing file
+    named like one too, so that it is reported as a missing bag)."""
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix in BAG_SUFFIXES
 
 
 def _open_reader(path: Path) -> Any:

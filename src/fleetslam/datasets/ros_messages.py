@@ -65,7 +65,9 @@ def _image_pixels(msg: Any, where: str, dtype: np.dtype, channels: int) -> np.nd
                               f"{step * (h - 1) + row} bytes, the message has {data.size}")
     rows = np.lib.stride_tricks.as_strided(data, (h, row), (step, 1))
     order = ">" if msg.is_bigendian else "<"
-    pixels = np.ascontiguousarray(rows).view(np.dtype(dtype).newbyteorder(order))
+    # A copy, always: without padding ascontiguousarray returned a view of the message's
+    # buffer, read-only when decoded from a bag, where a frame's images must be its own.
+    pixels = rows.copy().view(np.dtype(dtype).newbyteorder(order))
     pixels = pixels.astype(np.dtype(dtype).newbyteorder("="), copy=False)
     return pixels.reshape((h, w, channels) if channels > 1 else (h, w))
 
@@ -197,8 +199,10 @@ def camera_from_info(msg: Any, where: str, depth_scale: float,
                 f"{depth_where}: depth camera {dwidth} x {dheight} is not registered to the "
                 f"colour camera {width} x {height} ({where}); fleetslam needs depth aligned "
                 f"to colour (e.g. a driver's aligned_depth_to_color topic)")
+        # Distortions of different lengths (plumb_bob 5, rational_polynomial 8) differ;
+        # np.allclose would raise on their shapes instead.
         same = np.allclose((dfx, dfy, dcx, dcy), (fx, fy, cx, cy)) and \
-            np.allclose(ddistortion or (0.0,), distortion or (0.0,))
+            len(ddistortion) == len(distortion) and np.allclose(ddistortion, distortion)
         if not same:
             if any(abs(d) > 0 for d in ddistortion):
                 raise RosMessageError(
