@@ -19,7 +19,6 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from fleetslam.camera import Camera
-from fleetslam.datasets.tum import associate, read_file_list
 
 FLAVOURS = ("ros1", "mcap", "sqlite3")
 RGB_TOPIC = "/camera/rgb/image_color"
@@ -106,9 +105,9 @@ def tum_messages(folder: Path, flavour: str, camera: Camera, colour: str = "rgb8
                  jpeg_quality: int = 95) -> Iterator[tuple[str, str, int, Any]]:
     """A TUM folder's images as a Kinect driver's topics: colour ``rgb8`` Image or ``jpeg``
     CompressedImage, depth 32FC1 metres (``raw / depth_scale`` as float32, as TUM's own bags
-    carry it; 0 = no measurement), one CameraInfo per topic per frame (colour: ``camera``'s calibration; depth:
-    its registered pinhole, no distortion). Header stamps are the TUM stamps; bag times
-    trail them by RECEIVE_DELAY_NS, in order."""
+    carry it; 0 = no measurement), one CameraInfo per topic per frame (colour: ``camera``'s
+    calibration; depth: its registered pinhole, no distortion). Header stamps are the TUM
+    stamps; bag times trail them by RECEIVE_DELAY_NS, in order."""
     ts = typestore_for(flavour)
     lines = {name: [ln.split() for ln in (folder / f"{name}.txt").read_text().splitlines()
                     if ln.strip() and not ln.startswith("#")] for name in ("rgb", "depth")}
@@ -143,9 +142,3 @@ def write_tum_bag(folder: Path, out: Path, flavour: str, camera: Camera,
     """``folder`` written as a bag at ``out`` (see tum_messages)."""
     return write_bag(out, flavour, tum_messages(folder, flavour, camera, colour))
 
-
-def paired_count(folder: Path) -> int:
-    """How many rgb/depth pairs TUM's association finds in the folder (for checks)."""
-    rgb = np.array([t for t, _ in read_file_list(folder / "rgb.txt")])
-    depth = np.array([t for t, _ in read_file_list(folder / "depth.txt")])
-    return len(associate(rgb, depth))

@@ -3,8 +3,9 @@ global frame), ground truth at the same instants, the global map, stage times, a
 robot put on its link.
 
 Ground truth is evaluation only: it is read here, after the run, from the ``groundtruth.txt``
-of the folder each robot played (its ``source`` in summary.json). A run without it, or a
-report made without it (the cloud's own report), still loads everything else.
+of the folder each robot played (its ``source`` in summary.json; a ROS bag carries none). A
+run without it, or a report made without it (the cloud's own report), still loads
+everything else.
 """
 
 from __future__ import annotations
