@@ -258,6 +258,25 @@ def test_without_the_ros_extra_a_bag_names_it_and_folders_still_play(tmp_path, m
     one_line_error(exc, path, "needs the ros extra: pip install 'fleetslam[ros]'")
 
 
+def test_a_robot_without_the_ros_extra_is_told_through_the_cli(tmp_path):
+    """In a process where rosbags is not installed (simulated): the CLI names the extra."""
+    import subprocess
+
+    path = tiny_bag(tmp_path / "b.bag")
+    code = f"""
+import sys
+sys.modules["rosbags"] = None  # import raises ModuleNotFoundError
+from fleetslam.cli import main
+print(main(["--quiet", "robot", "--id", "r1", "--source", "{path}:0-1"]))
+print(sorted(m for m in sys.modules if m.startswith("rosbags")))
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.stdout.split("\n")[:2] == ["2", "['rosbags']"], run.stdout + run.stderr
+    assert run.stderr.startswith(f"fleetslam: error: {path}: reading a ROS bag needs the ros "
+                                 f"extra: pip install 'fleetslam[ros]'"), run.stderr
+    assert "Traceback" not in run.stderr
+
+
 # -- the real sequence as bags ---------------------------------------------------------
 
 
