@@ -202,6 +202,12 @@ def test_export_names_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert err == f"fleetslam: error: {tmp_path / 'summary.json'}: no summary.json: not a " \
                   "finished run folder"
     assert not (tmp_path / "x.mcap").exists()
+    (tmp_path / "summary.json").write_text(json.dumps({"robots": [{"name": "r0"}]}))
+    assert main(["--quiet", "export", str(tmp_path), "--mcap", str(tmp_path / "x.mcap")]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"fleetslam: error: {tmp_path / 'summary.json'}: not a fleetslam run summary "
+        "(no 'trajectory' entry)")
+    assert not (tmp_path / "x.mcap").exists()
 
 
 def test_outputs_mcap_false_writes_none(synthetic_scene, tmp_path):
@@ -212,3 +218,14 @@ def test_outputs_mcap_false_writes_none(synthetic_scene, tmp_path):
     summary = run_fleet([("solo", source, open_robot(source))], config, out, False)
     assert (out / "summary.json").exists() and not (out / "run.mcap").exists()
     assert "mcap" not in summary
+
+
+def test_a_lone_robot_stays_in_its_own_map_frame(synthetic_scene, tmp_path):
+    source = f"{synthetic_scene[1][0]}:0-7"
+    out = tmp_path / "solo"
+    run_fleet([("solo", source, open_robot(source))], Config(), out, False)
+    topics = _decoded(out / "run.mcap")
+    assert set(topics) == {"/solo/path", "/solo/map", "/tf"}  # no merge, no global map
+    tf = [t for message in topics["/tf"] for t in message.transforms]
+    assert {(t.header.frame_id, t.child_frame_id) for t in tf} == {("solo/map", "solo/camera")}
+    assert len(tf) == 8

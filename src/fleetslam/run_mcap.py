@@ -83,9 +83,21 @@ def write_run_mcap(run_dir: Path, summary: dict[str, Any] | None = None,
                    path: Path | None = None) -> Path:
     """Write the run's MCAP (``run_dir/run.mcap`` unless ``path``) from its files;
     ``summary``: the run's summary as it is being written (else summary.json is read).
-    Returns the file's path."""
+    Returns the file's path; a summary that lacks an entry is a ValueError naming it, and
+    no file is written."""
     run_dir = Path(run_dir)
     summary = read_run_summary(run_dir) if summary is None else summary
+    path = run_dir / MCAP_FILE if path is None else Path(path)
+    try:
+        with McapOut(path) as out:
+            _add_run(out, run_dir, summary)
+    except KeyError as exc:
+        raise ValueError(f"{run_dir / 'summary.json'}: not a fleetslam run summary (no "
+                         f"{exc} entry)") from None
+    return path
+
+
+def _add_run(out: McapOut, run_dir: Path, summary: dict[str, Any]) -> None:
     merge = summary.get("merge") or {}
     # The robots in the global frame (a run of robots that never joined still has one: the
     # largest group, a single robot).
@@ -95,28 +107,23 @@ def write_run_mcap(run_dir: Path, summary: dict[str, Any] | None = None,
     if not trajectories:
         raise ValueError(f"{run_dir / 'summary.json'}: no robots in the run")
     start = int(min(seconds_to_ns(times[:1])[0] for times, _ in trajectories.values()))
-    path = run_dir / MCAP_FILE if path is None else Path(path)
-    with McapOut(path) as out:
-        for robot in summary["robots"]:
-            name = robot["name"]
-            times, poses = trajectories[name]
-            out.path(f"/{name}/path", map_frame(name), start, seconds_to_ns(times), poses)
-            _cloud(out, f"/{name}/map", map_frame(name), start, run_dir / robot["map"])
-            parent = map_frame(name)
-            if name in merged:  # its camera as the global trajectory has it
-                parent = GLOBAL_FRAME
-                times, poses = read_tum_trajectory(run_dir / merge["global_trajectories"][name])
-                out.path(f"/{name}/global_path", GLOBAL_FRAME, start, seconds_to_ns(times),
-                         poses)
-            out.transforms("/tf", parent, camera_frame(name), seconds_to_ns(times), poses)
-        if merged:
-            out.static_transforms("/tf_static", start, [
-                (GLOBAL_FRAME, map_frame(name), np.array(merge["T_global_map"][name]))
-                for name in merged])
-            _cloud(out, "/map/global", GLOBAL_FRAME, start, run_dir / merge["global_map"])
-            tree_id, resolution, data = octomap_binary_data(
-                run_dir / merge["octomap"]["file"])
-            out.octomap("/map/octomap", GLOBAL_FRAME, start, resolution, tree_id, data)
-            out.lines("/map/constraints", GLOBAL_FRAME, start, "constraints",
-                      _constraint_lines(merge), LINE_WIDTH_M)
-    return path
+    for robot in summary["robots"]:
+        name = robot["name"]
+        times, poses = trajectories[name]
+        out.path(f"/{name}/path", map_frame(name), start, seconds_to_ns(times), poses)
+        _cloud(out, f"/{name}/map", map_frame(name), start, run_dir / robot["map"])
+        parent = map_frame(name)
+        if name in merged:  # its camera as the global trajectory has it
+            parent = GLOBAL_FRAME
+            times, poses = read_tum_trajectory(run_dir / merge["global_trajectories"][name])
+            out.path(f"/{name}/global_path", GLOBAL_FRAME, start, seconds_to_ns(times), poses)
+        out.transforms("/tf", parent, camera_frame(name), seconds_to_ns(times), poses)
+    if merged:
+        out.static_transforms("/tf_static", start, [
+            (GLOBAL_FRAME, map_frame(name), np.array(merge["T_global_map"][name]))
+            for name in merged])
+        _cloud(out, "/map/global", GLOBAL_FRAME, start, run_dir / merge["global_map"])
+        tree_id, resolution, data = octomap_binary_data(run_dir / merge["octomap"]["file"])
+        out.octomap("/map/octomap", GLOBAL_FRAME, start, resolution, tree_id, data)
+        out.lines("/map/constraints", GLOBAL_FRAME, start, "constraints",
+                  _constraint_lines(merge), LINE_WIDTH_M)
