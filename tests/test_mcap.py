@@ -5,6 +5,7 @@ that test_system.py checks (conftest.synthetic_run)."""
 from __future__ import annotations
 
 import json
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -74,6 +75,13 @@ def test_the_run_writes_run_mcap_with_each_topic_and_ros2_schemas(run):
     assert schemas["/map/global"] == "sensor_msgs/msg/PointCloud2"
     assert schemas["/map/octomap"] == "octomap_msgs/msg/Octomap"
     assert schemas["/map/constraints"] == "visualization_msgs/msg/MarkerArray"
+    # rosbag2's offered QoS on every channel (the ros2 profile's): the results known at the
+    # end are latched (transient local), so rviz2's /tf_static subscriber matches them.
+    with open(out / "run.mcap", "rb") as f:
+        channels = make_reader(f).get_summary().channels.values()
+    durability = {c.topic: int(re.search(r"^  durability: (\d)$", c.metadata[
+        "offered_qos_profiles"], re.M).group(1)) for c in channels}
+    assert durability == {topic: 2 if topic == "/tf" else 1 for topic in counts}
     # Time moves forward through the file (players stream it).
     times = [t for _, _, t, _ in messages]
     assert times == sorted(times)

@@ -28,13 +28,14 @@ int8[] data
 # four bytes of a float32 field named rgb (little endian).
 _POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
 
-# rosbag2's QoS for a latched topic (reliable, transient local, keep last 1) in the channel
-# metadata: `ros2 bag play` offers it, so rviz2's /tf_static and map subscribers (transient
-# local) match and late subscribers still get the one message.
-_LATCHED_QOS = """- history: 1
-  depth: 1
+# rosbag2's record of the QoS a topic was offered with (the ros2 profile asks for it on every
+# channel), as ROS 2 Humble writes it (integers): reliable, keep last; latched topics are
+# transient local with depth 1, so `ros2 bag play` offers what rviz2's /tf_static and map
+# subscribers (transient local) match, and a late subscriber still gets the one message.
+_QOS = """- history: 1
+  depth: {depth}
   reliability: 1
-  durability: 1
+  durability: {durability}
   deadline:
     sec: 0
     nsec: 0
@@ -47,6 +48,8 @@ _LATCHED_QOS = """- history: 1
     nsec: 0
   avoid_ros_namespace_conventions: false
 """
+_LATCHED_QOS = _QOS.format(depth=1, durability=1)  # RMW_QOS_POLICY_DURABILITY_TRANSIENT_LOCAL
+_STREAM_QOS = _QOS.format(depth=100, durability=2)  # RMW_QOS_POLICY_DURABILITY_VOLATILE
 
 
 def _typestore() -> Any:
@@ -87,7 +90,8 @@ class McapOut:
         return self._t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
 
     def _poses(self, poses: np.ndarray) -> list[tuple[Any, Any]]:
-        """(translation-as-Vector3-or-Point values, Quaternion) per pose."""
+        """([x, y, z], Quaternion) per pose: the translation's values for a Point or a
+        Vector3, whichever the message has."""
         quaternion = self._t["geometry_msgs/msg/Quaternion"]
         return [(v[:3], quaternion(x=v[3], y=v[4], z=v[5], w=v[6]))
                 for v in tum_from_T(poses).tolist()]
@@ -216,7 +220,8 @@ class McapOut:
                     data=self._ts.generate_msgdef(typename, ros_version=2)[0].encode())
                 channels[topic] = writer.register_channel(
                     topic=topic, message_encoding="cdr", schema_id=schema,
-                    metadata={"offered_qos_profiles": _LATCHED_QOS} if latched else {})
+                    metadata={"offered_qos_profiles": _LATCHED_QOS if latched
+                              else _STREAM_QOS})
             for log_ns, _, topic, data in sorted(self._messages):
                 writer.add_message(channels[topic], log_time=log_ns, data=data,
                                    publish_time=log_ns)
