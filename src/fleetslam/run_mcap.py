@@ -2,15 +2,16 @@
 (named by summary.json), so a run (``run``, ``demo``, the cloud's ``merge``) and ``fleetslam
 export`` on its folder write the same file.
 
-    topic                   type                           frame        from
-    /<robot>/path           nav_msgs/Path                  <robot>/map  <robot>/trajectory.tum
-    /<robot>/global_path    nav_msgs/Path                  map          global/<robot>.tum
-    /tf                     tf2_msgs/TFMessage per frame   map (merged) or <robot>/map -> <robot>/camera
-    /tf_static              tf2_msgs/TFMessage             map -> <robot>/map (merged robots)
-    /<robot>/map            sensor_msgs/PointCloud2        <robot>/map  <robot>/map.ply
-    /map/global             sensor_msgs/PointCloud2        map          global_map.ply
-    /map/octomap            octomap_msgs/Octomap           map          global_map.bt
-    /map/constraints        visualization_msgs/MarkerArray map          merge.constraints
+    topic                 type                            frame        from
+    /<robot>/path         nav_msgs/Path                   <robot>/map  <robot>/trajectory.tum
+    /<robot>/global_path  nav_msgs/Path                   map          global/<robot>.tum
+    /tf                   tf2_msgs/TFMessage, per frame   map (merged) or <robot>/map
+                                                          -> <robot>/camera
+    /tf_static            tf2_msgs/TFMessage              map -> <robot>/map (merged)
+    /<robot>/map          sensor_msgs/PointCloud2         <robot>/map  <robot>/map.ply
+    /map/global           sensor_msgs/PointCloud2         map          global_map.ply
+    /map/octomap          octomap_msgs/Octomap            map          global_map.bt
+    /map/constraints      visualization_msgs/MarkerArray  map          merge.constraints
 
 ``map`` is the global frame (the first camera of the group's anchor robot); ``<robot>/map``
 is a robot's own map frame (its first camera), placed in ``map`` by the merge's

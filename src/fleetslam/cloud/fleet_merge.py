@@ -1,7 +1,7 @@
 """The merge a client asks for (``fleetslam merge``): the global outputs of the finished
 robots, every worker's (global trajectories, map, OctoMap, summary.json; outputs.py keeps
-the summary's schema), run.mcap (run_mcap.py) and the run report. MergeRequests answers each request id once: a
-client resends its request until the reply arrives.
+the summary's schema), run.mcap (run_mcap.py) and the run report. MergeRequests answers
+each request id once: a client resends its request until the reply arrives.
 """
 
 from __future__ import annotations
