@@ -30,6 +30,39 @@ def small_scene(tmp_path_factory, frames_per_robot: int) -> list[Path]:
     return ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)
 
 
+@pytest.fixture(scope="session")
+def synthetic_scene(tmp_path_factory):
+    """(config, folders): the synthetic scene, 2 robots of 30 frames."""
+    from fleetslam.config import Config
+
+    config = Config()
+    config.synthetic.frames_per_robot = 30
+    return config, small_scene(tmp_path_factory, 30)
+
+
+@pytest.fixture(scope="session")
+def synthetic_run(synthetic_scene, tmp_path_factory):
+    """(run folder, summary) of the in-process run of the synthetic scene: the cheapest
+    two-robot run that merges, shared by every test that reads a run's outputs."""
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.system import run_fleet
+
+    config, folders = synthetic_scene
+    out = tmp_path_factory.mktemp("runs") / "run"
+    robots = [(f"r{i}", str(f), RgbdSequence(f)) for i, f in enumerate(folders)]
+    return out, run_fleet(robots, config, out, show_progress=False)
+
+
+def mcap_messages(path: Path) -> list[tuple[str, str, int, bytes]]:
+    """(topic, schema name, log time, serialised message) of every message of an MCAP
+    file, in the order the file has them, read with the mcap library alone."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [(channel.topic, schema.name, message.log_time, message.data)
+                for schema, channel, message in make_reader(f).iter_messages()]
+
+
 def exact_config():
     """The defaults with local mapping in-line in the cloud too: the cloud's poses are then
     bit-identical to an in-memory run (with ``async`` they depend on when each local BA

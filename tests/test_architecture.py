@@ -14,7 +14,7 @@ from conftest import small_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 CLOUD_LIBRARIES = ("gtsam", "faiss", "small_gicp", "scipy", "octomap", "matplotlib",
-                   "cryptography")
+                   "cryptography", "mcap")
 
 
 def test_the_layer_contracts_are_kept():

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import secure_endpoint, small_scene, wait_for
+from conftest import mcap_messages, secure_endpoint, small_scene, wait_for
 
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.datasets.tum import RgbdSequence
@@ -194,6 +194,11 @@ def test_demo_runs_cloud_and_robots_as_processes(scene, tmp_path, capsys):
     assert (out / "global_map.ply").exists() and (out / "global_map.bt").exists()
     assert (out / "logs" / "cloud.log").exists()
     printed = capsys.readouterr().out
+    # The cloud's merge wrote run.mcap, as `fleetslam export` makes it from the folder.
+    assert summary["mcap"] == "run.mcap" and f"mcap: {out / 'run.mcap'}" in printed
+    assert main(["--quiet", "export", str(out), "--mcap", str(tmp_path / "x.mcap")]) == 0
+    assert mcap_messages(tmp_path / "x.mcap") == mcap_messages(out / "run.mcap")
+    printed += capsys.readouterr().out
     assert "joint ATE of the global trajectories" in printed
     # The report: rebuilt by the demo with ground truth over the cloud's own (without it);
     # each robot's record of what it put on its link gives the link plot.

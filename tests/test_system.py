@@ -7,31 +7,21 @@ import json
 import numpy as np
 import pytest
 
-from conftest import small_scene
-
 from fleetslam.cli import main
-from fleetslam.config import Config
-from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.io.ply import read_ply
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.mapping.octomap_export import read_octomap
 from fleetslam.outputs import summary_table
-from fleetslam.system import run_fleet
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    config = Config()
-    config.synthetic.frames_per_robot = 30
-    return config, small_scene(tmp_path_factory, 30)
+def scene(synthetic_scene):
+    return synthetic_scene
 
 
 @pytest.fixture(scope="module")
-def run(scene, tmp_path_factory):
-    config, folders = scene
-    out = tmp_path_factory.mktemp("runs") / "run"
-    robots = [(f"r{i}", str(f), RgbdSequence(f)) for i, f in enumerate(folders)]
-    return out, run_fleet(robots, config, out, show_progress=False)
+def run(synthetic_run):
+    return synthetic_run
 
 
 def test_run_writes_standard_outputs(run):

@@ -1,5 +1,5 @@
 """The ``fleetslam`` command: demo, run, cloud, robot, merge, status, plan, certs, report,
-view, generate, vocabulary."""
+export, view, generate, vocabulary."""
 
 from __future__ import annotations
 
@@ -40,6 +40,8 @@ def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
     merged = (summary.get("merge") or {}).get("members")
     print(f"\noutputs in {out}/ (summary.json, <robot>/trajectory.tum, <robot>/map.ply"
           + (", global/<robot>.tum, global_map.ply, global_map.bt)" if merged else ")"))
+    if summary.get("mcap"):
+        print(f"mcap: {out / summary['mcap']}")
     print(f"report: {page}")
 
 
@@ -47,6 +49,13 @@ def cmd_report(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.reporting import write_report
 
     print(write_report(Path(args.run_dir), show_progress=not args.quiet))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.run_mcap import write_run_mcap
+
+    print(write_run_mcap(Path(args.run_dir), path=Path(args.mcap)))
     return 0
 
 
@@ -312,7 +321,10 @@ def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[s
 def cmd_merge(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.outputs import summary_table
 
-    print(summary_table(_ask_cloud(args, config, "merge")))
+    summary = _ask_cloud(args, config, "merge")
+    print(summary_table(summary))
+    if summary.get("mcap"):
+        print(f"mcap: {summary['mcap']} in the cloud's --out folder")
     return 0
 
 
@@ -590,6 +602,13 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("run_dir", metavar="RUN_DIR", help="a run folder with summary.json")
     report.set_defaults(func=cmd_report)
 
+    export = sub.add_parser("export", help="write a finished run's results as ROS 2 messages "
+                            "in an MCAP file (Foxglove, ros2 bag play); a run writes "
+                            "run.mcap itself unless [outputs] mcap = false")
+    export.add_argument("run_dir", metavar="RUN_DIR", help="a run folder with summary.json")
+    export.add_argument("--mcap", required=True, metavar="FILE", help="the MCAP file to write")
+    export.set_defaults(func=cmd_export)
+
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")
     gen.set_defaults(func=cmd_generate)
@@ -615,7 +634,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # What the cloud extra brings (pyproject.toml), by the name a missing one is imported as.
 CLOUD_EXTRA_MODULES = ("gtsam", "small_gicp", "faiss", "scipy", "octomap", "matplotlib",
-                       "cryptography")
+                       "cryptography", "rosbags", "mcap")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -512,6 +512,17 @@ class ViewConfig:
 
 
 @dataclass
+class OutputsConfig:
+    """Files every run writes besides its own (trajectories, maps, summary, report): one
+    switch per extra output, the same for ``run``, ``demo`` and the cloud's ``merge``."""
+
+    # ``run.mcap``: the run's trajectories, transforms, maps, OctoMap and inter-robot
+    # constraints as ROS 2 messages (Foxglove, ``ros2 bag play``); about the size of the
+    # run's PLY files, zstd-compressed.
+    mcap: bool = True
+
+
+@dataclass
 class Config:
     orb: OrbConfig = field(default_factory=OrbConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -529,6 +540,7 @@ class Config:
     transport: TransportConfig = field(default_factory=TransportConfig)
     placement: PlacementConfig = field(default_factory=PlacementConfig)
     view: ViewConfig = field(default_factory=ViewConfig)
+    outputs: OutputsConfig = field(default_factory=OutputsConfig)
 
 
 def _update(obj: Any, values: dict[str, Any], where: str) -> None:

@@ -8,7 +8,9 @@ robot sessions and its merge, cloud/): the files of each robot and the schema of
     <out>/<robot>/robot.json       the robot's entry of summary.json (the cloud, as it ends)
     <out>/<robot>/robot_report.json  the robot process's own report (a deployed run)
     <out>/summary.json             SUMMARY_VERSION; robots, merge, config; a deployed run (the
-                                   demo) adds each robot's report and the deployment
+                                   demo) adds each robot's report and the deployment; ``mcap``
+                                   names run.mcap when the run wrote it
+    <out>/run.mcap                 all of it as ROS 2 messages (run_mcap.py)
 """
 
 from __future__ import annotations

@@ -34,6 +34,7 @@ from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
 from fleetslam.outputs import fleet_summary, robot_files, write_robot_files, write_summary
+from fleetslam.run_mcap import write_run_mcap
 
 @dataclass
 class RobotRun:
@@ -187,6 +188,8 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
     summary = make_summary(runs, merger, global_map, config, time.perf_counter() - start)
     # Evaluation: ground truth is read only now, after every output is written.
     score_fleet(summary, out_dir, {r.name: r.sequence for r in runs})
+    if config.outputs.mcap:
+        summary["mcap"] = write_run_mcap(out_dir, summary).name
     write_summary(out_dir, summary)
     return summary
 

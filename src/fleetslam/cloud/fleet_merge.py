@@ -1,7 +1,7 @@
 """The merge a client asks for (``fleetslam merge``): the global outputs of the finished
 robots, every worker's (global trajectories, map, OctoMap, summary.json; outputs.py keeps
-the summary's schema) and the run report. MergeRequests answers each request id once: a
-client resends its request until the reply arrives.
+the summary's schema), run.mcap (run_mcap.py) and the run report. MergeRequests answers
+each request id once: a client resends its request until the reply arrives.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from fleetslam.cloud.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.merging.global_map import build_global_map, merge_summary
 from fleetslam.outputs import fleet_summary, write_summary
+from fleetslam.run_mcap import write_run_mcap
 from fleetslam.transport import keys, protocol
 
 log = logging.getLogger("fleetslam.cloud")
@@ -97,6 +98,8 @@ class FleetMerge:
         summary = fleet_summary([f.summary for f in finished],
                                 merge if len(finished) > 1 else None, self.config,
                                 time.perf_counter() - start)
+        if self.config.outputs.mcap:
+            summary["mcap"] = self._write_mcap(summary)
         write_summary(self.out_dir, summary)
         self.merger.show()
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
@@ -119,6 +122,19 @@ class FleetMerge:
                                   state.tracking.map.keyframe_poses())
             found.append(session.outputs.finished_map())
         return found
+
+    def _write_mcap(self, summary: dict[str, Any]) -> str | None:
+        """``run.mcap`` of what was just merged (its name); like the report, a failure costs
+        the file, not the merge."""
+        start = time.perf_counter()
+        try:
+            path = write_run_mcap(self.out_dir, summary)
+        except Exception:
+            log.exception("run.mcap could not be written")
+            return None
+        log.info("mcap: %s (%.1f MB in %.2f s)", path, path.stat().st_size / 1e6,
+                 time.perf_counter() - start)
+        return path.name
 
     def _write_report(self) -> None:
         """The run report of what was just merged, in the cloud's folder, without ground

@@ -56,3 +56,21 @@ def read_octomap(path: Path) -> octomap.OcTree:
     if tree.getNumLeafNodes() == 0 and Path(path).stat().st_size > 0:
         raise ValueError(f"{path}: OctoMap read no nodes from it")
     return tree
+
+
+# What OctoMap writes before a binary tree's data (writeBinary's header ends with this line).
+_BINARY_DATA_LINE = b"\ndata\n"
+
+
+def octomap_binary_data(path: Path) -> tuple[str, float, bytes]:
+    """(tree id, resolution, data) of a ``.bt`` file as octomap_msgs carries a binary map:
+    the tree's binary stream without the file's header, what OctoMap's ``writeBinaryData``
+    writes and ``readBinaryData`` (octomap_msgs' ``binaryMsgToMap``) reads. Loaded and
+    written again by OctoMap, so a file OctoMap cannot read is refused here."""
+    tree = read_octomap(path)
+    stream = tree.writeBinary()
+    start = stream.find(_BINARY_DATA_LINE)
+    if start < 0:
+        raise ValueError(f"{path}: OctoMap wrote no 'data' line before the tree")
+    return (tree.getTreeType().decode(), tree.getResolution(),
+            stream[start + len(_BINARY_DATA_LINE):])

@@ -173,12 +173,22 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
 def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, Any]:
     """The merge as summary.json records it (the same schema in and out of the cloud)."""
     status = merger.status()
+    placed = global_map.keyframe_poses if global_map is not None else {}
+
+    def position(robot: str, keyframe: int) -> list[float] | None:
+        """A keyframe's camera centre in the global frame (members of the global map)."""
+        poses = placed.get(robot)
+        return poses[keyframe][:3, 3].tolist() if poses is not None and \
+            keyframe < len(poses) else None
+
     constraints = [{
         "query_robot": c.match.query.robot, "query_frame": c.match.query.frame_index,
         "place_robot": c.match.place.robot, "place_frame": c.match.place.frame_index,
         "inliers": c.match.inliers, "ransac_inliers": c.match.ransac_inliers,
         "score": c.match.score, "trusted": c.trusted, "kept": c.kept,
         "T_place_query": c.match.T_place_query.tolist(),
+        "query_position": position(c.match.query.robot, c.match.query.keyframe),
+        "place_position": position(c.match.place.robot, c.match.place.keyframe),
     } for c in merger.constraints]
 
     def ms(values: list[float]) -> float | None:
