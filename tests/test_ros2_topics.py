@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import TUM_RPY, require
-from fleetslam.camera import KINECT_FACTORY_PINHOLE, TUM_CAMERAS, Camera
+from fleetslam.camera import TUM_CAMERAS, Camera
 from fleetslam.config import Config
 from fleetslam.datasets.live import LiveSource
 from fleetslam.datasets.rmw_zenoh import (
@@ -37,6 +37,7 @@ from fleetslam.datasets.ros2_discovery import (
     sibling_camera_info,
 )
 from fleetslam.datasets.ros2_topics import Ros2TopicSource, is_ros2_spec, resolve_domain_id
+from fleetslam.datasets.ros_messages import RosMessageError
 from fleetslam.datasets.stamp_pairing import COLOUR, DEPTH, StampPairer
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -101,14 +102,17 @@ class CameraNode:
     def __init__(self, endpoint: str, folder: Path | None = None, frames: int | None = None,
                  rate_hz: float = 30.0, domain_id: int = 0, colour_topic: str = COLOUR_TOPIC,
                  depth_topic: str = DEPTH_TOPIC, camera: Camera = TUM_CAMERAS["freiburg1"],
-                 topics: tuple[str, ...] = ("colour", "depth", "colour_info", "depth_info")
-                 ) -> None:
+                 topics: tuple[str, ...] = ("colour", "depth", "colour_info", "depth_info"),
+                 depth_encoding: str = "32FC1") -> None:
+        """``depth_encoding``: 32FC1 (metres, lossless for TUM's 0.2 mm steps), 16UC1
+        (millimetres, rounded) or anything else (the folder's raw values, mislabelled)."""
         from zenoh_ros2_sdk.publisher import ROS2Publisher
 
         self.store = _typestore()
         self.port = int(endpoint.rsplit(":", 1)[1])
         self.camera = camera
         self.rate_hz = rate_hz
+        self.depth_encoding = depth_encoding
         self.sequence = None
         if folder is not None:
             from fleetslam.datasets.tum import RgbdSequence
@@ -165,10 +169,20 @@ class CameraNode:
             pub["depth_info"].publish(**self._info(depth, cam.depth_intrinsics or (
                 cam.fx, cam.fy, cam.cx, cam.cy), ()))
         if "depth" in pub:
-            metres = (frame.depth_raw / np.float32(cam.depth_scale)).astype("<f4")
-            pub["depth"].publish(header=depth, height=h, width=w, encoding="32FC1",
-                                 is_bigendian=0, step=w * 4,
-                                 data=np.frombuffer(metres.tobytes(), np.uint8))
+            if self.depth_encoding == "32FC1":
+                pixels = (frame.depth_raw / np.float32(cam.depth_scale)).astype("<f4")
+            elif self.depth_encoding == "16UC1":
+                pixels = self.millimetres(frame.depth_raw)
+            else:
+                pixels = frame.depth_raw.astype("<u2")
+            pub["depth"].publish(header=depth, height=h, width=w,
+                                 encoding=self.depth_encoding, is_bigendian=0,
+                                 step=w * pixels.itemsize,
+                                 data=np.frombuffer(pixels.tobytes(), np.uint8))
+
+    def millimetres(self, raw: np.ndarray) -> np.ndarray:
+        """The folder's raw depth as a 16UC1 image (REP 118 millimetres)."""
+        return np.rint(raw * (1000.0 / self.camera.depth_scale)).astype("<u2")
 
     def _run(self) -> None:
         try:
@@ -328,8 +342,8 @@ def test_pairing_nearest_stamp_bounded_and_in_order():
 
 
 def test_topic_choice_from_live_publishers():
-    topics = {COLOUR_TOPIC: {IMAGE}, f"{COLOUR_TOPIC}/compressed": {"sensor_msgs/msg/CompressedImage"},
-              DEPTH_TOPIC: {IMAGE}, "/camera/rgb/camera_info": {CAMERA_INFO},
+    topics = {COLOUR_TOPIC: {IMAGE}, DEPTH_TOPIC: {IMAGE},
+              f"{COLOUR_TOPIC}/compressed": {"sensor_msgs/msg/CompressedImage"}, "/camera/rgb/camera_info": {CAMERA_INFO},
               "/camera/depth/camera_info": {CAMERA_INFO}, "/tf": {"tf2_msgs/msg/TFMessage"}}
     chosen = choose_topics(topics)
     assert (chosen.colour, chosen.depth) == (COLOUR_TOPIC, DEPTH_TOPIC)
@@ -343,6 +357,24 @@ def test_topic_choice_from_live_publishers():
         choose_topics(topics)
     assert choose_topics(topics, rgb_topic="camera/ir/image").colour == "/camera/ir/image"
     assert sibling_camera_info("/cam/color/image_raw/compressedDepth") == "/cam/color/camera_info"
+
+
+def test_a_depth_camera_info_with_another_distortion_model_is_refused_clearly():
+    """ros_messages.camera_from_info compared 5 against 8 coefficients by broadcasting (a
+    numpy ValueError); now they are two models and the message says so."""
+    from types import SimpleNamespace
+
+    from fleetslam.datasets.ros_messages import camera_from_info
+
+    def info(d, model):
+        return SimpleNamespace(k=[500.0, 0, 320, 0, 500, 240, 0, 0, 1], d=d, width=640,
+                               height=480, distortion_model=model)
+
+    colour = info([0.1, -0.2, 0.0, 0.0, 0.05], "plumb_bob")
+    depth = info([0.1, -0.2, 0.0, 0.0, 0.05, 0.01, 0.0, 0.0], "rational_polynomial")
+    with pytest.raises(RosMessageError, match="depth: depth camera with its own distortion"):
+        camera_from_info(colour, "colour", 1000.0, depth, "depth")
+    assert camera_from_info(colour, "colour", 1000.0, colour, "depth").depth_intrinsics == ()
 
 
 def test_spec_and_domain(monkeypatch):
@@ -408,6 +440,40 @@ def test_a_slow_robot_skips_frames_and_counts_them(sdk_session):
     assert_frames_equal_the_folder(frames, node)
     assert source.skipped > len(frames) > 3
     assert source.delivered == len(frames) + source.skipped
+
+
+@pytest.mark.realdata
+def test_millimetre_depth_and_a_depth_encoding_fleetslam_cannot_read(sdk_session):
+    """16UC1 depth: the camera's depth scale is 1000 and depth arrives as published. A
+    mono8-labelled depth topic: start says why it cannot use it."""
+    node = CameraNode(sdk_session, require(TUM_RPY), frames=30, depth_encoding="16UC1")
+    source = Ros2TopicSource.from_spec(f"ros2:{sdk_session}", ros2_config())
+    try:
+        node.start()
+        source.start(timeout=10.0)
+        frames = take_all(source, node)
+    finally:
+        source.close()
+        node.close()
+    assert source.camera.depth_scale == 1000.0
+    assert source.camera.distortion == TUM_CAMERAS["freiburg1"].distortion
+    by_stamp = folder_frames_by_stamp(node)
+    assert len(frames) >= 5
+    for frame in frames:
+        expected = node.sequence[by_stamp[round(frame.timestamp, 6)]]
+        assert np.array_equal(frame.depth_raw, node.millimetres(expected.depth_raw))
+        assert np.array_equal(frame.rgb, expected.rgb)
+    node = CameraNode(sdk_session, require(TUM_RPY), frames=30, depth_encoding="mono8")
+    source = Ros2TopicSource.from_spec(f"ros2:{sdk_session}", ros2_config())
+    try:
+        node.start()
+        with pytest.raises(RosMessageError, match=r"^0/camera/depth/image/sensor_msgs::msg::"
+                           r"dds_::Image_/RIHS01_d31d41a9.*: depth encoding 'mono8' is not "
+                           r"supported \(use one of 16UC1, mono16, 32FC1\)"):
+            source.start(timeout=10.0)
+    finally:
+        source.close()
+        node.close()
 
 
 def test_start_without_a_camera_says_what_it_has_seen(sdk_session):

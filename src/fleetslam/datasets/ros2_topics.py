@@ -6,8 +6,10 @@ spec ``ros2:ENDPOINT``). It finds the camera's topics from rmw_zenoh's livelines
 unless configured, subscribes to their data keys with any type hash (Humble's placeholder,
 Iron/Jazzy/Rolling's RIHS01 hashes alike: ``datasets.rmw_zenoh``), reads the camera model
 from the first CameraInfo, and pairs colour and depth by header stamp as they arrive
-(``datasets.stamp_pairing``); each pair becomes a Frame in a ``NewestFrame`` slot.
-Subscriber callbacks read only the stamp of every message; rosbags decodes only what pairs.
+(``datasets.stamp_pairing``); each pair goes into a ``NewestFrame`` slot as received.
+Subscriber callbacks only read each message's stamp (a few microseconds); rosbags decodes a
+pair, and it becomes a Frame, when the robot takes it: a pair the robot skips costs nothing
+(a 32FC1 depth image alone takes 5-10 ms to convert on this machine).
 """
 
 from __future__ import annotations
@@ -116,6 +118,11 @@ def open_ros_session(endpoint: str, timeout: float, zenoh_config: str = "") -> z
             f"with [source] ros_endpoint or the source spec ros2:ENDPOINT") from None
 
 
+# A message as received: CDR payload, ROS type, Zenoh key.
+Message = tuple[bytes, str, str]
+Pair = tuple[Message, Message, float]  # colour, depth, colour stamp
+
+
 def _writable(array: np.ndarray) -> np.ndarray:
     # Decoded images may be views of the received bytes, which are read-only.
     return array if array.flags.writeable else array.copy()
@@ -135,7 +142,7 @@ class Ros2TopicSource:
         self.camera_source = "given" if camera is not None else ""
         self.topics: CameraTopics | None = None
         self._given_camera = camera
-        self._slot = NewestFrame()
+        self._slot: NewestFrame[Pair] = NewestFrame()
         self._cond = threading.Condition()
         self._session: zenoh.Session | None = None
         self._subscribers: list[Any] = []
@@ -145,7 +152,7 @@ class Ros2TopicSource:
         self._infos: dict[str, tuple[Any, str]] = {}  # topic -> first CameraInfo, its key
         self._depth_scale: float | None = camera.depth_scale if camera is not None else None
         self._started = False  # camera known: images are paired from now on
-        self._pairer: StampPairer[tuple[bytes, str, str]] = StampPairer(
+        self._pairer: StampPairer[Message] = StampPairer(
             config.pair_tolerance_s, config.ros_waiting_messages)
         self._sequences: dict[bytes, int] = {}  # publisher GID -> last sequence number
         self._error: BaseException | None = None
@@ -169,6 +176,13 @@ class Ros2TopicSource:
     # ------------------------------------------------------------------ LiveSource
 
     def start(self, timeout: float) -> None:
+        try:
+            self._start(timeout)
+        except BaseException:
+            self.close()  # a failed start leaves no session or subscriber behind
+            raise
+
+    def _start(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         self._store = _typestore()
         self._session = open_ros_session(self.endpoint, timeout, self.config.ros_zenoh_config)
@@ -188,9 +202,15 @@ class Ros2TopicSource:
         log.info("%s: camera from %s", self.description, self.camera_source)
 
     def take(self, timeout: float) -> Frame | None:
-        frame = self._slot.take(timeout)
-        if frame is not None:
-            frame.index = self._slot.taken - 1
+        pair = self._slot.take(timeout)
+        if pair is None:
+            return None
+        try:
+            frame = self._frame(*pair)
+        except Exception as exc:
+            self._fail(exc)  # the next message would fail the same way
+            raise
+        frame.index = self._slot.taken - 1
         return frame
 
     @property
@@ -394,14 +414,13 @@ class Ros2TopicSource:
                         return
                     pair = self._pairer.add(stream, stamp, (payload, ros_type, key))
                     if pair is not None:
-                        # Under the lock: frames leave in stamp order, as the cloud expects.
-                        self._slot.put(self._frame(*pair))
+                        # Under the lock: pairs leave in stamp order, as the cloud expects.
+                        self._slot.put(pair)
             except Exception as exc:
                 self._fail(exc)
         return on_image
 
-    def _frame(self, colour: tuple[bytes, str, str], depth: tuple[bytes, str, str],
-               stamp: float) -> Frame:
+    def _frame(self, colour: Message, depth: Message, stamp: float) -> Frame:
         camera = self.camera
         rgb = colour_image(self._decode(*colour), colour[2])
         raw = depth_image(self._decode(*depth), depth[2], camera.depth_scale)

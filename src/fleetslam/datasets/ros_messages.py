@@ -181,7 +181,10 @@ def camera_from_info(msg: Any, where: str, depth_scale: float,
                 f"{depth_where}: depth camera {dwidth} x {dheight} is not registered to the "
                 f"colour camera {width} x {height} ({where}); fleetslam needs depth aligned "
                 f"to colour (e.g. a driver's aligned_depth_to_color topic)")
+        # Coefficient lists of different lengths (plumb_bob's 5, rational_polynomial's 8)
+        # are different models, not arrays to broadcast.
         same = np.allclose((dfx, dfy, dcx, dcy), (fx, fy, cx, cy)) and \
+            len(ddistortion) == len(distortion) and \
             np.allclose(ddistortion or (0.0,), distortion or (0.0,))
         if not same:
             if any(abs(d) > 0 for d in ddistortion):
