@@ -320,6 +320,47 @@ def test_the_sdk_and_rosbags_agree_on_the_type_hashes():
             store.hash_rihs01(ros_type), ros_type
 
 
+def test_what_the_sdk_puts_on_the_wire_is_what_the_design_doc_describes(sdk_session):
+    """Raw Zenoh, no fleetslam parsing in the way: the SDK's data key, liveliness token,
+    attachment and CDR header, as rmw_zenoh's design.md writes them."""
+    from fleetslam.datasets.ros2_topics import open_ros_session
+
+    node = CameraNode(sdk_session, topics=("colour",))
+    session = open_ros_session(sdk_session, 5.0)
+    tokens, samples = [], []
+    try:
+        session.liveliness().declare_subscriber(
+            "@ros2_lv/0/**", lambda s: tokens.append(str(s.key_expr)), history=True)
+        session.declare_subscriber("0/**", lambda s: samples.append(
+            (str(s.key_expr), s.attachment.to_bytes(), s.payload.to_bytes())))
+        header = node._header(1305031229, 528748000, "rgb_optical")
+        deadline = time.monotonic() + 10.0
+        while len(samples) < 2 and time.monotonic() < deadline:
+            node.publishers["colour"].publish(header=header, height=1, width=2,
+                                              encoding="rgb8", is_bigendian=0, step=6,
+                                              data=np.arange(6, dtype=np.uint8))
+            time.sleep(0.1)
+    finally:
+        session.close()
+        node.close()
+    image_hash = node.store.hash_rihs01(IMAGE)
+    key = f"0/camera/rgb/image_color/sensor_msgs::msg::dds_::Image_/{image_hash}"
+    publisher = [t for t in tokens if "/MP/" in t]
+    assert len(publisher) == 1 and publisher[0].startswith("@ros2_lv/0/")
+    assert publisher[0].split("/")[6:12] == ["%", "%", "tum_camera", "%camera%rgb%image_color",
+                                             "sensor_msgs::msg::dds_::Image_", image_hash]
+    assert any(t.split("/")[5:9] == ["NN", "%", "%", "tum_camera"] for t in tokens)
+    assert len(samples) >= 2, "no message arrived in 10 s"
+    (key0, att0, payload), (key1, att1, _) = samples[:2]
+    assert key0 == key1 == key
+    assert len(att0) == 8 + 8 + 1 + 16 and att0[16] == 16 and att0[17:] == att1[17:]
+    seq0, stamp0 = int.from_bytes(att0[:8], "little"), int.from_bytes(att0[8:16], "little")
+    assert int.from_bytes(att1[:8], "little") == seq0 + 1
+    assert abs(stamp0 / 1e9 - time.time()) < 60  # source time: ns since the epoch
+    assert payload[:4] == b"\x00\x01\x00\x00"  # classic CDR, little-endian
+    assert header_stamp(payload, key) == 1305031229 + 528748000 * 1e-9
+
+
 # ---------------------------------------------------------------------------- pairing, choice
 
 
