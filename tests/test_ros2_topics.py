@@ -487,7 +487,8 @@ def test_live_topics_arrive_lossless_with_the_tum_camera(sdk_session):
 def test_a_slow_robot_skips_frames_and_counts_them(sdk_session):
     """Configured topics in ROS domain 7; the robot takes a frame every 0.15 s of a 30 fps
     camera: it gets the newest, the rest are skipped and counted."""
-    node = CameraNode(sdk_session, require(TUM_RPY), frames=45, domain_id=7)
+    node = CameraNode(sdk_session, require(TUM_RPY), frames=45, domain_id=7,
+                      wait_for_subscriber_s=10.0)
     source = Ros2TopicSource.from_spec(f"ros2:{sdk_session}", ros2_config(
         ros_domain_id=7, rgb_topic=COLOUR_TOPIC, depth_topic=DEPTH_TOPIC))
     try:
@@ -506,7 +507,8 @@ def test_a_slow_robot_skips_frames_and_counts_them(sdk_session):
 def test_millimetre_depth_and_a_depth_encoding_fleetslam_cannot_read(sdk_session):
     """16UC1 depth: the camera's depth scale is 1000 and depth arrives as published. A
     mono8-labelled depth topic: start says why it cannot use it."""
-    node = CameraNode(sdk_session, require(TUM_RPY), frames=30, depth_encoding="16UC1")
+    node = CameraNode(sdk_session, require(TUM_RPY), frames=30, depth_encoding="16UC1",
+                      wait_for_subscriber_s=10.0)
     source = Ros2TopicSource.from_spec(f"ros2:{sdk_session}", ros2_config())
     try:
         node.start()
