@@ -369,6 +369,22 @@ class SourceConfig:
     camera_info_topic: str = ""
     # A live camera that delivers no frame this long ends the robot's run with an error.
     live_frame_timeout_s: float = 10.0
+    # Live ROS 2 topics over rmw_zenoh (datasets/ros2_topics.py, source spec `ros2` or
+    # `ros2:ENDPOINT`). The robot's ROS 2 Zenoh router: rmw_zenoh's default, on the robot.
+    # fleetslam's cloud endpoint defaults to the same port: run the cloud elsewhere, or give
+    # one of them another port.
+    ros_endpoint: str = "tcp/localhost:7447"
+    # ROS_DOMAIN_ID of the camera's nodes; -1: the ROS_DOMAIN_ID environment variable, as
+    # ROS 2 reads it (0 without it).
+    ros_domain_id: int = -1
+    # A Zenoh config file (JSON5) for the session to the ROS 2 router (TLS, ...); empty: a
+    # client of ros_endpoint, no multicast. Not transport.zenoh_config: that is the cloud's.
+    ros_zenoh_config: str = ""
+    # Topic discovery waits until the live publishers have not changed this long, so a
+    # camera node still declaring its topics is not judged half-way.
+    ros_discovery_settle_s: float = 0.5
+    # Messages a live image topic keeps waiting for its partner (colour or depth).
+    ros_waiting_messages: int = 4
 
 
 @dataclass

@@ -3,32 +3,35 @@
 A camera thread (the device's, a Zenoh subscriber's, a replay's) puts each frame into a
 ``NewestFrame`` slot; the robot takes the newest one when it is ready for the next. A frame
 overwritten before it was taken is skipped and counted, so a robot slower than its camera
-holds one waiting frame, never a growing queue.
+holds one waiting frame, never a growing queue. The slot may hold what a frame is made from
+instead (``NewestFrame[T]``), so a camera thread decodes nothing the robot skips.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from typing import Protocol, runtime_checkable
+from typing import Generic, Protocol, TypeVar, runtime_checkable
 
 from fleetslam.camera import Camera
 from fleetslam.datasets.source import Frame
 
+T = TypeVar("T")  # a Frame, or what one is made from
 
-class NewestFrame:
+
+class NewestFrame(Generic[T]):
     """A one-frame slot between a camera thread (``put``) and the robot (``take``)."""
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
-        self._frame: Frame | None = None
+        self._frame: T | None = None
         self._closed = False
         self._error: BaseException | None = None
         self.delivered = 0  # frames the camera put
         self.taken = 0  # frames the robot took
         self.skipped = 0  # frames overwritten before the robot took them
 
-    def put(self, frame: Frame) -> None:
+    def put(self, frame: T) -> None:
         with self._cond:
             if self._closed:
                 return
@@ -45,7 +48,7 @@ class NewestFrame:
             self._error = self._error or error
             self._cond.notify_all()
 
-    def take(self, timeout: float) -> Frame | None:
+    def take(self, timeout: float) -> T | None:
         """The newest frame not taken yet, waiting up to ``timeout`` seconds for one; None
         once the stream has ended and its last frame was taken. Raises the camera's error,
         or ``TimeoutError`` when no frame came in time."""
