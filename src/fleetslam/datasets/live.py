@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 from typing import Protocol, runtime_checkable
 
 from fleetslam.camera import Camera
@@ -27,6 +28,12 @@ class NewestFrame:
         self.delivered = 0  # frames the camera put
         self.taken = 0  # frames the robot took
         self.skipped = 0  # frames overwritten before the robot took them
+
+    @property
+    def waiting(self) -> int:
+        """Frames in the slot: 0 or 1, however far the robot falls behind."""
+        with self._cond:
+            return int(self._frame is not None)
 
     def put(self, frame: Frame) -> None:
         with self._cond:
@@ -48,7 +55,9 @@ class NewestFrame:
     def take(self, timeout: float) -> Frame | None:
         """The newest frame not taken yet, waiting up to ``timeout`` seconds for one; None
         once the stream has ended and its last frame was taken. Raises the camera's error,
-        or ``TimeoutError`` when no frame came in time."""
+        or ``TimeoutError`` when no frame came in time. Its index is the count of frames
+        taken before it: the camera thread cannot know which of its frames will be taken,
+        and the robot's frame indices must be dense."""
         deadline = time.monotonic() + timeout
         with self._cond:
             while self._frame is None:
@@ -61,6 +70,7 @@ class NewestFrame:
                     raise TimeoutError(f"no frame from the camera in {timeout:.1f} s")
                 self._cond.wait(left)
             frame, self._frame = self._frame, None
+            frame = replace(frame, index=self.taken)
             self.taken += 1
             return frame
 
@@ -79,12 +89,18 @@ class LiveSource(Protocol):
         ...
 
     def take(self, timeout: float) -> Frame | None:
-        """The newest frame (``NewestFrame.take``); frame indices count taken frames."""
+        """The newest frame (``NewestFrame.take``); frame indices count taken frames from 0."""
         ...
 
     @property
     def skipped(self) -> int:
         """Frames the camera delivered that the robot never took."""
+        ...
+
+    @property
+    def delivered(self) -> int:
+        """Frames the camera delivered (``NewestFrame.delivered``): with the frames taken and
+        skipped, what a run's summary shows of its camera."""
         ...
 
     def close(self) -> None: ...
