@@ -22,7 +22,7 @@ def _realsense(spec: str, config: Config) -> LiveSource | None:
 # Each opener returns None for a spec that is not its kind. A camera's library is imported
 # only when that camera is opened, so a robot without its extra runs everything else.
 OPENERS: list[tuple[str, Callable[[str, Config], LiveSource | None]]] = [
-    ("realsense, realsense:SERIAL, realsense:FILE.bag", _realsense),
+    ("realsense, realsense:SERIAL, realsense:FILE.db3|.bag", _realsense),
 ]
 
 

@@ -1,6 +1,9 @@
 """An Intel RealSense as a live source, through pyrealsense2 (the ``realsense`` extra,
 imported only when a RealSense is asked for): the first device, one by serial number, or a
-RealSense recording (.bag) played back in real time, so it behaves like the camera.
+RealSense recording played back in real time, so it behaves like the camera: ``.db3`` (the
+ROS 2 bag librealsense 2.57+ records) or a legacy ROS 1 ``.bag``, which pyrealsense2 no
+longer plays and converts to .db3 first (``context.convert_bag_to_db3``, into a temporary
+folder).
 
 Depth is aligned to colour (``rs.align``): both images share the colour camera's pixel grid
 and intrinsics. The camera model comes from the device: fx, fy, ppx, ppy of the colour
@@ -10,7 +13,9 @@ depth scale (metres per unit) as ``Camera.depth_scale`` = units per metre.
 
 from __future__ import annotations
 
+import tempfile
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -25,6 +30,8 @@ EXTRA = "needs the realsense extra: pip install 'fleetslam[realsense]'"
 # Colour and depth a live device is asked for (a recording plays what it holds).
 STREAM_SIZE = (640, 480)
 STREAM_FPS = 30
+# The camera thread's wait for a frameset, between looks at whether a recording ended.
+POLL_MS = 200
 # Normalised image extent sampled to fit OpenCV coefficients to a RealSense lens model.
 FIT_GRID = 21
 
@@ -81,15 +88,18 @@ def opencv_distortion(model: str, coeffs: list[float], camera: Camera
     return tuple(float(v) for v in fit), float(np.abs(residual).max())
 
 
+RECORDING_SUFFIXES = (".db3", ".bag")
+
+
 def parse_realsense_spec(spec: str) -> tuple[str | None, Path | None] | None:
-    """``realsense`` (first device), ``realsense:SERIAL`` or ``realsense:FILE.bag`` to
-    (serial, bag); None for a spec that is no RealSense."""
+    """``realsense`` (first device), ``realsense:SERIAL`` or ``realsense:FILE.db3|.bag`` to
+    (serial, recording); None for a spec that is no RealSense."""
     if spec != "realsense" and not spec.startswith("realsense:"):
         return None
     rest = spec.partition(":")[2]
     if not rest:
         return None, None
-    if rest.lower().endswith(".bag"):
+    if rest.lower().endswith(RECORDING_SUFFIXES):
         path = Path(rest)
         if not path.is_file():
             raise ValueError(f"--source {spec}: no such RealSense recording")
@@ -104,7 +114,7 @@ class RealSenseSource:
         self.spec = spec
         self.serial = serial
         self.bag = bag
-        self.description = (f"RealSense recording {bag} (played back in real time)" if bag
+        self.description = (f"RealSense recording {bag} (played in real time)" if bag
                             else f"RealSense #{serial}" if serial else "RealSense (first device)")
         self.camera = Camera(1.0, 1.0, 0.0, 0.0)  # replaced by the device's in start()
         self.camera_source = "not started"
@@ -113,12 +123,26 @@ class RealSenseSource:
         self._stop = threading.Event()
         self._pipeline: Any = None
         self._thread: threading.Thread | None = None
+        self._converted: tempfile.TemporaryDirectory | None = None
+
+    def _playable(self, bag: Path) -> Path:
+        """The recording as pyrealsense2 plays it: a legacy ROS 1 .bag converted to .db3."""
+        if bag.suffix.lower() != ".bag":
+            return bag
+        self._converted = tempfile.TemporaryDirectory(prefix="fleetslam-realsense-")
+        out = Path(self._converted.name) / (bag.stem + ".db3")
+        try:
+            self._rs.context().convert_bag_to_db3(str(bag), str(out))
+        except (RuntimeError, AttributeError) as exc:
+            raise ValueError(f"{self.description}: pyrealsense2 cannot convert this ROS 1 "
+                             f"bag to .db3: {exc}") from None
+        return out
 
     def start(self, timeout: float) -> None:
         rs = self._rs
         config = rs.config()
         if self.bag is not None:
-            config.enable_device_from_file(str(self.bag), repeat_playback=False)
+            config.enable_device_from_file(str(self._playable(self.bag)), repeat_playback=False)
         else:
             if self.serial:
                 config.enable_device(self.serial)
@@ -126,7 +150,7 @@ class RealSenseSource:
             config.enable_stream(rs.stream.color, *STREAM_SIZE, rs.format.rgb8, STREAM_FPS)
         pipeline = rs.pipeline()
         try:
-            profile = pipeline.start(config)
+            profile = pipeline.start(config)  # a recording it cannot read fails here too
         except RuntimeError as exc:
             raise ValueError(f"{self.description}: cannot start: {exc}") from None
         self._pipeline = pipeline
@@ -183,19 +207,27 @@ class RealSenseSource:
                 pass
             self._pipeline = None
         self._slot.close()
+        if self._converted is not None:
+            self._converted.cleanup()
+            self._converted = None
 
     def _run(self, timeout: float) -> None:
         """The camera thread: align each frameset, convert it, put it in the slot."""
         rs = self._rs
         align = rs.align(rs.stream.color)
         ended = self._playback_ended()
+        last = time.monotonic()
         try:
             while not self._stop.is_set():
-                ok, frames = self._pipeline.try_wait_for_frames(int(timeout * 1000))
+                # Short waits: the end of a recording shows between them, not after a timeout.
+                ok, frames = self._pipeline.try_wait_for_frames(POLL_MS)
                 if not ok:
                     if ended():
                         break
-                    raise TimeoutError(f"{self.description}: no frames in {timeout:.1f} s")
+                    if time.monotonic() - last > timeout:
+                        raise TimeoutError(f"{self.description}: no frames in {timeout:.1f} s")
+                    continue
+                last = time.monotonic()
                 frame = self._frame(align.process(frames))
                 if frame is not None:
                     self._slot.put(frame)
