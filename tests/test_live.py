@@ -231,3 +231,63 @@ def test_a_robot_slower_than_its_camera_skips_frames_holds_one_and_tracks(tmp_pa
     assert entry["lost_frames"] <= 0.1 * entry["frames"]
     ate = trajectory_ate(tmp_path / "cloud" / "r1" / "trajectory.tum", open_robot(spec))
     assert ate is not None and ate["rmse_m"] < 0.1
+
+
+def test_a_live_robot_keeps_keyframe_uploads_until_acknowledged_and_names_lost_ones():
+    """Without a recording to read again: a keyframe's upload stays after it left the frame
+    buffer, until the cloud acknowledges it; one the robot never kept (feedback after the
+    buffer moved on, a restart) is unavailable at once, never sent, never waited for."""
+    from fleetslam.edge.report import RobotReport
+    from fleetslam.edge.uploader import KeyframeUploader
+    from fleetslam.wire.messages import decode_keyframe
+
+    config = Config()
+    config.transport.keyframe_buffer_frames = 2
+    report = RobotReport("r1", 3)
+    uploader = KeyframeUploader("r1", None, 3, config, report)
+    sent = []
+
+    def send(key: str, data: bytes) -> bool:
+        index = decode_keyframe(data)[1].frame_index
+        sent.append(index)
+        uploader.acknowledged(index)
+        return True
+
+    image = np.zeros((48, 64, 3), np.uint8)
+    depth = np.full((48, 64), 1000, np.uint16)
+    uploader.keep(Frame(0, 0.0, image, depth, depth / 1000.0), 3)
+    uploader.keyframe(0)  # queued; the uploader starts only once the buffer moved on
+    for i in range(1, 5):
+        uploader.keep(Frame(i, i / 30, image, depth, depth / 1000.0), 3)
+    uploader.keyframe(0)  # already queued: once only
+    uploader.queue(1)  # fell out of the buffer before its feedback: gone
+    start = time.monotonic()
+    uploader.start(send)
+    uploader.wait()
+    uploader.stop()
+    assert time.monotonic() - start < 2.0
+    assert sent == [0] and report.acknowledged == [0]
+    assert uploader.unavailable == {1} and report.keyframes_unavailable == 1
+    assert uploader._pinned == {}  # acknowledged: no longer held
+
+
+def test_a_resumed_live_robot_numbers_on_and_drops_what_the_session_has():
+    """A camera cannot go back to a frame index: after a restart the robot numbers its frames
+    on from the cloud's next index and drops frames not after the session's last timestamp
+    (a replay restarted from its beginning)."""
+    from fleetslam.edge.robot import Robot
+
+    recording = open_robot(f"{require(TUM_RPY)}:0-29")
+    replay = ReplaySource(recording, "fr1_rpy", 30.0)
+    replay.start(10.0)
+    robot = Robot("r1", replay, "fr1_rpy", 3, Config(), show_progress=False)
+    with pytest.raises(ValueError, match="delivers frames at its own rate"):
+        Robot("r2", replay, "fr1_rpy", 3, Config(), rate="30", show_progress=False)
+    robot._resume_after = float(recording.timestamps[9])
+    frames = list(robot._frames(57))
+    replay.close()
+    assert [f.index for f in frames] == list(range(57, 57 + len(frames)))
+    assert frames and frames[0].timestamp > recording.timestamps[9]
+    assert robot.report.camera_before_resume >= 1
+    assert robot.report.camera_taken == len(frames)
+    assert robot.report.camera_skipped == replay.skipped

@@ -74,8 +74,9 @@ def cloud_robot_summary(name: str, source: str, offload_at: int, *, frames: int,
         "latency_ms_p95": float(np.percentile(latency_ms, 95)) if latency_ms else None,
         "tracking_fps": frames / span_s if span_s > 0 else None,
         "transport": transport,
-        **({"camera": camera, "keyframes_without_images": keyframes_without_images}
-           if camera is not None else {}),
+        **({"camera": camera} if camera is not None else {}),
+        **({"keyframes_without_images": keyframes_without_images}
+           if camera is not None or keyframes_without_images else {}),
         **robot_files(name),
     }
 

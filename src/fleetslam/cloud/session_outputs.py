@@ -140,4 +140,4 @@ class SessionOutputs:
             span_s=(st.last_frame_time or 0.0) - (st.first_frame_time or 0.0),
             transport=self._transport(), camera=camera,
             keyframes_without_images=sum(not self.store.has_keyframe(self.robot_id, i)
-                                         for i in kf_index) if camera is not None else 0)
+                                         for i in kf_index))
