@@ -92,7 +92,7 @@ def run(frames: int, fps: float, point: int, mbps: float, work: Path) -> dict:
         "rss_samples": samples,
         "cloud_frames": entry["frames"], "cloud_lost": entry["lost_frames"],
         "cloud_tracked": entry["frames"] - entry["lost_frames"],
-        "summary_camera": entry.get("camera"),
+        "summary_live_camera": entry.get("live_camera"),
         "keyframes": entry["keyframes"], "keyframes_without_images":
             entry.get("keyframes_without_images"),
         "ate_rmse_cm": None if ate is None else ate["rmse_m"] * 100,

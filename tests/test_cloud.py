@@ -885,7 +885,7 @@ def test_keyframes_a_live_robot_no_longer_holds_are_mapped_without_images(cloud,
     robot.z.put(keys.control("r0"), protocol.encode(
         protocol.end(N_FRAMES - 1, None, camera, keyframes)))
     summary = robot.reply("ended", timeout=60.0)["summary"]
-    assert summary["camera"] == camera
+    assert summary["live_camera"] == camera
     assert summary["keyframes_without_images"] == len(keyframes) == summary["keyframes"]
     assert summary["map_points"] == 0
     robot.close()

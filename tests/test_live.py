@@ -225,9 +225,9 @@ def test_a_robot_slower_than_its_camera_skips_frames_holds_one_and_tracks(tmp_pa
     assert report.camera_taken + report.camera_skipped <= replay.delivered <= 150
     assert max(held) <= 1  # one waiting frame at most, however far behind
     entry = json.loads((tmp_path / "cloud" / "summary.json").read_text())["robots"][0]
-    assert entry["name"] == "r1" and summary["robots"][0]["camera"] == entry["camera"]
-    assert entry["camera"]["skipped"] == report.camera_skipped
-    assert entry["camera"]["taken"] == report.camera_taken == entry["frames"]
+    assert entry["name"] == "r1" and summary["robots"][0]["live_camera"] == entry["live_camera"]
+    assert entry["live_camera"]["skipped"] == report.camera_skipped
+    assert entry["live_camera"]["taken"] == report.camera_taken == entry["frames"]
     assert entry["lost_frames"] <= 0.1 * entry["frames"]
     ate = trajectory_ate(tmp_path / "cloud" / "r1" / "trajectory.tum", open_robot(spec))
     assert ate is not None and ate["rmse_m"] < 0.1

@@ -74,7 +74,7 @@ def cloud_robot_summary(name: str, source: str, offload_at: int, *, frames: int,
         "latency_ms_p95": float(np.percentile(latency_ms, 95)) if latency_ms else None,
         "tracking_fps": frames / span_s if span_s > 0 else None,
         "transport": transport,
-        **({"camera": camera} if camera is not None else {}),
+        **({"live_camera": camera} if camera is not None else {}),
         **({"keyframes_without_images": keyframes_without_images}
            if camera is not None or keyframes_without_images else {}),
         **robot_files(name),
@@ -131,10 +131,12 @@ Table = tuple[list[str], list[list[Any]]]  # headers, rows (the text and the HTM
 def camera_skipped(robot: dict[str, Any]) -> int | None:
     """Frames a robot's live camera delivered that it never took (None: a recording): from
     the cloud's summary (the robot's end message) or the robot's own report."""
-    if robot.get("camera"):
-        return robot["camera"]["skipped"]
-    report = robot.get("robot") or {}
-    return report.get("camera_skipped") if report.get("live_source") else None
+    if robot.get("live_camera"):
+        return robot["live_camera"]["skipped"]
+    report = robot.get("robot")  # a deployed robot's report (add_robot_reports)
+    if not isinstance(report, dict) or not report.get("live_source"):
+        return None
+    return report.get("camera_skipped")
 
 
 def robot_table(summary: dict[str, Any]) -> Table:

@@ -78,7 +78,7 @@ def render_page(run: RunData, figures: list[Figure], skipped: dict[str, str]) ->
     parts.append('<div class="notes"><ul>' + "".join(f"<li>{html.escape(n)}</li>"
                                                     for n in notes) + "</ul></div>")
     parts.append("<h2>Robots</h2>" + _table(*robot_table(s)))
-    cameras = {r["name"]: r["camera"] for r in s.get("robots", []) if r.get("camera")}
+    cameras = {r["name"]: r["live_camera"] for r in s.get("robots", []) if r.get("live_camera")}
     sources = [[r.name, r.source, *([_camera_note(cameras.get(r.name))] if cameras else [])]
                for r in run.robots]
     parts.append(_table(["robot", "source", *(["live camera"] if cameras else [])], sources))
