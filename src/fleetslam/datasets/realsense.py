@@ -1,9 +1,9 @@
 """An Intel RealSense as a live source, through pyrealsense2 (the ``realsense`` extra,
 imported only when a RealSense is asked for): the first device, one by serial number, or a
 RealSense recording played back in real time, so it behaves like the camera: ``.db3`` (the
-ROS 2 bag librealsense 2.57+ records) or a legacy ROS 1 ``.bag``, which pyrealsense2 no
-longer plays and converts to .db3 first (``context.convert_bag_to_db3``, into a temporary
-folder).
+ROS 2 bag librealsense 2.57+ records) or a ROS 1 ``.bag`` of older versions (pyrealsense2
+2.59 still opens those with its ROS 1 reader, calling the format deprecated; its
+``context.convert_bag_to_db3`` converts one).
 
 Depth is aligned to colour (``rs.align``): both images share the colour camera's pixel grid
 and intrinsics. The camera model comes from the device: fx, fy, ppx, ppy of the colour
@@ -13,7 +13,6 @@ depth scale (metres per unit) as ``Camera.depth_scale`` = units per metre.
 
 from __future__ import annotations
 
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -123,26 +122,12 @@ class RealSenseSource:
         self._stop = threading.Event()
         self._pipeline: Any = None
         self._thread: threading.Thread | None = None
-        self._converted: tempfile.TemporaryDirectory | None = None
-
-    def _playable(self, bag: Path) -> Path:
-        """The recording as pyrealsense2 plays it: a legacy ROS 1 .bag converted to .db3."""
-        if bag.suffix.lower() != ".bag":
-            return bag
-        self._converted = tempfile.TemporaryDirectory(prefix="fleetslam-realsense-")
-        out = Path(self._converted.name) / (bag.stem + ".db3")
-        try:
-            self._rs.context().convert_bag_to_db3(str(bag), str(out))
-        except (RuntimeError, AttributeError) as exc:
-            raise ValueError(f"{self.description}: pyrealsense2 cannot convert this ROS 1 "
-                             f"bag to .db3: {exc}") from None
-        return out
 
     def start(self, timeout: float) -> None:
         rs = self._rs
         config = rs.config()
         if self.bag is not None:
-            config.enable_device_from_file(str(self._playable(self.bag)), repeat_playback=False)
+            config.enable_device_from_file(str(self.bag), repeat_playback=False)
         else:
             if self.serial:
                 config.enable_device(self.serial)
@@ -207,9 +192,6 @@ class RealSenseSource:
                 pass
             self._pipeline = None
         self._slot.close()
-        if self._converted is not None:
-            self._converted.cleanup()
-            self._converted = None
 
     def _run(self, timeout: float) -> None:
         """The camera thread: align each frameset, convert it, put it in the slot."""
