@@ -144,18 +144,21 @@ def test_realsense_lens_models_map_to_opencv_coefficients():
     assert np.abs(uv.reshape(-1, 2) - np.stack([u.ravel(), v.ravel()], 1)).max() < 0.5
 
 
-def test_a_realsense_recording_plays_through_pyrealsense2_as_a_camera(tmp_path):
-    """The recording is written by librealsense's own recorder (a software device fed with
-    TUM frames) and played by its playback device in real time, aligned to colour."""
+@pytest.mark.parametrize("suffix", [".db3", ".bag"])
+def test_a_realsense_recording_plays_through_pyrealsense2_as_a_camera(tmp_path, suffix):
+    """TUM frames as a RealSense recording (.db3 by librealsense's own recorder from a software
+    device; a ROS 1 .bag in librealsense's layout by rosbags), played by pyrealsense2's
+    playback device in real time, aligned to colour."""
     pytest.importorskip("pyrealsense2")
-    from realsense_recording import write_realsense_recording
+    from realsense_recording import write_realsense_recording, write_realsense_ros1_bag
 
     from fleetslam.datasets.live_sources import open_live
 
     recording = open_robot(f"{require(TUM_RPY)}:0-29")
     frames = [recording[i] for i in range(len(recording))]
-    path = tmp_path / "fr1_rpy.db3"
-    write_realsense_recording(path, frames, recording.camera)
+    path = tmp_path / f"fr1_rpy{suffix}"
+    write = write_realsense_recording if suffix == ".db3" else write_realsense_ros1_bag
+    write(path, frames, recording.camera)
     source = open_live(f"realsense:{path}", Config())
     assert isinstance(source, LiveSource)
     span = float(recording.timestamps[-1] - recording.timestamps[0])
