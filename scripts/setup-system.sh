@@ -1,6 +1,8 @@
 #!/bin/sh
-# System packages fleetslam needs: a Python 3.11+ with venv and pip. Everything else comes
-# from PyPI wheels (OpenCV headless, small_gicp, ...), which need no system libraries.
+# System packages fleetslam needs: a Python 3.11+ with venv and pip, and libusb for the
+# pyrealsense2 wheel (the realsense extra; its wheel links libusb-1.0.so.0 but does not ship
+# it). Everything else comes from PyPI wheels (OpenCV headless, small_gicp, ...), which need
+# no system libraries.
 set -e
 PYTHON="${1:-python3}"
 need_install=0
@@ -18,5 +20,15 @@ if [ "$need_install" = 1 ]; then
     else
         echo "fleetslam needs Python >= 3.11 with venv; install it and rerun" >&2
         exit 1
+    fi
+fi
+if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""
+        [ "$(id -u)" = 0 ] || SUDO="sudo"
+        $SUDO apt-get update -qq
+        $SUDO apt-get install -y -qq libusb-1.0-0
+    else
+        echo "pyrealsense2 (the realsense extra) needs libusb-1.0; install it for RealSense" >&2
     fi
 fi

@@ -24,7 +24,7 @@ from fleetslam.launch import free_endpoint
 from fleetslam.backend.back_end import TrackingPipeline
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
-from fleetslam.transport import keys
+from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import PROTOCOL, Code
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import FORMAT_VERSION, Kind, open_message
@@ -860,4 +860,32 @@ def test_a_missing_reference_is_refused_and_the_robot_falls_back_to_intra(cloud,
     np.testing.assert_array_equal(np.array(tracked), np.array(expected))
     counts = server.sessions["r0"].state.counts
     assert counts["rejected frame"] == 1 and counts["errors"] == 0
+    robot.close()
+
+
+def test_keyframes_a_live_robot_no_longer_holds_are_mapped_without_images(cloud, messages):
+    """A live camera keeps no recording: keyframes the robot cannot upload are named in its
+    end message and the session ends without them (never asked for again); its camera's
+    counts reach the summary."""
+    _, client = cloud
+    seq0, msgs0, _ = messages["r0"]
+    robot = FakeRobot(client, "r0", seq0.camera)
+    robot.hello()
+    for data in msgs0:
+        robot.send(data)
+    keyframes = [fb.frame_index for fb in robot.poses(N_FRAMES) if fb.is_keyframe]
+    assert keyframes
+    robot.z.put(keys.control("r0"), protocol.encode(protocol.end(N_FRAMES - 1)))
+    assert sorted(robot.reply("need", timeout=30.0)["frames"]) == keyframes
+    camera = {"source": "replay of test at 30 fps", "delivered": 40, "taken": N_FRAMES,
+              "skipped": 40 - N_FRAMES}
+    bad = protocol.end(N_FRAMES - 1, None, camera, ["x"])
+    robot.z.put(keys.control("r0"), protocol.encode(bad))
+    assert "bad unavailable keyframes" in robot.reply("error")["reason"]
+    robot.z.put(keys.control("r0"), protocol.encode(
+        protocol.end(N_FRAMES - 1, None, camera, keyframes)))
+    summary = robot.reply("ended", timeout=60.0)["summary"]
+    assert summary["live_camera"] == camera
+    assert summary["keyframes_without_images"] == len(keyframes) == summary["keyframes"]
+    assert summary["map_points"] == 0
     robot.close()

@@ -12,6 +12,7 @@ from typing import Any
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config, load_config
+from fleetslam.datasets.live_sources import live_specs
 from fleetslam.planner.model import OBJECTIVES, SWEEP_MBPS
 from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
@@ -263,8 +264,37 @@ def _onboard_pipeline(config: Config, camera: Camera) -> Any:
     return TrackingPipeline(config, camera)
 
 
-def cmd_robot(args: argparse.Namespace, config: Config) -> int:
+def _robot_source(args: argparse.Namespace, config: Config) -> tuple[Any, Any]:
+    """(what the robot streams: a recording or a live source; the recording behind it, if
+    any). A live spec (``realsense...``) is a camera; a recording with ``--live`` is replayed
+    as one, on its recorded clock or at ``--rate`` fps; otherwise it is paced by ``--rate``."""
+    from fleetslam.datasets.live_sources import open_live
+    from fleetslam.datasets.replay import ReplaySource
     from fleetslam.datasets.recording import open_source
+    from fleetslam.edge.pacing import parse_rate
+
+    live = open_live(args.source, config)
+    if live is not None:
+        if args.rate is not None:
+            raise ValueError(f"--source {args.source}: a camera runs at its own rate; "
+                             f"--rate is for recordings")
+        if args.camera:
+            raise ValueError(f"--source {args.source}: the camera model comes from the "
+                             f"device; --camera is for recordings")
+        return live, None
+    camera = Camera.from_json(Path(args.camera)) if args.camera else None
+    _apply_topics(args, config)
+    recording = open_source(args.source, camera, config.source)
+    if not args.live:
+        return recording, recording
+    rate = args.rate or "recorded"
+    if rate == "max":
+        raise ValueError("--live --rate max: a live replay runs on a camera's clock: "
+                         "'recorded' or frames per second")
+    return ReplaySource(recording, args.source, parse_rate(rate) or None), recording
+
+
+def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.edge.robot import Robot
     from fleetslam.pipeline.split import ROBOT_TRACKS, parse_offload_point
 
@@ -275,9 +305,10 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
             setattr(config.link, name, value)
     if args.link_seed is not None:
         config.link.seed = args.link_seed
-    camera = Camera.from_json(Path(args.camera)) if args.camera else None
-    _apply_topics(args, config)
-    sequence = open_source(args.source, camera, config.source)
+    sequence, recording = _robot_source(args, config)
+    live = sequence is not recording
+    if live:  # its camera model (the device's, or the recording's image size) builds stages
+        sequence.start(config.source.live_frame_timeout_s)
     trace = parse_link_trace(args.link_trace) if args.link_trace else None
     if trace:
         if trace[0][0] != 0:
@@ -286,11 +317,14 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     planner = None
     if args.offload_at == "auto":
         k = 3
-        planner = _online_planner(args, config, sequence)
+        if recording is None and not args.plan_profile:
+            raise ValueError(f"--source {args.source} --offload-at auto: a camera cannot be "
+                             f"profiled before it runs; give --plan-profile")
+        planner = _online_planner(args, config, recording)
     else:
         k = parse_offload_point(args.offload_at)
-    robot = Robot(args.id, sequence, args.source, k, config, args.connect, args.rate,
-                  show_progress=not args.quiet,
+    robot = Robot(args.id, sequence, args.source, k, config, args.connect,
+                  "max" if live else args.rate or "max", show_progress=not args.quiet,
                   paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None,
                   planner=planner, link_trace=trace,
                   onboard=_onboard_pipeline(config, sequence.camera) if k == ROBOT_TRACKS
@@ -302,7 +336,10 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     print(f"robot {args.id}: {report.frames} frames sent from {report.first_index} "
           f"({report.frames_lost_on_link} lost on the link), {report.keyframes} keyframes "
           f"({report.upload_retries} upload retries), {report.frame_bytes / max(report.frames, 1) / 1000:.1f} "
-          f"kB/frame, total {report.total_s:.1f} s", file=sys.stderr)
+          f"kB/frame, total {report.total_s:.1f} s"
+          + (f"; from {report.live_source}: {report.camera_taken} frames taken, "
+             f"{report.camera_skipped} skipped (the robot was busy)" if live else ""),
+          file=sys.stderr)
     return 0
 
 
@@ -526,13 +563,18 @@ def build_parser() -> argparse.ArgumentParser:
                         help="another router to join (repeatable)")
     router.set_defaults(func=cmd_router)
 
-    robot = sub.add_parser("robot", help="stream a recorded sequence or bag to the cloud")
+    robot = sub.add_parser("robot", help="stream a recorded sequence or a camera to the cloud")
     robot.add_argument("--connect", default=None, metavar="ENDPOINT",
                        help="the cloud's Zenoh endpoint (default tcp/127.0.0.1:7447)")
     robot.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ -)")
-    robot.add_argument("--source", required=True, metavar="SOURCE[:FIRST-LAST]",
-                       help="TUM-layout folder (a synthetic scene's robot folder works too) "
-                       "or a ROS bag (.bag, ROS 2 bag folder, .mcap), optionally frame ranges")
+    robot.add_argument("--source", required=True, metavar="SOURCE[:FIRST-LAST] | CAMERA",
+                       help="TUM-layout folder (a synthetic scene's robot folder works too), "
+                       "a ROS bag (.bag, ROS 2 bag folder, .mcap), optionally frame ranges, "
+                       "or a live camera: " + live_specs())
+    robot.add_argument("--live", action="store_true",
+                       help="play the recording as a live camera: frames come on its clock "
+                       "(--rate: 'recorded', the default, or frames per second) and the robot "
+                       "takes the newest, skipping those it has no time for")
     robot.add_argument("--camera", help="camera.json overriding the detected camera")
     _add_topic_options(robot)
     robot.add_argument("--offload-at", default="paper",
@@ -544,9 +586,10 @@ def build_parser() -> argparse.ArgumentParser:
     robot.add_argument("--link-trace", metavar="FRAME:MBPS,...",
                        help="change the emulated bandwidth at these frames, e.g. "
                        "0:10,300:1,700:10")
-    robot.add_argument("--rate", default="max",
-                       help="'max' (as fast as stages and link allow), 'recorded' (at the "
-                       "recording's timestamps) or frames per second")
+    robot.add_argument("--rate", default=None,
+                       help="a recording: 'max' (default: as fast as stages and link allow), "
+                       "'recorded' (at the recording's timestamps) or frames per second, "
+                       "each frame held back, none skipped; with --live, the camera's rate")
     _add_link_options(robot)
     robot.add_argument("--link-seed", type=int, help="seed of the link's loss pattern")
     robot.add_argument("--report", help="write the robot's measurements here (JSON)")

@@ -53,10 +53,13 @@ def cloud_robot_summary(name: str, source: str, offload_at: int, *, frames: int,
                         repeated_frames: int, map_resets: int, map_points: int,
                         loop_closing: dict[str, Any], stage_seconds: dict[str, float],
                         cloud_ms: list[float], latency_ms: list[float], span_s: float,
-                        transport: dict[str, int]) -> dict[str, Any]:
+                        transport: dict[str, int], camera: dict[str, Any] | None = None,
+                        keyframes_without_images: int = 0) -> dict[str, Any]:
     """A robot's entry of the summary as the cloud tracked it: ``stage_seconds`` summed over
     the frames, the cloud's ms per frame and latency per frame, the seconds from its first
-    frame to its last, the transport's counts."""
+    frame to its last, the transport's counts; from a live source (``camera``) what it was,
+    the frames the robot took and those it skipped (the camera's newer frame replaced them
+    while the robot was busy), and keyframes mapped without images."""
     n = max(frames, 1)
     return {
         "name": name, "source": source, "offload_at": offload_at,
@@ -73,6 +76,9 @@ def cloud_robot_summary(name: str, source: str, offload_at: int, *, frames: int,
         "latency_ms_p95": float(np.percentile(latency_ms, 95)) if latency_ms else None,
         "tracking_fps": frames / span_s if span_s > 0 else None,
         "transport": transport,
+        **({"live_camera": camera} if camera is not None else {}),
+        **({"keyframes_without_images": keyframes_without_images}
+           if camera is not None or keyframes_without_images else {}),
         **robot_files(name),
     }
 
@@ -124,17 +130,32 @@ def write_summary(out_dir: Path, summary: dict[str, Any]) -> None:
 Table = tuple[list[str], list[list[Any]]]  # headers, rows (the text and the HTML report)
 
 
+def camera_skipped(robot: dict[str, Any]) -> int | None:
+    """Frames a robot's live camera delivered that it never took (None: a recording): from
+    the cloud's summary (the robot's end message) or the robot's own report."""
+    if robot.get("live_camera"):
+        return robot["live_camera"]["skipped"]
+    report = robot.get("robot")  # a deployed robot's report (add_robot_reports)
+    if not isinstance(report, dict) or not report.get("live_source"):
+        return None
+    return report.get("camera_skipped")
+
+
 def robot_table(summary: dict[str, Any]) -> Table:
-    """One row per robot: frames, losses, loops, ATE (if scored), speed, map size."""
+    """One row per robot: frames, losses, loops, ATE (if scored), speed, map size; with a
+    live camera, the frames it skipped."""
+    robots = summary["robots"]
+    live = any(camera_skipped(r) is not None for r in robots)
     rows = []
-    for r in summary["robots"]:
+    for r in robots:
         ate = r["ate"]["rmse_m"] * 100 if r.get("ate") else None
         loops = r.get("loop_closing") or {}
-        rows.append([r["name"], r["frames"], r["keyframes"], r["lost_frames"],
+        rows.append([r["name"], r["frames"], *([camera_skipped(r)] if live else []),
+                     r["keyframes"], r["lost_frames"],
                      loops.get("relocalisations"), loops.get("loops_accepted"), ate,
                      r.get("tracking_fps"), r["map_points"]])
-    return (["robot", "frames", "keyframes", "lost", "relocalised", "loops", "ATE RMSE cm",
-             "fps", "map points"], rows)
+    return (["robot", "frames", *(["camera skipped"] if live else []), "keyframes", "lost",
+             "relocalised", "loops", "ATE RMSE cm", "fps", "map points"], rows)
 
 
 def transport_table(summary: dict[str, Any]) -> Table | None:

@@ -8,7 +8,8 @@ from typing import TextIO
 
 
 class Progress:
-    def __init__(self, label: str, total: int, unit: str = "frames", stream: TextIO | None = None,
+    def __init__(self, label: str, total: int | None, unit: str = "frames",
+                 stream: TextIO | None = None,
                  enabled: bool = True, min_interval_s: float = 0.25) -> None:
         self.label = label
         self.total = total
@@ -26,7 +27,8 @@ class Progress:
         if not self.enabled:
             return
         now = time.perf_counter()
-        final = done >= self.total
+        # No total (a live camera): no ETA; the caller's last line is not marked final.
+        final = self.total is not None and done >= self.total
         if final and self._finished:
             return  # the final line is printed once
         self._finished = final
@@ -36,14 +38,23 @@ class Progress:
         self._last_print = now
         elapsed = now - self.start
         rate = done / elapsed if elapsed > 0 else 0.0
-        eta = f"{(self.total - done) / rate:5.0f}s" if rate > 0 else "    -"
-        line = (f"{self.label}: {done}/{self.total} {self.unit}  {rate:5.1f}/s  "
-                f"ETA {eta}" + (f"  {note}" if note else ""))
+        if self.total is None:
+            line = f"{self.label}: {done} {self.unit}  {rate:5.1f}/s"
+        else:
+            eta = f"{(self.total - done) / rate:5.0f}s" if rate > 0 else "    -"
+            line = f"{self.label}: {done}/{self.total} {self.unit}  {rate:5.1f}/s  ETA {eta}"
+        line += f"  {note}" if note else ""
         if self._tty:
             self.stream.write("\r" + line.ljust(100) + ("\n" if final else ""))
         else:
             self.stream.write(line + "\n")
         self.stream.flush()
+
+    def finish(self, done: int, note: str = "") -> None:
+        """The last line, for work whose total was not known (a live camera)."""
+        if self.total is None:
+            self.total = done
+        self.update(done, note)
 
     def message(self, text: str) -> None:
         if self.enabled:

@@ -457,7 +457,8 @@ class RobotSession:
         st = self.state
         self._reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
                                      len(self.store.keyframe_indices(self.robot_id)),
-                                     self.references.size, taken_over))
+                                     self.references.size, taken_over,
+                                     st.rows[-1].timestamp if st.rows else None))
 
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")
@@ -486,15 +487,19 @@ class RobotSession:
             return
         try:
             poses = protocol.keyframe_poses(message)
+            camera = protocol.end_camera(message)
+            unavailable = protocol.end_unavailable(message)
         except ValueError as exc:
             return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
         self.state.robot_keyframe_poses.update(poses)
         self.back_end.finish()
+        # A keyframe the robot cannot upload (a live camera's, gone) is mapped without its
+        # images rather than asked for again.
         missing = [i for i in self.outputs.keyframe_poses()
-                   if not self.store.has_keyframe(self.robot_id, i)]
+                   if not self.store.has_keyframe(self.robot_id, i) and i not in unavailable]
         if missing:
             return self._reply(protocol.need(missing))
-        self.finished = self.outputs.finish()
+        self.finished = self.outputs.finish(camera)
         # Durable before the robot hears "ended": another worker restores it finished.
         self.state.ended = True
         number = self.checkpoints.checkpoint(self.state.last_index)

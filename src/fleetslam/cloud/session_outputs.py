@@ -69,8 +69,9 @@ class SessionOutputs:
         return self.state.tracking.final_poses([r.reference_keyframe for r in rows],
                                                [r.T_reference_camera for r in rows], online)
 
-    def finish(self) -> FinishedMap:
-        """Write the trajectory, keyframes and dense map; return the map for the merge."""
+    def finish(self, camera: dict[str, Any] | None = None) -> FinishedMap:
+        """Write the trajectory, keyframes and dense map; return the map for the merge.
+        ``camera``: a live source's counts (the robot's end message), for the summary."""
         st = self.state
         out_dir = self.store.robot_dir(self.robot_id)
         rows = st.rows
@@ -81,6 +82,8 @@ class SessionOutputs:
 
         def keyframes():
             for i in kf_index:
+                if not self.store.has_keyframe(self.robot_id, i):
+                    continue  # the robot could not upload it (a live camera's, gone)
                 _, upload = decode_keyframe(self.store.keyframe(self.robot_id, i))
                 yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
                        kf_poses[i], upload.stride)
@@ -90,7 +93,7 @@ class SessionOutputs:
                           np.array([time_of.get(i, np.nan) for i in kf_index]),
                           np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
                           points, colors)
-        summary = self.summary(len(points))
+        summary = self.summary(len(points), camera)
         write_robot_summary(out_dir, summary)
         log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,
                  len(rows), len(kf_index), len(points))
@@ -110,7 +113,9 @@ class SessionOutputs:
         rows = self.state.rows
         camera = self.state.hello.camera
 
-        def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int]:
+        def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+            if not self.store.has_keyframe(self.robot_id, index):
+                return None  # never uploaded: the robot had it no more (a live camera)
             _, upload = decode_keyframe(self.store.keyframe(self.robot_id, index))
             return upload.rgb, camera.depth_to_metres(upload.depth_raw), upload.stride
 
@@ -118,17 +123,21 @@ class SessionOutputs:
                           np.array([r.reference_keyframe for r in rows], np.int64),
                           [r.T_reference_camera for r in rows], keyframe_image)
 
-    def summary(self, map_points: int) -> dict[str, Any]:
-        """The robot's entry of summary.json."""
+    def summary(self, map_points: int, camera: dict[str, Any] | None = None
+                ) -> dict[str, Any]:
+        """The robot's entry of summary.json; ``camera``: a live source's counts."""
         st = self.state
         tracking = st.tracking
+        kf_index = self.keyframe_poses()
         return cloud_robot_summary(
             self.robot_id, st.hello.source, st.hello.offload_at,
-            frames=len(st.rows), keyframes=len(self.keyframe_poses()),
+            frames=len(st.rows), keyframes=len(kf_index),
             lost_frames=int(sum(not r.tracked for r in st.rows)),
             loss_events=tracking.loss_events, repeated_frames=tracking.repeated_frames,
             map_resets=tracking.resets, map_points=map_points,
             loop_closing=self.back_end.summary(), stage_seconds=st.stage_seconds,
             cloud_ms=st.cloud_ms, latency_ms=st.latency_ms,
             span_s=(st.last_frame_time or 0.0) - (st.first_frame_time or 0.0),
-            transport=self._transport())
+            transport=self._transport(), camera=camera,
+            keyframes_without_images=sum(not self.store.has_keyframe(self.robot_id, i)
+                                         for i in kf_index))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 from typing import Generic, Protocol, TypeVar, runtime_checkable
 
 from fleetslam.camera import Camera
@@ -30,6 +31,12 @@ class NewestFrame(Generic[T]):
         self.delivered = 0  # frames the camera put
         self.taken = 0  # frames the robot took
         self.skipped = 0  # frames overwritten before the robot took them
+
+    @property
+    def waiting(self) -> int:
+        """Frames in the slot: 0 or 1, however far the robot falls behind."""
+        with self._cond:
+            return int(self._frame is not None)
 
     def put(self, frame: T) -> None:
         with self._cond:
@@ -68,6 +75,14 @@ class NewestFrame(Generic[T]):
             return frame
 
 
+def take_numbered(slot: NewestFrame[Frame], timeout: float) -> Frame | None:
+    """``slot.take`` with the frame's index set to the count of frames taken before it: the
+    camera thread cannot know which of its frames will be taken, and the robot's frame
+    indices must be dense."""
+    frame = slot.take(timeout)
+    return None if frame is None else replace(frame, index=slot.taken - 1)
+
+
 @runtime_checkable
 class LiveSource(Protocol):
     """A camera the robot cannot hold back (``datasets.replay``, ``datasets.realsense``,
@@ -82,12 +97,18 @@ class LiveSource(Protocol):
         ...
 
     def take(self, timeout: float) -> Frame | None:
-        """The newest frame (``NewestFrame.take``); frame indices count taken frames."""
+        """The newest frame (``NewestFrame.take``); frame indices count taken frames from 0."""
         ...
 
     @property
     def skipped(self) -> int:
         """Frames the camera delivered that the robot never took."""
+        ...
+
+    @property
+    def delivered(self) -> int:
+        """Frames the camera delivered (``NewestFrame.delivered``): with the frames taken and
+        skipped, what a run's summary shows of its camera."""
         ...
 
     def close(self) -> None: ...

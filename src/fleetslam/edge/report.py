@@ -37,10 +37,24 @@ class RobotReport:
     resumed_at: int | None = None
     cloud_summary: dict[str, Any] | None = None
     # An adaptive robot: every re-plan (measured link, chosen point / features / step) and
-    # how many frames went at each point; frames it skipped by its frame step.
+    # how many frames went at each point; frames it skipped by its frame step (its own
+    # choice, unlike camera_skipped).
     plan_history: list[dict[str, Any]] = field(default_factory=list)
     frames_per_point: dict[str, int] = field(default_factory=dict)
     frames_skipped: int = 0
+    # A live source (None: a recording): what it is; the frames it delivered, those the
+    # robot took from it, the
+    # frames the camera delivered while the robot was busy and that a newer frame replaced
+    # (the robot did not keep up with the camera), and on a resumed session the frames not
+    # after the session's last timestamp (it has them already).
+    live_source: str | None = None
+    camera_delivered: int = 0
+    camera_taken: int = 0
+    camera_skipped: int = 0
+    camera_before_resume: int = 0
+    # Keyframes the cloud asked for that the robot could no longer upload (a live camera's,
+    # gone from its buffer, or from before a restart): the map is built without them.
+    keyframes_unavailable: int = 0
     # Flow control: seconds the robot waited for its window of frames in flight, and the
     # waits that ran out (the cloud did not answer in time).
     flow_wait_s: float = 0.0

@@ -6,8 +6,11 @@ the conversation with the cloud (hello / welcome, replies, end). Its threads:
 - main thread: frames from the read-ahead thread, held back by ``pacing.Pacer`` (``--rate``)
   and by ``flow.FlowWindow`` (at most ``transport.max_frames_in_flight`` frames without
   feedback), through the stages and the wire encoding (``encoder.FrameEncoder``), handed to
-  the send thread;
-- read thread (``pacing.read_ahead``): decodes the next images, as a camera driver would;
+  the send thread; from a live source (``datasets.live.LiveSource``: the camera is the
+  clock) the newest frame each time it is ready for one, never paced, those it missed
+  counted (``RobotReport.camera_skipped``);
+- read thread (``pacing.read_ahead``): decodes the next images, as a camera driver would
+  (a live source has its own camera thread instead);
 - send thread (``sender.FrameOutbox``): frames onto the link, which blocks at link speed;
 - uploader thread (``uploader.KeyframeUploader``): each keyframe's decimated RGB-D, resent
   until the cloud acknowledges it;
@@ -25,13 +28,16 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from fleetslam.config import Config
-from fleetslam.datasets.source import RecordedSource
+from fleetslam.datasets.live import LiveSource
+from fleetslam.datasets.source import Frame, RecordedSource
 from fleetslam.edge.encoder import FrameEncoder
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
@@ -69,7 +75,11 @@ class OnboardTracker(Protocol):
 
 
 class Robot:
-    def __init__(self, robot_id: str, sequence: RecordedSource, source: str, offload_at: int,
+    """``sequence``: a recording (paced by ``rate``) or a live source, started by the caller
+    (its camera model builds the stages), which the robot closes when its run ends."""
+
+    def __init__(self, robot_id: str, sequence: RecordedSource | LiveSource, source: str,
+                 offload_at: int,
                  config: Config, endpoint: str | None = None, rate: str = "max",
                  show_progress: bool = True, paper_yaml_dir: Path | None = None,
                  planner: OnlinePlanner | None = None,
@@ -81,6 +91,10 @@ class Robot:
             raise ValueError(f"a robot tracks by itself (and is given its onboard pipeline) at "
                              f"point {ROBOT_TRACKS} only, not at {offload_at}")
         self.fps = parse_rate(rate)
+        self.live = sequence if isinstance(sequence, LiveSource) else None
+        if self.live is not None and self.fps is not None:
+            raise ValueError(f"robot {robot_id}: {self.live.description} delivers frames at "
+                             f"its own rate; --rate {rate} holds back recorded frames only")
         if paper_yaml_dir is not None and offload_at != 3:
             raise ValueError("the paper's YAML message holds the state at point 3 "
                              f"(--offload-at paper), not {offload_at}")
@@ -113,12 +127,16 @@ class Robot:
         self.encoder = FrameEncoder(self.robot_id, sequence.camera, config, stages, sides,
                                     self.report, paper_yaml_dir)
         self.window = FlowWindow(self.robot_id, config, self.report)
-        self.uploader = KeyframeUploader(self.robot_id, sequence, offload_at, config,
-                                         self.report)
+        if self.live is not None:
+            self.report.live_source = self.live.description
+        # A live camera keeps no recording to read an old keyframe from again.
+        self.uploader = KeyframeUploader(self.robot_id, None if self.live else sequence,
+                                         offload_at, config, self.report)
         self.sender: Sender | None = None  # the link, once run() has connected
         self._replies: queue.Queue = queue.Queue()
         # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
         self._need_hello = threading.Event()
+        self._resume_after: float | None = None  # a resumed live camera: the session's last stamp
 
     # -- what the cloud says (Zenoh callbacks) --------------------------------------------
 
@@ -200,6 +218,8 @@ class Robot:
             self._stream()
             self._finish()
         finally:
+            if self.live is not None:
+                self.live.close()
             self.uploader.stop()
             self.sender.close()
             for sub in subs:
@@ -210,17 +230,17 @@ class Robot:
     def _stream(self) -> None:
         """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send."""
         seq, start_index = self._open_session()
-        n = len(self.sequence)
+        n = None if self.live is not None else len(self.sequence)
         progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
-                            n - start_index, enabled=self.show_progress)
+                            None if n is None else n - start_index, enabled=self.show_progress)
         t0 = self.sender.t0 = time.monotonic()
         pacer = Pacer(self.fps, t0, start_index)
         outbox = FrameOutbox(self.sender, self.window)
-        frames = read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
         k, step = self.offload_at, 1
-        for i, frame in zip(range(start_index, n), frames):
+        i = start_index - 1
+        for i, frame in enumerate(self._frames(start_index), start_index):
             k, step = self._adapt(i, start_index, k, step)
-            if step > 1 and (i - start_index) % step and i != n - 1:
+            if step > 1 and (i - start_index) % step and i != (n or 0) - 1:
                 self.report.frames_skipped += 1
                 continue
             if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
@@ -239,12 +259,43 @@ class Robot:
             self.report.frames += 1
             self.report.frame_bytes += len(data)
             seq += 1
-            progress.update(i + 1 - start_index, f"kf {self.report.keyframes}"
-                            + (f" k={k} f={self.config.orb.n_features} step={step}"
-                               if self.planner is not None else ""))
+            progress.update(i + 1 - start_index, self._progress_note(k, step))
         outbox.close()
+        progress.finish(i + 1 - start_index, self._progress_note(k, step))
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
+
+    def _progress_note(self, k: int, step: int) -> str:
+        return (f"kf {self.report.keyframes}"
+                + (f" camera skipped {self.live.skipped}" if self.live is not None else "")
+                + (f" k={k} f={self.config.orb.n_features} step={step}"
+                   if self.planner is not None else ""))
+
+    def _frames(self, start_index: int) -> Iterator[Frame]:
+        """A recording's frames from ``start_index`` on (read ahead), or the live camera's
+        newest frame each time the loop asks, numbered on from ``start_index``."""
+        if self.live is None:
+            yield from read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
+            return
+        live, timeout = self.live, self.config.source.live_frame_timeout_s
+        index = start_index
+        while True:
+            try:
+                frame = live.take(timeout)
+            except TimeoutError:
+                raise RuntimeError(f"robot {self.robot_id}: {live.description} delivered no "
+                                   f"frame in {timeout:.1f} s (source.live_frame_timeout_s): "
+                                   f"is the camera still streaming?") from None
+            if frame is None:  # the camera's stream ended (a replay or a recording did)
+                break
+            if self._resume_after is not None and frame.timestamp <= self._resume_after:
+                self.report.camera_before_resume += 1  # the session has this moment already
+                continue
+            self.report.camera_taken += 1
+            yield replace(frame, index=index)
+            index += 1
+        self.report.camera_skipped = live.skipped
+        self.report.camera_delivered = live.delivered
 
     def _adapt(self, i: int, start_index: int, k: int, step: int) -> tuple[int, int]:
         """Before frame ``i``: the emulated link changes (a recorded trace); an adaptive robot
@@ -262,6 +313,12 @@ class Robot:
         """Hello: the session's next seq and the frame it starts (or resumes) at."""
         welcome = self._hello()
         start_index = int(welcome["next_index"])
+        # A live camera cannot go back to a frame index: it numbers its frames on from the
+        # session's next index, and drops those not after the session's last timestamp (a
+        # replay restarted from its beginning; a camera's clock has moved on anyway).
+        last = welcome.get("last_timestamp")
+        self._resume_after = float(last) if self.live is not None and last is not None \
+            else None
         if welcome.get("resumed") and start_index and self.offload_at == ROBOT_TRACKS:
             raise RuntimeError(
                 f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
@@ -275,8 +332,11 @@ class Robot:
         return int(welcome["next_seq"]), start_index
 
     def _hello(self) -> dict[str, Any]:
+        # A live camera's frame count is unknown (None) until it stops; the cloud reads it
+        # nowhere (resume goes by its own next index).
         message = Hello(self.offload_at, self.sequence.camera, self.source,
-                        self.planner is not None).message(len(self.sequence))
+                        self.planner is not None).message(
+            None if self.live is not None else len(self.sequence))
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
             self.sender.control(message)
@@ -294,13 +354,19 @@ class Robot:
         for its 'ended' (trajectory and map written)."""
         self.uploader.wait()
         poses = self.onboard.keyframe_poses() if self.onboard is not None else None
-        message = protocol.end(self._last_seq, None if poses is None else {
-            str(index): T.tolist() for index, T in poses.items()})
+        poses_json = None if poses is None else {
+            str(index): T.tolist() for index, T in poses.items()}
+        camera = None if self.live is None else {
+            "source": self.live.description, "delivered": self.report.camera_delivered,
+            "taken": self.report.camera_taken, "skipped": self.report.camera_skipped}
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):
             if self.uploader.error:
                 raise RuntimeError(self.uploader.error)
-            self.sender.control(message)
+            # Keyframes the robot cannot upload (a live camera's, gone from its buffer): the
+            # cloud builds the map without their images instead of asking again.
+            self.sender.control(protocol.end(self._last_seq, poses_json, camera,
+                                             sorted(self.uploader.unavailable)))
             if self._await_reply(("ending",), cfg.connect_timeout_s) is None:
                 continue  # the end message was lost, or the cloud is restarting
             answer = self._await_reply(("need", "ended"), END_TIMEOUT_S)

@@ -21,12 +21,14 @@ log = logging.getLogger("fleetslam.robot")
 
 
 class KeyframeUploader:
-    """Keeps the uploads of the last ``transport.keyframe_buffer_frames`` frames (an older
-    keyframe is read again from the recording) and the point each went at; uploads each
-    keyframe once, resending it every ``ack_timeout_s`` up to ``max_attempts`` times."""
+    """Keeps the uploads of the last ``transport.keyframe_buffer_frames`` frames and the
+    point each went at, and a keyframe's until the cloud acknowledges it; an older keyframe
+    is read again from the recording, or, without one (``sequence`` None: a live camera),
+    is unavailable: the robot tells the cloud so at its end. Uploads each keyframe once,
+    resending it every ``ack_timeout_s`` up to ``max_attempts`` times."""
 
-    def __init__(self, robot_id: str, sequence: RecordedSource, offload_at: int, config: Config,
-                 report: RobotReport) -> None:
+    def __init__(self, robot_id: str, sequence: RecordedSource | None, offload_at: int,
+                 config: Config, report: RobotReport) -> None:
         self.robot_id = robot_id
         self.sequence = sequence
         self.offload_at = offload_at
@@ -37,7 +39,10 @@ class KeyframeUploader:
         self._acks_lock = threading.Lock()
         self._uploads: queue.Queue = queue.Queue()
         self._buffer: OrderedDict[int, KeyframeUpload] = OrderedDict()
+        # Keyframes' uploads until acknowledged (small: decimated to the map's stride).
+        self._pinned: dict[int, KeyframeUpload] = {}
         self._buffer_lock = threading.Lock()
+        self.unavailable: set[int] = set()  # keyframes this robot can no longer upload
         # The point each recent frame went at (an adaptive robot switches).
         self._point_of: OrderedDict[int, int] = OrderedDict()
         self._thread: threading.Thread | None = None
@@ -64,6 +69,10 @@ class KeyframeUploader:
         """The cloud made frame ``index`` a keyframe: upload it, unless it went at point 0
         (which gave the cloud its images already)."""
         if self._point_of.get(index, self.offload_at) > 0:
+            with self._buffer_lock:
+                upload = self._buffer.get(index)
+                if upload is not None:
+                    self._pinned[index] = upload
             self.queue(index)
 
     def queue(self, index: int) -> None:
@@ -76,6 +85,7 @@ class KeyframeUploader:
         self._uploads.put(index)
 
     def acknowledged(self, index: int) -> None:
+        self._unpin(index)
         with self._acks_lock:
             event = self._acks.get(index)
             if event is not None and not event.is_set():
@@ -90,7 +100,12 @@ class KeyframeUploader:
             event = self._acks.get(index) if isinstance(index, int) else None
         if event is not None and not event.is_set():
             self.report.uploads_not_needed += 1
+            self._unpin(index)
             event.set()
+
+    def _unpin(self, index: int) -> None:
+        with self._buffer_lock:
+            self._pinned.pop(index, None)
 
     # -- the uploader thread --------------------------------------------------------------
 
@@ -122,10 +137,17 @@ class KeyframeUploader:
 
     def _upload(self, index: int, send: Callable[[str, bytes], bool]) -> None:
         cfg = self.config.transport
-        data = encode_keyframe(self.robot_id, index, self._keyframe_upload(index),
-                               self.config.wire)
         with self._acks_lock:
             event = self._acks[index]
+        upload = self._keyframe_upload(index)
+        if upload is None:  # never resent: nothing to send; the end message says so
+            log.warning("robot %s: keyframe %d is no longer held (a live camera keeps no "
+                        "recording); the cloud maps without it", self.robot_id, index)
+            self.unavailable.add(index)
+            self.report.keyframes_unavailable += 1
+            event.set()
+            return
+        data = encode_keyframe(self.robot_id, index, upload, self.config.wire)
         for attempt in range(cfg.max_attempts):
             if attempt:
                 self.report.upload_retries += 1
@@ -136,10 +158,14 @@ class KeyframeUploader:
                 return
         raise RuntimeError(f"keyframe {index} not acknowledged after {cfg.max_attempts} tries")
 
-    def _keyframe_upload(self, index: int) -> KeyframeUpload:
+    def _keyframe_upload(self, index: int) -> KeyframeUpload | None:
+        """The keyframe's upload; None if it is gone (a live camera's, older than the buffer
+        and never pinned: its feedback came late, or before a restart)."""
         with self._buffer_lock:
-            upload = self._buffer.get(index)
+            upload = self._pinned.get(index) or self._buffer.get(index)
         if upload is None:  # older than the buffer: read it again from the recording
+            if self.sequence is None:
+                return None
             frame = self.sequence[index]
             upload = KeyframeUpload.from_frame(index, frame.timestamp, frame.rgb, frame.depth_raw,
                                                self.config.map.pixel_stride)

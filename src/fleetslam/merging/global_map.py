@@ -31,8 +31,9 @@ from fleetslam.registration.metrics import transform_error
 
 log = logging.getLogger("fleetslam.merge")
 
-# (rgb, depth_m, decimated_by) of the keyframe at a frame index.
-KeyframeImage = Callable[[int], tuple[np.ndarray, np.ndarray, int]]
+# (rgb, depth_m, decimated_by) of the keyframe at a frame index; None for a keyframe whose
+# images the robot could not upload (a live camera's, gone from its buffer).
+KeyframeImage = Callable[[int], tuple[np.ndarray, np.ndarray, int] | None]
 
 
 @dataclass
@@ -87,7 +88,11 @@ def _local_clouds(track: RobotTrack, frame_indices: Iterable[int], config: Confi
                   ) -> list[tuple[np.ndarray, np.ndarray]]:
     clouds = []
     for i in frame_indices:
-        rgb, depth_m, decimated_by = track.keyframe_image(i)
+        image = track.keyframe_image(i)
+        if image is None:  # no images: an empty cloud keeps the list aligned with the poses
+            clouds.append((np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)))
+            continue
+        rgb, depth_m, decimated_by = image
         clouds.append(keyframe_local_cloud(track.camera, rgb, depth_m, config.map, decimated_by))
     return clouds
 

@@ -26,6 +26,14 @@ figcaption { color: #555; font-size: 13px; max-width: 900px; }
 """
 
 
+def _camera_note(camera: dict[str, Any] | None) -> str | None:
+    """A live source's line: what it was and how many frames the robot took and skipped."""
+    if camera is None:
+        return None
+    return (f"{camera['source']}: {camera['delivered']} frames delivered, {camera['taken']} "
+            f"taken, {camera['skipped']} skipped (the robot was busy)")
+
+
 def _table(headers: list[str], rows: list[list[Any]]) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
     body = "".join(
@@ -70,8 +78,10 @@ def render_page(run: RunData, figures: list[Figure], skipped: dict[str, str]) ->
     parts.append('<div class="notes"><ul>' + "".join(f"<li>{html.escape(n)}</li>"
                                                     for n in notes) + "</ul></div>")
     parts.append("<h2>Robots</h2>" + _table(*robot_table(s)))
-    sources = [[r.name, r.source] for r in run.robots]
-    parts.append(_table(["robot", "source"], sources))
+    cameras = {r["name"]: r["live_camera"] for r in s.get("robots", []) if r.get("live_camera")}
+    sources = [[r.name, r.source, *([_camera_note(cameras.get(r.name))] if cameras else [])]
+               for r in run.robots]
+    parts.append(_table(["robot", "source", *(["live camera"] if cameras else [])], sources))
     transport = transport_table(s)
     if transport:
         parts.append("<h2>Robot &rarr; cloud</h2>" + _table(*transport))

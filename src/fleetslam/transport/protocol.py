@@ -103,7 +103,9 @@ class Hello:
             raise ValueError("hello source must be a string")
         return Hello(int(k), camera, source, adaptive)
 
-    def message(self, frames: int) -> dict[str, Any]:
+    def message(self, frames: int | None) -> dict[str, Any]:
+        """``frames``: how many the robot will send, None from a live camera (unknown until
+        it stops). Informational: the cloud's progress and resume go by what it tracked."""
         return {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
                 "adaptive": self.adaptive, "camera": self.camera.to_dict(),
                 "source": self.source, "frames": frames}
@@ -112,21 +114,58 @@ class Hello:
 # -- robot <-> cloud ------------------------------------------------------------------------
 
 def welcome(resumed: bool, next_index: int, next_seq: int, keyframes_stored: int,
-            reference_frames: int = 0, taken_over: bool = False) -> dict[str, Any]:
+            reference_frames: int = 0, taken_over: bool = False,
+            last_timestamp: float | None = None) -> dict[str, Any]:
     # reference_frames: the decoded frames the session keeps as references for inter-coded
     # frames (wire/inter.py); a cloud that says nothing (older) takes intra frames only.
     # taken_over: unasked, from a worker that restored the session after its worker died.
+    # last_timestamp: of the session's last tracked frame (None: none yet); a resumed live
+    # camera cannot seek to next_index, so it drops frames not after this moment.
     message = {"type": "welcome", "resumed": resumed, "next_index": next_index,
                "next_seq": next_seq, "keyframes_stored": keyframes_stored,
-               "reference_frames": reference_frames}
+               "reference_frames": reference_frames, "last_timestamp": last_timestamp}
     return {**message, "taken_over": True} if taken_over else message
 
 
-def end(last_seq: int, keyframe_poses: dict[str, list] | None = None) -> dict[str, Any]:
+def end(last_seq: int, keyframe_poses: dict[str, list] | None = None,
+        camera: dict[str, Any] | None = None, unavailable: list[int] | None = None
+        ) -> dict[str, Any]:
+    """``camera``: a live source's counts (``source``, ``delivered``, ``taken``, ``skipped``:
+    frames it delivered that the robot, busy, never took), for the summary; ``unavailable``: keyframes
+    the robot cannot upload (a live camera keeps no recording): mapped without images."""
     message: dict[str, Any] = {"type": "end", "last_seq": last_seq}
     if keyframe_poses is not None:
         message["keyframe_poses"] = keyframe_poses
+    if camera is not None:
+        message["camera"] = camera
+    if unavailable:
+        message["unavailable"] = unavailable
     return message
+
+
+def end_camera(message: dict[str, Any]) -> dict[str, Any] | None:
+    """An ``end`` message's live camera counts, or None (a recording); ValueError saying
+    what is wrong."""
+    camera = message.get("camera")
+    if camera is None:
+        return None
+    if not isinstance(camera, dict) or not isinstance(camera.get("source"), str) \
+            or len(camera["source"]) > 200:
+        raise ValueError("bad camera counts: not an object with a source name")
+    for name in ("delivered", "taken", "skipped"):
+        value = camera.get(name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"bad camera counts: {name} {value!r} is not a count")
+    return {name: camera[name] for name in ("source", "delivered", "taken", "skipped")}
+
+
+def end_unavailable(message: dict[str, Any]) -> set[int]:
+    """An ``end`` message's keyframes the robot cannot upload; ValueError if malformed."""
+    frames = message.get("unavailable") or []
+    if not isinstance(frames, list) or not all(
+            isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in frames):
+        raise ValueError("bad unavailable keyframes: not a list of frame indices")
+    return set(frames)
 
 
 def keyframe_poses(message: dict[str, Any]) -> dict[int, np.ndarray]:
