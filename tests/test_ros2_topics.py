@@ -616,3 +616,63 @@ except RuntimeError as exc:
                          timeout=60).stdout.splitlines()
     assert out == ["False", "ROS 2 topics are decoded with rosbags, which this install lacks: "
                             "pip install 'fleetslam[ros]'"]
+
+
+# ---------------------------------------------------------------------- the whole robot
+
+
+def test_fleetslam_robot_tracks_live_ros2_topics_and_ctrl_c_ends_it(sdk_session, tmp_path):
+    """`fleetslam robot --source ros2:ENDPOINT` (its own process) on a ROS 2 camera node we
+    did not write (zenoh-ros2-sdk, 150 fr1_rpy frames at 30 fps): the cloud tracks what it
+    takes, and Ctrl-C, the way a live camera's run ends, finishes with the cloud (trajectory
+    and summary written, camera counts in them) instead of dropping the session."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.evaluation.fleet import trajectory_ate
+    from fleetslam.launch import CloudClient, free_endpoint
+
+    folder = require(TUM_RPY)
+    cloud_endpoint = free_endpoint()
+    server = CloudServer(Config(), tmp_path / "cloud", cloud_endpoint).start()
+    node = CameraNode(sdk_session, folder, wait_for_subscriber_s=60.0)
+    robot = None
+    try:
+        robot = subprocess.Popen(
+            [sys.executable, "-m", "fleetslam.cli", "--quiet", "robot", "--id", "r1",
+             "--source", f"ros2:{sdk_session}", "--connect", cloud_endpoint,
+             "--report", str(tmp_path / "r1.json")],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        node.start()
+        node.join(90.0)  # every frame published, once the robot subscribed
+        time.sleep(1.0)  # the last frames reach the robot
+        assert robot.poll() is None, robot.communicate()
+        robot.send_signal(signal.SIGINT)
+        _, err = robot.communicate(timeout=120)
+        assert robot.returncode == 0, err
+        assert "stopping: finishing with the cloud" in err
+        client = CloudClient(cloud_endpoint, 30.0)
+        try:
+            client.merge()  # the fleet's summary.json
+        finally:
+            client.close()
+    finally:
+        if robot is not None and robot.poll() is None:
+            robot.kill()
+        node.close()
+        server.close()
+    report = json.loads((tmp_path / "r1.json").read_text())
+    assert report["live_source"].startswith("ROS 2")
+    assert report["camera_taken"] + report["camera_skipped"] == report["camera_delivered"]
+    assert report["camera_delivered"] >= 120  # some lost to DROP congestion control under load
+    entry = json.loads((tmp_path / "cloud" / "summary.json").read_text())["robots"][0]
+    assert entry["live_camera"]["taken"] == report["camera_taken"] == entry["frames"]
+    assert entry["lost_frames"] <= 0.1 * entry["frames"]
+    # Evaluation only, after the run: the topics' stamps are the folder's.
+    from fleetslam.datasets.tum import RgbdSequence
+
+    ate = trajectory_ate(tmp_path / "cloud" / "r1" / "trajectory.tum", RgbdSequence(folder))
+    assert ate is not None and ate["rmse_m"] < 0.1

@@ -294,6 +294,26 @@ def _robot_source(args: argparse.Namespace, config: Config) -> tuple[Any, Any]:
     return ReplaySource(recording, args.source, parse_rate(rate) or None), recording
 
 
+def _run_until_stopped(robot: Any, robot_id: str) -> Any:
+    """``robot.run()``; the first Ctrl-C (or SIGTERM) ends its stream and lets it finish
+    with the cloud (a live camera has no last frame), the second aborts."""
+    import signal
+
+    def stop(signum: int, _frame: Any) -> None:
+        print(f"fleetslam robot {robot_id}: stopping: finishing with the cloud "
+              f"(Ctrl-C again to abort)", file=sys.stderr, flush=True)
+        robot.stop()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return robot.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.edge.robot import Robot
     from fleetslam.pipeline.split import ROBOT_TRACKS, parse_offload_point
@@ -329,7 +349,7 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
                   planner=planner, link_trace=trace,
                   onboard=_onboard_pipeline(config, sequence.camera) if k == ROBOT_TRACKS
                   else None)
-    report = robot.run()
+    report = _run_until_stopped(robot, args.id)
     if args.report:
         Path(args.report).parent.mkdir(parents=True, exist_ok=True)
         Path(args.report).write_text(report.to_json())

@@ -61,6 +61,8 @@ log = logging.getLogger("fleetslam.robot")
 
 # A robot that sends "end" waits this long for its last frames and map (cloud backlog).
 END_TIMEOUT_S = 900.0
+# How often a robot waiting for a live camera's frame looks whether it was stopped.
+STOP_POLL_S = 0.25
 
 
 class OnboardTracker(Protocol):
@@ -137,6 +139,9 @@ class Robot:
         # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
         self._need_hello = threading.Event()
         self._resume_after: float | None = None  # a resumed live camera: the session's last stamp
+        # Set by ``stop`` (the first Ctrl-C): the stream ends before its next frame and the
+        # robot finishes with the cloud as at the end of a recording.
+        self._stopping = threading.Event()
 
     # -- what the cloud says (Zenoh callbacks) --------------------------------------------
 
@@ -227,6 +232,12 @@ class Robot:
             zs.close()
         return self.report
 
+    def stop(self) -> None:
+        """End the stream before the next frame; the run then ends as at the end of a
+        recording (the end message, the uploads the cloud still needs, its 'ended'): how a
+        live camera's run is ended."""
+        self._stopping.set()
+
     def _stream(self) -> None:
         """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send."""
         seq, start_index = self._open_session()
@@ -239,6 +250,8 @@ class Robot:
         k, step = self.offload_at, 1
         i = start_index - 1
         for i, frame in enumerate(self._frames(start_index), start_index):
+            if self._stopping.is_set():
+                break
             k, step = self._adapt(i, start_index, k, step)
             if step > 1 and (i - start_index) % step and i != (n or 0) - 1:
                 self.report.frames_skipped += 1
@@ -261,6 +274,9 @@ class Robot:
             seq += 1
             progress.update(i + 1 - start_index, self._progress_note(k, step))
         outbox.close()
+        if self.live is not None:  # whether the camera's stream ended or the robot stopped
+            self.report.camera_skipped = self.live.skipped
+            self.report.camera_delivered = self.live.delivered
         progress.finish(i + 1 - start_index, self._progress_note(k, step))
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
@@ -279,13 +295,17 @@ class Robot:
             return
         live, timeout = self.live, self.config.source.live_frame_timeout_s
         index = start_index
-        while True:
-            try:
-                frame = live.take(timeout)
+        deadline = time.monotonic() + timeout
+        while not self._stopping.is_set():
+            try:  # short waits, so a stop is seen while the camera is silent
+                frame = live.take(min(STOP_POLL_S, max(deadline - time.monotonic(), 0.0)))
             except TimeoutError:
+                if time.monotonic() < deadline:
+                    continue
                 raise RuntimeError(f"robot {self.robot_id}: {live.description} delivered no "
                                    f"frame in {timeout:.1f} s (source.live_frame_timeout_s): "
                                    f"is the camera still streaming?") from None
+            deadline = time.monotonic() + timeout
             if frame is None:  # the camera's stream ended (a replay or a recording did)
                 break
             if self._resume_after is not None and frame.timestamp <= self._resume_after:
@@ -294,8 +314,6 @@ class Robot:
             self.report.camera_taken += 1
             yield replace(frame, index=index)
             index += 1
-        self.report.camera_skipped = live.skipped
-        self.report.camera_delivered = live.delivered
 
     def _adapt(self, i: int, start_index: int, k: int, step: int) -> tuple[int, int]:
         """Before frame ``i``: the emulated link changes (a recorded trace); an adaptive robot
