@@ -5,6 +5,7 @@ install it."""
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 import threading
 import time
 
@@ -203,6 +204,19 @@ def test_without_a_display_the_live_view_is_served_for_a_viewer_to_connect(monke
                for line in recording.live_plan(config.view, None, True))
     view = open_view(config, None, live=True)
     out = tmp_path / "received.rrd"
+    expected = {"/world/r0/camera", "/robots/r0/split_point"}
+
+    def received_paths(path: Path) -> set[str]:
+        from rerun.chunk import RrdReader
+
+        if not path.exists():
+            return set()
+        with warnings.catch_warnings():  # a file cut short has no footer: read it whole
+            warnings.simplefilter("ignore")
+            try:
+                return set(RrdReader(str(path)).stream().collect().schema().entity_paths())
+            except ValueError:  # nothing recorded yet ("No recording store found")
+                return set()
     client = subprocess.Popen([viewer_cli, recording.grpc_url(config.view), "--save", str(out),
                                "--port", "auto"], stdin=subprocess.DEVNULL,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -212,7 +226,11 @@ def test_without_a_display_the_live_view_is_served_for_a_viewer_to_connect(monke
             T = np.eye(4)
             T[0, 3] = 0.1 * i
             view.frame("r0", i, T, True, i == 0, 3, 10.0)
-        time.sleep(3.0)  # the client connects (the server keeps what came before)
+        # The client connects (the server keeps what came before) and records what it got;
+        # its start-up takes seconds on a loaded machine: wait for it, with a deadline.
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and not expected <= received_paths(out):
+            time.sleep(0.5)
         view.close()
         time.sleep(1.0)
     finally:
@@ -222,9 +240,4 @@ def test_without_a_display_the_live_view_is_served_for_a_viewer_to_connect(monke
         except subprocess.TimeoutExpired:
             client.kill()
             client.wait()
-    from rerun.chunk import RrdReader
-
-    with warnings.catch_warnings():  # a file cut short has no footer: read it whole
-        warnings.simplefilter("ignore")
-        received = RrdReader(str(out)).stream().collect().schema().entity_paths()
-    assert {"/world/r0/camera", "/robots/r0/split_point"} <= set(received)
+    assert expected <= received_paths(out)
