@@ -5,9 +5,9 @@ install it."""
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
