@@ -75,6 +75,26 @@ class NewestFrame(Generic[T]):
             return frame
 
 
+class SlotCounts:
+    """The counts of a live source that feeds a ``NewestFrame`` slot (``self._slot``)."""
+
+    _slot: NewestFrame
+
+    @property
+    def skipped(self) -> int:
+        """Frames the camera delivered that the robot never took."""
+        return self._slot.skipped
+
+    @property
+    def delivered(self) -> int:
+        return self._slot.delivered
+
+    @property
+    def waiting(self) -> int:
+        """Frames held for the robot: at most one, whatever its pace."""
+        return self._slot.waiting
+
+
 def take_numbered(slot: NewestFrame[Frame], timeout: float) -> Frame | None:
     """``slot.take`` with the frame's index set to the count of frames taken before it: the
     camera thread cannot know which of its frames will be taken, and the robot's frame

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from fleetslam.camera import Camera
-from fleetslam.datasets.live import NewestFrame, take_numbered
+from fleetslam.datasets.live import NewestFrame, SlotCounts, take_numbered
 from fleetslam.datasets.source import Frame
 
 EXTRA = "needs the realsense extra: pip install 'fleetslam[realsense]'"
@@ -106,7 +106,7 @@ def parse_realsense_spec(spec: str) -> tuple[str | None, Path | None] | None:
     return rest, None
 
 
-class RealSenseSource:
+class RealSenseSource(SlotCounts):
     """``LiveSource`` over a RealSense device or a RealSense .bag played in real time."""
 
     def __init__(self, spec: str, serial: str | None = None, bag: Path | None = None) -> None:
@@ -172,14 +172,6 @@ class RealSenseSource:
 
     def take(self, timeout: float) -> Frame | None:
         return take_numbered(self._slot, timeout)
-
-    @property
-    def skipped(self) -> int:
-        return self._slot.skipped
-
-    @property
-    def delivered(self) -> int:
-        return self._slot.delivered
 
     def close(self) -> None:
         self._stop.set()

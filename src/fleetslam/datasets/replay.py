@@ -13,11 +13,11 @@ import threading
 import time
 
 from fleetslam.camera import Camera
-from fleetslam.datasets.live import NewestFrame, take_numbered
+from fleetslam.datasets.live import NewestFrame, SlotCounts, take_numbered
 from fleetslam.datasets.source import Frame, RecordedSource
 
 
-class ReplaySource:
+class ReplaySource(SlotCounts):
     """``LiveSource`` over a recording. ``fps`` None: at the recording's timestamps."""
 
     def __init__(self, recording: RecordedSource, name: str, fps: float | None) -> None:
@@ -50,19 +50,6 @@ class ReplaySource:
 
     def take(self, timeout: float) -> Frame | None:
         return take_numbered(self._slot, timeout)
-
-    @property
-    def skipped(self) -> int:
-        return self._slot.skipped
-
-    @property
-    def delivered(self) -> int:
-        return self._slot.delivered
-
-    @property
-    def waiting(self) -> int:
-        """Frames held for the robot: at most one, whatever its pace."""
-        return self._slot.waiting
 
     def close(self) -> None:
         self._stop.set()

@@ -28,7 +28,7 @@ import zenoh
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config, SourceConfig
-from fleetslam.datasets.live import NewestFrame
+from fleetslam.datasets.live import NewestFrame, SlotCounts
 from fleetslam.datasets.rmw_zenoh import (
     Endpoint,
     header_stamp,
@@ -128,7 +128,7 @@ def _writable(array: np.ndarray) -> np.ndarray:
     return array if array.flags.writeable else array.copy()
 
 
-class Ros2TopicSource:
+class Ros2TopicSource(SlotCounts):
     """Colour + depth + CameraInfo topics of a ROS 2 camera, live over rmw_zenoh."""
 
     def __init__(self, endpoint: str, config: SourceConfig, camera: Camera | None = None
@@ -212,15 +212,6 @@ class Ros2TopicSource:
             raise
         frame.index = self._slot.taken - 1
         return frame
-
-    @property
-    def skipped(self) -> int:
-        return self._slot.skipped
-
-    @property
-    def delivered(self) -> int:
-        """Pairs put in the slot."""
-        return self._slot.delivered
 
     @property
     def unpaired(self) -> int:
