@@ -446,6 +446,17 @@ class TransportConfig:
     # oldest is dropped beyond it: frames are best effort, keyframes are not).
     max_sessions: int = 64
     max_queued_frames: int = 256
+    # Bytes a session may hold for its robot (frames waiting, undecoded and decoded, uploads
+    # waiting, reference frames); beyond it frames and uploads are dropped unread and the
+    # robot told to slow down (cloud/memory_budget.py). A point-0 frame decodes to ~2.2 MB,
+    # so an honest robot's window of max_frames_in_flight = 12 holds ~26 MB, plus an upload
+    # or two (~0.6 MB each) and its references (64 x ~35 KB at point 3): 64 MB is twice that.
+    session_budget_mb: float = 64.0
+    # Bytes all sessions may hold: each session reserves its budget, so the cloud opens at
+    # most cloud_budget_mb // session_budget_mb sessions (4 GB: 64 sessions, what a 2-core
+    # cloud of 8 GB holds beside its maps). A reservation, not a shared pool: one robot's
+    # flood can never take the room another robot's session needs.
+    cloud_budget_mb: float = 4096.0
     # An unfinished session that hears nothing from its robot this long is checkpointed and
     # closed (its threads and memory freed); the robot's next message restores it.
     idle_session_s: float = 900.0

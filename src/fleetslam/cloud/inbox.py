@@ -9,7 +9,7 @@ import logging
 import threading
 import time
 from collections import Counter, deque
-from typing import Any
+from typing import Any, Callable
 
 from fleetslam.config import TransportConfig
 
@@ -22,10 +22,12 @@ REJECTION_REPLY_INTERVAL_S = 1.0
 class WorkQueue:
     """A session's inbox: frames and control messages in arrival order, at most ``max_frames``
     frames. Frames are best effort, so when a robot sends faster than its session tracks, the
-    oldest waiting frame is dropped (and counted); control messages are never dropped."""
+    oldest waiting frame is dropped (and counted); control messages are never dropped.
+    ``on_drop`` is told of each frame dropped (its bytes leave the session's budget)."""
 
-    def __init__(self, max_frames: int) -> None:
+    def __init__(self, max_frames: int, on_drop: Callable[[Any], None] | None = None) -> None:
         self.max_frames = max_frames
+        self._on_drop = on_drop
         self.dropped = 0
         self._items: deque[Any] = deque()
         self._frames = 0
@@ -37,6 +39,8 @@ class WorkQueue:
                 if self._frames >= self.max_frames:
                     oldest = next(i for i, x in enumerate(self._items)
                                   if x is not None and x[0] == "frame")
+                    if self._on_drop is not None:
+                        self._on_drop(self._items[oldest])
                     del self._items[oldest]
                     self._frames -= 1
                     self.dropped += 1

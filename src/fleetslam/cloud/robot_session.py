@@ -10,7 +10,8 @@ never touches another's. Zenoh's callbacks only enqueue (submit_*); then
 - the checkpoint writer (checkpoint_writer.py) writes the checkpoints taken at keyframes,
   at the end and on closing, then hands each new keyframe to the merger.
 
-Its other parts: inbox.py (the inbox; admission: a flooding robot is paused), session_outputs.py
+Its other parts: inbox.py (the inbox; admission: a flooding robot is paused), memory_budget.py
+(the bytes it holds: beyond its budget, frames and uploads are dropped unread), session_outputs.py
 (the robot's files and summary when it ends), session_state.py (what a checkpoint holds).
 """
 
@@ -30,6 +31,7 @@ from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud import session_state
 from fleetslam.cloud.checkpoint_writer import CheckpointWriter, KeyframeSink
 from fleetslam.cloud.inbox import Admission, WorkQueue
+from fleetslam.cloud.memory_budget import MB, SessionBudget, captured_frame_bytes, held_bytes
 from fleetslam.cloud.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
 from fleetslam.cloud.store import CloudStore
@@ -58,6 +60,10 @@ log = logging.getLogger("fleetslam.cloud")
 
 # A robot's seq may skip frames lost on the link, but not this many at once.
 MAX_SEQ_JUMP = 100_000
+
+# Counts of what the memory budget dropped unread (always in the summary, 0 included).
+OVER_BUDGET = {"frame": "frames dropped unread (over memory budget)",
+               "keyframe": "keyframes dropped unread (over memory budget)"}
 
 
 Publish = Callable[[str, bytes], None]
@@ -90,11 +96,18 @@ class RobotSession:
         self.admission = Admission(state.robot_id, config.transport, state.counts,
                                    self._counts_lock)
         self.last_heard = time.monotonic()
+        # The bytes its frames, uploads and references hold (memory_budget.py): a raw frame
+        # in the inbox is ("frame", data, arrival, charge), a decoded one ("frame",
+        # (header, state, charge), arrival); each releases its charge when tracked or dropped.
+        self.budget = SessionBudget(int(config.transport.session_budget_mb * MB),
+                                    captured_frame_bytes(state.hello.camera))
         # Frames and control in arrival order: the receive thread decodes each frame (and
         # tells the robot it holds it as a reference) and passes it on to the tracking
         # thread, so a busy tracker does not delay what inter-frame coding may refer to.
-        self._frames = WorkQueue(config.transport.max_queued_frames)
-        self._decoded = WorkQueue(config.transport.max_queued_frames)
+        self._frames = WorkQueue(config.transport.max_queued_frames,
+                                 lambda item: self.budget.release(item[3]))
+        self._decoded = WorkQueue(config.transport.max_queued_frames,
+                                  lambda item: self.budget.release(item[1][2]))
         self._decoded_seq = state.last_seq  # newest frame put in the reference ring
         self._keyframes: queue.Queue = queue.Queue()
         # A restored session's checkpoint on disk covers all of it.
@@ -105,7 +118,7 @@ class RobotSession:
                              daemon=True),
             threading.Thread(target=self._serve, args=(self._decoded, self._on_work),
                              name=f"cloud-{state.robot_id}", daemon=True),
-            threading.Thread(target=self._serve, args=(self._keyframes, self._on_keyframe),
+            threading.Thread(target=self._serve, args=(self._keyframes, self._on_upload),
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
         ]
 
@@ -159,8 +172,11 @@ class RobotSession:
     def submit_frame(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
         self.view.received(self.robot_id, len(data))
-        if not self.admission.paused():
-            self._frames.put(("frame", data, arrival))
+        if self.admission.paused():
+            return
+        charge = self.budget.frame_charge(len(data))
+        if self._admit("frame", charge):
+            self._frames.put(("frame", data, arrival, charge))
 
     def submit_control(self, message: dict[str, Any], arrival: float) -> None:
         self.last_heard = time.monotonic()
@@ -169,8 +185,24 @@ class RobotSession:
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
         self.view.received(self.robot_id, len(data))
-        if not self.admission.paused():
+        if not self.admission.paused() and self._admit("keyframe", len(data)):
             self._keyframes.put(("keyframe", data, arrival))
+
+    def _admit(self, what: str, charge: int) -> bool:
+        """Whether a message of ``charge`` bytes fits the session's budget; if not it is
+        dropped unread (counted) and the robot told to slow down, at most once a second."""
+        if self.budget.admit(charge):
+            return True
+        self.count(OVER_BUDGET[what])
+        if self.budget.due_to_tell():
+            limit = self.config.transport.session_budget_mb
+            self._reply(protocol.error(
+                protocol.Code.OVER_BUDGET,
+                f"{what} dropped unread: the session holds its memory budget of {limit:.0f} MB "
+                f"(transport.session_budget_mb); keep to max_frames_in_flight"
+                + (" and resend it once acknowledged ones leave room" if what == "keyframe"
+                   else ""), rejected=what))
+        return False
 
     # -- counts -------------------------------------------------------------------------
 
@@ -184,8 +216,9 @@ class RobotSession:
 
     def _transport_counts(self) -> dict[str, int]:
         """The counts as the summary's ``transport`` has them."""
-        return {**self.counts(),
-                "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped}
+        return {**{name: 0 for name in OVER_BUDGET.values()}, **self.counts(),
+                "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped,
+                "memory budget peak MB": round(self.budget.peak / MB, 1)}
 
     def _snapshot(self) -> Capture:
         """The state as a checkpoint now; under the counts lock, since the keyframe thread
@@ -214,21 +247,32 @@ class RobotSession:
         while True:
             item = self._frames.get()
             if item is not None and item[0] == "frame":
+                _, data, arrival, charge = item
                 try:
-                    item = self._decode(item[1], item[2])
+                    item = self._decode(data, arrival)
                 except Exception:  # a bug on one message must not end the robot's session
+                    item = None
                     self.count("errors")
                     log.exception("robot %s: frame message failed", self.robot_id)
-                    continue
                 if item is None:
+                    self.budget.release(charge)
                     continue
+                # Held decoded now: charged at its arrays' size until tracked.
+                header, state = item[1]
+                actual = held_bytes(state)
+                self.budget.decoded(charge, actual)
+                item = ("frame", (header, state, actual), arrival)
             self._decoded.put(item)
             if item is None:
                 return
 
     def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
         if kind == "frame":
-            self._on_frame(payload, arrival)
+            header, state, charge = payload
+            try:
+                self._on_frame((header, state), arrival)
+            finally:
+                self.budget.release(charge)
         elif kind == "control":
             self._on_control(payload, arrival)
         elif kind == "call":
@@ -267,6 +311,7 @@ class RobotSession:
             self._decoded_seq = header.seq
             if reference is not None and self.references.size:
                 self.references.put(header.seq, reference)
+                self.budget.references(self.references.nbytes())
                 self._reply(protocol.held(header.seq))
         return ("frame", (header, state), arrival)
 
@@ -360,6 +405,13 @@ class RobotSession:
                                      lmap.keyframe_poses())
 
     # -- keyframes (the keyframe thread: uploads; the tracking thread: the rest) ----------
+
+    def _on_upload(self, kind: str, data: bytes, arrival: float) -> None:
+        """An upload off the keyframe queue; its bytes leave the budget once handled."""
+        try:
+            self._on_keyframe(kind, data, arrival)
+        finally:
+            self.budget.release(len(data))
 
     def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
         """A keyframe's upload: checked, stored, acknowledged once a checkpoint covers it."""

@@ -191,6 +191,10 @@ class Robot:
             return self.uploader.not_needed(message.get("frame_index"))
         if code == protocol.Code.REFERENCE_MISSING.value:
             return self.encoder.references_lost()
+        if code == protocol.Code.OVER_BUDGET.value:
+            # Dropped unread: the window forgets those frames at the next feedback, and an
+            # upload is resent until acknowledged. Not an answer to a hello.
+            return
         if code == protocol.Code.NO_SESSION.value:  # the cloud lost us: hello again
             self._need_hello.set()
         self._replies.put(message)

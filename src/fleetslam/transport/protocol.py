@@ -47,6 +47,9 @@ class Code(str, Enum):
     # closed session): the robot sends intra frames until new references are acknowledged.
     REFERENCE_MISSING = "reference_missing"
     FAILED = "failed"  # the cloud tried and failed (e.g. a merge)
+    # The robot's session holds its memory budget: frames and uploads beyond it are dropped
+    # unread (an upload is resent until acknowledged). Keep to max_frames_in_flight.
+    OVER_BUDGET = "over_budget"
 
 
 def encode(message: dict[str, Any]) -> bytes:

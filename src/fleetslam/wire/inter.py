@@ -233,6 +233,10 @@ class ReferenceRing:
     def __len__(self) -> int:
         return len(self._frames)
 
+    def nbytes(self) -> int:
+        """Bytes the references hold (the cloud counts them in a session's budget)."""
+        return sum(r.descriptors.nbytes + r.angles.nbytes for r in self._frames.values())
+
     def clear(self) -> None:
         self._frames.clear()
 
