@@ -189,3 +189,37 @@ def test_an_honest_robot_at_point_0_loses_no_frame_to_the_budget(tmp_path):
         assert session.budget.peak <= config.transport.session_budget_mb * MB
     finally:
         server.close()
+
+
+def test_hellos_beyond_the_cloud_budget_are_refused_with_the_reason(point0, tmp_path):
+    """Each session reserves its budget: a cloud of 32 MB with sessions of 16 MB opens two
+    (a flood in one never takes the room of the other)."""
+    from test_cloud import FakeRobot
+
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.launch import free_endpoint
+    from fleetslam.transport.zenoh_session import open_connecting
+
+    camera, _ = point0
+    config = exact_config()
+    config.transport.session_budget_mb = 16.0
+    config.transport.cloud_budget_mb = 32.0
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    client = open_connecting(endpoint)
+    robots = [FakeRobot(client, r, camera, offload_at=0) for r in ("r0", "r1", "r2")]
+    try:
+        robots[0].hello()
+        robots[1].hello()
+        client.put(keys.control("r2"), json.dumps(
+            {"type": "hello", "protocol": protocol.PROTOCOL, "offload_at": 0,
+             "camera": camera.to_dict()}).encode())
+        error = robots[2].reply("error")
+        assert error["code"] == protocol.Code.REFUSED.value
+        assert "transport.cloud_budget_mb" in error["reason"]
+        assert set(server.sessions) == {"r0", "r1"}
+    finally:
+        for r in robots:
+            r.close()
+        client.close()
+        server.close()

@@ -268,9 +268,7 @@ class Router:
                                   "no session: send a hello first")
             session = self.sessions.open(robot_id, hello)
             if session is None:
-                reason = (f"the cloud serves at most {self.config.transport.max_sessions} "
-                          f"robots at once (transport.max_sessions)")
-                return self.error(reply, protocol.Code.REFUSED, reason)
+                return self.error(reply, protocol.Code.REFUSED, self.sessions.refusal())
             log.info("robot %s: new session, offloading at %d, source %s", robot_id,
                      hello.offload_at, hello.source)
             session.welcome(resumed=False)

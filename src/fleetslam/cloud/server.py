@@ -35,7 +35,9 @@ from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud.fleet_merge import FleetMerge, MergeRequests
 from fleetslam.cloud.idle_reaper import IdleReaper
 from fleetslam.cloud.merge_role import MergeRole
+from fleetslam.cloud.memory_budget import MB
 from fleetslam.cloud.placement import Placement
+from fleetslam.cloud.robot_session import OVER_BUDGET
 from fleetslam.cloud.routing import Router
 from fleetslam.cloud.sessions import SessionTable
 from fleetslam.cloud.store import CloudStore
@@ -179,7 +181,10 @@ class CloudServer:
 
     def _status(self, rid: str | None) -> dict[str, Any]:
         robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
-                      "worker": self.worker_id}
+                      "worker": self.worker_id,
+                      # Its memory budget: held now, and what it dropped unread.
+                      "held_mb": round(s.budget.used / MB, 1),
+                      "dropped_over_budget": sum(s.counts()[c] for c in OVER_BUDGET.values())}
                   for r, s in self.sessions.now()}
         placement = self.placement
         return protocol.status(

@@ -14,6 +14,7 @@ from typing import Callable
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.camera import Camera
 from fleetslam.cloud.checkpoint_writer import KeyframeSink
+from fleetslam.cloud.memory_budget import sessions_allowed
 from fleetslam.cloud.robot_session import Publish, RobotSession
 from fleetslam.cloud.session_state import SessionState
 from fleetslam.cloud.store import CloudStore
@@ -66,13 +67,27 @@ class SessionTable(Mapping[str, RobotSession]):
             return self._live.get(robot_id)
 
     def full(self) -> bool:
-        return len(self._live) >= self.config.transport.max_sessions
+        """Whether a new session would pass transport.max_sessions, or its budget the cloud's
+        (each session reserves transport.session_budget_mb of transport.cloud_budget_mb)."""
+        return len(self._live) >= sessions_allowed(self.config.transport)
+
+    def refusal(self) -> str:
+        """Why a hello is refused when the table is full."""
+        t = self.config.transport
+        return (f"the cloud serves at most {sessions_allowed(t)} robots at once "
+                f"(transport.max_sessions {t.max_sessions}; transport.cloud_budget_mb "
+                f"{t.cloud_budget_mb:.0f} holds {t.cloud_budget_mb // t.session_budget_mb:.0f} "
+                f"sessions of transport.session_budget_mb {t.session_budget_mb:.0f})")
+
+    def held_bytes(self) -> int:
+        """Bytes every live session holds now (their budgets' use)."""
+        return sum(s.budget.used for _, s in self.now())
 
     # -- changing ---------------------------------------------------------------------------
 
     def open(self, robot_id: str, hello: Hello) -> RobotSession | None:
         """A new session for the robot's hello (the live one if a hello just opened it); None
-        if the worker serves ``transport.max_sessions`` robots already."""
+        if the table is full (``full``)."""
         with self.lock:
             if robot_id not in self._live and self.full():
                 return None
