@@ -14,6 +14,13 @@ quiet and one under flood:
 - an outsider without a certificate of the lab tries to connect twice a second.
 The cloud's resident memory is sampled every 0.25 s; r1's ATE is scored against ground
 truth after each run. Prints a table and writes bench/results/flood.json.
+
+    .venv/bin/python bench/flood.py --valid 1 [--frame-rate 60] [--seconds 20]
+
+``--valid N``: instead, N hostile robots (h1..hN, each with its own valid certificate and
+session) send valid point-0 frames (real images, seq and timestamps moving forward) at
+``--frame-rate`` each, ignoring flow control, beside r1. One run; what the cloud holds and
+dropped per robot comes from its status at the flood's end (bench/results/flood_valid_N.json).
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import struct
 import sys
 import time
 from dataclasses import replace
@@ -43,11 +51,14 @@ from fleetslam.pipeline.states import CapturedFrame  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
 from fleetslam.transport import keys, protocol  # noqa: E402
 from fleetslam.transport.certs import make_lab  # noqa: E402
-from fleetslam.wire.frames import encode_frame_message  # noqa: E402
+from fleetslam.wire.envelope import Kind, seal  # noqa: E402
+from fleetslam.wire.frames import _write_state, encode_frame_message  # noqa: E402
 from fleetslam.wire.messages import KeyframeUpload, encode_keyframe  # noqa: E402
 
 POINT = 3
 ATTACKER, VICTIM = "r2", "r1"
+# The payload of a frame message opens with (camera digest, index, timestamp).
+HEAD = struct.Struct("<Iqd")
 
 
 def attack_messages(folder: Path) -> list[tuple[str, bytes, str]]:
@@ -146,6 +157,47 @@ def flood(endpoint: str, lab: dict[str, str], rate: float, seconds: float,
                 "outsider_attempts": outsider_attempts, "outsider_refused": refused})
 
 
+def valid_flood(endpoint: str, lab: dict[str, str], hostiles: list[str], frame_rate: float,
+                seconds: float, folder: str, result: Any) -> None:
+    """The hostile robots' process: each says hello, then sends valid point-0 frames at
+    ``frame_rate`` without waiting for feedback. One real frame is encoded once; each message
+    gets its own seq, index and timestamp (rewritten in the payload's head and the envelope),
+    so encoding costs nothing and the cloud decodes and tracks every frame as valid."""
+    import zenoh
+
+    from fleetslam.transport.zenoh_session import open_connecting
+
+    seq = RgbdSequence(Path(folder))
+    f = next(iter(seq))
+    writer, _ = _write_state(CapturedFrame(0, 0.0, f.rgb, f.depth_m), 0, seq.camera,
+                             Config().wire)
+    payload = b"".join(writer.sections())
+    digest = HEAD.unpack_from(payload)[0]
+    hello = protocol.encode({"type": "hello", "protocol": protocol.PROTOCOL, "offload_at": 0,
+                             "camera": seq.camera.to_dict(), "source": "valid flood"})
+    sessions = {r: open_connecting(endpoint, 30.0, lab[r]) for r in hostiles}
+    for r, z in sessions.items():
+        z.put(keys.control(r), hello)
+    time.sleep(1.0)  # welcomed (a frame before the session opens is only refused)
+    start = time.monotonic()
+    sent = 0
+    n = int(frame_rate * seconds)
+    for i in range(1, n + 1):
+        timestamp = 1.0 + i / frame_rate
+        body = HEAD.pack(digest, i, timestamp) + payload[HEAD.size:]
+        for r, z in sessions.items():
+            z.put(keys.frame(r), seal(Kind.FRAME, r, i, timestamp, 0, body, compress=False),
+                  congestion_control=zenoh.CongestionControl.DROP)
+            sent += 1
+        ahead = start + i / frame_rate - time.monotonic()
+        if ahead > 0:
+            time.sleep(ahead)
+    for z in sessions.values():
+        z.close()
+    result.put({"sent": sent, "seconds": time.monotonic() - start,
+                "frame_bytes": len(payload)})
+
+
 def _rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -153,8 +205,9 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dict | None
-        ) -> dict:
+def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dict | None,
+        hostiles: list[str] | None = None) -> dict:
+    """One run of r1; ``flood_args`` with ``hostiles``: the valid-frame flood by those."""
     endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
     out = runs / name
     cloud = start_cloud(endpoint, out, out / "cloud.log", zenoh_config=lab["cloud"])
@@ -163,10 +216,19 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
     ctx = mp.get_context("spawn")
     result = ctx.Queue()
     t0 = time.monotonic()
+    robots_at_end: dict = {}
     try:
         client = CloudClient(endpoint, 60.0, lab["client"])
         client.status(timeout=60.0)
-        if flood_args is not None:
+        samples.append((time.monotonic() - t0, _rss_mb(cloud.pid)))  # its baseline
+        if flood_args is not None and hostiles:
+            attacker = ctx.Process(
+                target=valid_flood, args=(endpoint, lab, hostiles, flood_args["frame_rate"],
+                                          flood_args["seconds"], flood_args["folder"], result),
+                daemon=True)
+            attacker.start()
+            time.sleep(3.0)  # the flood is on before the robot starts
+        elif flood_args is not None:
             attacker = ctx.Process(
                 target=flood, args=(endpoint, lab, flood_args["rate"], flood_args["seconds"],
                                     flood_args["messages"], result), daemon=True)
@@ -179,6 +241,8 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
         while (robot.poll() is None or (attacker is not None and attacker.is_alive())) \
                 and time.monotonic() < deadline:
             samples.append((time.monotonic() - t0, _rss_mb(cloud.pid)))
+            if hostiles and attacker is not None and attacker.is_alive():
+                robots_at_end = client.status(timeout=30.0, gather_s=0.0)["robots"]
             time.sleep(0.25)
         if robot.poll() != 0:
             raise RuntimeError(f"robot r1 failed: {robot.returncode} (see {out / 'r1.log'})")
@@ -193,6 +257,7 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
     ate = trajectory_ate(out / VICTIM / "trajectory.tum", open_source(source))
     rss = np.array([s[1] for s in samples])
     return {"run": name, "frames": robot_json["frames"], "keyframes": robot_json["keyframes"],
+            "rss_mb_baseline": float(rss[0]), "robots_at_flood_end": robots_at_end,
             "transport": robot_json["transport"], "ate_m": ate["rmse_m"] if ate else None,
             "rss_mb_start": float(rss[0]), "rss_mb_max": float(rss.max()),
             "rss_mb_end": float(rss[-1]), "rss_samples": samples,
@@ -204,9 +269,16 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=2000.0, help="messages per second")
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--source", default=f"{SEVEN_SCENES}:0-599")
-    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "flood.json"))
+    parser.add_argument("--out", default=None)
+    parser.add_argument("--valid", type=int, default=0,
+                        help="hostile robots sending valid point-0 frames (0: the mixed flood)")
+    parser.add_argument("--frame-rate", type=float, default=60.0,
+                        help="frames per second of each hostile robot (--valid)")
     args = parser.parse_args()
     runs = Path("/tmp") / f"fleetslam-flood-{time.strftime('%Y%m%d-%H%M%S')}"
+    if args.valid:
+        return main_valid(args, runs)
+    args.out = args.out or str(Path(__file__).parent / "results" / "flood.json")
     lab = {k: str(v) for k, v in make_lab(runs / "lab", ["localhost"], [VICTIM, ATTACKER]).items()}
     messages = attack_messages(Path(args.source.split(":")[0]))
     quiet = run("quiet", runs, lab, args.source, None)
@@ -234,6 +306,35 @@ def main() -> None:
                                "seconds": args.seconds, "ate_change_percent": change,
                                "attack_mix": sorted({w for _, _, w in messages}),
                                "runs": [quiet, flooded]}, indent=2))
+    print(f"wrote {out}")
+
+
+def main_valid(args: argparse.Namespace, runs: Path) -> None:
+    hostiles = [f"h{i + 1}" for i in range(args.valid)]
+    lab = {k: str(v) for k, v in make_lab(runs / "lab", ["localhost"],
+                                          [VICTIM, *hostiles]).items()}
+    r = run("valid flood", runs, lab, args.source,
+            {"frame_rate": args.frame_rate, "seconds": args.seconds,
+             "folder": args.source.split(":")[0]}, hostiles)
+    robots = r["robots_at_flood_end"]
+    rows = [[h, robots.get(h, {}).get("frames"), robots.get(h, {}).get("held_peak_mb", "-"),
+             robots.get(h, {}).get("dropped_over_budget", "-")] for h in hostiles]
+    t = r["transport"]
+    print(f"{args.valid} hostile robot(s) sending valid point-0 frames at {args.frame_rate}/s "
+          f"each for {args.seconds} s, ignoring flow control; r1 on {args.source} (point "
+          f"{POINT}, recorded rate)")
+    print(format_table(["hostile", "frames tracked", "held MB peak", "dropped over budget"],
+                       rows))
+    print(f"r1: {r['frames']} frames, ATE {100 * r['ate_m']:.2f} cm, dropped (session busy) "
+          f"{t.get('frames dropped (session busy)', 0)}, dropped over budget "
+          f"{t.get('frames dropped unread (over memory budget)', '-')}; cloud RSS baseline "
+          f"{r['rss_mb_baseline']:.0f} MB, max {r['rss_mb_max']:.0f} MB, end "
+          f"{r['rss_mb_end']:.0f} MB; hostile frames sent {r.get('sent')}")
+    out = Path(args.out or Path(__file__).parent / "results" / f"flood_valid_{args.valid}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"source": args.source, "hostiles": args.valid,
+                               "frame_rate": args.frame_rate, "seconds": args.seconds,
+                               "run": r}, indent=2))
     print(f"wrote {out}")
 
 

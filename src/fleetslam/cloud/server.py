@@ -184,6 +184,7 @@ class CloudServer:
                       "worker": self.worker_id,
                       # Its memory budget: held now, and what it dropped unread.
                       "held_mb": round(s.budget.used / MB, 1),
+                      "held_peak_mb": round(s.budget.peak / MB, 1),
                       "dropped_over_budget": sum(s.counts()[c] for c in OVER_BUDGET.values())}
                   for r, s in self.sessions.now()}
         placement = self.placement
