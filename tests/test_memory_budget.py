@@ -223,3 +223,26 @@ def test_hellos_beyond_the_cloud_budget_are_refused_with_the_reason(point0, tmp_
             r.close()
         client.close()
         server.close()
+
+
+def test_uploads_beyond_the_budget_are_dropped_unread_under_it_read(point0, tmp_path):
+    """An upload larger than the room left is dropped before decoding (the robot resends
+    it); one that fits is read (here: rejected as garbage, after decoding)."""
+    camera, _ = point0
+    config = exact_config()
+    config.transport.session_budget_mb = 1.0
+    replies: list[dict] = []
+    session = _session(camera, config, tmp_path, replies)
+    try:
+        session.submit_keyframe(bytes(2 * MB), time.monotonic())
+        session.submit_keyframe(bytes(MB // 2), time.monotonic())
+        deadline = time.monotonic() + 10.0
+        while session.counts()["rejected keyframe"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        counts = session._transport_counts()
+        assert counts["keyframes dropped unread (over memory budget)"] == 1
+        assert counts["rejected keyframe"] == 1
+        assert session.budget.used == 0  # the read upload's bytes are released
+        assert any(r.get("code") == protocol.Code.OVER_BUDGET.value for r in replies)
+    finally:
+        session.close()

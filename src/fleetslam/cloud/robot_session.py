@@ -218,7 +218,7 @@ class RobotSession:
         """The counts as the summary's ``transport`` has them."""
         return {**{name: 0 for name in OVER_BUDGET.values()}, **self.counts(),
                 "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped,
-                "memory budget peak MB": round(self.budget.peak / MB, 1)}
+                "memory budget peak bytes": self.budget.peak}
 
     def _snapshot(self) -> Capture:
         """The state as a checkpoint now; under the counts lock, since the keyframe thread
