@@ -233,6 +233,8 @@ def run_cases(endpoint: str, pid: int, all_cases: list[Case], settle_s: float = 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--source", default=f"{SEVEN_SCENES}:0-89")
+    parser.add_argument("--expiry-wait-s", type=float, default=40.0,
+                        help="then count the cloud's threads and sessions again")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" /
                                              "fuzz_control.json"))
     args = parser.parse_args()
@@ -250,6 +252,10 @@ def main() -> None:
         results = run_cases(endpoint, cloud.pid, all_cases)
         threads_after = threads_of(cloud.pid)
         robot_rc = robot.wait(600)
+        # The fuzz's sessions never tracked a frame: they expire (transport.idle_empty_session_s).
+        time.sleep(args.expiry_wait_s)
+        threads_expired = threads_of(cloud.pid)
+        sessions_left = len(CloudClient(endpoint, 60.0).status(timeout=30.0)["robots"])
     finally:
         if robot is not None and robot.poll() is None:
             stop(robot)
@@ -264,9 +270,11 @@ def main() -> None:
     print(f"{len(results)} control-path cases against one cloud process ({endpoint})")
     print(format_table(
         ["cases", "messages", "exceptions in log", "status unanswered", "slowest case",
-         "its status ms", "cloud threads before/after", "log kB", "r1 exit", "r1 frames"],
+         "its status ms", "cloud threads before/after/expired", "sessions left", "log kB",
+         "r1 exit", "r1 frames"],
         [[len(results), sum(r["messages"] for r in results), len(found), len(unanswered),
-          slowest["case"], 1000 * slowest["status_s"], f"{threads_before}/{threads_after}",
+          slowest["case"], 1000 * slowest["status_s"],
+          f"{threads_before}/{threads_after}/{threads_expired}", sessions_left,
           len(log_text.encode()) / 1e3, robot_rc, frames]]))
     for line in found[:10]:
         print("  ", line)
@@ -275,7 +283,9 @@ def main() -> None:
     out.write_text(json.dumps({"source": args.source, "cases": results,
                                "exceptions": found, "unanswered": unanswered,
                                "threads_before": threads_before,
-                               "threads_after": threads_after, "log_bytes": len(log_text),
+                               "threads_after": threads_after,
+                               "threads_after_expiry": threads_expired,
+                               "sessions_left": sessions_left, "log_bytes": len(log_text),
                                "robot_exit": robot_rc, "robot_frames": frames}, indent=2))
     print(f"wrote {out}")
 
