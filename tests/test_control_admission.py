@@ -180,7 +180,8 @@ def test_a_robot_refused_by_a_full_cloud_says_the_cloud_is_full(scene, tmp_path)
                   show_progress=False)
     try:
         start = time.monotonic()
-        with pytest.raises(RuntimeError, match=r"is full .*at most 0 robots.*refused 2 times"):
+        with pytest.raises(RuntimeError,
+                           match=r"is full \(0 sessions\), refused 2 times: .*at most 0 robots"):
             robot.run()
         assert time.monotonic() - start < 10.0
     finally:

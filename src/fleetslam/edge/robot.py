@@ -72,6 +72,7 @@ class CloudRefused(RuntimeError):
         super().__init__(str(message.get("reason")))
         self.reason = str(message.get("reason"))
         self.full = message.get("full") is True  # no session slot free: may free up
+        self.max_sessions = message.get("max_sessions")
 
 
 class OnboardTracker(Protocol):
@@ -383,12 +384,13 @@ class Robot:
                                        f"refused it: {refusal.reason}") from None
                 if full >= cfg.full_retries:
                     raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
-                                       f"is full ({refusal.reason}); refused "
-                                       f"{full + 1} times") from None
+                                       f"is full ({refusal.max_sessions} sessions), refused "
+                                       f"{full + 1} times: {refusal.reason}") from None
                 wait = cfg.full_retry_s * 2 ** full
                 full += 1
-                log.warning("robot %s: the cloud at %s is full (%s); hello again in %.0f s",
-                            self.robot_id, self.endpoint, refusal.reason, wait)
+                log.warning("robot %s: the cloud at %s is full (%s sessions); hello again "
+                            "in %.0f s", self.robot_id, self.endpoint, refusal.max_sessions,
+                            wait)
                 time.sleep(wait)
                 continue
             if welcome is not None:
