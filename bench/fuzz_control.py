@@ -244,8 +244,9 @@ def main() -> None:
     all_cases = list(cases(camera))
     cloud = start_cloud(endpoint, runs / "cloud", runs / "cloud.log")
     robot = None
+    client = CloudClient(endpoint, 60.0)
     try:
-        CloudClient(endpoint, 60.0).status(timeout=60.0)
+        client.status(timeout=60.0)
         threads_before = threads_of(cloud.pid)
         robot = start_robot(endpoint, "r1", args.source, 3, runs / "r1.log",
                             runs / "r1_report.json", extra=["--rate", "recorded"])
@@ -255,8 +256,9 @@ def main() -> None:
         # The fuzz's sessions never tracked a frame: they expire (transport.idle_empty_session_s).
         time.sleep(args.expiry_wait_s)
         threads_expired = threads_of(cloud.pid)
-        sessions_left = len(CloudClient(endpoint, 60.0).status(timeout=30.0)["robots"])
+        sessions_left = len(client.status(timeout=30.0)["robots"])
     finally:
+        client.close()
         if robot is not None and robot.poll() is None:
             stop(robot)
         stop(cloud)
