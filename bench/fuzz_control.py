@@ -30,7 +30,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 from shared_data import SEVEN_SCENES  # noqa: E402
 
 from fleetslam.datasets.tum import RgbdSequence  # noqa: E402
-from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop  # noqa: E402
+from fleetslam.launch import (  # noqa: E402
+    CloudClient,
+    free_endpoint,
+    start_cloud,
+    start_robot,
+    stop,
+)
 from fleetslam.tables import format_table  # noqa: E402
 from fleetslam.transport import keys, protocol  # noqa: E402
 from fleetslam.transport.zenoh_session import open_connecting, put  # noqa: E402
