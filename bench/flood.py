@@ -2,6 +2,7 @@
 real sequence; the cloud must survive with bounded memory and the robot's ATE unchanged.
 
     .venv/bin/python bench/flood.py [--rate 2000] [--seconds 30] [--source SEQ:0-599]
+        [--mix all|ends]
 
 Everything runs as in a lab (`fleetslam certs`): the cloud is the Zenoh router with mutual
 TLS and access control. Two runs of robot r1 (point 3, frames at the recorded rate), one
@@ -12,8 +13,12 @@ quiet and one under flood:
   cloud's and unknown robots' keys (forged ends, frames, uploads, merge requests, hellos
   for new ids), which the access control drops;
 - an outsider without a certificate of the lab tries to connect twice a second.
-The cloud's resident memory is sampled every 0.25 s; r1's ATE is scored against ground
-truth after each run. Prints a table and writes bench/results/flood.json.
+With ``--mix ends`` the attacker instead opens a session on its own key and floods it with
+``end`` messages that name a last frame never sent (issue 27: 7,500 ends at 500/s took a
+cloud from 27 to 257 threads and 8.9 MB of log in 15 s).
+The cloud's resident memory and threads are sampled every 0.25 s, its log's size read at
+the end; r1's ATE is scored against ground truth after each run. Prints a table and writes
+bench/results/flood.json (flood_ends.json with ``--mix ends``).
 
     .venv/bin/python bench/flood.py --valid 1 [--frame-rate 60] [--seconds 20]
 
@@ -118,6 +123,25 @@ def attack_messages(folder: Path) -> list[tuple[str, bytes, str]]:
     return out
 
 
+def end_messages(folder: Path) -> list[tuple[str, bytes, str]]:
+    """The end flood: a hello (a session on the attacker's own key), then ends for a last
+    frame that never comes, so each waits for it (the grace period)."""
+    camera = RgbdSequence(folder).camera
+    hello = protocol.encode({"type": "hello", "protocol": protocol.PROTOCOL,
+                             "offload_at": POINT, "camera": camera.to_dict(),
+                             "source": "flood"})
+    end = protocol.encode(protocol.end(1000))
+    return [(keys.control(ATTACKER), hello, "hello")] + \
+        [(keys.control(ATTACKER), end, "end before any frame")] * 499
+
+
+def _threads(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("Threads:"):
+            return int(line.split()[1])
+    return -1
+
+
 def flood(endpoint: str, lab: dict[str, str], rate: float, seconds: float,
           messages: list[tuple[str, bytes, str]], result: Any) -> None:
     """The attacker's process: r2's certificate, and an outsider without one."""
@@ -212,6 +236,7 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
     out = runs / name
     cloud = start_cloud(endpoint, out, out / "cloud.log", zenoh_config=lab["cloud"])
     samples: list[tuple[float, float]] = []
+    threads: list[int] = []
     attacker = None
     ctx = mp.get_context("spawn")
     result = ctx.Queue()
@@ -241,12 +266,14 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
         while (robot.poll() is None or (attacker is not None and attacker.is_alive())) \
                 and time.monotonic() < deadline:
             samples.append((time.monotonic() - t0, _rss_mb(cloud.pid)))
+            threads.append(_threads(cloud.pid))
             if hostiles and attacker is not None and attacker.is_alive():
                 robots_at_end = client.status(timeout=30.0, gather_s=0.0)["robots"]
             time.sleep(0.25)
         if robot.poll() != 0:
             raise RuntimeError(f"robot r1 failed: {robot.returncode} (see {out / 'r1.log'})")
         answered = client.status(timeout=30.0)["type"] == "status"
+        threads.append(_threads(cloud.pid))
         client.close()
     finally:
         if attacker is not None and attacker.is_alive():
@@ -261,7 +288,11 @@ def run(name: str, runs: Path, lab: dict[str, str], source: str, flood_args: dic
             "transport": robot_json["transport"], "ate_m": ate["rmse_m"] if ate else None,
             "rss_mb_start": float(rss[0]), "rss_mb_max": float(rss.max()),
             "rss_mb_end": float(rss[-1]), "rss_samples": samples,
-            "status_answered_after": answered, "wall_s": time.monotonic() - t0, **flood_stats}
+            "status_answered_after": answered, "wall_s": time.monotonic() - t0,
+            "threads_start": threads[0], "threads_max": max(threads),
+            "threads_end": threads[-1], "log_bytes": (out / "cloud.log").stat().st_size,
+            "log_tracebacks": (out / "cloud.log").read_text(errors="replace").count(
+                "Traceback"), **flood_stats}
 
 
 def main() -> None:
@@ -269,6 +300,8 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=2000.0, help="messages per second")
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--source", default=f"{SEVEN_SCENES}:0-599")
+    parser.add_argument("--mix", choices=("all", "ends"), default="all",
+                        help="every hostile message, or a flood of ends on the attacker's key")
     parser.add_argument("--out", default=None)
     parser.add_argument("--valid", type=int, default=0,
                         help="hostile robots sending valid point-0 frames (0: the mixed flood)")
@@ -278,9 +311,11 @@ def main() -> None:
     runs = Path("/tmp") / f"fleetslam-flood-{time.strftime('%Y%m%d-%H%M%S')}"
     if args.valid:
         return main_valid(args, runs)
-    args.out = args.out or str(Path(__file__).parent / "results" / "flood.json")
+    name = "flood" if args.mix == "all" else "flood_ends"
+    args.out = args.out or str(Path(__file__).parent / "results" / f"{name}.json")
     lab = {k: str(v) for k, v in make_lab(runs / "lab", ["localhost"], [VICTIM, ATTACKER]).items()}
-    messages = attack_messages(Path(args.source.split(":")[0]))
+    folder = Path(args.source.split(":")[0])
+    messages = attack_messages(folder) if args.mix == "all" else end_messages(folder)
     quiet = run("quiet", runs, lab, args.source, None)
     flooded = run("flood", runs, lab, args.source, {"rate": args.rate, "seconds": args.seconds,
                                                     "messages": messages})
@@ -290,19 +325,22 @@ def main() -> None:
         rows.append([r["run"], r.get("sent", 0), r.get("sent", 0) / r.get("seconds", 1) if
                      r.get("sent") else 0, r["frames"], t.get("frames dropped (session busy)", 0),
                      sum(v for k, v in t.items() if k.startswith("rejected")),
-                     100 * r["ate_m"], r["rss_mb_start"], r["rss_mb_max"], r["rss_mb_end"]])
+                     100 * r["ate_m"], r["rss_mb_start"], r["rss_mb_max"], r["rss_mb_end"],
+                     f"{r['threads_start']}/{r['threads_max']}/{r['threads_end']}",
+                     r["log_bytes"] / 1e3, r["log_tracebacks"]])
     change = 100 * (flooded["ate_m"] - quiet["ate_m"]) / quiet["ate_m"]
     print(f"robot r1 on {args.source} (point {POINT}, recorded rate) over mutual TLS with "
           f"access control; attacker with r2's certificate")
     print(format_table(["run", "msgs sent", "msgs/s", "r1 frames", "r1 dropped",
-                        "r1 rejected", "ATE cm", "cloud RSS start MB", "max MB", "end MB"],
+                        "r1 rejected", "ATE cm", "cloud RSS start MB", "max MB", "end MB",
+                        "threads start/max/end", "log kB", "tracebacks"],
                        rows))
     print(f"ATE change under flood: {change:+.2f} %; outsider connections refused: "
           f"{flooded.get('outsider_refused')} of {flooded.get('outsider_attempts')}; the "
           f"cloud answered status after the flood: {flooded['status_answered_after']}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"source": args.source, "rate": args.rate,
+    out.write_text(json.dumps({"source": args.source, "rate": args.rate, "mix": args.mix,
                                "seconds": args.seconds, "ate_change_percent": change,
                                "attack_mix": sorted({w for _, _, w in messages}),
                                "runs": [quiet, flooded]}, indent=2))

@@ -146,3 +146,47 @@ def test_the_robot_says_hello_again_on_the_no_session_code_not_on_words(tmp_path
     assert robot._need_hello.is_set()
     # Both reached whoever awaits a reply (a hello fails on an error).
     assert [robot._replies.get_nowait()["code"] for _ in range(2)] == ["rejected", "no_session"]
+
+
+def test_a_robot_whose_end_is_refused_says_why_at_once(tmp_path_factory):
+    """The cloud refuses an end before any frame (nothing to write): the robot reports the
+    cloud's reason at once instead of waiting END_TIMEOUT_S for an 'ended'."""
+    import json
+    import threading
+    from types import SimpleNamespace
+
+    from conftest import small_scene
+
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.transport import protocol
+
+    folder = small_scene(tmp_path_factory, 2)[0]
+    robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
+
+    def reply(message: dict) -> None:
+        data = json.dumps(message).encode()
+        robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+
+    def control(message: dict) -> None:  # the cloud's answers to the robot's end
+        reply(protocol.ending())
+        reply(protocol.error(protocol.Code.REFUSED, "nothing to end: no frame tracked",
+                             answer_to="end"))
+
+    robot.sender = SimpleNamespace(control=control)
+    robot._last_seq = -1
+    raised: list[BaseException] = []
+
+    def finish() -> None:
+        try:
+            robot._finish()
+        except BaseException as exc:  # noqa: BLE001 (what the robot raises is the test)
+            raised.append(exc)
+
+    thread = threading.Thread(target=finish, daemon=True)
+    thread.start()
+    thread.join(5.0)  # not END_TIMEOUT_S
+    assert not thread.is_alive(), "the robot still waits for an answer to its end"
+    assert isinstance(raised[0], RuntimeError)
+    assert "refused its end: nothing to end" in str(raised[0])

@@ -460,10 +460,22 @@ class TransportConfig:
     # An unfinished session that hears nothing from its robot this long is checkpointed and
     # closed (its threads and memory freed); the robot's next message restores it.
     idle_session_s: float = 900.0
+    # ... and one that never tracked a frame (nothing to checkpoint) after this long, so a
+    # flood of hellos under made-up ids cannot hold every session slot for idle_session_s.
+    idle_empty_session_s: float = 30.0
+    # A robot refused because the cloud is full says hello again this many times, waiting
+    # full_retry_s, then twice that, and so on (sessions free up: robots end, empty ones
+    # expire), then stops saying the cloud is full. Any other refusal stops it at once.
+    full_retries: int = 3
+    full_retry_s: float = 5.0
     # A robot rejected more often than this (a broken or hostile client) has its frames and
     # uploads dropped unread for a while, so its flood cannot starve the other sessions.
     max_rejections_per_s: float = 50.0
     misbehaving_pause_s: float = 2.0
+    # Control messages (hello, end) a robot may send a second; a genuine robot sends one
+    # every connect_timeout_s at most. Beyond it they are rejected (and count towards the
+    # pause above): each costs the session work and a reply.
+    max_control_per_s: float = 20.0
     # Keyframe uploads the cloud stores per robot (about 0.2 MB each at the map's stride).
     max_keyframes: int = 20_000
     # When a robot says it ended, frames it sent before may still be on their way (they

@@ -1,7 +1,10 @@
 """Closing the sessions whose robots went quiet: every unfinished session that has heard
 nothing from its robot for ``transport.idle_session_s`` is checkpointed and closed, so its
 threads and memory are freed; the robot's next message restores it from that checkpoint. A
-finished session stays: its map waits for the merge.
+session that tracked no frame goes ``transport.idle_empty_session_s`` after it opened, with no
+checkpoint (it has nothing to keep; its robot's next hello opens a new one): hellos under
+made-up ids must not hold the cloud full. A finished session stays: its map waits for the
+merge.
 """
 
 from __future__ import annotations
@@ -34,16 +37,30 @@ class IdleReaper:
 
     def _run(self) -> None:
         idle_s = self.transport.idle_session_s
-        while not self.stopped.wait(min(idle_s / 4.0, 5.0)):
-            self.close_idle(idle_s)
+        empty_s = self.transport.idle_empty_session_s
+        while not self.stopped.wait(min(idle_s / 4.0, empty_s / 4.0, 5.0)):
+            self.close_idle(idle_s, empty_s)
 
-    def close_idle(self, idle_s: float) -> None:
+    def close_idle(self, idle_s: float, empty_s: float | None = None) -> None:
+        """``empty_s``: for sessions that never tracked a frame (None: ``idle_s``)."""
         now = time.monotonic()
+        empty_s = idle_s if empty_s is None else empty_s
         # Under the table's lock: a message arriving meanwhile must find either the live
         # session or the checkpoint written here, never an older one.
         with self.sessions.lock:
             for robot_id, session in self.sessions.now():
-                if session.finished is None and now - session.last_heard > idle_s:
+                if session.finished is not None:
+                    continue
+                quiet = now - session.last_heard
+                # From its opening, not its last message: hellos resent under a made-up id
+                # must not keep its slot.
+                if not session.state.rows and now - session.opened > empty_s \
+                        and not self.sessions.store.has_checkpoint(robot_id):
+                    self.sessions.remove(robot_id)
+                    session.close()
+                    log.info("robot %s: session closed, no frame %.0f s after it opened",
+                             robot_id, now - session.opened)
+                elif quiet > idle_s:
                     self.sessions.remove(robot_id)
                     session.close(final_checkpoint=True)
                     log.info("robot %s: session closed after %.0f s without a message "

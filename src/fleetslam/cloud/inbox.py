@@ -1,6 +1,7 @@
 """A robot session's way in: its inbox (frames best effort, control messages never dropped)
-and its admission (what a robot hears of its rejected messages, and when a robot rejected
-too often is paused). Used by robot_session.py; nothing here decodes or tracks.
+and its admission (what a robot hears of its rejected messages, when a robot rejected too
+often is paused, and how many control messages a second it may send). Used by
+robot_session.py and routing.py; nothing here decodes or tracks.
 """
 
 from __future__ import annotations
@@ -17,6 +18,33 @@ log = logging.getLogger("fleetslam.cloud")
 
 # A robot is told why a message was rejected at most this often.
 REJECTION_REPLY_INTERVAL_S = 1.0
+
+# What WorkQueue.get returns when its timeout passed with nothing to take.
+IDLE = ("idle", None, 0.0)
+
+
+class Throttle:
+    """Says whether something keyed (a reply key, a log topic) is due again: at most once
+    per interval per key. The table forgets old keys, so a flood of made-up ids cannot grow
+    it without bound."""
+
+    MAX_KEYS = 4096
+
+    def __init__(self, interval_s: float) -> None:
+        self.interval_s = interval_s
+        self._last: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def due(self, key: str) -> bool:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -float("inf")) < self.interval_s:
+                return False
+            if len(self._last) >= self.MAX_KEYS:
+                self._last = {k: t for k, t in self._last.items()
+                              if now - t < self.interval_s}
+            self._last[key] = now
+            return True
 
 
 class WorkQueue:
@@ -48,9 +76,11 @@ class WorkQueue:
             self._items.append(item)
             self._ready.notify()
 
-    def get(self) -> Any:
+    def get(self, timeout: float | None = None) -> Any:
+        """The next item; IDLE if ``timeout`` passed with none."""
         with self._ready:
-            self._ready.wait_for(lambda: bool(self._items))
+            if not self._ready.wait_for(lambda: bool(self._items), timeout):
+                return IDLE
             item = self._items.popleft()
             if item is not None and item[0] == "frame":
                 self._frames -= 1
@@ -60,10 +90,13 @@ class WorkQueue:
 class Admission:
     """Whether a robot is heard, and what it hears of its rejected messages. A robot rejected
     more than ``transport.max_rejections_per_s`` times a second (a broken or hostile client)
-    has its frames and uploads dropped unread for ``transport.misbehaving_pause_s``: decoding
+    has its messages dropped unread for ``transport.misbehaving_pause_s``: decoding
     them would take the CPU the other robots' sessions need. It is told why a message was
     rejected at most once per REJECTION_REPLY_INTERVAL_S (a flood of bad messages must not
     become a flood of replies); the log gives every reason, except while it is paused.
+    Control messages pass the same door: paused, they are dropped too, and beyond
+    ``transport.max_control_per_s`` they are rejected (each end or hello costs the session
+    work and a reply, so a flood of them must cost the flooder, not the cloud).
 
     ``counts`` is the session's (SessionState.counts), changed only under ``counts_lock``:
     several of the session's threads reject, and status and checkpoints read the counts."""
@@ -77,10 +110,28 @@ class Admission:
         self._last_rejection_reply = -float("inf")
         self._rejected_since_reply = 0
         self._paused_until = -float("inf")
+        # Control messages heard in the current one-second window (the rate limit).
+        self._control_window = -float("inf")
+        self._control_in_window = 0
+
+    def control_refused(self) -> str | None:
+        """Why a control message is not taken now (paused, or over the rate limit; counted
+        as a rejection), or None when it is."""
+        if self.paused():
+            return "paused"
+        now = time.monotonic()
+        with self._counts_lock:
+            if now - self._control_window >= 1.0:
+                self._control_window, self._control_in_window = now, 0
+            self._control_in_window += 1
+            over = self._control_in_window > self.transport.max_control_per_s
+        if over:
+            return (f"over {self.transport.max_control_per_s:.0f} control messages a second "
+                    f"(transport.max_control_per_s)")
+        return None
 
     def paused(self) -> bool:
-        """Whether the robot's frames and uploads are dropped unread now (counted so).
-        Control messages always pass."""
+        """Whether the robot's messages are dropped unread now (counted so)."""
         if time.monotonic() >= self._paused_until:
             return False
         with self._counts_lock:
@@ -94,9 +145,11 @@ class Admission:
         now = time.monotonic()
         with self._counts_lock:
             self._counts[f"rejected {what}"] += 1
-            if now >= self._paused_until:
-                log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
             due = now - self._last_rejection_reply >= REJECTION_REPLY_INTERVAL_S
+            # Frames and uploads: every reason (each costs a decode anyway); control
+            # messages are cheap to flood, so their reasons go with the replies only.
+            if now >= self._paused_until and (due or what != "control"):
+                log.warning("robot %s: %s rejected: %s", self.robot_id, what, reason)
             if due:
                 burst, self._rejected_since_reply = self._rejected_since_reply, 0
                 self._last_rejection_reply = now
@@ -111,7 +164,7 @@ class Admission:
                     if not paused:
                         self._counts["pauses (too many rejected)"] += 1
                         log.warning("robot %s: over %.0f rejected messages per second: "
-                                    "its frames and uploads are dropped unread for %.1f s",
+                                    "its messages are dropped unread for %.1f s",
                                     self.robot_id, cfg.max_rejections_per_s,
                                     cfg.misbehaving_pause_s)
         if not due:

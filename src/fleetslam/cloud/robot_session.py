@@ -30,7 +30,7 @@ from fleetslam.backend.back_end import CloudBackEnd, new_state
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud import session_state
 from fleetslam.cloud.checkpoint_writer import CheckpointWriter, KeyframeSink
-from fleetslam.cloud.inbox import Admission, WorkQueue
+from fleetslam.cloud.inbox import IDLE, REJECTION_REPLY_INTERVAL_S, Admission, Throttle, WorkQueue
 from fleetslam.cloud.memory_budget import MB, SessionBudget, captured_frame_bytes, held_bytes
 from fleetslam.cloud.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
@@ -46,7 +46,7 @@ from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
 from fleetslam.wire.data_tree import Capture
 from fleetslam.wire.envelope import Header, WireError
-from fleetslam.wire.frames import decode_frame_message
+from fleetslam.wire.frames import decode_frame_message, state_index_time
 from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
 from fleetslam.wire.messages import (
     Feedback,
@@ -60,6 +60,11 @@ log = logging.getLogger("fleetslam.cloud")
 
 # A robot's seq may skip frames lost on the link, but not this many at once.
 MAX_SEQ_JUMP = 100_000
+# A frame index jumps at most this far too (a robot's frame step, frames skipped by a live
+# camera): a forged far-future index would make every later real frame "out of order".
+MAX_INDEX_JUMP = 100_000
+# An end waiting for frames still in flight is looked at again this often.
+END_RECHECK_S = 0.05
 
 # Counts of what the memory budget dropped unread (always in the summary, 0 included).
 OVER_BUDGET = {"frame": "frames dropped unread (over memory budget)",
@@ -95,7 +100,7 @@ class RobotSession:
         self._counts_lock = threading.Lock()
         self.admission = Admission(state.robot_id, config.transport, state.counts,
                                    self._counts_lock)
-        self.last_heard = time.monotonic()
+        self.last_heard = self.opened = time.monotonic()
         # The bytes its frames, uploads and references hold (memory_budget.py): a raw frame
         # in the inbox is ("frame", data, arrival, charge), a decoded one ("frame",
         # (header, state, charge), arrival); each releases its charge when tracked or dropped.
@@ -110,14 +115,26 @@ class RobotSession:
                                   lambda item: self.budget.release(item[1][2]))
         self._decoded_seq = state.last_seq  # newest frame put in the reference ring
         self._keyframes: queue.Queue = queue.Queue()
+        # At most one end per session waits (queued or for frames in flight): a robot's
+        # resent ends only replace the waiting one's content, so a flood of ends is one end
+        # (no queue, no timer each). Under _end_lock: a Zenoh callback and the tracking
+        # thread both change them.
+        self._end_lock = threading.Lock()
+        self._end_waiting = False
+        self._end_latest: dict[str, Any] | None = None
+        self._end_message: dict[str, Any] | None = None  # the end the tracking thread holds
+        self._end_since: float | None = None  # when the tracking thread first got to it
+        # A failure is logged with its traceback once per reason and interval (a robot
+        # repeating the message that fails must not fill the log).
+        self._failure_log = Throttle(REJECTION_REPLY_INTERVAL_S)
         # A restored session's checkpoint on disk covers all of it.
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
                                             state.last_index, keyframe_sink)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
-            threading.Thread(target=self._serve, args=(self._decoded, self._on_work),
-                             name=f"cloud-{state.robot_id}", daemon=True),
+            threading.Thread(target=self._serve_tracking, name=f"cloud-{state.robot_id}",
+                             daemon=True),
             threading.Thread(target=self._serve, args=(self._keyframes, self._on_upload),
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
         ]
@@ -178,9 +195,31 @@ class RobotSession:
         if self._admit("frame", charge):
             self._frames.put(("frame", data, arrival, charge))
 
-    def submit_control(self, message: dict[str, Any], arrival: float) -> None:
+    def submit_control(self, message: dict[str, Any], arrival: float) -> bool:
+        """Whether the control message is taken (admission: not while paused, at most
+        ``transport.max_control_per_s``); a refused one is counted and its reason told
+        (throttled). An end while another waits replaces that one's content."""
         self.last_heard = time.monotonic()
+        refused = self.admission.control_refused()
+        if refused is not None:
+            if refused != "paused":
+                self._reject("control", refused, protocol.Code.REFUSED)
+            return False
+        if message.get("type") == "end":
+            with self._end_lock:
+                if self._end_waiting:
+                    self._end_latest = message
+                    self.count("ends while one waits")
+                    return True
+                self._end_waiting = True
         self._frames.put(("control", message, arrival))
+        return True
+
+    def reject_control(self, reason: str) -> None:
+        """A control message that did not parse: counted against the robot like a bad frame
+        (a flood of them pauses it), the reason told at most once per interval."""
+        self.last_heard = time.monotonic()
+        self._reject("control", reason, protocol.Code.BAD_MESSAGE)
 
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
@@ -234,12 +273,34 @@ class RobotSession:
             item = q.get()
             if item is None:
                 return
-            kind, payload, arrival = item
-            try:
-                handle(kind, payload, arrival)
-            except Exception:  # a bug on one message must not end the robot's session
-                self.count("errors")
-                log.exception("robot %s: %s message failed", self.robot_id, kind)
+            self._handle(handle, item)
+
+    def _serve_tracking(self) -> None:
+        """Frames and control in order; an end waiting for frames in flight is looked at
+        after each frame and every END_RECHECK_S (this thread's own timer: no thread per
+        end)."""
+        while True:
+            item = self._decoded.get(END_RECHECK_S if self._end_since is not None else None)
+            if item is None:
+                return
+            if item is not IDLE:
+                self._handle(self._on_work, item)
+            if self._end_since is not None and (item is IDLE or item[0] == "frame"):
+                self._handle(self._on_work, ("end again", None, 0.0))
+
+    def _handle(self, handle: Callable[[str, Any, float], None], item: tuple) -> None:
+        kind, payload, arrival = item
+        try:
+            handle(kind, payload, arrival)
+        except Exception as exc:  # a bug on one message must not end the robot's session
+            self._failed(kind, exc)
+
+    def _failed(self, kind: str, exc: Exception) -> None:
+        """Count a failure; its traceback goes to the log once per reason and interval."""
+        self.count("errors")
+        if self._failure_log.due(f"{kind} {type(exc).__name__} {exc}"):
+            log.error("robot %s: %s message failed (%d failures so far)", self.robot_id,
+                      kind, self.counts()["errors"], exc_info=exc)
 
     def _receive(self) -> None:
         """Decode each frame as it arrives (the reference ring must hold it before a frame
@@ -250,10 +311,10 @@ class RobotSession:
                 _, data, arrival, charge = item
                 try:
                     item = self._decode(data, arrival)
-                except Exception:  # a bug on one message must not end the robot's session
-                    item = None
-                    self.count("errors")
-                    log.exception("robot %s: frame message failed", self.robot_id)
+                except Exception as exc:  # a bug on one message must not end the session
+                    self.budget.release(charge)
+                    self._failed("frame", exc)
+                    continue
                 if item is None:
                     self.budget.release(charge)
                     continue
@@ -275,6 +336,8 @@ class RobotSession:
                 self.budget.release(charge)
         elif kind == "control":
             self._on_control(payload, arrival)
+        elif kind == "end again":  # the end held for frames in flight
+            self._on_end(None, arrival)
         elif kind == "call":
             payload()
 
@@ -325,7 +388,7 @@ class RobotSession:
             return self._reject("frame", f"split point {header.split_point}, but the session "
                                          f"offloads at {st.hello.offload_at} (send a hello)",
                                 protocol.Code.NO_SESSION)
-        out_of_sequence = self._out_of_sequence(header)
+        out_of_sequence = self._out_of_sequence(header, state_index_time(state)[0])
         if out_of_sequence is not None:
             return self._reject("frame", out_of_sequence)
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
@@ -342,8 +405,10 @@ class RobotSession:
                                                                    feedback))
         st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
 
-    def _out_of_sequence(self, header: Header) -> str | None:
-        """Why a frame does not follow the tracked ones (seq, timestamp), or None."""
+    def _out_of_sequence(self, header: Header, index: int) -> str | None:
+        """Why a frame does not follow the tracked ones (seq, frame index, timestamp), or
+        None. The index is the trajectory's row and a keyframe's name (uploads, the merge):
+        at point 6 the robot's own, recorded as sent, so it is checked like the seq."""
         st = self.state
         if header.seq <= st.last_seq:
             what = "duplicate" if header.seq == st.last_seq else "out of order"
@@ -352,6 +417,11 @@ class RobotSession:
             # A forged far-future seq would make every later real frame "out of order".
             return (f"seq jumps from {st.last_seq} to {header.seq} "
                     f"(more than {MAX_SEQ_JUMP} frames lost?)")
+        if index < 0 or index <= st.last_index:
+            return f"frame index {index} is not after the last frame's {st.last_index}"
+        if index > max(st.last_index, 0) + MAX_INDEX_JUMP:
+            return (f"frame index jumps from {st.last_index} to {index} "
+                    f"(more than {MAX_INDEX_JUMP})")
         if st.rows and header.timestamp <= st.rows[-1].timestamp:
             return (f"timestamp {header.timestamp:.6f} is not after the "
                     f"last frame's {st.rows[-1].timestamp:.6f}")
@@ -519,30 +589,60 @@ class RobotSession:
         elif kind == "end":
             self._on_end(message, arrival)
         else:
-            self._reply(protocol.error(protocol.Code.UNKNOWN_TYPE,
-                                       f"unknown control message {kind!r}"))
+            self._reject("control", f"unknown control message {str(kind)[:40]!r}",
+                         protocol.Code.UNKNOWN_TYPE)
 
-    def _on_end(self, message: dict[str, Any], arrival: float) -> None:
+    def _on_end(self, message: dict[str, Any] | None, arrival: float) -> None:
         """The robot's end: once its last frame is in and every keyframe uploaded, the
         robot's outputs are written and a final checkpoint is on disk before it hears
-        "ended" (with its summary); "need" names the uploads still missing."""
-        last_seq = message.get("last_seq")
+        "ended" (with its summary); "need" names the uploads still missing. An end before
+        any frame was tracked is refused with the reason: there is no trajectory or map to
+        write, and a finished session without them would enter the merge as a robot
+        without a map; unfinished, the session takes the robot's frames if they come."""
+        with self._end_lock:  # the newest end the robot sent is the one answered
+            if self._end_latest is not None:
+                message, self._end_latest = self._end_latest, None
+        message = message or self._end_message
+        if message is None:
+            return
+        now = time.monotonic()
         # The grace period runs from when this session first got to the end (behind any
         # backlog of frames), not from its arrival: a busy session must not give up on
         # a last frame that arrived while it was still working through earlier ones.
-        first_handled = message.setdefault("_handled_at", time.monotonic())
+        if self._end_since is None:
+            self._end_since = now
+        self._end_message = message
+        last_seq = message.get("last_seq")
         if (isinstance(last_seq, int) and last_seq > self.state.last_seq
-                and time.monotonic() - first_handled < self.config.transport.end_grace_s):
+                and now - self._end_since < self.config.transport.end_grace_s):
             # Frames travel on another key than control messages and may arrive after
-            # the end that follows them: look again once those in flight are in.
-            threading.Timer(0.05, self.submit_control, (message, arrival)).start()
+            # the end that follows them: the tracking thread looks again (_serve_tracking).
             return
+        self._end_since = self._end_message = None
+        try:
+            self._answer_end(message)
+        finally:
+            with self._end_lock:
+                latest, self._end_latest = self._end_latest, None
+                self._end_waiting = latest is not None
+            if latest is not None:  # one more came meanwhile: answered in turn
+                self._frames.put(("control", latest, arrival))
+
+    def _answer_end(self, message: dict[str, Any]) -> None:
         try:
             poses = protocol.keyframe_poses(message)
             camera = protocol.end_camera(message)
             unavailable = protocol.end_unavailable(message)
         except ValueError as exc:
-            return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc)))
+            return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc),
+                                              answer_to="end"))
+        if not self.state.rows:
+            rejected = self.counts()["rejected frame"]
+            return self._reply(protocol.error(
+                protocol.Code.REFUSED,
+                f"nothing to end: the cloud tracked no frame of robot {self.robot_id}"
+                + (f" ({rejected} frames rejected)" if rejected else "")
+                + "; no trajectory or map is written", answer_to="end"))
         self.state.robot_keyframe_poses.update(poses)
         self.back_end.finish()
         # A keyframe the robot cannot upload (a live camera's, gone) is mapped without its

@@ -17,10 +17,11 @@ from typing import Any, Callable
 
 import zenoh
 
-from fleetslam.cloud.inbox import REJECTION_REPLY_INTERVAL_S
+from fleetslam.cloud.inbox import REJECTION_REPLY_INTERVAL_S, Throttle
 from fleetslam.cloud.merge_role import MergeRole
 from fleetslam.cloud.placement import Placement
 from fleetslam.cloud.robot_session import Publish
+from fleetslam.cloud.memory_budget import sessions_allowed
 from fleetslam.cloud.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.transport import keys, protocol
@@ -38,30 +39,6 @@ def _is_hello(data: bytes) -> bool:
         return protocol.parse_control(data)["type"] == "hello"
     except ValueError:
         return False
-
-
-class Throttle:
-    """Says whether something keyed (a reply key, a log topic) is due again: at most once
-    per interval per key. The table forgets old keys, so a flood of made-up ids cannot grow
-    it without bound."""
-
-    MAX_KEYS = 4096
-
-    def __init__(self, interval_s: float) -> None:
-        self.interval_s = interval_s
-        self._last: dict[str, float] = {}
-        self._lock = threading.Lock()
-
-    def due(self, key: str) -> bool:
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last.get(key, -float("inf")) < self.interval_s:
-                return False
-            if len(self._last) >= self.MAX_KEYS:
-                self._last = {k: t for k, t in self._last.items()
-                              if now - t < self.interval_s}
-            self._last[key] = now
-            return True
 
 
 class Router:
@@ -222,7 +199,10 @@ class Router:
         interval per key; replies to a request id always go (a client waits for those)."""
         if "id" not in extra and not self._throttle.due(f"{key} {reason}"):
             return
-        log.warning("%s: %s", key, reason)
+        # Logged once per reason and interval whatever the key: made-up robot ids each
+        # get their answer, not a log line each.
+        if self._throttle.due(f"log {reason}"):
+            log.warning("%s: %s", key, reason)
         self.publish(key, protocol.encode(protocol.error(code, reason, **extra)))
 
     # -- control messages -----------------------------------------------------------------
@@ -249,34 +229,41 @@ class Router:
             self._on_robot_control(robot_id, *self._pending.pop(robot_id))
 
     def _on_robot_control(self, robot_id: str, data: bytes, arrival: float) -> None:
+        """A robot's control message. Refusals of a hello or an end say which they answer
+        (``answer_to``), so the robot tells a refusal from silence."""
         reply = keys.reply(robot_id)
         try:
             message = protocol.parse_control(data)
             hello = Hello.parse(message) if message["type"] == "hello" else None
         except ValueError as exc:
+            live = self.sessions.live(robot_id)
+            if live is not None:  # counted against the robot: a flood of them pauses it
+                return live.reject_control(f"control message rejected: {exc}")
             return self.error(reply, protocol.Code.BAD_MESSAGE,
-                              f"control message rejected: {exc}")
+                              f"control message rejected: {exc}", answer_to="hello")
         session = self.sessions.session(robot_id)
         if hello is not None and session is not None \
                 and session.state.hello.offload_at != hello.offload_at:
             return self.error(reply, protocol.Code.REFUSED,
                               f"session offloads at {session.state.hello.offload_at}; a robot "
-                              f"cannot change its offloading point within a session")
+                              f"cannot change its offloading point within a session",
+                              answer_to="hello")
         if session is None:
             if hello is None:
                 return self.error(reply, protocol.Code.NO_SESSION,
                                   "no session: send a hello first")
             session = self.sessions.open(robot_id, hello)
             if session is None:
-                return self.error(reply, protocol.Code.REFUSED, self.sessions.refusal())
+                return self.error(reply, protocol.Code.REFUSED, self.sessions.refusal(),
+                                  answer_to="hello", full=True,
+                                  max_sessions=sessions_allowed(self.config.transport))
             log.info("robot %s: new session, offloading at %d, source %s", robot_id,
                      hello.offload_at, hello.source)
             session.welcome(resumed=False)
             return
-        if message["type"] == "end":
+        if session.submit_control(message, arrival) and message["type"] == "end":
             # Heard at once; the answer (need / ended) comes when its frames are done.
             self.publish(reply, protocol.encode(protocol.ending()))
-        session.submit_control(message, arrival)
 
     def _on_cloud_control(self, data: bytes) -> None:
         """The operator's request: ``merge`` or ``status``."""

@@ -65,6 +65,16 @@ END_TIMEOUT_S = 900.0
 STOP_POLL_S = 0.25
 
 
+class CloudRefused(RuntimeError):
+    """The cloud answered a hello or an end with a refusal (its reason), not silence."""
+
+    def __init__(self, message: dict[str, Any]) -> None:
+        super().__init__(str(message.get("reason")))
+        self.reason = str(message.get("reason"))
+        self.full = message.get("full") is True  # no session slot free: may free up
+        self.max_sessions = message.get("max_sessions")
+
+
 class OnboardTracker(Protocol):
     """The whole pipeline on the robot, for a robot that tracks by itself (point 6): the
     back-end needs the cloud's libraries, so whoever starts such a robot builds it
@@ -199,7 +209,10 @@ class Robot:
             self._need_hello.set()
         self._replies.put(message)
 
-    def _await_reply(self, kinds: tuple[str, ...], timeout: float) -> dict[str, Any] | None:
+    def _await_reply(self, kinds: tuple[str, ...], timeout: float,
+                     answer_to: str | None = None) -> dict[str, Any] | None:
+        """The first reply of one of ``kinds``, None after ``timeout``; CloudRefused if the
+        cloud refused the ``answer_to`` message ("hello", "end") instead."""
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0:
             try:
@@ -208,8 +221,9 @@ class Robot:
                 return None
             if message["type"] in kinds:
                 return message
-            if message["type"] == "error" and "hello" in kinds:
-                raise RuntimeError(f"cloud refused robot {self.robot_id}: {message['reason']}")
+            if message["type"] == "error" and answer_to is not None \
+                    and message.get("answer_to") == answer_to:
+                raise CloudRefused(message)
         return None
 
     # -- the run --------------------------------------------------------------------------
@@ -360,9 +374,29 @@ class Robot:
                         self.planner is not None).message(
             None if self.live is not None else len(self.sequence))
         cfg = self.config.transport
+        full = 0  # refusals because the cloud was full
         for _ in range(cfg.max_attempts):
             self.sender.control(message)
-            welcome = self._await_reply(("welcome",), cfg.connect_timeout_s)
+            try:
+                welcome = self._await_reply(("welcome",), cfg.connect_timeout_s, "hello")
+            except CloudRefused as refusal:
+                # A full cloud frees slots (robots end, empty sessions expire): a few more
+                # hellos, further apart. Any other refusal (a bad hello, a changed point)
+                # would be refused again: stop at once.
+                if not refusal.full:
+                    raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
+                                       f"refused it: {refusal.reason}") from None
+                if full >= cfg.full_retries:
+                    raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
+                                       f"is full ({refusal.max_sessions} sessions), refused "
+                                       f"{full + 1} times: {refusal.reason}") from None
+                wait = cfg.full_retry_s * 2 ** full
+                full += 1
+                log.warning("robot %s: the cloud at %s is full (%s sessions); hello again "
+                            "in %.0f s", self.robot_id, self.endpoint, refusal.max_sessions,
+                            wait)
+                time.sleep(wait)
+                continue
             if welcome is not None:
                 self._need_hello.clear()
                 self.encoder.restart(welcome)
@@ -391,7 +425,11 @@ class Robot:
                                              sorted(self.uploader.unavailable)))
             if self._await_reply(("ending",), cfg.connect_timeout_s) is None:
                 continue  # the end message was lost, or the cloud is restarting
-            answer = self._await_reply(("need", "ended"), END_TIMEOUT_S)
+            try:
+                answer = self._await_reply(("need", "ended"), END_TIMEOUT_S, "end")
+            except CloudRefused as refusal:
+                raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
+                                   f"refused its end: {refusal.reason}") from None
             if answer is None:
                 raise RuntimeError(f"robot {self.robot_id}: the cloud did not finish in "
                                    f"{END_TIMEOUT_S:.0f} s")
