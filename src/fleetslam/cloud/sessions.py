@@ -74,7 +74,7 @@ class SessionTable(Mapping[str, RobotSession]):
     def refusal(self) -> str:
         """Why a hello is refused when the table is full."""
         t = self.config.transport
-        return (f"the cloud serves at most {sessions_allowed(t)} robots at once "
+        return (f"the cloud is full: it serves at most {sessions_allowed(t)} robots at once "
                 f"(transport.max_sessions {t.max_sessions}; transport.cloud_budget_mb "
                 f"{t.cloud_budget_mb:.0f} holds {t.cloud_budget_mb // t.session_budget_mb:.0f} "
                 f"sessions of transport.session_budget_mb {t.session_budget_mb:.0f})")
