@@ -59,11 +59,14 @@ def test_a_bad_setting_in_toml_names_key_and_file(tmp_path, section, key, toml, 
 
 
 def test_good_values_load_as_their_type(tmp_path):
+    # c_total_g is optional (None by default): its type is the one declared, not None's.
     path = tmp_path / "good.toml"
-    path.write_text("[link]\nbandwidth_mbps = 5\n[planner]\nonline_points = [0, 3]\n")
+    path.write_text("[link]\nbandwidth_mbps = 5\n[planner]\nonline_points = [0, 3]\n"
+                    "c_total_g = 2\n")
     config = load_config(path)
     assert config.link.bandwidth_mbps == 5.0 and isinstance(config.link.bandwidth_mbps, float)
     assert config.planner.online_points == (0, 3)
+    assert config.planner.c_total_g == 2.0 and isinstance(config.planner.c_total_g, float)
 
 
 def test_the_command_line_says_which_file_and_key_in_one_line(tmp_path, capsys):
