@@ -50,6 +50,16 @@ def test_a_bad_endpoint_in_the_config_file_names_key_and_file(tmp_path, capsys):
                                        f"'tcp/cloud:': port '' is not a number in 1..65535\n")
 
 
+def test_the_config_files_endpoint_that_does_not_resolve_fails_at_once(tmp_path, capsys):
+    path = tmp_path / "c.toml"
+    path.write_text('[transport]\nendpoint = "tcp/nohost.invalid:7447"\n')
+    assert cli.main(["--config", str(path), "cloud", "--out", str(tmp_path / "store")]) == 2
+    err = capsys.readouterr().err  # ends with the resolver's reason, which varies by system
+    assert err.startswith(f"fleetslam: error: {path}: transport.endpoint "
+                          f"'tcp/nohost.invalid:7447': host 'nohost.invalid' does not resolve (")
+    assert err.count("\n") == 1
+
+
 def test_tls_with_a_zenoh_config_holding_certificates_passes(tmp_path):
     from fleetslam.validation.endpoints import check_endpoint
 

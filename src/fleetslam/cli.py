@@ -713,12 +713,18 @@ CLOUD_EXTRA_MODULES = ("gtsam", "small_gicp", "faiss", "scipy", "octomap", "matp
 
 
 def _check_endpoints(args: argparse.Namespace, config: Config) -> None:
-    """Every --listen / --connect endpoint, before any work and before Zenoh sees it."""
-    for flag in ("listen", "connect"):
-        given = getattr(args, flag, None)
+    """Every --listen / --connect endpoint, before any work and before Zenoh sees it; a
+    command taking one but given none (cloud, router, robot) uses [transport] endpoint."""
+    zenoh_config = config.transport.zenoh_config or None
+    flags = [f for f in ("listen", "connect") if hasattr(args, f)]
+    for flag in flags:
+        given = getattr(args, flag)
         for endpoint in given if isinstance(given, list) else [given]:
             if endpoint is not None:
-                check_endpoint(endpoint, f"--{flag}", config.transport.zenoh_config or None)
+                check_endpoint(endpoint, f"--{flag}", zenoh_config)
+    if flags and not any(getattr(args, f) for f in flags):
+        where = f"{args.config}: transport.endpoint" if args.config else "transport.endpoint"
+        check_endpoint(config.transport.endpoint, where, zenoh_config)
 
 
 def main(argv: list[str] | None = None) -> int:
