@@ -47,6 +47,9 @@ def test_every_setting_declares_its_rule_and_its_default_keeps_it():
     ("planner", "online_points", "[0, 4]", "4 must be in [0, 3]"),
     ("transport", "endpoint", '"foo"', "not PROTOCOL/ADDRESS"),
     ("source", "ros_endpoint", '"tcp/localhost:0"', "port '0' is not a number in 1..65535"),
+    ("placement", "worker_id", '"a b"', "must be 1..64 characters of [A-Za-z0-9_-]"),
+    ("view", "server_memory_limit", '"lots"', "must be a size such as 1GiB"),
+    ("view", "grpc_bind", '"127.0.0.1:80"', "is not a host name or an IP address"),
 ])
 def test_a_bad_setting_in_toml_names_key_and_file(tmp_path, section, key, toml, problem):
     path = tmp_path / "bad.toml"

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from fleetslam.validation.endpoints import endpoint_problem, host_problem
+from fleetslam.validation.names import name_problem
 from fleetslam.validation.rules import (ANY_TEXT, FINITE, FRACTION, Bound, OneOf, Text, above,
                                         at_least, between, checked, rules_of)
 
@@ -25,8 +26,7 @@ OBJECTIVES = ("energy", "latency", "fps", "mix")
 ENDPOINT = Text(endpoint_problem)
 HOST = Text(host_problem)
 # A worker id is a Zenoh key chunk (transport/keys.py); empty: chosen by the worker.
-WORKER_ID = Text(lambda s: None if re.fullmatch(r"[A-Za-z0-9_-]{0,64}", s)
-                 else "must be up to 64 characters of A-Z a-z 0-9 _ -")
+WORKER_ID = Text(lambda s: name_problem(s) if s else None)
 # rerun's memory limit syntax: a size with a unit, or a share of the RAM.
 MEMORY_SIZE = Text(lambda s: None if re.fullmatch(r"\d+(\.\d+)?\s*([KMGT]i?B|B|%)", s)
                    else "must be a size such as 1GiB, 512MB or 25%")
