@@ -23,6 +23,7 @@ from fleetslam.config import load_config
      "'not a host' is not a host name or an IP address"),
     (["merge", "--connect", "tcp/127.0.0.1:70000"], "port '70000' is not a number"),
     (["merge", "--connect", "tcp/[::1x]:7447"], "'[::1x]' is not an IPv6 address"),
+    (["merge", "--connect", "tcp/::1:7447"], "an IPv6 address is written in brackets"),
     (["status", "--connect", "tcp/nohost.invalid:7447"], "host 'nohost.invalid' does not "
                                                          "resolve"),
     (["merge", "--connect", "tls/localhost:7447"], "tls needs a Zenoh config file with the "

@@ -50,6 +50,8 @@ def endpoint_problem(endpoint: str) -> str | None:
             return None
         except ValueError:
             return f"{host!r} is not an IPv6 address"
+    if ":" in host:  # the port would be ambiguous
+        return f"an IPv6 address is written in brackets: [{host}]:{port}"
     return host_problem(host)
 
 
