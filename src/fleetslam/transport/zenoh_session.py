@@ -37,6 +37,7 @@ def _base_config(path: str | None = None, mode: str = "client") -> zenoh.Config:
 
 def open_listening(endpoint: str, zenoh_config: str | None = None) -> zenoh.Session:
     """A router listening on ``endpoint`` (a lone cloud, or ``fleetslam router``)."""
+    # The command line checked its flags already; this covers every other caller.
     check_endpoint(endpoint, "endpoint", zenoh_config)
     config = _base_config(zenoh_config, "router")
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
