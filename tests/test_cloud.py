@@ -684,7 +684,9 @@ def test_a_tls_cloud_refuses_clients_without_the_labs_ca(tmp_path, capsys):
         ca_only = tmp_path / "ca_only.json5"
         ca_only.write_text(json.dumps({"mode": "peer", "transport": {"link": {"tls": {
             "root_ca_certificate": str(lab / "ca.pem")}}}}))
-        for outsider in (None, str(tmp_path / "other" / "client.json5"), str(ca_only)):
+        with pytest.raises(ValueError, match="tls needs a Zenoh config file"):  # no TLS: told
+            CloudClient(endpoint, 1.0, None)
+        for outsider in (str(tmp_path / "other" / "client.json5"), str(ca_only)):
             with pytest.raises(RuntimeError, match="nothing answers"):
                 CloudClient(endpoint, 1.0, outsider)
     finally:

@@ -436,8 +436,8 @@ def test_spec_and_domain(monkeypatch):
     assert not is_ros2_spec("ros2bag/") and not is_ros2_spec("../shared/data/x")
     config = Config()
     assert Ros2TopicSource.from_spec("ros2", config).endpoint == "tcp/localhost:7447"
-    assert Ros2TopicSource.from_spec("ros2:tcp/h:1", config).endpoint == "tcp/h:1"
-    with pytest.raises(ValueError, match="'nowhere' is not a Zenoh endpoint"):
+    assert Ros2TopicSource.from_spec("ros2:tcp/10.0.0.2:1", config).endpoint == "tcp/10.0.0.2:1"
+    with pytest.raises(ValueError, match="endpoint 'nowhere': not PROTOCOL/ADDRESS"):
         Ros2TopicSource.from_spec("ros2:nowhere", config)
     monkeypatch.setenv("ROS_DOMAIN_ID", "42")
     assert resolve_domain_id(-1) == 42 and resolve_domain_id(3) == 3

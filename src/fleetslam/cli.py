@@ -11,11 +11,12 @@ from pathlib import Path
 from typing import Any
 
 from fleetslam.camera import Camera
-from fleetslam.config import Config, load_config
+from fleetslam.config import Config, load_config, set_from_flag
 from fleetslam.datasets.live_sources import live_specs
 from fleetslam.planner.model import OBJECTIVES, SWEEP_MBPS
 from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
+from fleetslam.validation.endpoints import check_endpoint
 
 
 def _default_out(kind: str) -> Path:
@@ -79,9 +80,10 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.progress import Progress
 
     if args.robots is not None:
-        config.synthetic.n_robots = args.robots
+        set_from_flag(config.synthetic, "n_robots", args.robots, "--robots")
     if args.frames is not None:
-        config.synthetic.frames_per_robot = args.frames
+        set_from_flag(config.synthetic, "frames_per_robot", args.frames, "--frames")
+    _apply_link(args, config)  # checked here: the demo's robot processes are given them
     if config.synthetic.n_robots < 2:
         raise ValueError("the demo needs at least 2 robots (--robots)")
     scene = Path(args.scene) if args.scene else _scene_dir(config)
@@ -120,6 +122,14 @@ def _link_args(args: argparse.Namespace) -> list[str]:
     return out
 
 
+def _apply_link(args: argparse.Namespace, config: Config) -> None:
+    """--bandwidth-mbps, --latency-ms, --loss into config.link, checked."""
+    for name in ("bandwidth_mbps", "latency_ms", "loss"):
+        value = getattr(args, name, None)
+        if value is not None:
+            set_from_flag(config.link, name, value, f"--{name.replace('_', '-')}")
+
+
 def _add_link_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bandwidth-mbps", type=float, help="emulated link bandwidth "
                         "(Mbit/s; default from config: not limited)")
@@ -142,7 +152,7 @@ def _apply_topics(args: argparse.Namespace, config: Config) -> None:
     for name in ("rgb_topic", "depth_topic", "camera_info_topic"):
         value = getattr(args, name, None)
         if value:
-            setattr(config.source, name, value)
+            set_from_flag(config.source, name, value, f"--{name.replace('_', '-')}")
 
 
 def _add_view_options(parser: argparse.ArgumentParser) -> None:
@@ -193,7 +203,7 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
     if args.worker_id:
-        config.placement.worker_id = args.worker_id
+        set_from_flag(config.placement, "worker_id", args.worker_id, "--worker-id")
     server = CloudServer(config, Path(args.out), args.listen, view=view,
                          connect=args.connect).start()
     stop = threading.Event()
@@ -319,12 +329,9 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.pipeline.split import ROBOT_TRACKS, parse_offload_point
 
     _setup_logging(args.quiet)
-    for name in ("bandwidth_mbps", "latency_ms", "loss"):
-        value = getattr(args, name)
-        if value is not None:
-            setattr(config.link, name, value)
+    _apply_link(args, config)
     if args.link_seed is not None:
-        config.link.seed = args.link_seed
+        set_from_flag(config.link, "seed", args.link_seed, "--link-seed")
     sequence, recording = _robot_source(args, config)
     live = sequence is not recording
     if live:  # its camera model (the device's, or the recording's image size) builds stages
@@ -461,6 +468,11 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.pipeline.split import SUPPORTED_POINTS
 
     cfg = config.planner
+    for name in ("bandwidth_mbps", "latency_ms"):
+        if getattr(args, name) is not None:
+            set_from_flag(cfg, name, getattr(args, name), f"--{name.replace('_', '-')}")
+    if args.frames is not None:
+        set_from_flag(cfg, "profile_frames", args.frames, "--frames")
     offered: tuple[int, ...] | None = SUPPORTED_POINTS
     if args.paper:
         if args.profile or args.source:
@@ -481,15 +493,15 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
             scene = ensure_scene(_scene_dir(config), config.synthetic)
             source = str(scene[0])
         sequence = open_source(source, None, config.source)
-        frames = args.frames or cfg.profile_frames
+        frames = cfg.profile_frames
         progress = Progress(f"profile {source}", min(frames, len(sequence)),
                             enabled=not args.quiet)
         profile = measure_profile(sequence, source, config, frames, progress.update)
         if args.save_profile:
             profile.save(Path(args.save_profile))
-    latency = cfg.latency_ms if args.latency_ms is None else args.latency_ms
-    bandwidths = SWEEP_MBPS if args.sweep else (args.bandwidth_mbps or cfg.bandwidth_mbps,)
-    result = plan(profile, [Link(b, latency) for b in bandwidths], cfg, offered, args.objective)
+    bandwidths = SWEEP_MBPS if args.sweep else (cfg.bandwidth_mbps,)
+    result = plan(profile, [Link(b, cfg.latency_ms) for b in bandwidths], cfg, offered,
+                  args.objective)
     out = Path(args.out) if args.out else _default_out("plan")
     paths = write_plan(result, out)
     print(f"profile: {profile.source} ({profile.label}, {profile.frames} frames)")
@@ -700,6 +712,21 @@ CLOUD_EXTRA_MODULES = ("gtsam", "small_gicp", "faiss", "scipy", "octomap", "matp
                        "cryptography", "rosbags", "mcap")
 
 
+def _check_endpoints(args: argparse.Namespace, config: Config) -> None:
+    """Every --listen / --connect endpoint, before any work and before Zenoh sees it; a
+    command taking one but given none (cloud, router, robot) uses [transport] endpoint."""
+    zenoh_config = config.transport.zenoh_config or None
+    flags = [f for f in ("listen", "connect") if hasattr(args, f)]
+    for flag in flags:
+        given = getattr(args, flag)
+        for endpoint in given if isinstance(given, list) else [given]:
+            if endpoint is not None:
+                check_endpoint(endpoint, f"--{flag}", zenoh_config)
+    if flags and not any(getattr(args, f) for f in flags):
+        where = f"{args.config}: transport.endpoint" if args.config else "transport.endpoint"
+        check_endpoint(config.transport.endpoint, where, zenoh_config)
+
+
 def main(argv: list[str] | None = None) -> int:
     # small_gicp's OpenMP threads busy-wait by default, which slows everything else on a
     # 2-core robot or a shared server; they must sleep instead.
@@ -712,6 +739,7 @@ def main(argv: list[str] | None = None) -> int:
             if not Path(args.zenoh_config).is_file():
                 raise ValueError(f"{args.zenoh_config}: no such Zenoh config file")
             config.transport.zenoh_config = args.zenoh_config
+        _check_endpoints(args, config)
         return args.func(args, config)
     except (ValueError, FileExistsError, RuntimeError, TimeoutError) as exc:
         print(f"fleetslam: error: {exc}", file=sys.stderr)

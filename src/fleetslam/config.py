@@ -1,131 +1,150 @@
-"""The one configuration object of fleetslam. Every default is named here, once.
+"""The one configuration object of fleetslam. Every default is named here, once, beside
+what the setting may be (validation/rules.py: ``Annotated[int, at_least(1)]``).
 
 Load from TOML with :func:`load_config`; unknown keys are an error so typos do not pass
-silently.
+silently, and a value of the wrong type or out of its range names its key and file.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
+
+from fleetslam.validation.endpoints import endpoint_problem, host_problem
+from fleetslam.validation.names import name_problem
+from fleetslam.validation.rules import (ANY_TEXT, FINITE, FRACTION, Bound, OneOf, Text, above,
+                                        at_least, between, checked, rules_of)
+
+# The choices of string settings, also what the wire and the planner accept.
+IMAGE_CODECS = ("png", "jpeg")
+OBJECTIVES = ("energy", "latency", "fps", "mix")
+
+ENDPOINT = Text(endpoint_problem)
+HOST = Text(host_problem)
+# A worker id is a Zenoh key chunk (transport/keys.py); empty: chosen by the worker.
+WORKER_ID = Text(lambda s: name_problem(s) if s else None)
+# rerun's memory limit syntax: a size with a unit, or a share of the RAM.
+MEMORY_SIZE = Text(lambda s: None if re.fullmatch(r"\d+(\.\d+)?\s*([KMGT]i?B|B|%)", s)
+                   else "must be a size such as 1GiB, 512MB or 25%")
 
 
 @dataclass
 class OrbConfig:
     """ORB extraction (paper: OpenCV ORB, as in ORB-SLAM)."""
 
-    n_features: int = 1000
-    n_levels: int = 8
-    scale_factor: float = 1.2
-    fast_threshold: int = 20
+    n_features: Annotated[int, at_least(1)] = 1000
+    n_levels: Annotated[int, at_least(1)] = 8
+    scale_factor: Annotated[float, above(1.0)] = 1.2
+    fast_threshold: Annotated[int, between(1, 255)] = 20
     # Cells of the grid the features are spread over, so texture-rich corners do not
     # take the whole budget (ORB-SLAM does the same with its quadtree).
-    grid_cols: int = 8
-    grid_rows: int = 6
+    grid_cols: Annotated[int, at_least(1)] = 8
+    grid_rows: Annotated[int, at_least(1)] = 6
 
 
 @dataclass
 class TrackingConfig:
     """Matching, PnP and keyframe decision."""
 
-    min_depth_m: float = 0.1
-    max_depth_m: float = 7.0
+    min_depth_m: Annotated[float, at_least(0.0)] = 0.1
+    max_depth_m: Annotated[float, above(0.0)] = 7.0
     # Hamming distance (bits of 256) above which a descriptor match is not trusted.
-    max_hamming: int = 64
+    max_hamming: Annotated[int, between(0, 256)] = 64
     # Lowe ratio between best and second-best match.
-    match_ratio: float = 0.85
+    match_ratio: Annotated[float, Bound(0.0, 1.0, lo_open=True)] = 0.85
     # Reprojection error (pixels) for PnP RANSAC inliers and for refinement.
-    ransac_reproj_px: float = 3.0
-    ransac_iterations: int = 200
-    ransac_confidence: float = 0.999
+    ransac_reproj_px: Annotated[float, above(0.0)] = 3.0
+    ransac_iterations: Annotated[int, at_least(1)] = 200
+    ransac_confidence: Annotated[float, Bound(0.0, 1.0, lo_open=True, hi_open=True)] = 0.999
     # Fewer PnP inliers than this is a tracking loss.
-    min_inliers: int = 20
+    min_inliers: Annotated[int, at_least(4)] = 20
     # Pose from the motion model's prediction first (ORB-SLAM's TrackWithMotionModel:
     # motion-only BA on the guided matches, no RANSAC), kept when at least this fraction of
     # the matches are inliers; otherwise, and when 0, PnP RANSAC on the matches.
-    prediction_min_inlier_ratio: float = 0.7
+    prediction_min_inlier_ratio: Annotated[float, FRACTION] = 0.7
     # Keyframe when inliers drop below this fraction of the reference keyframe's points ...
-    keyframe_inlier_ratio: float = 0.55
+    keyframe_inlier_ratio: Annotated[float, FRACTION] = 0.55
     # ... or when the camera moved this far from the reference keyframe.
-    keyframe_translation_m: float = 0.15
-    keyframe_rotation_deg: float = 12.0
+    keyframe_translation_m: Annotated[float, at_least(0.0)] = 0.15
+    keyframe_rotation_deg: Annotated[float, between(0.0, 180.0)] = 12.0
     # Landmarks from this many recent keyframes form the local map matched against when
     # the prediction fails.
-    local_map_keyframes: int = 6
+    local_map_keyframes: Annotated[int, at_least(1)] = 6
     # Which landmarks guided matching and fusion search: "covisible" is ORB-SLAM's local map
     # (the newest keyframe, the keyframes sharing landmarks with it, and the recent ones), so
     # a return to an old place is found by the loop closer, which spreads the drift along
     # the loop; "all" matches every landmark in view (the old place snaps the pose, and the
     # drift stays where it was).
-    local_map_scope: str = "all"
+    local_map_scope: Annotated[str, OneOf(("all", "covisible"))] = "all"
     # Covisible keyframes of the newest keyframe in the local map (most shared first).
-    local_map_covisible: int = 20
+    local_map_covisible: Annotated[int, at_least(0)] = 20
     # Search radius (pixels, at octave 0) around a landmark's predicted position.
-    guided_radius_px: float = 25.0
+    guided_radius_px: Annotated[float, above(0.0)] = 25.0
     # Fewer guided matches than this: match against the whole local map instead.
-    min_guided_matches: int = 60
+    min_guided_matches: Annotated[int, at_least(0)] = 60
     # Virtual stereo baseline for the depth residual (ORB-SLAM's RGB-D "bf" / fx).
-    virtual_baseline_m: float = 0.08
+    virtual_baseline_m: Annotated[float, above(0.0)] = 0.08
     # After this many lost frames in a row, restart the map at the predicted pose.
-    lost_frames_before_reset: int = 15
+    lost_frames_before_reset: Annotated[int, at_least(1)] = 15
     # A repeated image (byte-identical, as 7-Scenes fills dropped frames) is detected by
     # this fraction of keypoints at the same place with the same descriptor.
-    repeated_frame_fraction: float = 0.98
+    repeated_frame_fraction: Annotated[float, Bound(0.0, 1.0, lo_open=True)] = 0.98
     # After the pose is found, search the unmatched landmarks projected with it and refine
     # the pose again (ORB-SLAM's TrackLocalMap). Off: it cost ~6 ms a frame for no ATE gain
     # measured on the TUM fr1_rpy / 7-Scenes segments ...
     track_local_map: bool = False
     # ... within this radius in pixels at octave 0 (ORB-SLAM RGB-D: th 3 x 2.5 px).
-    local_map_radius_px: float = 7.5
+    local_map_radius_px: Annotated[float, above(0.0)] = 7.5
     # Also take a keyframe as ORB-SLAM's RGB-D tracking does (using the observation records):
     # inliers below a fraction of the reference keyframe's established landmarks, or too few
     # close points tracked while many are untracked.
     orb_slam_keyframe_policy: bool = True
     # ORB-SLAM thRefRatio for stereo / RGB-D.
-    keyframe_reference_ratio: float = 0.75
+    keyframe_reference_ratio: Annotated[float, FRACTION] = 0.75
     # "Close" points: depth below this many virtual baselines (ORB-SLAM ThDepth, TUM: 40).
-    close_depth_baselines: float = 40.0
+    close_depth_baselines: Annotated[float, above(0.0)] = 40.0
     # Keyframe when fewer close points than this are tracked (ORB-SLAM: 100) ...
-    keyframe_close_tracked: int = 100
+    keyframe_close_tracked: Annotated[int, at_least(0)] = 100
     # ... and more close points than this are not (ORB-SLAM: 70).
-    keyframe_close_untracked: int = 70
+    keyframe_close_untracked: Annotated[int, at_least(0)] = 70
     # Local bundle adjustment of keyframe poses and landmarks at every keyframe (ORB-SLAM's
     # local mapping; where it runs: ``local_mapping``).
     local_ba: bool = True
     # Keyframes optimised: the new one and its most covisible ones (ORB-SLAM: all covisible).
-    local_ba_window: int = 10
+    local_ba_window: Annotated[int, at_least(1)] = 10
     # Landmarks two keyframes must share to be covisible (ORB-SLAM's covisibility edge: 15).
-    covisibility_min_shared: int = 15
+    covisibility_min_shared: Annotated[int, at_least(1)] = 15
     # Levenberg-Marquardt iterations: robust pass, then inlier-only pass (ORB-SLAM: 5, 10).
-    local_ba_iterations: tuple[int, int] = (5, 10)
+    local_ba_iterations: Annotated[tuple[int, int], at_least(1)] = (5, 10)
     # Where a cloud runs local BA: "async" in worker processes, its result written into
     # the map at a later frame, so a keyframe does not hold up the frames behind it
     # (ORB-SLAM's LocalMapping thread); "inline" at the keyframe, deterministic (the
     # exactness tests). One-process runs and robots tracking at point 6 are always inline.
-    local_mapping: str = "async"
+    local_mapping: Annotated[str, OneOf(("async", "inline"))] = "async"
     # Worker processes of a cloud for local BA, shared by its robots' sessions ...
-    local_mapping_workers: int = 1
+    local_mapping_workers: Annotated[int, at_least(1)] = 1
     # ... and how long a solve may take before it is dropped (the map stays as it was).
-    local_ba_timeout_s: float = 30.0
+    local_ba_timeout_s: Annotated[float, above(0.0)] = 30.0
     # Cull new landmarks as ORB-SLAM does (MapPointCulling) during their first keyframes.
     cull_landmarks: bool = True
     # ... when matched in fewer than this fraction of the frames predicted to see them ...
-    cull_min_found_ratio: float = 0.25
+    cull_min_found_ratio: Annotated[float, FRACTION] = 0.25
     # ... or, two keyframes after creation, observation weight (with depth 2, without 1)
     # still below this (ORB-SLAM RGB-D: more than 3) ...
-    cull_min_observation_weight: int = 4
+    cull_min_observation_weight: Annotated[int, at_least(0)] = 4
     # ... checked for this many keyframes after creation (ORB-SLAM: 3).
-    cull_probation_keyframes: int = 3
+    cull_probation_keyframes: Annotated[int, at_least(0)] = 3
     # At a keyframe, search unmatched keypoints against the landmarks projected into it
     # (ORB-SLAM's fuse) so a view of a known landmark adds an observation, not a duplicate.
     fuse_at_keyframe: bool = True
     # Fuse search radius in pixels at octave 0, scaled by the octave (ORB-SLAM Fuse: 3).
-    fuse_radius_px: float = 3.0
+    fuse_radius_px: Annotated[float, above(0.0)] = 3.0
     # Fuse descriptor distance bound (ORB-SLAM's TH_LOW: 50).
-    fuse_max_hamming: int = 50
+    fuse_max_hamming: Annotated[int, between(0, 256)] = 50
 
 
 @dataclass
@@ -139,22 +158,22 @@ class PlaceRecognitionConfig:
     # / 0.04 with a vocabulary trained on other images (0.70 / 0.50 only when trained on
     # the sequence itself), but 178 ms a query against 13 ms at 250 entries: the exact
     # index grows with the map, the vocabulary does not.
-    method: str = "nearest_neighbour"
+    method: Annotated[str, OneOf(("nearest_neighbour", "bag_of_words"))] = "nearest_neighbour"
     # A vocabulary file written by `fleetslam vocabulary` (bag_of_words only).
-    vocabulary: str = ""
+    vocabulary: Annotated[str, ANY_TEXT] = ""
     # Tree of a vocabulary `fleetslam vocabulary` trains: children per node, depth.
-    vocabulary_branching: int = 10
-    vocabulary_levels: int = 4
+    vocabulary_branching: Annotated[int, at_least(2)] = 10
+    vocabulary_levels: Annotated[int, at_least(1)] = 4
 
     # Neighbours looked up per query descriptor (a landmark seen by several old keyframes
     # votes for each of them).
-    neighbours: int = 8
+    neighbours: Annotated[int, at_least(1)] = 8
     # A neighbour farther than this (bits of 256) casts no vote (ORB-SLAM's TH_LOW).
-    max_hamming: int = 50
+    max_hamming: Annotated[int, between(0, 256)] = 50
     # Candidates returned per query, best score first ...
-    top_k: int = 3
+    top_k: Annotated[int, at_least(1)] = 3
     # ... each scoring at least this fraction of the best one.
-    min_score_ratio: float = 0.75
+    min_score_ratio: Annotated[float, FRACTION] = 0.75
 
 
 @dataclass
@@ -163,42 +182,42 @@ class LoopClosingConfig:
 
     enabled: bool = True
     # No loop is searched before the map has this many keyframes ...
-    min_keyframes: int = 10
+    min_keyframes: Annotated[int, at_least(0)] = 10
     # ... nor against keyframes fewer than this many keyframes older than the query, or
     # sharing at least ``covisibility_min_shared`` landmarks with it (tracking already
     # ties those to the query).
-    min_keyframe_gap: int = 10
+    min_keyframe_gap: Annotated[int, at_least(0)] = 10
     # A candidate's place: the candidate and this many of its most covisible keyframes,
     # whose landmarks are matched against the query keyframe.
-    candidate_neighbours: int = 5
+    candidate_neighbours: Annotated[int, at_least(0)] = 5
     # Geometric verification: 3D-3D RANSAC on depth-backed matches, then a motion-only
     # refinement with every landmark of the place projected into the query.
-    ransac_iterations: int = 300
+    ransac_iterations: Annotated[int, at_least(1)] = 300
     # A 3D match is an inlier within max(inlier_m, inlier_depth_ratio * depth).
-    ransac_inlier_m: float = 0.03
-    ransac_inlier_depth_ratio: float = 0.02
-    min_ransac_inliers: int = 30
+    ransac_inlier_m: Annotated[float, above(0.0)] = 0.03
+    ransac_inlier_depth_ratio: Annotated[float, at_least(0.0)] = 0.02
+    min_ransac_inliers: Annotated[int, at_least(3)] = 30
     # Inliers of the refined pose (reprojection with depth, chi-square test).
-    min_refined_inliers: int = 60
+    min_refined_inliers: Annotated[int, at_least(1)] = 60
     # Detections on consecutive keyframes whose loop corrections agree within these bounds
     # are required before a loop is closed (a single match can be a look-alike).
-    consistent_detections: int = 2
-    consistency_rotation_deg: float = 3.0
-    consistency_translation_m: float = 0.10
+    consistent_detections: Annotated[int, at_least(1)] = 2
+    consistency_rotation_deg: Annotated[float, between(0.0, 180.0)] = 3.0
+    consistency_translation_m: Annotated[float, at_least(0.0)] = 0.10
     # A detection stays usable for consistency for this many keyframes.
-    consistency_window_keyframes: int = 3
+    consistency_window_keyframes: Annotated[int, at_least(1)] = 3
     # Pose graph (gtsam, graduated non-convexity with a truncated least squares loss on
     # loop edges; odometry and covisibility edges are known inliers). Standard deviations
     # of a keyframe-to-keyframe relative pose:
-    edge_sigma_rotation_deg: float = 0.3
-    edge_sigma_translation_m: float = 0.005
+    edge_sigma_rotation_deg: Annotated[float, above(0.0)] = 0.3
+    edge_sigma_translation_m: Annotated[float, above(0.0)] = 0.005
     # Covisibility edges join keyframes sharing at least this many landmarks (ORB-SLAM's
     # essential graph: 100).
-    pose_graph_min_shared: int = 100
+    pose_graph_min_shared: Annotated[int, at_least(1)] = 100
     # After a loop is corrected, bundle-adjust the whole map (every keyframe and landmark).
     global_ba: bool = True
-    global_ba_iterations: tuple[int, int] = (5, 10)
-    seed: int = 0
+    global_ba_iterations: Annotated[tuple[int, int], at_least(1)] = (5, 10)
+    seed: Annotated[int, at_least(0)] = 0
     # With asynchronous local mapping (a cloud), the database query of each keyframe runs in
     # the local mapping worker (faiss holds the GIL); verification and correction stay on
     # the tracking thread. False: the query runs there too, as in-line.
@@ -211,18 +230,18 @@ class RelocalisationConfig:
 
     enabled: bool = True
     # Candidate keyframes tried per lost frame (place recognition order).
-    candidates: int = 3
-    min_inliers: int = 40
+    candidates: Annotated[int, at_least(1)] = 3
+    min_inliers: Annotated[int, at_least(4)] = 40
 
 
 @dataclass
 class MapConfig:
     """Per-robot dense map from keyframes."""
 
-    voxel_m: float = 0.02
-    max_depth_m: float = 4.0
+    voxel_m: Annotated[float, above(0.0)] = 0.02
+    max_depth_m: Annotated[float, above(0.0)] = 4.0
     # Back-project every n-th pixel: a keyframe at full density is ~300k points.
-    pixel_stride: int = 2
+    pixel_stride: Annotated[int, at_least(1)] = 2
 
 
 @dataclass
@@ -230,22 +249,22 @@ class FsHicpConfig:
     """FS-HICP as the paper's section IV.B specifies it (our reading: shared/paper-notes.md
     section 2, outside this repository)."""
 
-    max_depth_m: float = 7.0
-    coarse_voxel_m: float = 0.1
-    coarse_max_corr_m: float = 0.2
+    max_depth_m: Annotated[float, above(0.0)] = 7.0
+    coarse_voxel_m: Annotated[float, above(0.0)] = 0.1
+    coarse_max_corr_m: Annotated[float, above(0.0)] = 0.2
     # Coarse level runs while the fitness score is >= this fraction of the initial score.
-    coarse_score_fraction: float = 0.5
-    fine_voxel_m: float = 0.05
-    fine_max_corr_m: float = 0.1
-    fine_corr_shrink_m: float = 0.001
+    coarse_score_fraction: Annotated[float, FRACTION] = 0.5
+    fine_voxel_m: Annotated[float, above(0.0)] = 0.05
+    fine_max_corr_m: Annotated[float, above(0.0)] = 0.1
+    fine_corr_shrink_m: Annotated[float, at_least(0.0)] = 0.001
     # Internal ICP iterations per Align call.
-    align_iterations: int = 2
+    align_iterations: Annotated[int, at_least(1)] = 2
     # Simulated annealing: accept a non-improving step with this probability.
-    accept_worse_probability: float = 0.3
+    accept_worse_probability: Annotated[float, FRACTION] = 0.3
     # Stop after this many non-improving steps in a row.
-    max_no_improve: int = 3
+    max_no_improve: Annotated[int, at_least(1)] = 3
     # Convergence precision on the fitness score change (m^2).
-    score_epsilon: float = 1e-7
+    score_epsilon: Annotated[float, at_least(0.0)] = 1e-7
     # Fitness score used to steer the levels, with r = the level's starting max
     # correspondence distance (0.2 m coarse, 0.1 m fine):
     #   "pcl": PCL's default getFitnessScore, mean d^2 over all points (the paper's call);
@@ -253,12 +272,12 @@ class FsHicpConfig:
     #   "inliers": mean d^2 over points with d <= r; it rewards sliding off until only a
     #          small, well-fitting patch still overlaps (seen on planar overlaps).
     #   "truncated": mean of min(d^2, r^2); a lost neighbour costs r^2, a far one no more.
-    fitness: str = "truncated"
+    fitness: Annotated[str, OneOf(("pcl", "inliers", "truncated"))] = "truncated"
     # Hard caps so a pathological pair cannot run forever.
-    max_coarse_steps: int = 200
-    max_fine_steps: int = 400
-    seed: int = 0
-    num_threads: int = 2
+    max_coarse_steps: Annotated[int, at_least(1)] = 200
+    max_fine_steps: Annotated[int, at_least(1)] = 400
+    seed: Annotated[int, at_least(0)] = 0
+    num_threads: Annotated[int, at_least(1)] = 2
 
 
 @dataclass
@@ -268,25 +287,25 @@ class MergeConfig:
 
     enabled: bool = True
     # Place-recognition candidates verified per other robot and new keyframe.
-    candidates: int = 3
+    candidates: Annotated[int, at_least(1)] = 3
     # A candidate is verified like a loop (loop_closing's RANSAC settings, keyframe to
     # keyframe); matches left after the reprojection refinement of the query pose:
-    min_refined_inliers: int = 50
+    min_refined_inliers: Annotated[int, at_least(1)] = 50
     # Matches (from different keyframes) that must imply the same map-to-map transform,
     # within loop_closing's consistency bounds, before two robots join.
-    consistent_detections: int = 2
+    consistent_detections: Annotated[int, at_least(1)] = 2
     # Global pose graph: each robot's own keyframe-to-keyframe edges, and the inter-robot
     # edges (a single keyframe pair's alignment is looser than tracking's).
-    odometry_sigma_rotation_deg: float = 0.3
-    odometry_sigma_translation_m: float = 0.005
-    inter_sigma_rotation_deg: float = 1.0
-    inter_sigma_translation_m: float = 0.02
+    odometry_sigma_rotation_deg: Annotated[float, above(0.0)] = 0.3
+    odometry_sigma_translation_m: Annotated[float, above(0.0)] = 0.005
+    inter_sigma_rotation_deg: Annotated[float, above(0.0)] = 1.0
+    inter_sigma_translation_m: Annotated[float, above(0.0)] = 0.02
     # FS-HICP refines each joined robot's dense map against the rest of its group.
     fshicp_refine: bool = True
     # The global OctoMap (.bt): leaf size, and how far rays from a keyframe are cast.
-    octomap_resolution_m: float = 0.05
-    octomap_max_range_m: float = 4.0
-    seed: int = 7
+    octomap_resolution_m: Annotated[float, above(0.0)] = 0.05
+    octomap_max_range_m: Annotated[float, above(0.0)] = 4.0
+    seed: Annotated[int, at_least(0)] = 7
 
 
 @dataclass
@@ -295,64 +314,64 @@ class PlannerConfig:
     values" as defaults), the time model and the objective."""
 
     # Power (W) of the robot's CPU, the cloud's CPU and the robot's radio while sending.
-    p_local_w: float = 0.9
-    p_cloud_w: float = 0.3
-    p_tr_w: float = 1.3
+    p_local_w: Annotated[float, at_least(0.0)] = 0.9
+    p_cloud_w: Annotated[float, at_least(0.0)] = 0.3
+    p_tr_w: Annotated[float, at_least(0.0)] = 1.3
     # CPU speeds (G cycles/s); their ratio is how much slower the robot runs a stage than
     # this host (the cloud) unless a profile measured the robot itself.
-    u_local_gps: float = 1.2
-    u_cloud_gps: float = 3.3
+    u_local_gps: Annotated[float, above(0.0)] = 1.2
+    u_cloud_gps: Annotated[float, above(0.0)] = 3.3
     # Computation of the whole pipeline per energy unit (G cycles); None: from the measured
     # stage times (host seconds x u_cloud_gps x frames_per_unit).
-    c_total_g: float | None = None
+    c_total_g: Annotated[float | None, above(0.0)] = None
     # The paper tabulates energy and transmission time per 10 frames.
-    frames_per_unit: int = 10
+    frames_per_unit: Annotated[int, at_least(1)] = 10
     # "energy", "latency", "fps" (highest sustainable frame rate) or "mix" (weighted sum of
     # energy and latency, each relative to its best candidate).
-    objective: str = "energy"
-    mix_energy_weight: float = 0.5
+    objective: Annotated[str, OneOf(OBJECTIVES)] = "energy"
+    mix_energy_weight: Annotated[float, FRACTION] = 0.5
     # The link when nothing measured one: bandwidth (Mbit/s) and one-way latency (ms).
-    bandwidth_mbps: float = 10.0
-    latency_ms: float = 0.0
+    bandwidth_mbps: Annotated[float, above(0.0)] = 10.0
+    latency_ms: Annotated[float, at_least(0.0)] = 0.0
     # Frames measured for a profile.
-    profile_frames: int = 60
+    profile_frames: Annotated[int, at_least(1)] = 60
     # Online (a robot with --offload-at auto): re-plan every this many frames, among the
     # points the cloud can switch between frame by frame, lowering the ORB features or
     # sending every n-th frame only when no point keeps up with the camera (target_fps).
-    replan_frames: int = 30
-    online_points: tuple[int, ...] = (0, 1, 2, 3)
-    feature_options: tuple[int, ...] = (1000, 700, 500)
-    frame_step_options: tuple[int, ...] = (1, 2)
-    target_fps: float = 30.0
+    replan_frames: Annotated[int, at_least(1)] = 30
+    online_points: Annotated[tuple[int, ...], between(0, 3)] = (0, 1, 2, 3)
+    feature_options: Annotated[tuple[int, ...], at_least(1)] = (1000, 700, 500)
+    frame_step_options: Annotated[tuple[int, ...], at_least(1)] = (1, 2)
+    target_fps: Annotated[float, above(0.0)] = 30.0
     # A new setting must promise this much more throughput to replace the current one.
-    switch_gain: float = 1.15
+    switch_gain: Annotated[float, at_least(1.0)] = 1.15
     # The link estimate looks back over the last this many sends, at most this many seconds
     # (a count, so that it follows a link that got faster within a few frames).
-    link_window_sends: int = 20
-    link_window_s: float = 3.0
+    link_window_sends: Annotated[int, at_least(1)] = 20
+    link_window_s: Annotated[float, above(0.0)] = 3.0
 
 
 @dataclass
 class SyntheticConfig:
     """The built-in synthetic multi-robot scene."""
 
-    seed: int = 1
-    n_robots: int = 2
-    frames_per_robot: int = 120
-    width: int = 640
-    height: int = 480
-    fx: float = 525.0
-    fy: float = 525.0
-    cx: float = 319.5
-    cy: float = 239.5
-    fps: float = 30.0
-    room_size_m: tuple[float, float, float] = (6.0, 5.0, 2.8)
-    n_furniture: int = 8
+    seed: Annotated[int, at_least(0)] = 1
+    n_robots: Annotated[int, at_least(1)] = 2
+    frames_per_robot: Annotated[int, at_least(1)] = 120
+    width: Annotated[int, at_least(1)] = 640
+    height: Annotated[int, at_least(1)] = 480
+    fx: Annotated[float, above(0.0)] = 525.0
+    fy: Annotated[float, above(0.0)] = 525.0
+    cx: Annotated[float, FINITE] = 319.5
+    cy: Annotated[float, FINITE] = 239.5
+    fps: Annotated[float, above(0.0)] = 30.0
+    room_size_m: Annotated[tuple[float, float, float], above(0.0)] = (6.0, 5.0, 2.8)
+    n_furniture: Annotated[int, at_least(0)] = 8
     # Kinect-like depth noise: sigma(z) = a + b * (z - 0.4)^2 (Nguyen et al. 2012).
-    depth_noise_a: float = 0.0012
-    depth_noise_b: float = 0.0019
-    depth_dropout: float = 0.02
-    max_depth_m: float = 5.0
+    depth_noise_a: Annotated[float, at_least(0.0)] = 0.0012
+    depth_noise_b: Annotated[float, at_least(0.0)] = 0.0019
+    depth_dropout: Annotated[float, FRACTION] = 0.02
+    max_depth_m: Annotated[float, above(0.0)] = 5.0
 
 
 @dataclass
@@ -362,29 +381,29 @@ class SourceConfig:
 
     # Colour and depth images are paired when their stamps are at most this far apart
     # (TUM's associate.py: 20 ms); unpaired images are counted.
-    pair_tolerance_s: float = 0.02
+    pair_tolerance_s: Annotated[float, at_least(0.0)] = 0.02
     # Topics of a bag or of live ROS 2; empty: found when the bag has one of each.
-    rgb_topic: str = ""
-    depth_topic: str = ""
-    camera_info_topic: str = ""
+    rgb_topic: Annotated[str, ANY_TEXT] = ""
+    depth_topic: Annotated[str, ANY_TEXT] = ""
+    camera_info_topic: Annotated[str, ANY_TEXT] = ""
     # A live camera that delivers no frame this long ends the robot's run with an error.
-    live_frame_timeout_s: float = 10.0
+    live_frame_timeout_s: Annotated[float, above(0.0)] = 10.0
     # Live ROS 2 topics over rmw_zenoh (datasets/ros2_topics.py, source spec `ros2` or
     # `ros2:ENDPOINT`). The robot's ROS 2 Zenoh router: rmw_zenoh's default, on the robot.
     # fleetslam's cloud endpoint defaults to the same port: run the cloud elsewhere, or give
     # one of them another port.
-    ros_endpoint: str = "tcp/localhost:7447"
+    ros_endpoint: Annotated[str, ENDPOINT] = "tcp/localhost:7447"
     # ROS_DOMAIN_ID of the camera's nodes; -1: the ROS_DOMAIN_ID environment variable, as
     # ROS 2 reads it (0 without it).
-    ros_domain_id: int = -1
+    ros_domain_id: Annotated[int, between(-1, 232)] = -1
     # A Zenoh config file (JSON5) for the session to the ROS 2 router (TLS, ...); empty: a
     # client of ros_endpoint, no multicast. Not transport.zenoh_config: that is the cloud's.
-    ros_zenoh_config: str = ""
+    ros_zenoh_config: Annotated[str, ANY_TEXT] = ""
     # Topic discovery waits until the live publishers have not changed this long, so a
     # camera node still declaring its topics is not judged half-way.
-    ros_discovery_settle_s: float = 0.5
+    ros_discovery_settle_s: Annotated[float, at_least(0.0)] = 0.5
     # Messages a live image topic keeps waiting for its partner (colour or depth).
-    ros_waiting_messages: int = 4
+    ros_waiting_messages: Annotated[int, at_least(1)] = 4
 
 
 @dataclass
@@ -393,106 +412,106 @@ class WireConfig:
 
     # zstd over each message payload (descriptors barely shrink; keypoints and images do).
     compress: bool = True
-    zstd_level: int = 3
+    zstd_level: Annotated[int, between(1, 22)] = 3
     # Images inside frame messages (split points 0 and 1): "png" is lossless, so the cloud's
     # poses equal the in-memory run; "jpeg" is smaller but changes what the cloud sees.
-    frame_image_codec: str = "png"
-    jpeg_quality: int = 90
+    frame_image_codec: Annotated[str, OneOf(IMAGE_CODECS)] = "png"
+    jpeg_quality: Annotated[int, between(1, 100)] = 90
     # Keyframe uploads for the dense map: colour only feeds the map's point colours.
-    keyframe_rgb_codec: str = "jpeg"
+    keyframe_rgb_codec: Annotated[str, OneOf(IMAGE_CODECS)] = "jpeg"
     # Inter-frame coding (wire/inter.py): a robot codes each descriptor against the nearest
     # one of frames the cloud acknowledged (points 2-5), lossless; 7-Scenes at point 3: 34
     # -> ~19 kB a frame (bench/inter_coding.py). Off: every frame is coded alone.
     inter_frame: bool = True
     # An intra frame (coded alone) at least every this many frames.
-    intra_every: int = 30
+    intra_every: Annotated[int, at_least(1)] = 30
     # Acknowledged frames a message is coded against (the newest ones), at most 8.
-    inter_references: int = 4
+    inter_references: Annotated[int, between(1, 8)] = 4
     # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames):
     # a reference must still be there when a frame coded against it arrives, and a busy
     # cloud's feedback comes tens of frames late (bench/offload.py: ~1.3 s median round
     # trip at 10 Mbit/s on 2 cores). ~33 kB each.
-    reference_frames: int = 64
+    reference_frames: Annotated[int, at_least(0)] = 64
 
 
 @dataclass
 class LinkConfig:
     """Emulated robot-to-cloud link on the robot's send path (0 = not limited)."""
 
-    bandwidth_mbps: float = 0.0
-    latency_ms: float = 0.0
+    bandwidth_mbps: Annotated[float, at_least(0.0)] = 0.0
+    latency_ms: Annotated[float, at_least(0.0)] = 0.0
     # Probability that a frame message is lost (keyframe uploads are retried until acked).
-    loss: float = 0.0
-    seed: int = 0
+    loss: Annotated[float, between(0.0, 1.0, hi_open=True)] = 0.0
+    seed: Annotated[int, at_least(0)] = 0
 
 
 @dataclass
 class TransportConfig:
     """Zenoh endpoints and the reliability of keyframe uploads and the robot's handshake."""
 
-    endpoint: str = "tcp/127.0.0.1:7447"
+    endpoint: Annotated[str, ENDPOINT] = "tcp/127.0.0.1:7447"
     # A Zenoh config file (JSON5) every fleetslam process starts from: a lab's TLS,
     # authentication, access control and routers. Empty: peer mode, no multicast.
-    zenoh_config: str = ""
+    zenoh_config: Annotated[str, ANY_TEXT] = ""
     # Wait this long for a keyframe upload's acknowledgement before sending it again ...
-    ack_timeout_s: float = 2.0
+    ack_timeout_s: Annotated[float, above(0.0)] = 2.0
     # ... and give up (an error, never a silent loss) after this many attempts.
-    max_attempts: int = 30
+    max_attempts: Annotated[int, at_least(1)] = 30
     # A robot waits this long for the cloud to answer its hello before retrying.
-    connect_timeout_s: float = 2.0
+    connect_timeout_s: Annotated[float, above(0.0)] = 2.0
     # How long a robot or client waits for anything to answer at the cloud's endpoint.
-    reach_deadline_s: float = 600.0
+    reach_deadline_s: Annotated[float, at_least(0.0)] = 600.0
     # The cloud's bounds: robots it serves at once, and frames waiting per robot (the
     # oldest is dropped beyond it: frames are best effort, keyframes are not).
-    max_sessions: int = 64
-    max_queued_frames: int = 256
+    max_sessions: Annotated[int, at_least(1)] = 64
+    max_queued_frames: Annotated[int, at_least(1)] = 256
     # Bytes a session may hold for its robot (frames waiting, undecoded and decoded, uploads
     # waiting, reference frames); beyond it frames and uploads are dropped unread and the
     # robot told to slow down (cloud/memory_budget.py). A point-0 frame decodes to ~2.2 MB,
     # so an honest robot's window of max_frames_in_flight = 12 holds ~26 MB, plus an upload
     # or two (~0.6 MB each) and its references (64 x ~35 KB at point 3): 64 MB is twice that.
-    session_budget_mb: float = 64.0
+    session_budget_mb: Annotated[float, above(0.0)] = 64.0
     # Bytes all sessions may hold: each session reserves its budget, so the cloud opens at
     # most cloud_budget_mb // session_budget_mb sessions (4 GB: 64 sessions, what a 2-core
     # cloud of 8 GB holds beside its maps). A reservation, not a shared pool: one robot's
     # flood can never take the room another robot's session needs.
-    cloud_budget_mb: float = 4096.0
+    cloud_budget_mb: Annotated[float, above(0.0)] = 4096.0
     # An unfinished session that hears nothing from its robot this long is checkpointed and
     # closed (its threads and memory freed); the robot's next message restores it.
-    idle_session_s: float = 900.0
+    idle_session_s: Annotated[float, above(0.0)] = 900.0
     # ... and one that never tracked a frame (nothing to checkpoint) after this long, so a
     # flood of hellos under made-up ids cannot hold every session slot for idle_session_s.
-    idle_empty_session_s: float = 30.0
+    idle_empty_session_s: Annotated[float, above(0.0)] = 30.0
     # A robot refused because the cloud is full says hello again this many times, waiting
     # full_retry_s, then twice that, and so on (sessions free up: robots end, empty ones
     # expire), then stops saying the cloud is full. Any other refusal stops it at once.
-    full_retries: int = 3
-    full_retry_s: float = 5.0
+    full_retries: Annotated[int, at_least(0)] = 3
+    full_retry_s: Annotated[float, at_least(0.0)] = 5.0
     # A robot rejected more often than this (a broken or hostile client) has its frames and
     # uploads dropped unread for a while, so its flood cannot starve the other sessions.
-    max_rejections_per_s: float = 50.0
-    misbehaving_pause_s: float = 2.0
+    max_rejections_per_s: Annotated[float, above(0.0)] = 50.0
+    misbehaving_pause_s: Annotated[float, at_least(0.0)] = 2.0
     # Control messages (hello, end) a robot may send a second; a genuine robot sends one
     # every connect_timeout_s at most. Beyond it they are rejected (and count towards the
     # pause above): each costs the session work and a reply.
-    max_control_per_s: float = 20.0
+    max_control_per_s: Annotated[float, above(0.0)] = 20.0
     # Keyframe uploads the cloud stores per robot (about 0.2 MB each at the map's stride).
-    max_keyframes: int = 20_000
+    max_keyframes: Annotated[int, at_least(1)] = 20_000
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
-    end_grace_s: float = 2.0
+    end_grace_s: Annotated[float, at_least(0.0)] = 2.0
     # Frames a robot keeps (RGB-D) for keyframe uploads the cloud may still ask for.
-    keyframe_buffer_frames: int = 120
+    keyframe_buffer_frames: Annotated[int, at_least(1)] = 120
     # Frames a robot has sent without their feedback yet, at most (flow control, 0: no
     # bound): a robot faster than its cloud session waits instead of filling the session's
     # queue, whose overflow cuts gaps into the trajectory (bench/offload.py, point 3, inter
     # coding, no bound: 27 frames dropped, a bad relocalisation, ATE 34 cm), and the round
     # trip stays about this many cloud frame times (8: p95 0.46 s, 16: 0.9 s, 30: 1.1 s,
     # unbounded: 4-11 s). 12 keeps 0.4 s of frames in flight at 30 fps: a WAN round trip.
-    max_frames_in_flight: int = 12
+    max_frames_in_flight: Annotated[int, at_least(0)] = 12
     # ... waiting at most this long per frame (a cloud that stopped answering must not
     # stop the robot: its hello and resends take over).
-    in_flight_wait_s: float = 5.0
+    in_flight_wait_s: Annotated[float, above(0.0)] = 5.0
 
 
 @dataclass
@@ -500,16 +519,16 @@ class PlacementConfig:
     """Cloud workers sharing robots (cloud/placement.py): how bids for a robot are settled."""
 
     # A worker's name in the liveliness tokens; empty: w-<host>-<pid>.
-    worker_id: str = ""
+    worker_id: Annotated[str, WORKER_ID] = ""
     # Bids are compared this long after a worker bids (longer than the routers' round
     # trip, so every worker sees the same bids).
-    settle_s: float = 0.3
+    settle_s: Annotated[float, above(0.0)] = 0.3
     # A liveliness query of the routers gives up after this long.
-    query_timeout_s: float = 2.0
+    query_timeout_s: Annotated[float, above(0.0)] = 2.0
     # Bidding rounds for one robot before the worker leaves it to the robot's next message.
-    max_rounds: int = 5
+    max_rounds: Annotated[int, at_least(1)] = 5
     # A worker's load is its robots heard from within this many seconds.
-    active_s: float = 10.0
+    active_s: Annotated[float, above(0.0)] = 10.0
 
 
 @dataclass
@@ -519,35 +538,35 @@ class ViewConfig:
 
     # Updates waiting for the view's own logging thread; when it falls behind, new ones are
     # dropped (and counted): a robot's session never waits for the view.
-    queue_size: int = 2048
+    queue_size: Annotated[int, at_least(1)] = 2048
     # A robot's camera (frustum and pose) every n-th frame; its trajectory as line-strip
     # segments of this many frames (each logged once, never the whole trajectory again).
-    pose_every_frames: int = 1
-    trajectory_segment_frames: int = 10
+    pose_every_frames: Annotated[int, at_least(1)] = 1
+    trajectory_segment_frames: Annotated[int, at_least(1)] = 10
     # Each keyframe's back-projected points, voxel-downsampled to this size, at most this
     # many per keyframe, so the growing map stays fluid in the viewer.
-    keyframe_voxel_m: float = 0.05
-    max_points_per_keyframe: int = 4000
+    keyframe_voxel_m: Annotated[float, above(0.0)] = 0.05
+    max_points_per_keyframe: Annotated[int, at_least(1)] = 4000
     # A keyframe's points move with it (local BA, loop closing) once its pose changed by
     # more than this.
-    move_translation_m: float = 0.01
-    move_rotation_deg: float = 0.5
+    move_translation_m: Annotated[float, at_least(0.0)] = 0.01
+    move_rotation_deg: Annotated[float, at_least(0.0)] = 0.5
     # The merger's global transforms and inter-robot constraints at most this often
     # (each may re-optimise a joined group's pose graph, on the merger's thread).
-    global_every_s: float = 2.0
+    global_every_s: Annotated[float, above(0.0)] = 2.0
     # Link throughput per robot: bytes received, sampled this often.
-    throughput_every_s: float = 1.0
+    throughput_every_s: Annotated[float, above(0.0)] = 1.0
     # Without a display to spawn a viewer on, the cloud serves its view over gRPC here
     # (``rerun rerun+http://HOST:PORT/proxy``); loopback only unless changed. Not rerun's
     # 9876: a viewer started on the same machine opens its own server there.
-    grpc_bind: str = "127.0.0.1"
-    grpc_port: int = 9877
+    grpc_bind: Annotated[str, HOST] = "127.0.0.1"
+    grpc_port: Annotated[int, between(1, 65535)] = 9877
     # What that server keeps for viewers that connect late (rerun's size syntax).
-    server_memory_limit: str = "1GiB"
+    server_memory_limit: Annotated[str, MEMORY_SIZE] = "1GiB"
     # A finished run's maps (fleetslam view): at most this many points each.
-    max_map_points: int = 2_000_000
+    max_map_points: Annotated[int, at_least(1)] = 2_000_000
     # At shutdown, the cloud waits at most this long for queued updates to be written.
-    close_timeout_s: float = 10.0
+    close_timeout_s: Annotated[float, at_least(0.0)] = 10.0
 
 
 @dataclass
@@ -582,20 +601,33 @@ class Config:
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
 
 
-def _update(obj: Any, values: dict[str, Any], where: str) -> None:
-    names = {f.name: f for f in dataclasses.fields(obj)}
+def _update(obj: Any, values: dict[str, Any], path: str, prefix: str = "") -> None:
+    """Set ``values`` (a TOML table) on the section ``obj``, each checked against its
+    field's type and rule; ValueError naming the file and the key."""
+    rules = rules_of(type(obj))
     for key, value in values.items():
-        if key not in names:
-            raise ValueError(f"{where}: unknown setting '{key}' (known: {', '.join(names)})")
+        name = f"{prefix}{key}"
+        if key not in rules:
+            raise ValueError(f"{path}: unknown setting '{name}' (known: {', '.join(rules)})")
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
-                raise ValueError(f"{where}.{key}: expected a table")
-            _update(current, value, f"{where}.{key}")
-        elif isinstance(current, tuple):
-            setattr(obj, key, tuple(value))
-        else:
-            setattr(obj, key, type(current)(value))
+                raise ValueError(f"{path}: {name}: expected a table")
+            _update(current, value, path, f"{name}.")
+            continue
+        try:
+            setattr(obj, key, checked(value, *rules[key]))
+        except ValueError as exc:
+            raise ValueError(f"{path}: {name} = {value!r}: {exc}") from None
+
+
+def set_from_flag(section: Any, key: str, value: Any, flag: str) -> None:
+    """A setting a command-line flag gives, checked like the TOML file's; ValueError
+    naming the flag."""
+    try:
+        setattr(section, key, checked(value, *rules_of(type(section))[key]))
+    except ValueError as exc:
+        raise ValueError(f"{flag} {value!r}: {exc}") from None
 
 
 def load_config(path: str | Path | None = None) -> Config:

@@ -58,6 +58,7 @@ from fleetslam.datasets.ros_messages import (
 )
 from fleetslam.datasets.source import Frame
 from fleetslam.datasets.stamp_pairing import COLOUR, DEPTH, StampPairer
+from fleetslam.validation.endpoints import check_endpoint
 
 log = logging.getLogger("fleetslam.datasets.ros2")
 
@@ -168,9 +169,8 @@ class Ros2TopicSource(SlotCounts):
             raise ValueError(f"{spec!r} is not a ROS 2 topics source (ros2 or ros2:ENDPOINT)")
         endpoint = spec[len(SPEC) + 1:] if spec.startswith(SPEC + ":") \
             else config.source.ros_endpoint
-        if "/" not in endpoint:
-            raise ValueError(f"source {spec!r}: {endpoint!r} is not a Zenoh endpoint "
-                             f"(e.g. tcp/localhost:7447)")
+        check_endpoint(endpoint, f"source {spec!r}: endpoint",
+                       config.source.ros_zenoh_config or None)
         return cls(endpoint, config.source, camera)
 
     # ------------------------------------------------------------------ LiveSource

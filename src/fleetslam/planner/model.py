@@ -19,13 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.config import PlannerConfig
+from fleetslam.config import OBJECTIVES, PlannerConfig  # OBJECTIVES: re-exported
 from fleetslam.planner.profile import Profile
 
 # The sweep of `fleetslam plan --sweep` (Mbit/s).
 SWEEP_MBPS = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
-
-OBJECTIVES = ("energy", "latency", "fps", "mix")
 
 
 @dataclass

@@ -9,6 +9,8 @@ import time
 
 import zenoh
 
+from fleetslam.validation.endpoints import check_endpoint
+
 log = logging.getLogger("fleetslam.transport")
 
 # Reconnection pace after the cloud goes away (ms): quick first retry, capped.
@@ -35,6 +37,8 @@ def _base_config(path: str | None = None, mode: str = "client") -> zenoh.Config:
 
 def open_listening(endpoint: str, zenoh_config: str | None = None) -> zenoh.Session:
     """A router listening on ``endpoint`` (a lone cloud, or ``fleetslam router``)."""
+    # The command line checked its flags already; this covers every other caller.
+    check_endpoint(endpoint, "endpoint", zenoh_config)
     config = _base_config(zenoh_config, "router")
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
     try:
@@ -46,6 +50,8 @@ def open_listening(endpoint: str, zenoh_config: str | None = None) -> zenoh.Sess
 def open_router(endpoint: str, others: list[str] | None = None,
                 zenoh_config: str | None = None) -> zenoh.Session:
     """A router of its own on ``endpoint``, joined to the ``others`` (kept retrying)."""
+    for each in [endpoint, *(others or [])]:
+        check_endpoint(each, "endpoint", zenoh_config)
     config = _base_config(zenoh_config, "router")
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
     if others:
@@ -62,7 +68,9 @@ def open_router(endpoint: str, others: list[str] | None = None,
 def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.0,
                          zenoh_config: str | None = None) -> None:
     """Block until something answers at ``endpoint``, saying so on every failed attempt;
-    RuntimeError after ``deadline_s`` seconds."""
+    RuntimeError after ``deadline_s`` seconds; ValueError at once for an endpoint that cannot
+    work (its form, an unknown host, TLS without certificates)."""
+    check_endpoint(endpoint, "endpoint", zenoh_config)
     probe = _base_config(zenoh_config)
     probe.insert_json5("connect/endpoints", json.dumps([endpoint]))
     probe.insert_json5("connect/exit_on_failure", "true")

@@ -12,6 +12,7 @@ import struct
 import cv2
 import numpy as np
 
+from fleetslam.config import IMAGE_CODECS  # re-exported: the wire's image codecs
 from fleetslam.wire.envelope import WireError
 
 # PNG images: zlib's run-length strategy. On the real 640x480 frames it is both smaller and
@@ -19,7 +20,6 @@ from fleetslam.wire.envelope import WireError
 # 154 vs 175 kB, colour 458 vs 482 kB (7-Scenes); higher levels cost 1.5-3x the time.
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY,
               cv2.IMWRITE_PNG_STRATEGY_RLE]
-IMAGE_CODECS = ("png", "jpeg")
 # Larger images are refused before decoding (a 4K frame has 8.3 Mpixels).
 MAX_IMAGE_PIXELS = 1 << 24
 # Smallest zstd block a payload is cut into (Writer.sections).

@@ -26,7 +26,6 @@ opening a message raises :class:`WireError` with the reason; nothing else escape
 from __future__ import annotations
 
 import math
-import re
 import struct
 import zlib
 from collections.abc import Sequence
@@ -36,12 +35,13 @@ from enum import IntEnum
 import zstandard
 
 from fleetslam.pipeline.split import STAGE_NAMES
+from fleetslam.validation.names import MAX_NAME_LENGTH as MAX_ROBOT_ID_LENGTH
+from fleetslam.validation.names import NAME
 
 MAGIC = b"FSLM"
 FORMAT_VERSION = 1
 # Split points 0..6: the pipeline has six stages (pipeline/split.py), so seven states.
 N_SPLIT_POINTS = len(STAGE_NAMES) + 1
-MAX_ROBOT_ID_LENGTH = 64
 # No payload is larger than this once decompressed (a full-resolution frame is ~1.5 MB).
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
 
@@ -51,7 +51,6 @@ _KNOWN_FLAGS = FLAG_ZSTD
 _PREFIX = struct.Struct("<4sHBBBB")  # magic, version, kind, split, flags, robot id length
 _TAIL = struct.Struct("<QdII")  # seq, timestamp, raw length, payload length
 _CRC = struct.Struct("<I")
-_ROBOT_ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
 
 
 class Kind(IntEnum):
@@ -93,7 +92,7 @@ def header_size(robot_id: str) -> int:
 
 def check_robot_id(robot_id: str) -> None:
     """Raise ValueError unless ``robot_id`` is 1..64 characters of [A-Za-z0-9_-]."""
-    if not isinstance(robot_id, str) or not _ROBOT_ID.fullmatch(robot_id):
+    if not isinstance(robot_id, str) or not NAME.fullmatch(robot_id):
         raise ValueError(f"robot id {robot_id!r} must be 1..{MAX_ROBOT_ID_LENGTH} characters "
                          "of [A-Za-z0-9_-]")
 
@@ -179,7 +178,7 @@ def open_message(data: bytes) -> tuple[Header, bytes]:
         robot_id = id_bytes.decode("utf-8")
     except UnicodeDecodeError:
         raise WireError("robot id not valid UTF-8") from None
-    if not _ROBOT_ID.fullmatch(robot_id):
+    if not NAME.fullmatch(robot_id):
         raise WireError(f"robot id {robot_id!r} has characters outside [A-Za-z0-9_-]")
     seq, timestamp, raw_length, payload_length = _TAIL.unpack_from(data, _PREFIX.size + id_length)
     (checksum,) = _CRC.unpack_from(data, head_length - _CRC.size)

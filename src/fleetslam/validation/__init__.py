@@ -1,0 +1,1 @@
+"""What settings and endpoints may be, checked before anything uses them."""
