@@ -99,6 +99,12 @@ def _cut_member() -> bytes:
     return buffer.getvalue()
 
 
+def _bad_hello() -> bytes:
+    tree, arrays = _parts(_checkpoint())
+    tree["state"]["attributes"]["hello"]["attributes"]["offload_at"] = 5
+    return _pack(tree, arrays)
+
+
 def _hiding() -> bytes:
     tree, arrays = _parts(_checkpoint())
     tree["state"]["attributes"]["tracking"]["attributes"]["predict_pose"] = 1
@@ -118,6 +124,7 @@ DAMAGED = {
     "a field of the wrong type": (_wrong_type, r"session\.rows is a Hello, not a list"),
     "an array of the wrong shape": (_wrong_shape, r"map\.xyz has shape \(5, 2\), expected"),
     "an index out of range": (_index_out_of_range, "landmarks outside 0..1"),
+    "a hello the wire would refuse": (_bad_hello, "hello: offloading point 5 not supported"),
     "a field hiding a method": (_hiding, r"tracking\.predict_pose would hide BackEndState"),
 }
 
@@ -194,6 +201,8 @@ def test_a_robot_with_a_damaged_checkpoint_gets_a_fresh_session_and_is_told(tmp_
     for robot, blob in (("r0", damaged), ("r1", _checkpoint("r1"))):
         (store / robot).mkdir(parents=True)
         (store / robot / CHECKPOINT).write_bytes(blob)
+    (store / "r0" / "keyframes").mkdir()
+    (store / "r0" / "keyframes" / "000003.fskf").write_bytes(b"an old keyframe")
     endpoint = free_endpoint()
     server = CloudServer(exact_config(), store, endpoint).start()
     from fleetslam.transport.zenoh_session import open_connecting
@@ -207,6 +216,10 @@ def test_a_robot_with_a_damaged_checkpoint_gets_a_fresh_session_and_is_told(tmp_
         kept = list((store / "r0").glob(f"{CHECKPOINT}.damaged-*"))
         assert [p.read_bytes() for p in kept] == [damaged]  # nothing stored is lost
         assert str(kept[0]) in welcome["history_lost"]
+        # Its old keyframes too: the fresh session must not take them for its own.
+        assert welcome["keyframes_stored"] == 0
+        old = list((store / "r0").glob("keyframes.damaged-*/000003.fskf"))
+        assert [p.read_bytes() for p in old] == [b"an old keyframe"]
         other = robots[1].hello()
         assert other["resumed"] is True and "history_lost" not in other
     finally:

@@ -20,10 +20,14 @@ from typing import Any
 import numpy as np
 
 from fleetslam.backend.local_map import Keyframe, LocalMap
+from fleetslam.backend.place_recognition import KeyframeDatabase
 from fleetslam.backend.pose_graph import PoseEdge
 from fleetslam.backend.state import BackEndState, LoopDetection
+from fleetslam.backend.vocabulary import BowDatabase
+from fleetslam.camera import Camera
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
 from fleetslam.pipeline.states import FeatureFrame
+from fleetslam.transport.protocol import Hello
 from fleetslam.wire.data_tree import CheckpointError
 
 # An array's dtype kinds and shape; a letter names a length shared by the object's arrays.
@@ -37,6 +41,8 @@ _ARRAYS: dict[type, dict[str, Spec]] = {
     Keyframe: {"T_world_camera": _POSE, "keypoint_landmark": ("i", ("n",))},
     FeatureFrame: {"keypoints": ("f", ("n", 7)), "descriptors": ("u", ("n", 32)),
                    "depth": ("f", ("n",)), "uv": ("f", ("n", 2))},
+    KeyframeDatabase: {"descriptors": ("u", ("D", 32)), "owner": ("i", ("D",))},
+    BowDatabase: {"words": ("i", ("W",)), "weights": ("f", ("W",)), "owner": ("i", ("W",))},
     LocalMap: {"xyz": ("f", ("N", 3)), "descriptors": ("u", ("N", 32)), "weight": ("f", ("N",)),
                "last_keyframe": ("i", ("N",)), "octave": ("i", ("N",)),
                "distance": ("f", ("N",)), "alive": ("b", ("N",)),
@@ -61,6 +67,7 @@ def check(state: Any, where: str) -> SessionState:
     try:
         _value(state, SessionState, "session")
         _indices(state)
+        _hello(state)
     except _Refused as exc:
         raise CheckpointError(where, f"not a robot's session: {exc}") from None
     return state
@@ -183,3 +190,12 @@ def _indices(state: SessionState) -> None:
     for index, T in state.robot_keyframe_poses.items():
         if T.shape != (4, 4):
             raise _Refused(f"robot keyframe pose {index} has shape {T.shape}")
+
+
+def _hello(state: SessionState) -> None:
+    """The hello and camera pass the checks a robot's hello passes on the wire."""
+    try:
+        Hello.parse(state.hello.message(None))
+        Camera.from_dict(state.tracking.camera.to_dict(), "the tracking camera")
+    except ValueError as exc:
+        raise _Refused(f"hello: {exc}") from None

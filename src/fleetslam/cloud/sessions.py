@@ -142,8 +142,8 @@ class SessionTable(Mapping[str, RobotSession]):
     def _lose(self, robot_id: str, exc: CheckpointError) -> None:
         """The robot's stored session is lost: its checkpoint goes aside (kept, never
         deleted) and its next session is told why."""
-        aside = self.store.set_aside(robot_id)
-        kept = f"; kept as {aside}" if aside is not None else ""
+        moved = self.store.set_aside(robot_id)
+        kept = f"; kept as {', '.join(map(str, moved))}" if moved else ""
         reason = f"{exc}{kept}"
         log.error("robot %s: its session history is lost, starting afresh: %s", robot_id,
                   reason)

@@ -5,8 +5,9 @@ Layout under the cloud's output folder:
     <robot>/keyframes/<frame index>.fskf   KEYFRAME messages as received (checksummed)
     <robot>/session.ckpt                   checkpoint of the robot's cloud session (data:
                                            JSON + arrays, versioned; see session_state.py)
-    <robot>/session.ckpt.damaged-<time>    a checkpoint that could not be restored, kept
-                                           aside (never deleted) when its robot started afresh
+    <robot>/session.ckpt.damaged-<time>    a checkpoint that could not be restored and its
+    <robot>/keyframes.damaged-<time>       keyframes, kept aside (never deleted) when its
+                                           robot started afresh
 
 Every write is atomic and durable (temporary file, fsync, rename, fsync of the folder)
 before anyone is told it happened: the cloud acknowledges a keyframe only after this.
@@ -116,22 +117,26 @@ class CloudStore:
         state = session_state.load(data, str(path), self.max_checkpoint_bytes)
         return checkpoint_shape.check(state, str(path))
 
-    def set_aside(self, robot_id: str) -> Path | None:
-        """Rename the robot's checkpoint out of the way (it could not be restored; its
-        robot starts afresh): kept as ``session.ckpt.damaged-<UTC time>``, never deleted.
-        Where it went; None if there was none."""
-        path = self.robot_dir(robot_id) / CHECKPOINT
+    def set_aside(self, robot_id: str) -> list[Path]:
+        """Move the robot's checkpoint and keyframes out of the way (the checkpoint could
+        not be restored; its robot starts afresh, and a fresh session must not take the old
+        keyframes for its own): kept as ``session.ckpt.damaged-<UTC time>`` and
+        ``keyframes.damaged-<UTC time>``, never deleted. Where they went."""
+        folder = self.robot_dir(robot_id)
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        aside = path.with_name(f"{CHECKPOINT}.damaged-{stamp}")
         n = 1
-        while aside.exists():  # two in one second: never over an earlier one
+        while any(folder.glob(f"*.damaged-{stamp}")):  # twice in a second: never over one
             n += 1
-            aside = path.with_name(f"{CHECKPOINT}.damaged-{stamp}-{n}")
-        try:
-            os.rename(path, aside)
-        except FileNotFoundError:
-            return None
-        return aside
+            stamp = f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{n}"
+        moved = []
+        for name in (CHECKPOINT, "keyframes"):
+            aside = folder / f"{name}.damaged-{stamp}"
+            try:
+                os.rename(folder / name, aside)
+            except FileNotFoundError:
+                continue
+            moved.append(aside)
+        return moved
 
     def robots_with_checkpoints(self) -> list[str]:
         return sorted(p.parent.name for p in self.root.glob(f"*/{CHECKPOINT}"))

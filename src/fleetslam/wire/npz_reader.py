@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import struct
+import tokenize
 import zipfile
 
 import numpy as np
@@ -35,7 +36,8 @@ def _members(data: bytes) -> list[zipfile.ZipInfo]:
     # zipfile documents BadZipFile only; on a damaged directory its parsing can also fail
     # with these (seen by bench/fuzz_checkpoint.py).
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError,
-            struct.error, OverflowError, IndexError, KeyError, UnicodeDecodeError) as exc:
+            struct.error, OverflowError, IndexError, KeyError, UnicodeDecodeError,
+            NotImplementedError) as exc:  # NotImplementedError: "zip file version 6.5"
         raise NpzError(f"not a zip archive ({exc})") from None
 
 
@@ -70,7 +72,9 @@ def _array(raw: bytes, name: str) -> np.ndarray:
         shape, fortran_order, dtype = read_header(fp, max_header_size=_MAX_NPY_HEADER)
     except NpzError:
         raise
-    except (ValueError, TypeError, SyntaxError, struct.error, EOFError) as exc:
+    # numpy parses the header as a Python literal (tokenize, ast): their errors too.
+    except (ValueError, TypeError, SyntaxError, struct.error, EOFError,
+            tokenize.TokenError) as exc:
         raise NpzError(f"array {name!r}: bad .npy header ({exc})") from None
     if dtype.kind not in _DTYPE_KINDS or dtype.fields is not None or dtype.subdtype:
         raise NpzError(f"array {name!r}: dtype {dtype} is not a plain number")
