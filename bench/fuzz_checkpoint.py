@@ -183,7 +183,9 @@ def edit_array(rng: random.Random, blob: bytes, parsed: Any) -> bytes:
         array = array.astype(rng.choice([np.float32, np.int8, np.uint64, bool, np.complex64]))
     elif choice == 4 and array.dtype.kind in "iu" and array.size:
         array = array.copy()
-        array.flat[rng.randrange(array.size)] = rng.choice([-5, 2**40, np.iinfo(array.dtype).max])
+        info = np.iinfo(array.dtype)  # an index far out of range, either way
+        array.flat[rng.randrange(array.size)] = rng.choice([info.min, info.max,
+                                                            max(info.min, -5)])
     elif choice == 5:
         array = array.reshape(-1)
     else:

@@ -239,3 +239,33 @@ def test_the_robot_logs_and_reports_a_lost_history(caplog):
     assert robot.report.history_lost == reason
     assert f"lost this robot's session history and starts a fresh session: {reason}" \
         in caplog.text
+
+
+def test_a_session_that_fails_to_start_from_its_checkpoint_starts_afresh(tmp_path,
+                                                                         monkeypatch):
+    """A checkpoint that passes every check yet whose session fails to start (a bug) is
+    handled as a damaged one: set aside, and the robot's next hello opens a fresh session
+    that says why."""
+    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.cloud.sessions import SessionTable
+    from fleetslam.visualisation.live_view import NullView
+
+    (tmp_path / "r0").mkdir()
+    (tmp_path / "r0" / CHECKPOINT).write_bytes(_checkpoint())
+    table = SessionTable(exact_config(), CloudStore(tmp_path), lambda key, data: None,
+                         NullView(), lambda summary, poses: None,
+                         lambda robot, camera, restored: None)
+    started = RobotSession.start
+
+    def start(self):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(RobotSession, "start", start)
+    assert table.session("r0") is None
+    monkeypatch.setattr(RobotSession, "start", started)
+    session = table.open("r0", Hello(3, CAMERA, "test"))
+    try:
+        assert "cannot be restored (RuntimeError('a bug'))" in session.history_lost
+        assert list((tmp_path / "r0").glob(f"{CHECKPOINT}.damaged-*"))
+    finally:
+        session.close()

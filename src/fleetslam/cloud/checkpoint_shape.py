@@ -33,6 +33,9 @@ from fleetslam.wire.data_tree import CheckpointError
 # An array's dtype kinds and shape; a letter names a length shared by the object's arrays.
 Spec = tuple[str, tuple[int | str, ...]]
 _POSE: Spec = ("f", (4, 4))
+# Arrays whose every value must be finite (a NaN pose or landmark poisons every later pose).
+_FINITE = {(TrajectoryRow, "T_world_camera"), (BackEndState, "T_last"),
+           (BackEndState, "T_before_last"), (Keyframe, "T_world_camera"), (LocalMap, "xyz")}
 _ARRAYS: dict[type, dict[str, Spec]] = {
     TrajectoryRow: {"T_world_camera": _POSE, "T_reference_camera": _POSE},
     BackEndState: {"T_last": _POSE, "T_before_last": _POSE},
@@ -163,6 +166,13 @@ def _object(obj: Any, path: str) -> None:
             if n != expected:
                 raise _Refused(f"{path}.{name} has shape {array.shape}, expected {shape} "
                                f"(sizes {sizes})")
+        if (cls, name) in _FINITE and not np.isfinite(array).all():
+            raise _Refused(f"{path}.{name} is not finite")
+    if cls is Camera:
+        try:  # the checks of a hello's camera: positive focal lengths, a size, ...
+            Camera.from_dict(obj.to_dict(), path)
+        except ValueError as exc:
+            raise _Refused(str(exc)) from None
 
 
 def _in_range(values: np.ndarray, low: int, high: int, what: str) -> None:
@@ -193,9 +203,8 @@ def _indices(state: SessionState) -> None:
 
 
 def _hello(state: SessionState) -> None:
-    """The hello and camera pass the checks a robot's hello passes on the wire."""
+    """The hello passes the checks a robot's hello passes on the wire."""
     try:
         Hello.parse(state.hello.message(None))
-        Camera.from_dict(state.tracking.camera.to_dict(), "the tracking camera")
     except ValueError as exc:
         raise _Refused(f"hello: {exc}") from None

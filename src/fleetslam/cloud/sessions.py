@@ -16,7 +16,7 @@ from fleetslam.camera import Camera
 from fleetslam.cloud.checkpoint_writer import KeyframeSink
 from fleetslam.cloud.robot_session import Publish, RobotSession
 from fleetslam.cloud.session_state import SessionState
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.store import CHECKPOINT, CloudStore
 from fleetslam.config import Config
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
@@ -108,7 +108,8 @@ class SessionTable(Mapping[str, RobotSession]):
                 except Exception as exc:  # a state that passed the checks and still fails
                     log.exception("robot %s: restoring its session failed", robot_id)
                     self._lose(robot_id, CheckpointError(
-                        str(self.store.robot_dir(robot_id)), f"cannot be restored ({exc!r})"))
+                        str(self.store.robot_dir(robot_id) / CHECKPOINT),
+                        f"cannot be restored ({exc!r})"))
                     return None
                 self._live[robot_id] = session
                 self.view.robot(robot_id, state.hello.camera)

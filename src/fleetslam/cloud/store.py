@@ -15,6 +15,7 @@ before anyone is told it happened: the cloud acknowledges a keyframe only after 
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import threading
@@ -25,6 +26,8 @@ from fleetslam.cloud import checkpoint_shape, session_state
 from fleetslam.cloud.session_state import SessionState
 from fleetslam.config import TransportConfig
 from fleetslam.wire.data_tree import Capture, CheckpointError
+
+log = logging.getLogger("fleetslam.cloud")
 
 _KEYFRAME_FILE = re.compile(r"^(\d+)\.fskf$")
 CHECKPOINT = "session.ckpt"
@@ -84,6 +87,11 @@ class CloudStore:
 
     def write_checkpoint(self, robot_id: str, blob: bytes | Capture) -> None:
         data = blob.to_bytes() if isinstance(blob, Capture) else blob
+        if len(data) > self.max_checkpoint_bytes:
+            # Written all the same (the newest state is safer on disk than not), but said.
+            log.error("robot %s: a checkpoint of %d bytes, over transport.max_checkpoint_bytes"
+                      " (%d): a restart will not restore it", robot_id, len(data),
+                      self.max_checkpoint_bytes)
         write_durably(self.robot_dir(robot_id) / CHECKPOINT, data)
 
     def has_checkpoint(self, robot_id: str) -> bool:

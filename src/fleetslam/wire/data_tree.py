@@ -33,6 +33,7 @@ MAX_DEPTH = 64
 # ~20 times its bytes as Python objects, so the parse stays within about the limit itself.
 TREE_SHARE = 16
 _JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
+_DEPTH_CHUNK = 1 << 20
 _HEX = re.compile(r"(?:[0-9a-fA-F]{2})*")
 # What a mapping's keys may be once decoded (hashable data).
 _KEY_TYPES = (str, int, float, bool, type(None), bytes, tuple)
@@ -126,13 +127,16 @@ class CheckpointError(ValueError):
 def nesting_depth(text: bytes) -> int:
     """How deeply the JSON ``text`` nests arrays and objects, found without parsing it (so
     without recursion): the running count of brackets outside strings."""
-    bare = _JSON_STRING.sub(b'""', text)
-    codes = np.frombuffer(bare, np.uint8)
-    if codes.size == 0:
-        return 0
-    opens = (codes == ord("[")) | (codes == ord("{"))
-    closes = (codes == ord("]")) | (codes == ord("}"))
-    return int(np.cumsum(opens.astype(np.int64) - closes).max(initial=0))
+    codes = np.frombuffer(_JSON_STRING.sub(b'""', text), np.uint8)
+    depth = deepest = 0
+    for start in range(0, codes.size, _DEPTH_CHUNK):  # in chunks: a few MB at most
+        chunk = codes[start:start + _DEPTH_CHUNK]
+        steps = ((chunk == ord("[")) | (chunk == ord("{"))).astype(np.int32) \
+            - ((chunk == ord("]")) | (chunk == ord("}")))
+        running = np.cumsum(steps, dtype=np.int64) + depth
+        deepest = max(deepest, int(running.max()))
+        depth = int(running[-1])
+    return deepest
 
 
 def loads(data: bytes, where: str, classes: Classes, max_bytes: int) -> Any:
