@@ -269,3 +269,23 @@ def test_a_session_that_fails_to_start_from_its_checkpoint_starts_afresh(tmp_pat
         assert list((tmp_path / "r0").glob(f"{CHECKPOINT}.damaged-*"))
     finally:
         session.close()
+
+
+def test_the_checkpoint_fuzzer_finds_nothing_on_a_few_cases():
+    """bench/fuzz_checkpoint.py on 60 cases, so it cannot rot: every family runs, and every
+    mutated checkpoint is refused cleanly or restored into a session that tracks."""
+    import importlib.util
+    import sys
+
+    from conftest import PROJECT, TUM_RPY, require
+
+    require(TUM_RPY)
+    spec = importlib.util.spec_from_file_location("fuzz_checkpoint",
+                                                  PROJECT / "bench" / "fuzz_checkpoint.py")
+    fuzz = importlib.util.module_from_spec(spec)
+    sys.modules["fuzz_checkpoint"] = fuzz
+    spec.loader.exec_module(fuzz)
+    blobs, camera, frame = fuzz.seeds(6, TUM_RPY)
+    result = fuzz.fuzz(blobs, camera, frame, 60, seed=7)
+    assert all(sum(o.values()) == 12 for o in result["outcomes"].values()), result
+    assert result["non_clean"] == 0, result["findings"]
