@@ -24,6 +24,13 @@ Families (case i of a family is generated from (seed, family, i)):
 A case ends in a clean refusal (CheckpointError naming the file), or the session is
 restored, and then it must track a frame (a restored session that fails when used is a
 finding too). Anything else escaping is a finding, with its reproducer.
+
+Seed 0, 5000 cases, 20 frames (2 shared cores, load 3-4.3): 4598 refused cleanly, 399
+restored and tracking, 3 restored that fail at their first frame, all on *values* the
+types allow and nothing checks, in the checkpoint's own config or camera
+(``tracking.local_map_scope`` "x", ``orb.scale_factor`` 1, camera ``cx`` 1e308: Camera.from_dict
+takes it, as from a hello); none escaped loading. Slowest case 0.17 s; peak RSS 204 MB
+(194 MB of it the set-up's tracking); zip bombs of 64-256 MB refused unread.
 """
 
 from __future__ import annotations
