@@ -66,7 +66,7 @@ def _with_tree(tree: dict) -> bytes:
 def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp_path):
     hello = Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "s")
     tree = _tree(data_tree.dumps(hello, CHECKPOINT_CLASSES))
-    assert data_tree.loads(_with_tree(tree), "f", CHECKPOINT_CLASSES) == hello
+    assert data_tree.loads(_with_tree(tree), "f", CHECKPOINT_CLASSES, 1 << 20) == hello
     cases = {
         "checkpoint format version 2": {**tree, "version": 2},
         "'Popen' is not part of a session": {**tree, "state": {"__obj__": "Popen",
@@ -75,9 +75,9 @@ def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp
     }
     for message, bad in cases.items():
         with pytest.raises(ValueError, match=f"where.ckpt: .*{message}"):
-            data_tree.loads(_with_tree(bad), "where.ckpt", CHECKPOINT_CLASSES)
+            data_tree.loads(_with_tree(bad), "where.ckpt", CHECKPOINT_CLASSES, 1 << 20)
     with pytest.raises(ValueError, match="where.ckpt: not a fleetslam session checkpoint"):
-        data_tree.loads(b"garbage", "where.ckpt", CHECKPOINT_CLASSES)
+        data_tree.loads(b"garbage", "where.ckpt", CHECKPOINT_CLASSES, 1 << 20)
     with pytest.raises(TypeError, match="cannot be checkpointed"):
         data_tree.dumps(object(), CHECKPOINT_CLASSES)
     # A pickle left by an older version is never loaded.

@@ -58,7 +58,7 @@ def test_bag_of_words_finds_the_keyframe_that_shares_the_features(world, tmp_pat
     assert db.query(query, np.zeros(6, bool)) == []
     # A checkpointed database answers the same after restore.
     restored = data_tree.loads(data_tree.dumps(db, CHECKPOINT_CLASSES), "test",
-                               CHECKPOINT_CLASSES)
+                               CHECKPOINT_CLASSES, 1 << 30)
     assert [c.key for c in restored.query(query)] == [c.key for c in found]
 
 

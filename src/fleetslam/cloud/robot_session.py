@@ -93,6 +93,9 @@ class RobotSession:
         self.outputs = SessionOutputs(state, config, store, self.back_end,
                                       self._transport_counts)
         self.finished: FinishedMap | None = None
+        # Why the robot's earlier session could not be restored (None: nothing was lost);
+        # every welcome of this session says so.
+        self.history_lost: str | None = None
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
         # session refuses references to frames before it, and the robot sends intra).
         self.references = ReferenceRing(config.wire.reference_frames)
@@ -580,7 +583,8 @@ class RobotSession:
         self._reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
                                      len(self.store.keyframe_indices(self.robot_id)),
                                      self.references.size, taken_over,
-                                     st.rows[-1].timestamp if st.rows else None))
+                                     st.rows[-1].timestamp if st.rows else None,
+                                     self.history_lost))
 
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")

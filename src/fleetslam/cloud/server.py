@@ -68,7 +68,7 @@ class CloudServer:
         self.endpoint = connect or endpoint or config.transport.endpoint
         self.worker_id = keys.check_worker_id(config.placement.worker_id or default_worker_id())
         self.placement: Placement | None = None
-        self.store = CloudStore(self.out_dir)
+        self.store = CloudStore(self.out_dir, config.transport.max_checkpoint_bytes)
         self.stopped = threading.Event()
         self._zenoh: zenoh.Session | None = None
         self.local_mapping: LocalMappingPool | None = None

@@ -80,9 +80,12 @@ def capture(state: SessionState) -> data_tree.Capture:
     return data_tree.capture(state, CHECKPOINT_CLASSES)
 
 
-def load(data: bytes, where: str) -> SessionState:
-    """A checkpoint's session; ValueError naming ``where`` if it is not one."""
-    state = data_tree.loads(data, where, CHECKPOINT_CLASSES)
+def load(data: bytes, where: str, max_bytes: int) -> SessionState:
+    """A checkpoint's session (its shape is checked by checkpoint_shape.py); a
+    CheckpointError naming ``where`` and what is wrong if it is not one. ``max_bytes``: the
+    most the file and all it holds may take (``transport.max_checkpoint_bytes``)."""
+    state = data_tree.loads(data, where, CHECKPOINT_CLASSES, max_bytes)
     if not isinstance(state, SessionState):
-        raise ValueError(f"{where}: holds a {type(state).__name__}, not a robot's session")
+        raise data_tree.CheckpointError(where, f"holds a {type(state).__name__}, not a "
+                                               f"robot's session")
     return state

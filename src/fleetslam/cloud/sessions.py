@@ -17,10 +17,11 @@ from fleetslam.cloud.checkpoint_writer import KeyframeSink
 from fleetslam.cloud.memory_budget import sessions_allowed
 from fleetslam.cloud.robot_session import Publish, RobotSession
 from fleetslam.cloud.session_state import SessionState
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.store import CHECKPOINT, CloudStore
 from fleetslam.config import Config
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
+from fleetslam.wire.data_tree import CheckpointError
 
 log = logging.getLogger("fleetslam.cloud")
 
@@ -41,6 +42,9 @@ class SessionTable(Mapping[str, RobotSession]):
         # The local-mapping workers sessions opened from now on use (None: in-line).
         self.local_mapping: LocalMappingPool | None = None
         self._live: dict[str, RobotSession] = {}
+        # Why a robot's stored session could not be restored (its checkpoint set aside):
+        # the fresh session opened for its next hello tells the robot (welcome history_lost).
+        self._lost: dict[str, str] = {}
         # Every change of the table; a caller whose change must go with others (the routing's
         # subscribers and pending messages, the idle reaper's final checkpoint) holds it
         # around them all (re-entrant: the table's methods take it again).
@@ -91,24 +95,37 @@ class SessionTable(Mapping[str, RobotSession]):
         with self.lock:
             if robot_id not in self._live and self.full():
                 return None
-            session = self._live.get(robot_id) or RobotSession.open(
-                robot_id, hello, self.config, self.store, self.publish, self.keyframe_sink,
-                self.view, self.local_mapping)
+            session = self._live.get(robot_id)
+            if session is None:
+                session = RobotSession.open(robot_id, hello, self.config, self.store,
+                                            self.publish, self.keyframe_sink, self.view,
+                                            self.local_mapping)
+                session.history_lost = self._lost.pop(robot_id, None)
             self._live[robot_id] = session
             self.view.robot(robot_id, hello.camera)
             self._joined(robot_id, hello.camera, None)
             return session
 
     def session(self, robot_id: str) -> RobotSession | None:
-        """The live session, or the one restored from its checkpoint after a restart."""
+        """The live session, or the one restored from its checkpoint after a restart; None
+        without one, or if it cannot be restored (the checkpoint is then set aside, and the
+        robot's next hello opens a fresh session that tells it why)."""
         with self.lock:
             session = self._live.get(robot_id)
             if session is None:
-                state = self.stored_state(robot_id)
+                state = self.stored_state(robot_id, serving=True)
                 if state is None:
                     return None
-                session = RobotSession(state, self.config, self.store, self.publish,
-                                       self.keyframe_sink, self.view, self.local_mapping).start()
+                try:
+                    session = RobotSession(state, self.config, self.store, self.publish,
+                                           self.keyframe_sink, self.view,
+                                           self.local_mapping).start()
+                except Exception as exc:  # a state that passed the checks and still fails
+                    log.exception("robot %s: restoring its session failed", robot_id)
+                    self._lose(robot_id, CheckpointError(
+                        str(self.store.robot_dir(robot_id) / CHECKPOINT),
+                        f"cannot be restored ({exc!r})"))
+                    return None
                 self._live[robot_id] = session
                 self.view.robot(robot_id, state.hello.camera)
                 # The merger is rebuilt from the keyframes the session already has (none for
@@ -125,14 +142,29 @@ class SessionTable(Mapping[str, RobotSession]):
 
     # -- the store ------------------------------------------------------------------------
 
-    def stored_state(self, robot_id: str) -> SessionState | None:
+    def stored_state(self, robot_id: str, serving: bool = False) -> SessionState | None:
         """The robot's session as its last checkpoint has it; None without one, or if it
-        cannot be restored (logged with the file and why)."""
+        cannot be restored (logged with the file and why). ``serving``: this worker serves
+        the robot, so a checkpoint that cannot be restored is set aside for a fresh start."""
         try:
             return self.store.load_checkpoint(robot_id)
-        except ValueError as exc:
-            log.error("%s", exc)
+        except CheckpointError as exc:
+            if serving:
+                self._lose(robot_id, exc)
+            else:
+                log.error("%s", exc)
             return None
+
+    def _lose(self, robot_id: str, exc: CheckpointError) -> None:
+        """The robot's stored session is lost: its checkpoint goes aside (kept, never
+        deleted) and its next session is told why."""
+        moved = self.store.set_aside(robot_id)
+        kept = f"; kept as {', '.join(map(str, moved))}" if moved else ""
+        reason = f"{exc}{kept}"
+        log.error("robot %s: its session history is lost, starting afresh: %s", robot_id,
+                  reason)
+        with self.lock:
+            self._lost[robot_id] = reason
 
     def stored(self, robot_id: str) -> RobotSession | None:
         """The robot's session from the store, read only: not started (no threads, nothing

@@ -5,6 +5,9 @@ Layout under the cloud's output folder:
     <robot>/keyframes/<frame index>.fskf   KEYFRAME messages as received (checksummed)
     <robot>/session.ckpt                   checkpoint of the robot's cloud session (data:
                                            JSON + arrays, versioned; see session_state.py)
+    <robot>/session.ckpt.damaged-<time>    a checkpoint that could not be restored and its
+    <robot>/keyframes.damaged-<time>       keyframes, kept aside (never deleted) when its
+                                           robot started afresh
 
 Every write is atomic and durable (temporary file, fsync, rename, fsync of the folder)
 before anyone is told it happened: the cloud acknowledges a keyframe only after this.
@@ -12,13 +15,19 @@ before anyone is told it happened: the cloud acknowledges a keyframe only after 
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import threading
+import time
 from pathlib import Path
-from fleetslam.cloud import session_state
+
+from fleetslam.cloud import checkpoint_shape, session_state
 from fleetslam.cloud.session_state import SessionState
-from fleetslam.wire.data_tree import Capture
+from fleetslam.config import TransportConfig
+from fleetslam.wire.data_tree import Capture, CheckpointError
+
+log = logging.getLogger("fleetslam.cloud")
 
 _KEYFRAME_FILE = re.compile(r"^(\d+)\.fskf$")
 CHECKPOINT = "session.ckpt"
@@ -44,9 +53,12 @@ def write_durably(path: Path, data: bytes) -> None:
 
 
 class CloudStore:
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path,
+                 max_checkpoint_bytes: int = TransportConfig.max_checkpoint_bytes) -> None:
+        """``max_checkpoint_bytes``: a larger checkpoint file is refused unread."""
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
+        self.max_checkpoint_bytes = max_checkpoint_bytes
 
     def robot_dir(self, robot_id: str) -> Path:
         return self.root / robot_id
@@ -75,23 +87,64 @@ class CloudStore:
 
     def write_checkpoint(self, robot_id: str, blob: bytes | Capture) -> None:
         data = blob.to_bytes() if isinstance(blob, Capture) else blob
+        if len(data) > self.max_checkpoint_bytes:
+            # Written all the same (the newest state is safer on disk than not), but said.
+            log.error("robot %s: a checkpoint of %d bytes, over transport.max_checkpoint_bytes"
+                      " (%d): a restart will not restore it", robot_id, len(data),
+                      self.max_checkpoint_bytes)
         write_durably(self.robot_dir(robot_id) / CHECKPOINT, data)
 
     def has_checkpoint(self, robot_id: str) -> bool:
         return (self.robot_dir(robot_id) / CHECKPOINT).exists()
 
     def load_checkpoint(self, robot_id: str) -> SessionState | None:
-        """The robot's last checkpoint, None if it has none; ValueError naming the file if
-        it cannot be restored (damaged, another format version, an old pickle)."""
+        """The robot's last checkpoint, None if it has none; CheckpointError naming the file
+        and what is wrong if it cannot be restored (damaged, too large, another format
+        version, an old pickle), whatever is wrong with it."""
         path = self.robot_dir(robot_id) / CHECKPOINT
         if not path.exists():
             old = self.robot_dir(robot_id) / OLD_PICKLE_CHECKPOINT
             if old.exists():
-                raise ValueError(f"{old}: a checkpoint pickled by an older fleetslam; it is "
-                                 f"never loaded (a pickle can run code). Move it away to "
-                                 f"start robot {robot_id}'s session afresh")
+                raise CheckpointError(str(old), f"a checkpoint pickled by an older fleetslam; "
+                                                f"it is never loaded (a pickle can run code). "
+                                                f"Move it away to start robot {robot_id}'s "
+                                                f"session afresh")
             return None
-        return session_state.load(path.read_bytes(), str(path))
+        limit = self.max_checkpoint_bytes
+        try:
+            with open(path, "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                if size > limit:
+                    raise CheckpointError(str(path), f"{size} bytes exceeds the limit of "
+                                                     f"{limit} (transport.max_checkpoint_bytes)")
+                # What the file holds, never more than the limit (read() allocates what it
+                # is asked for; a file growing meanwhile is cut and refused as damaged).
+                data = f.read(size + 1)
+        except OSError as exc:
+            raise CheckpointError(str(path), f"cannot be read ({exc})") from None
+        state = session_state.load(data, str(path), self.max_checkpoint_bytes)
+        return checkpoint_shape.check(state, str(path))
+
+    def set_aside(self, robot_id: str) -> list[Path]:
+        """Move the robot's checkpoint and keyframes out of the way (the checkpoint could
+        not be restored; its robot starts afresh, and a fresh session must not take the old
+        keyframes for its own): kept as ``session.ckpt.damaged-<UTC time>`` and
+        ``keyframes.damaged-<UTC time>``, never deleted. Where they went."""
+        folder = self.robot_dir(robot_id)
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        n = 1
+        while any(folder.glob(f"*.damaged-{stamp}")):  # twice in a second: never over one
+            n += 1
+            stamp = f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{n}"
+        moved = []
+        for name in (CHECKPOINT, "keyframes"):
+            aside = folder / f"{name}.damaged-{stamp}"
+            try:
+                os.rename(folder / name, aside)
+            except FileNotFoundError:
+                continue
+            moved.append(aside)
+        return moved
 
     def robots_with_checkpoints(self) -> list[str]:
         return sorted(p.parent.name for p in self.root.glob(f"*/{CHECKPOINT}"))

@@ -35,6 +35,9 @@ class RobotReport:
     last_feedback_s: float = 0.0  # first frame sent -> last feedback received
     total_s: float = 0.0  # first frame sent -> the cloud's "ended" (map built)
     resumed_at: int | None = None
+    # The cloud could not restore this robot's stored session (why, and where it kept the
+    # checkpoint): the run started a fresh session, the history before it is not in it.
+    history_lost: str | None = None
     cloud_summary: dict[str, Any] | None = None
     # An adaptive robot: every re-plan (measured link, chosen point / features / step) and
     # how many frames went at each point; frames it skipped by its frame step (its own

@@ -360,6 +360,12 @@ class Robot:
                 f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
                 f"but a robot that tracks itself (point 6) kept its map on the robot and "
                 f"cannot resume it; start again under a new --id")
+        lost = welcome.get("history_lost")
+        if lost:
+            # The cloud could not restore this robot's stored session: it starts afresh.
+            log.error("robot %s: the cloud lost this robot's session history and starts a "
+                      "fresh session: %s", self.robot_id, lost)
+            self.report.history_lost = str(lost)
         if welcome.get("resumed"):
             self.report.resumed_at = start_index
             log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,

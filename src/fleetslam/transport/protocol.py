@@ -118,15 +118,20 @@ class Hello:
 
 def welcome(resumed: bool, next_index: int, next_seq: int, keyframes_stored: int,
             reference_frames: int = 0, taken_over: bool = False,
-            last_timestamp: float | None = None) -> dict[str, Any]:
+            last_timestamp: float | None = None, history_lost: str | None = None
+            ) -> dict[str, Any]:
     # reference_frames: the decoded frames the session keeps as references for inter-coded
     # frames (wire/inter.py); a cloud that says nothing (older) takes intra frames only.
     # taken_over: unasked, from a worker that restored the session after its worker died.
     # last_timestamp: of the session's last tracked frame (None: none yet); a resumed live
     # camera cannot seek to next_index, so it drops frames not after this moment.
+    # history_lost: the robot's stored session could not be restored (why, and where its
+    # checkpoint was kept): this is a fresh session, the frames before are not in it.
     message = {"type": "welcome", "resumed": resumed, "next_index": next_index,
                "next_seq": next_seq, "keyframes_stored": keyframes_stored,
                "reference_frames": reference_frames, "last_timestamp": last_timestamp}
+    if history_lost is not None:
+        message["history_lost"] = history_lost
     return {**message, "taken_over": True} if taken_over else message
 
 

@@ -14,15 +14,35 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
-import zipfile
+import re
 from collections import Counter
 from typing import Any
 
 import numpy as np
 
+from fleetslam.wire import npz_reader
+
 FORMAT = "fleetslam-session-checkpoint"
 VERSION = 1
 _TREE = "__tree__"
+# Deepest nesting of arrays and objects a tree may have: a session's is 14 (fr1_rpy, 150
+# frames), and decoding recurses once per level, far below Python's limit of 1000.
+MAX_DEPTH = 64
+# The tree (JSON) may take at most this share of the data's byte limit: a session's is
+# ~1% of its checkpoint (72 kB of 7.1 MB, fr1_rpy 150 frames), and parsed JSON takes up to
+# ~20 times its bytes as Python objects, so the parse stays within about the limit itself.
+TREE_SHARE = 16
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
+_DEPTH_CHUNK = 1 << 20
+_HEX = re.compile(r"(?:[0-9a-fA-F]{2})*")
+# What a mapping's keys may be once decoded (hashable data).
+_KEY_TYPES = (str, int, float, bool, type(None), bytes, tuple)
+
+
+def _hashable(key: Any) -> bool:
+    if isinstance(key, tuple):
+        return all(_hashable(k) for k in key)
+    return isinstance(key, _KEY_TYPES)
 
 
 # The classes a tree may hold, by the name written in the data.
@@ -93,44 +113,116 @@ def capture(state: Any, classes: Classes) -> Capture:
     return Capture(tree, arrays)
 
 
-def loads(data: bytes, where: str, classes: Classes) -> Any:
-    """The state :func:`dumps` saved; ValueError naming ``where`` for anything else."""
-    try:
-        files = np.load(io.BytesIO(data), allow_pickle=False)
-        tree = json.loads(bytes(files[_TREE]).decode())
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
-        raise ValueError(f"{where}: not a fleetslam session checkpoint ({exc})") from None
-    if not isinstance(tree, dict) or tree.get("format") != FORMAT:
-        raise ValueError(f"{where}: not a fleetslam session checkpoint")
-    if tree.get("version") != VERSION:
-        raise ValueError(f"{where}: checkpoint format version {tree.get('version')!r}; this "
-                         f"fleetslam reads version {VERSION}: not restored")
+class CheckpointError(ValueError):
+    """Data that cannot be restored: ``where`` (the file) and ``reason`` (what is wrong).
+    The one exception :func:`loads` raises (and the checks of what it rebuilt, see
+    cloud/checkpoint_shape.py)."""
 
-    def dec(v: Any) -> Any:
+    def __init__(self, where: str, reason: str) -> None:
+        super().__init__(f"{where}: {reason}")
+        self.where = where
+        self.reason = reason
+
+
+def nesting_depth(text: bytes) -> int:
+    """How deeply the JSON ``text`` nests arrays and objects, found without parsing it (so
+    without recursion): the running count of brackets outside strings."""
+    codes = np.frombuffer(_JSON_STRING.sub(b'""', text), np.uint8)
+    depth = deepest = 0
+    for start in range(0, codes.size, _DEPTH_CHUNK):  # in chunks: a few MB at most
+        chunk = codes[start:start + _DEPTH_CHUNK]
+        steps = ((chunk == ord("[")) | (chunk == ord("{"))).astype(np.int32) \
+            - ((chunk == ord("]")) | (chunk == ord("}")))
+        running = np.cumsum(steps, dtype=np.int64) + depth
+        deepest = max(deepest, int(running.max()))
+        depth = int(running[-1])
+    return deepest
+
+
+def loads(data: bytes, where: str, classes: Classes, max_bytes: int) -> Any:
+    """The state :func:`dumps` saved; CheckpointError naming ``where`` for anything else.
+    ``max_bytes`` bounds the data and all it holds (nothing in it is decompressed)."""
+    # The tree is parsed into Python objects several times its size: its own bound.
+    tree_bytes = max(1, max_bytes // TREE_SHARE)
+    try:
+        files = npz_reader.read_npz(data, max_bytes, {_TREE: tree_bytes})
+    except npz_reader.NpzError as exc:
+        raise CheckpointError(where, f"not a fleetslam session checkpoint ({exc})") from None
+    text = files.pop(_TREE, None)
+    if text is None or text.dtype != np.uint8 or text.ndim != 1:
+        raise CheckpointError(where, "not a fleetslam session checkpoint (no tree)")
+    depth = nesting_depth(text.tobytes())
+    if depth > MAX_DEPTH:
+        raise CheckpointError(where, f"nested {depth} deep (at most {MAX_DEPTH})")
+    try:
+        tree = json.loads(text.tobytes().decode())
+    except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
+        raise CheckpointError(where, f"not a fleetslam session checkpoint ({exc})") from None
+    if not isinstance(tree, dict) or tree.get("format") != FORMAT:
+        raise CheckpointError(where, "not a fleetslam session checkpoint")
+    if tree.get("version") != VERSION:
+        raise CheckpointError(where, f"checkpoint format version {tree.get('version')!r}; "
+                                     f"this fleetslam reads version {VERSION}: not restored")
+    return _Decoder(files, where, classes).value(tree.get("state"))
+
+
+class _Decoder:
+    """Rebuilds a tree :func:`capture` made; every malformed node is a CheckpointError.
+    Recursion is bounded: the tree's depth was checked before it was parsed."""
+
+    def __init__(self, arrays: dict[str, np.ndarray], where: str, classes: Classes) -> None:
+        self.arrays = arrays
+        self.where = where
+        self.classes = classes
+
+    def fail(self, reason: str) -> CheckpointError:
+        return CheckpointError(self.where, f"damaged checkpoint ({reason})")
+
+    def pairs(self, v: Any, what: str) -> list[tuple[Any, Any]]:
+        if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 for p in v):
+            raise self.fail(f"{what} is not a list of pairs")
+        out = [(self.value(k), self.value(x)) for k, x in v]
+        for k, _ in out:
+            if not _hashable(k):
+                raise self.fail(f"{what} has a key of type {type(k).__name__}")
+        return out
+
+    def value(self, v: Any) -> Any:
         if isinstance(v, list):
-            return [dec(x) for x in v]
+            return [self.value(x) for x in v]
         if not isinstance(v, dict):
             return v
-        if "__nd__" in v:
-            return np.array(files[v["__nd__"]])
-        if "__bytes__" in v:
-            return bytes.fromhex(v["__bytes__"])
-        if "__counter__" in v:
-            return Counter({dec(k): dec(x) for k, x in v["__counter__"]})
-        if "__dict__" in v:
-            return {dec(k): dec(x) for k, x in v["__dict__"]}
-        if "__tuple__" in v:
-            return tuple(dec(x) for x in v["__tuple__"])
-        if "__obj__" in v:
-            cls = classes.get(v["__obj__"])
+        if len(v) == 1 and "__nd__" in v:
+            # Each array is named once in the tree: popped, so never shared by two fields.
+            array = self.arrays.pop(v["__nd__"], None) if isinstance(v["__nd__"], str) else None
+            if array is None:
+                raise self.fail(f"array {v['__nd__']!r} missing or named twice")
+            return array
+        if len(v) == 1 and "__bytes__" in v:
+            text = v["__bytes__"]
+            if not isinstance(text, str) or not _HEX.fullmatch(text):
+                raise self.fail("bytes that are not hexadecimal")
+            return bytes.fromhex(text)
+        if len(v) == 1 and "__counter__" in v:
+            counter = Counter(dict(self.pairs(v["__counter__"], "a counter")))
+            if not all(isinstance(x, (int, float)) for x in counter.values()):
+                raise self.fail("a counter that does not count")
+            return counter
+        if len(v) == 1 and "__dict__" in v:
+            return dict(self.pairs(v["__dict__"], "a mapping"))
+        if len(v) == 1 and "__tuple__" in v:
+            items = v["__tuple__"]
+            if not isinstance(items, list):
+                raise self.fail("a tuple that is not a list")
+            return tuple(self.value(x) for x in items)
+        if set(v) == {"__obj__", "attributes"}:
+            name, attributes = v["__obj__"], v["attributes"]
+            cls = self.classes.get(name) if isinstance(name, str) else None
             if cls is None:
-                raise ValueError(f"{where}: a {v['__obj__']!r} is not part of a session")
+                raise CheckpointError(self.where, f"a {name!r} is not part of a session")
+            if not isinstance(attributes, dict):
+                raise self.fail(f"the attributes of a {name} are not an object")
             obj = cls.__new__(cls)
-            obj.__dict__.update({k: dec(x) for k, x in v["attributes"].items()})
+            obj.__dict__.update({k: self.value(x) for k, x in attributes.items()})
             return obj
-        raise ValueError(f"{where}: unexpected object in the checkpoint")
-
-    try:
-        return dec(tree.get("state"))
-    except (KeyError, TypeError, AttributeError) as exc:
-        raise ValueError(f"{where}: damaged checkpoint ({exc})") from None
+        raise self.fail("unexpected object in the checkpoint")

@@ -12,6 +12,7 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.wire import data_tree
+from fleetslam.wire.envelope import MAX_PAYLOAD_BYTES
 
 
 @dataclass
@@ -39,7 +40,8 @@ def decode_merger_keyframe(data: bytes, robot: str) -> tuple[Camera, KeyframeSum
     """What :func:`encode_merger_keyframe` wrote, for ``robot``; ValueError saying what is
     wrong."""
     where = f"keyframe summary of robot {robot}"
-    tree = data_tree.loads(data, where, CLASSES)
+    # A message: no bigger than any payload may be (wire/envelope.py).
+    tree = data_tree.loads(data, where, CLASSES, MAX_PAYLOAD_BYTES)
     if not isinstance(tree, dict) or not isinstance(tree.get("camera"), Camera) \
             or not isinstance(tree.get("summary"), KeyframeSummary) \
             or not isinstance(tree.get("poses"), np.ndarray):
