@@ -111,6 +111,21 @@ def _hiding() -> bytes:
     return _pack(tree, arrays)
 
 
+def _bad_setting() -> bytes:
+    """A value of the checkpoint's own config that a config file could not hold (found by
+    bench/fuzz_checkpoint.py: the session restored, then failed at every frame)."""
+    tree, arrays = _parts(_checkpoint())
+    config = tree["state"]["attributes"]["tracking"]["attributes"]["config"]["attributes"]
+    config["tracking"]["attributes"]["local_map_scope"] = "x"
+    return _pack(tree, arrays)
+
+
+def _far_principal_point() -> bytes:
+    tree, arrays = _parts(_checkpoint())
+    tree["state"]["attributes"]["hello"]["attributes"]["camera"]["attributes"]["cx"] = 1e308
+    return _pack(tree, arrays)
+
+
 def _deep() -> bytes:
     tree, arrays = _parts(_checkpoint())
     text = json.dumps({**tree, "state": None}).replace("null", "[" * 100_000 + "]" * 100_000)
@@ -126,6 +141,10 @@ DAMAGED = {
     "an index out of range": (_index_out_of_range, "landmarks outside 0..1"),
     "a hello the wire would refuse": (_bad_hello, "hello: offloading point 5 not supported"),
     "a field hiding a method": (_hiding, r"tracking\.predict_pose would hide BackEndState"),
+    "a setting out of its range": (_bad_setting,
+                                   "tracking.local_map_scope = 'x': must be one of"),
+    "a principal point far outside the image": (_far_principal_point,
+                                                "cx must be within 4 image sizes"),
 }
 
 

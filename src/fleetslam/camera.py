@@ -25,6 +25,10 @@ def _finite(value: int | float) -> bool:
         return False
 
 
+# How far outside the image (in image widths / heights) a principal point may lie.
+PRINCIPAL_POINT_REACH = 4
+
+
 @dataclass(frozen=True)
 class Camera:
     fx: float
@@ -173,6 +177,12 @@ class Camera:
             if isinstance(value, bool) or not isinstance(value, int) or not 0 < value <= 16384:
                 raise ValueError(f"{where}: {name} must be a whole number of pixels in "
                                  f"1-16384, got {value!r}")
+        # The principal point lies in or near the image: one far outside it (1e308) is
+        # finite but makes every projection overflow.
+        for name, size in (("cx", camera.width), ("cy", camera.height)):
+            if abs(getattr(camera, name)) > PRINCIPAL_POINT_REACH * size:
+                raise ValueError(f"{where}: {name} must be within {PRINCIPAL_POINT_REACH} "
+                                 f"image sizes of the image, got {getattr(camera, name)!r}")
         if len(camera.distortion) not in (0, 4, 5, 8) or \
                 not all(math.isfinite(v) for v in camera.distortion):
             raise ValueError(f"{where}: distortion must be 0, 4, 5 or 8 finite coefficients")

@@ -626,6 +626,20 @@ def _update(obj: Any, values: dict[str, Any], path: str, prefix: str = "") -> No
             raise ValueError(f"{path}: {name} = {value!r}: {exc}") from None
 
 
+def check_config(section: Any, where: str, prefix: str = "") -> None:
+    """Every value of a config (or one section) made elsewhere than from a TOML file (a
+    checkpoint's), checked as ``load_config`` checks a file's; ValueError naming the key."""
+    for key, (hint, rule) in rules_of(type(section)).items():
+        value = getattr(section, key)
+        if dataclasses.is_dataclass(value):
+            check_config(value, where, f"{prefix}{key}.")
+            continue
+        try:
+            checked(value, hint, rule)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {prefix}{key} = {value!r}: {exc}") from None
+
+
 def set_from_flag(section: Any, key: str, value: Any, flag: str) -> None:
     """A setting a command-line flag gives, checked like the TOML file's; ValueError
     naming the flag."""

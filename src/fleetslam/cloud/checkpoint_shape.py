@@ -26,6 +26,7 @@ from fleetslam.backend.state import BackEndState, LoopDetection
 from fleetslam.backend.vocabulary import BowDatabase
 from fleetslam.camera import Camera
 from fleetslam.cloud.session_state import SessionState, TrajectoryRow
+from fleetslam.config import Config, check_config
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transport.protocol import Hello
 from fleetslam.wire.data_tree import CheckpointError
@@ -171,6 +172,11 @@ def _object(obj: Any, path: str) -> None:
     if cls is Camera:
         try:  # the checks of a hello's camera: positive focal lengths, a size, ...
             Camera.from_dict(obj.to_dict(), path)
+        except ValueError as exc:
+            raise _Refused(str(exc)) from None
+    if cls is Config:
+        try:  # the ranges a config file is held to (a local_map_scope "x" fails later)
+            check_config(obj, path)
         except ValueError as exc:
             raise _Refused(str(exc)) from None
 
