@@ -30,7 +30,7 @@ def test_every_setting_declares_its_rule_and_its_default_keeps_it():
     ("transport", "max_queued_frames", "0", "must be at least 1"),
     ("transport", "max_sessions", "-1", "must be at least 1"),
     ("map", "pixel_stride", "0", "must be at least 1"),
-    ("orb", "n_features", "-5", "must be at least 1"),
+    ("orb", "n_features", "-5", "must be in [1, 1000000]"),
     ("tracking", "match_ratio", "nan", "must be a finite number"),
     ("link", "bandwidth_mbps", "inf", "must be a finite number"),
     ("link", "loss", "1.5", "must be in [0, 1)"),

@@ -36,14 +36,15 @@ MEMORY_SIZE = Text(lambda s: None if re.fullmatch(r"\d+(\.\d+)?\s*([KMGT]i?B|B|%
 class OrbConfig:
     """ORB extraction (paper: OpenCV ORB, as in ORB-SLAM)."""
 
-    n_features: Annotated[int, at_least(1)] = 1000
-    n_levels: Annotated[int, at_least(1)] = 8
+    # Upper bounds: OpenCV takes these as C ints (ORB_create gets 2 x n_features).
+    n_features: Annotated[int, between(1, 1_000_000)] = 1000
+    n_levels: Annotated[int, between(1, 32)] = 8
     scale_factor: Annotated[float, above(1.0)] = 1.2
     fast_threshold: Annotated[int, between(1, 255)] = 20
     # Cells of the grid the features are spread over, so texture-rich corners do not
     # take the whole budget (ORB-SLAM does the same with its quadtree).
-    grid_cols: Annotated[int, at_least(1)] = 8
-    grid_rows: Annotated[int, at_least(1)] = 6
+    grid_cols: Annotated[int, between(1, 1000)] = 8
+    grid_rows: Annotated[int, between(1, 1000)] = 6
 
 
 @dataclass
@@ -58,7 +59,7 @@ class TrackingConfig:
     match_ratio: Annotated[float, Bound(0.0, 1.0, lo_open=True)] = 0.85
     # Reprojection error (pixels) for PnP RANSAC inliers and for refinement.
     ransac_reproj_px: Annotated[float, above(0.0)] = 3.0
-    ransac_iterations: Annotated[int, at_least(1)] = 200
+    ransac_iterations: Annotated[int, between(1, 1_000_000)] = 200
     ransac_confidence: Annotated[float, Bound(0.0, 1.0, lo_open=True, hi_open=True)] = 0.999
     # Fewer PnP inliers than this is a tracking loss.
     min_inliers: Annotated[int, at_least(4)] = 20
@@ -192,7 +193,7 @@ class LoopClosingConfig:
     candidate_neighbours: Annotated[int, at_least(0)] = 5
     # Geometric verification: 3D-3D RANSAC on depth-backed matches, then a motion-only
     # refinement with every landmark of the place projected into the query.
-    ransac_iterations: Annotated[int, at_least(1)] = 300
+    ransac_iterations: Annotated[int, between(1, 1_000_000)] = 300
     # A 3D match is an inlier within max(inlier_m, inlier_depth_ratio * depth).
     ransac_inlier_m: Annotated[float, above(0.0)] = 0.03
     ransac_inlier_depth_ratio: Annotated[float, at_least(0.0)] = 0.02

@@ -42,18 +42,19 @@ _ARRAYS: dict[type, dict[str, Spec]] = {
     BackEndState: {"T_last": _POSE, "T_before_last": _POSE},
     LoopDetection: {"T_world_query": _POSE, "correction": _POSE},
     PoseEdge: {"T_a_b": _POSE},
-    Keyframe: {"T_world_camera": _POSE, "keypoint_landmark": ("iu", ("n",))},
+    # The map's indices are signed (-1: none; numpy's bincount refuses uint64).
+    Keyframe: {"T_world_camera": _POSE, "keypoint_landmark": ("i", ("n",))},
     FeatureFrame: {"keypoints": ("f", ("n", 7)), "descriptors": ("u", ("n", 32)),
                    "depth": ("f", ("n",)), "uv": ("f", ("n", 2))},
     KeyframeDatabase: {"descriptors": ("u", ("D", 32)), "owner": ("iu", ("D",))},
     BowDatabase: {"words": ("iu", ("W",)), "weights": ("f", ("W",)), "owner": ("iu", ("W",))},
     LocalMap: {"xyz": ("f", ("N", 3)), "descriptors": ("u", ("N", 32)), "weight": ("f", ("N",)),
-               "last_keyframe": ("iu", ("N",)), "octave": ("iu", ("N",)),
+               "last_keyframe": ("i", ("N",)), "octave": ("i", ("N",)),
                "distance": ("f", ("N",)), "alive": ("b", ("N",)),
-               "first_keyframe": ("iu", ("N",)), "n_visible": ("iu", ("N",)),
-               "n_found": ("iu", ("N",)), "obs_keyframe": ("iu", ("M",)),
-               "obs_landmark": ("iu", ("M",)), "obs_uv": ("f", ("M", 2)),
-               "obs_depth": ("f", ("M",)), "obs_octave": ("iu", ("M",))},
+               "first_keyframe": ("i", ("N",)), "n_visible": ("i", ("N",)),
+               "n_found": ("i", ("N",)), "obs_keyframe": ("i", ("M",)),
+               "obs_landmark": ("i", ("M",)), "obs_uv": ("f", ("M", 2)),
+               "obs_depth": ("f", ("M",)), "obs_octave": ("i", ("M",))},
 }
 
 

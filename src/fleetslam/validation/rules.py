@@ -29,10 +29,10 @@ class Bound:
         if not (low or high):
             return None
         if self.hi is None:
-            return f"must be {'above' if self.lo_open else 'at least'} {self.lo:g}"
+            return f"must be {'above' if self.lo_open else 'at least'} {_number(self.lo)}"
         if self.lo is None:
-            return f"must be {'below' if self.hi_open else 'at most'} {self.hi:g}"
-        return (f"must be in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}"
+            return f"must be {'below' if self.hi_open else 'at most'} {_number(self.hi)}"
+        return (f"must be in {'(' if self.lo_open else '['}{_number(self.lo)}, {_number(self.hi)}"
                 f"{')' if self.hi_open else ']'}")
 
 
@@ -65,6 +65,11 @@ def at_least(lo: float) -> Bound:
 
 def above(lo: float) -> Bound:
     return Bound(lo, lo_open=True)
+
+
+def _number(value: float) -> str:
+    """A bound as people write it: 1000000, not 1e+06; 0.5 as 0.5."""
+    return str(int(value)) if float(value).is_integer() and abs(value) < 1e15 else f"{value:g}"
 
 
 def between(lo: float, hi: float, hi_open: bool = False) -> Bound:
