@@ -197,3 +197,13 @@ def test_a_depth_image_on_its_own_pinhole_is_read_where_the_colour_ray_meets_it(
     old = Camera.__new__(Camera)
     old.__dict__.update({k: v for k, v in plain.__dict__.items() if k != "depth_intrinsics"})
     assert old.depth_intrinsics == () and old == plain
+
+
+@pytest.mark.parametrize("tail", ["0:99", "5", "a-b"])
+def test_a_recording_followed_by_no_range_says_what_a_range_looks_like(tmp_path, tail):
+    """SEQ:0:99, SEQ:5, SEQ:a-b: the folder exists, what follows it is no range; said so,
+    not "no such sequence folder"."""
+    with pytest.raises(ValueError, match=rf"'{tail}' after .* is not a frame range: give "
+                                         r"FIRST-LAST \(SEQ:0-99\)"):
+        parse_robot_spec(f"{tmp_path}:{tail}")
+    assert parse_robot_spec(f"{tmp_path / 'nosuch'}:5") == (Path(f"{tmp_path}/nosuch:5"), None)

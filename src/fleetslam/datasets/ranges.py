@@ -19,6 +19,14 @@ def parse_robot_spec(spec: str) -> tuple[Path, list[tuple[int, int]] | None]:
     turn; ``c > d`` plays backwards) to (path, ranges or None for all frames)."""
     match = _RANGES.match(spec)
     if not match:
+        if not Path(spec).exists():
+            for cut in (i for i, c in enumerate(spec) if c == ":"):
+                head, tail = spec[:cut], spec[cut + 1:]
+                if head and Path(head).exists():
+                    # SEQ:0:99, SEQ:5, SEQ:a-b: a recording, then something that is no range.
+                    raise ValueError(
+                        f"robot '{spec}': '{tail}' after {head} is not a frame range: give "
+                        f"FIRST-LAST (SEQ:0-99) or ranges played in turn (SEQ:0-99,98-0)")
         return Path(spec), None
     ranges = [tuple(int(v) for v in r.split("-")) for r in match["ranges"].split(",")]
     if len(ranges) == 1 and ranges[0][1] < ranges[0][0]:
