@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
 
 import numpy as np
 
@@ -24,11 +23,6 @@ from fleetslam.camera import Camera
 from fleetslam.config import TransportConfig
 
 MB = 1 << 20
-
-# A robot over its budget hears so at most this often (a flood must not become a flood of
-# replies).
-TELL_INTERVAL_S = 1.0
-
 
 def held_bytes(state: object) -> int:
     """Bytes of the arrays a decoded frame state holds (its dataclass fields; the rest is
@@ -61,7 +55,6 @@ class SessionBudget:
         self._first_frame_bytes = first_frame_bytes
         self._largest_decoded = 0
         self._references = 0
-        self._last_told = -float("inf")
         self._lock = threading.Lock()
 
     def frame_charge(self, raw_bytes: int) -> int:
@@ -92,15 +85,6 @@ class SessionBudget:
         with self._lock:
             self._add(total - self._references)
             self._references = total
-
-    def due_to_tell(self) -> bool:
-        """Whether the robot is to hear that it is over budget now."""
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last_told < TELL_INTERVAL_S:
-                return False
-            self._last_told = now
-            return True
 
     def _add(self, n: int) -> None:
         self.used += n

@@ -130,6 +130,8 @@ class RobotSession:
         # A failure is logged with its traceback once per reason and interval (a robot
         # repeating the message that fails must not fill the log).
         self._failure_log = Throttle(REJECTION_REPLY_INTERVAL_S)
+        # A robot over its memory budget hears so at most once per interval too.
+        self._over_budget_told = Throttle(REJECTION_REPLY_INTERVAL_S)
         # A restored session's checkpoint on disk covers all of it.
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
                                             state.last_index, keyframe_sink)
@@ -236,7 +238,7 @@ class RobotSession:
         if self.budget.admit(charge):
             return True
         self.count(OVER_BUDGET[what])
-        if self.budget.due_to_tell():
+        if self._over_budget_told.due("over budget"):
             limit = self.config.transport.session_budget_mb
             self._reply(protocol.error(
                 protocol.Code.OVER_BUDGET,
