@@ -25,7 +25,7 @@ from pathlib import Path
 
 import psutil
 
-from fleetslam.datasets.tum import open_robot
+from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.fleet import trajectory_ate
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
 from fleetslam.tables import format_table
@@ -75,7 +75,7 @@ def run(frames: int, fps: float, point: int, mbps: float, work: Path) -> dict:
         stop(cloud)
     r = json.loads(report_path.read_text())
     entry = json.loads((out / "r0" / "robot.json").read_text())
-    ate = trajectory_ate(out / "r0" / "trajectory.tum", open_robot(spec))
+    ate = trajectory_ate(out / "r0" / "trajectory.tum", open_source(spec))
     # RSS while frames streamed, not while the process imported or waited for the map: the
     # report's times count from the first frame taken to the cloud's end.
     first = samples[-1][0] - r["total_s"] if samples else 0.0

@@ -16,7 +16,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.live import LiveSource, NewestFrame, take_numbered
 from fleetslam.datasets.replay import ReplaySource
 from fleetslam.datasets.source import Frame
-from fleetslam.datasets.tum import open_robot
+from fleetslam.datasets.recording import open_source
 
 
 def frame(stamp: float) -> Frame:
@@ -55,7 +55,7 @@ def test_the_slot_times_out_ends_and_passes_the_cameras_error_on():
 
 
 def test_a_replay_delivers_on_its_clock_and_a_slow_taker_skips():
-    recording = open_robot(f"{require(TUM_RPY)}:0-44")  # 45 frames at 30 fps: 1.5 s
+    recording = open_source(f"{require(TUM_RPY)}:0-44")  # 45 frames at 30 fps: 1.5 s
     fast = ReplaySource(recording, "fr1_rpy", 30.0)
     assert isinstance(fast, LiveSource)
     fast.start(10.0)
@@ -83,7 +83,7 @@ def test_a_replay_delivers_on_its_clock_and_a_slow_taker_skips():
 
 
 def test_a_replay_at_recorded_timestamps_takes_the_recordings_time():
-    recording = open_robot(f"{require(TUM_RPY)}:0-29")
+    recording = open_source(f"{require(TUM_RPY)}:0-29")
     span = float(recording.timestamps[-1] - recording.timestamps[0])
     replay = ReplaySource(recording, "fr1_rpy", None)
     assert "recorded timestamps" in replay.description
@@ -96,7 +96,7 @@ def test_a_replay_at_recorded_timestamps_takes_the_recordings_time():
 
 
 def test_bad_replays_say_what_is_wrong():
-    recording = open_robot(str(require(TUM_RPY)))
+    recording = open_source(str(require(TUM_RPY)))
     with pytest.raises(ValueError, match="replay of x: rate -1.0 is not frames per second"):
         ReplaySource(recording, "x", -1.0)
 
@@ -154,7 +154,7 @@ def test_a_realsense_recording_plays_through_pyrealsense2_as_a_camera(tmp_path, 
 
     from fleetslam.datasets.live_sources import open_live
 
-    recording = open_robot(f"{require(TUM_RPY)}:0-29")
+    recording = open_source(f"{require(TUM_RPY)}:0-29")
     frames = [recording[i] for i in range(len(recording))]
     path = tmp_path / f"fr1_rpy{suffix}"
     write = write_realsense_recording if suffix == ".db3" else write_realsense_ros1_bag
@@ -204,7 +204,7 @@ def test_a_robot_slower_than_its_camera_skips_frames_holds_one_and_tracks(tmp_pa
     endpoint = free_endpoint()
     server = CloudServer(Config(), tmp_path / "cloud", endpoint).start()
     try:
-        replay = ReplaySource(open_robot(spec), spec, 30.0)
+        replay = ReplaySource(open_source(spec), spec, 30.0)
         replay.start(10.0)
         robot = Robot("r1", replay, spec, 3, config, endpoint, show_progress=False)
         held, done = [], threading.Event()
@@ -232,7 +232,7 @@ def test_a_robot_slower_than_its_camera_skips_frames_holds_one_and_tracks(tmp_pa
     assert entry["live_camera"]["skipped"] == report.camera_skipped
     assert entry["live_camera"]["taken"] == report.camera_taken == entry["frames"]
     assert entry["lost_frames"] <= 0.1 * entry["frames"]
-    ate = trajectory_ate(tmp_path / "cloud" / "r1" / "trajectory.tum", open_robot(spec))
+    ate = trajectory_ate(tmp_path / "cloud" / "r1" / "trajectory.tum", open_source(spec))
     assert ate is not None and ate["rmse_m"] < 0.1
 
 
@@ -280,7 +280,7 @@ def test_a_resumed_live_robot_numbers_on_and_drops_what_the_session_has():
     (a replay restarted from its beginning)."""
     from fleetslam.edge.robot import Robot
 
-    recording = open_robot(f"{require(TUM_RPY)}:0-29")
+    recording = open_source(f"{require(TUM_RPY)}:0-29")
     replay = ReplaySource(recording, "fr1_rpy", 30.0)
     replay.start(10.0)
     robot = Robot("r1", replay, "fr1_rpy", 3, Config(), show_progress=False)

@@ -8,7 +8,7 @@ import pytest
 
 from conftest import SEVEN_SCENES, require
 from fleetslam.config import Config, PlaceRecognitionConfig
-from fleetslam.datasets.tum import open_robot
+from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.ate import absolute_trajectory_error
 from fleetslam.backend.geometric_verification import ransac_rigid
 from fleetslam.backend.loop_closing import LoopDetection, correct
@@ -103,7 +103,7 @@ def test_pose_graph_keeps_a_true_loop_and_switches_off_a_false_one():
 
 @pytest.fixture(scope="module")
 def kitchen_run():
-    seq = open_robot(f"{require(SEVEN_SCENES)}:0-199")
+    seq = open_source(f"{require(SEVEN_SCENES)}:0-199")
     config = Config()
     config.loop_closing.global_ba = False
     from fleetslam.backend.back_end import TrackingPipeline
@@ -143,8 +143,8 @@ def test_a_false_loop_forced_into_the_graph_is_rejected(kitchen_run):
 def test_relocalisation_recovers_after_30_frames_cut_out():
     folder = require(SEVEN_SCENES)
     config = Config()
-    whole = track_robot("whole", "", open_robot(f"{folder}:0-199"), config, False)
-    cut = track_robot("cut", "", open_robot(f"{folder}:0-99,130-199"), config, False)
+    whole = track_robot("whole", "", open_source(f"{folder}:0-199"), config, False)
+    cut = track_robot("cut", "", open_source(f"{folder}:0-99,130-199"), config, False)
     assert cut.loop_closing["relocalisations"] >= 1
     assert cut.lost_frames == 0 and cut.resets == 0
     # After the gap, the trajectory is as good as without the gap.
@@ -160,6 +160,6 @@ def test_without_relocalisation_the_cut_is_lost():
     """The bound above fails when relocalisation is switched off (it is what recovers)."""
     config = Config()
     config.relocalisation.enabled = False
-    cut = track_robot("cut", "", open_robot(f"{require(SEVEN_SCENES)}:0-99,130-199"), config,
+    cut = track_robot("cut", "", open_source(f"{require(SEVEN_SCENES)}:0-99,130-199"), config,
                       False)
     assert cut.lost_frames > 0

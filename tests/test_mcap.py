@@ -19,7 +19,7 @@ from conftest import mcap_messages
 
 from fleetslam.cli import main
 from fleetslam.config import Config
-from fleetslam.datasets.tum import open_robot
+from fleetslam.datasets.recording import open_source
 from fleetslam.io.ply import read_ply
 from fleetslam.system import run_fleet
 
@@ -223,7 +223,7 @@ def test_outputs_mcap_false_writes_none(synthetic_scene, tmp_path):
     config.outputs.mcap = False
     source = f"{synthetic_scene[1][0]}:0-7"
     out = tmp_path / "solo"
-    summary = run_fleet([("solo", source, open_robot(source))], config, out, False)
+    summary = run_fleet([("solo", source, open_source(source))], config, out, False)
     assert (out / "summary.json").exists() and not (out / "run.mcap").exists()
     assert "mcap" not in summary
 
@@ -231,7 +231,7 @@ def test_outputs_mcap_false_writes_none(synthetic_scene, tmp_path):
 def test_a_lone_robot_stays_in_its_own_map_frame(synthetic_scene, tmp_path):
     source = f"{synthetic_scene[1][0]}:0-7"
     out = tmp_path / "solo"
-    run_fleet([("solo", source, open_robot(source))], Config(), out, False)
+    run_fleet([("solo", source, open_source(source))], Config(), out, False)
     topics = _decoded(out / "run.mcap")
     assert set(topics) == {"/solo/path", "/solo/map", "/tf"}  # no merge, no global map
     tf = [t for message in topics["/tf"] for t in message.transforms]

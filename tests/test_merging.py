@@ -12,7 +12,7 @@ import pytest
 from conftest import SEVEN_SCENES, TUM_RPY, require
 from fleetslam.camera import Camera
 from fleetslam.config import Config
-from fleetslam.datasets.tum import open_robot
+from fleetslam.datasets.recording import open_source
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.mapping.octomap_export import read_octomap
 from fleetslam.merging.inter_robot import PlaceMatch
@@ -105,7 +105,7 @@ def test_two_robots_on_one_real_sequence_join_and_ground_truth_changes_nothing(t
     blind = _copy_without_ground_truth(folder, tmp_path / "no_gt")
     runs = {}
     for label, source in (("gt", folder), ("blind", blind)):
-        robots = [(f"r{i}", f"{source}:{r}", open_robot(f"{source}:{r}"))
+        robots = [(f"r{i}", f"{source}:{r}", open_source(f"{source}:{r}"))
                   for i, r in enumerate(("0-59", "30-89"))]
         runs[label] = (tmp_path / label, run_fleet(robots, Config(), tmp_path / label, False))
     out, summary = runs["gt"]
@@ -135,8 +135,8 @@ def test_two_robots_on_one_real_sequence_join_and_ground_truth_changes_nothing(t
 @pytest.mark.realdata
 def test_robots_in_different_places_never_join(tmp_path):
     kitchen, office = require(SEVEN_SCENES), require(TUM_RPY)
-    robots = [("r0", "kitchen", open_robot(f"{kitchen}:0-79")),
-              ("r1", "office", open_robot(f"{office}:0-79"))]
+    robots = [("r0", "kitchen", open_source(f"{kitchen}:0-79")),
+              ("r1", "office", open_source(f"{office}:0-79"))]
     summary = run_fleet(robots, Config(), tmp_path / "run", False)
     merge = summary["merge"]
     assert merge["components"] == {"r0": ["r0"], "r1": ["r1"]}

@@ -16,7 +16,8 @@ from conftest import small_scene
 
 from fleetslam.cli import main
 from fleetslam.config import Config
-from fleetslam.datasets.tum import RgbdSequence, open_robot
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.datasets.recording import open_source
 from fleetslam.reporting import write_report
 from fleetslam.system import run_fleet
 
@@ -92,7 +93,7 @@ def test_report_without_ground_truth(run_dir, tmp_path):
     shutil.copytree(source, copy)
     (copy / "groundtruth.txt").unlink()
     out = tmp_path / "run"
-    run_fleet([("solo", f"{copy}:0-11", open_robot(f"{copy}:0-11"))], Config(), out,
+    run_fleet([("solo", f"{copy}:0-11", open_source(f"{copy}:0-11"))], Config(), out,
               show_progress=False)
     images = check_page(write_report(out))
     assert "error_over_time.png" not in images and "trajectories_own.png" in images

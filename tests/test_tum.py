@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from conftest import SEVEN_SCENES, TUM_RPY, require
-from fleetslam.datasets.tum import RgbdSequence, associate, parse_robot_spec
+from fleetslam.datasets.ranges import parse_robot_spec
+from fleetslam.datasets.tum import RgbdSequence, associate
 
 
 DEPTH_RAW = 5000  # 1 m with the TUM cameras' depth scale

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from fleetslam.camera import TUM_CAMERAS, Camera
-from fleetslam.datasets.ranges import parse_robot_spec, play_order
+from fleetslam.datasets.ranges import play_order
 from fleetslam.datasets.source import Frame
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.transforms import interpolate_poses
@@ -200,8 +200,3 @@ class RgbdSequence:
     def __iter__(self):
         for i in range(len(self)):
             yield self[i]
-
-
-def open_robot(spec: str, camera: Camera | None = None) -> RgbdSequence:
-    folder, ranges = parse_robot_spec(spec)
-    return RgbdSequence(folder, camera=camera, segments=ranges)
