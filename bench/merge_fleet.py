@@ -1,6 +1,7 @@
 """Robots that start anywhere, merged with no ground truth in the run; scored afterwards.
 
     .venv/bin/python bench/merge_fleet.py [--out bench/results/merge_fleet.json] [--keep DIR]
+                                          [--only CASE ...] [--config FILE.toml]
 
 Cases (real data from ../shared/data, plus the built-in synthetic scene):
   rk-2       redkitchen 0-299 and 400-599 (frames 500-560 revisit 272-339's places)
@@ -9,7 +10,8 @@ Cases (real data from ../shared/data, plus the built-in synthetic scene):
   apart-*    robots in different places, which must never join: redkitchen 0-299 with
              fr1_rpy 0-149, and each of them with synthetic robot 0
 Per case: which robots joined and at which frames, every inter-robot constraint against
-ground truth (false = above 5 deg or 20 cm), each robot's map frame in the global frame
+ground truth (false = above 5 deg or 20 cm; the feature estimate, and the edge the graph kept,
+dense where its refinement was accepted), each robot's map frame in the global frame
 against ground truth before and after FS-HICP, the joint ATE of the concatenated global
 trajectories (one SE(3) alignment), and the global outputs (PLY, OctoMap).
 """
@@ -28,7 +30,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
 from shared_data import SEVEN_SCENES, TUM_RPY  # noqa: E402
 
-from fleetslam.config import Config  # noqa: E402
+from fleetslam.config import Config, load_config  # noqa: E402
 from fleetslam.datasets.synthetic import ensure_scene  # noqa: E402
 from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
@@ -50,10 +52,10 @@ def cases(synthetic: Path) -> dict[str, list[str]]:
     }
 
 
-def run_case(name: str, specs: list[str], out: Path) -> dict[str, Any]:
+def run_case(name: str, specs: list[str], out: Path, config: Config) -> dict[str, Any]:
     robots = [(f"r{i}", spec, open_source(spec)) for i, spec in enumerate(specs)]
     start = time.perf_counter()
-    summary = run_fleet(robots, Config(), out / name, show_progress=False)
+    summary = run_fleet(robots, config, out / name, show_progress=False)
     merge = summary["merge"]
     ev = merge.get("evaluation") or {}
     scored = [c for c in ev.get("constraints", []) if "rotation_error_deg" in c]
@@ -68,6 +70,10 @@ def run_case(name: str, specs: list[str], out: Path) -> dict[str, Any]:
         "constraints": len(merge["constraints"]),
         "constraints_rejected_by_gnc": sum(c["kept"] is False for c in merge["constraints"]),
         "constraint_errors": scored,
+        "dense_used": sum(c.get("used") == "dense" for c in merge["constraints"]),
+        "dense_ms_median": merge.get("dense_ms_median"), "dense_ms_p95": merge.get("dense_ms_p95"),
+        "global_map_seconds": merge.get("global_map_seconds"),
+        "keyframes": sum(r["keyframes"] for r in merge["robots"].values()),
         "false_constraints": len(false) + len(unscored_kept),
         "relative_poses": ev.get("relative_poses", []),
         "joint_ate_cm": ev["joint_ate"]["rmse_m"] * 100 if ev.get("joint_ate") else None,
@@ -84,13 +90,15 @@ def main() -> None:
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "merge_fleet.json"))
     parser.add_argument("--keep", help="write the runs here (default: a temporary folder)")
     parser.add_argument("--only", nargs="*", help="case names to run")
+    parser.add_argument("--config", help="a fleetslam TOML config (default: the defaults)")
     args = parser.parse_args()
+    config = load_config(args.config)
     if not SEVEN_SCENES.exists() or not TUM_RPY.exists():
         raise SystemExit(f"needs {SEVEN_SCENES} and {TUM_RPY}")
     with tempfile.TemporaryDirectory() as tmp:
         runs = Path(args.keep) if args.keep else Path(tmp)
         synthetic = ensure_scene(Path(tmp) / "synthetic", Config().synthetic)[0]
-        results = [run_case(name, specs, runs) for name, specs in cases(synthetic).items()
+        results = [run_case(name, specs, runs, config) for name, specs in cases(synthetic).items()
                    if not args.only or name in args.only]
     rows = []
     for r in results:
@@ -100,20 +108,24 @@ def main() -> None:
             r["case"], " | ".join("+".join(m) for m in r["components"].values()),
             "; ".join(f"{j['query_robot']}:{j['query_frame']}~{j['place_robot']}:{j['place_frame']}"
                       for j in r["joins"]) or "-",
-            r["constraints"], r["false_constraints"],
-            max((c["rotation_error_deg"] for c in errs), default=None),
-            max((c["translation_error_m"] * 100 for c in errs), default=None),
+            r["constraints"], r["dense_used"], r["false_constraints"],
+            max((c.get("feature_rotation_error_deg", c["rotation_error_deg"]) for c in errs),
+                default=None),
+            max((c.get("feature_translation_error_m", c["translation_error_m"]) * 100
+                 for c in errs), default=None),
+            max((c["rotation_error_deg"] for c in errs if c["kept"]), default=None),
+            max((c["translation_error_m"] * 100 for c in errs if c["kept"]), default=None),
             " ".join(f"{p['graph_rotation_error_deg']:.2f}/{p['graph_translation_error_m'] * 100:.1f}"
                      for p in rel if "graph_rotation_error_deg" in p) or "-",
             " ".join(f"{p['final_rotation_error_deg']:.2f}/{p['final_translation_error_m'] * 100:.1f}"
                      for p in rel if "final_rotation_error_deg" in p) or "-",
             r["joint_ate_cm"],
             " ".join(f"{v:.2f}" for v in r["robot_ate_cm"].values() if v is not None),
-            r["query_ms_median"]])
-    print(format_table(["case", "groups", "joined at", "constraints", "false",
-                        "max rot err deg", "max trans err cm",
+            r["query_ms_median"], r["dense_ms_median"]])
+    print(format_table(["case", "groups", "joined at", "constraints", "dense", "false",
+                        "features: max deg", "max cm", "kept edges: max deg", "max cm",
                         "rel. pose graph deg/cm", "after FS-HICP deg/cm", "joint ATE cm",
-                        "robot ATE cm", "query ms"], rows))
+                        "robot ATE cm", "query ms", "dense ms"], rows))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"false_constraint": {"rotation_deg": FALSE_ROTATION_DEG,

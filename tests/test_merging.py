@@ -116,6 +116,13 @@ def test_two_robots_on_one_real_sequence_join_and_ground_truth_changes_nothing(t
     assert merge["evaluation"]["joint_ate"]["rmse_m"] < 0.04
     for c in merge["evaluation"]["constraints"]:
         assert c["rotation_error_deg"] < 5.0 and c["translation_error_m"] < 0.2
+    # Every constraint was refined on the keyframes' depth, and the edges the graph used are
+    # closer to ground truth than the feature estimates they began as.
+    scored = merge["evaluation"]["constraints"]
+    assert all(c["used"] == "dense" for c in scored), merge["constraints"]
+    assert max(c["rotation_error_deg"] for c in scored) < 2.0
+    assert max(c["rotation_error_deg"] for c in scored) < \
+        max(c["feature_rotation_error_deg"] for c in scored)
     # The run never read ground truth: without it, the same joins and the same outputs.
     blind_out, blind_summary = runs["blind"]
     assert blind_summary["merge"]["joins"] == merge["joins"]

@@ -210,12 +210,60 @@ def merge_robot_table(merge: dict[str, Any]) -> Table:
              "rel. trans err cm", "not merged because"], rows)
 
 
+def constraint_table(merge: dict[str, Any]) -> Table:
+    """Per inter-robot constraint: the keyframes, which estimate the graph used (the dense
+    refinement where accepted, else the features') and why, GNC's verdict; against ground
+    truth (evaluation only) both estimates' errors where scored."""
+    evaluation = merge.get("evaluation") or {}
+    scored = {(c["query_robot"], c["query_frame"], c["place_robot"], c["place_frame"]): c
+              for c in evaluation.get("constraints", []) if "rotation_error_deg" in c}
+    rows = []
+    for c in merge.get("constraints", []):
+        dense = c.get("dense") or {}
+        e = scored.get((c["query_robot"], c["query_frame"], c["place_robot"], c["place_frame"]),
+                       {})
+        feature_err = (e.get("feature_rotation_error_deg", e.get("rotation_error_deg")),
+                       e.get("feature_translation_error_m", e.get("translation_error_m")))
+        rows.append([
+            f"{c['query_robot']}:{c['query_frame']}", f"{c['place_robot']}:{c['place_frame']}",
+            c["inliers"], "join" if c["trusted"] else ("kept" if c["kept"] else
+                                                      "rejected" if c["kept"] is False else "-"),
+            c.get("used", "features"),
+            dense.get("reason") or (None if not dense else
+                                    f"moved {dense['moved_rotation_deg']:.2f} deg / "
+                                    f"{dense['moved_translation_m'] * 100:.1f} cm, overlap "
+                                    f"{dense['overlap']:.2f}"),
+            None if feature_err[0] is None else
+            f"{feature_err[0]:.2f} / {feature_err[1] * 100:.1f}",
+            None if not e else f"{e['rotation_error_deg']:.2f} / "
+                               f"{e['translation_error_m'] * 100:.1f}"])
+    return (["query", "place", "inliers", "GNC", "edge", "dense refinement",
+             "features err deg / cm (eval)", "edge err deg / cm (eval)"], rows)
+
+
+def join_lines(merge: dict[str, Any]) -> list[str]:
+    """Per join: the matches that made it, and how many of the pair's constraints held in
+    the last optimisation."""
+    lines = []
+    for j in merge.get("joins", []):
+        pair = set(j["robots"])
+        between = [c for c in merge.get("constraints", [])
+                   if {c["query_robot"], c["place_robot"]} == pair]
+        lines.append(f"join {'+'.join(j['robots'])} at {j['query_robot']}:{j['query_frame']} ~ "
+                     f"{j['place_robot']}:{j['place_frame']}: {j['matches']} consistent matches;"
+                     f" {sum(c['kept'] is not False for c in between)} of {len(between)} "
+                     f"constraints between them held "
+                     f"({sum(c.get('used') == 'dense' for c in between)} dense)")
+    return lines
+
+
 def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
     """(the groups line, the lines after the table: constraints, joint ATE)."""
     evaluation = merge.get("evaluation") or {}
     joint = evaluation.get("joint_ate")
-    head = "merge (no ground truth in the run): " + ", ".join(
-        "+".join(m) for m in merge["components"].values())
+    head = ("merge (made without ground truth; the errors are evaluation against it, "
+            "afterwards): " if evaluation else "merge (no ground truth in the run): ") + \
+        ", ".join("+".join(m) for m in merge["components"].values())
     scored = [c for c in evaluation.get("constraints", []) if "rotation_error_deg" in c]
     kept = [c for c in scored if c["kept"]]
     line = (f"inter-robot constraints: {len(merge['constraints'])} "
@@ -224,7 +272,7 @@ def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
         worst = max(kept, key=lambda c: c["rotation_error_deg"])
         line += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
                  f" / {max(c['translation_error_m'] for c in kept) * 100:.1f} cm")
-    lines = [line]
+    lines = [line, *join_lines(merge)]
     if joint:
         lines.append(f"joint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm")
     return head, lines

@@ -31,6 +31,9 @@ class PoseEdge:
     sigmas: tuple[float, float] | None = None
     # A "loop" edge declared an inlier anyway (already checked by consistency).
     trusted: bool = False
+    # 6 x 6 information in gtsam's tangent order [rotation, translation] (a dense
+    # refinement's); when given, it replaces ``sigmas``.
+    information: np.ndarray | None = None
 
 
 @dataclass
@@ -60,7 +63,10 @@ def optimise_pose_graph(poses: dict[int, np.ndarray], edges: list[PoseEdge], fix
     known, loop_factor = [0], []
     for edge in edges:
         index = graph.size()
-        noise = default_noise if edge.sigmas is None else noise_of(*edge.sigmas)
+        if edge.information is not None:
+            noise = gtsam.noiseModel.Gaussian.Information(edge.information)
+        else:
+            noise = default_noise if edge.sigmas is None else noise_of(*edge.sigmas)
         graph.add(gtsam.BetweenFactorPose3(edge.a, edge.b, gtsam.Pose3(edge.T_a_b), noise))
         if edge.kind == "loop":
             loop_factor.append(index)

@@ -79,7 +79,12 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, Recor
         if same_world(q, p):
             true = invert(p.gt_poses[c["place_frame"]]) @ q.gt_poses[c["query_frame"]]
             err = transform_error(np.array(c["T_place_query"]), true)
-            row.update(rotation_error_deg=err.rotation_deg, translation_error_m=err.translation_m)
+            row.update(rotation_error_deg=err.rotation_deg, translation_error_m=err.translation_m,
+                       used=c.get("used", "features"))
+            if "T_place_query_features" in c:
+                feat = transform_error(np.array(c["T_place_query_features"]), true)
+                row.update(feature_rotation_error_deg=feat.rotation_deg,
+                           feature_translation_error_m=feat.translation_m)
         else:
             row["note"] = "different recordings: no common ground-truth frame"
         result["constraints"].append(row)

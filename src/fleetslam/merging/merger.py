@@ -21,12 +21,14 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
+from fleetslam.merging.dense_constraint import (DenseCloud, DenseRefinement, odometry_information,
+                                                prepare, refine)
 from fleetslam.merging.inter_robot import PlaceMatch, verify_places
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.backend.place_recognition import KeyframeDatabase
@@ -41,6 +43,10 @@ log = logging.getLogger("fleetslam.merge")
 
 # Graph node of keyframe k of the robot added i-th.
 NODE_STRIDE = 1_000_000
+
+# A keyframe's depth cloud in its own camera frame (N x 3), by robot and keyframe id; None
+# when its images are not at hand.
+KeyframeCloud = Callable[[str, int], "np.ndarray | None"]
 
 
 @dataclass
@@ -64,6 +70,18 @@ class Constraint:
     match: PlaceMatch
     trusted: bool  # one of the consistent set that joined two components
     kept: bool | None = None  # GNC's verdict at the last optimisation (trusted: True)
+    dense: DenseRefinement | None = None  # None: not tried yet (no depth at hand)
+
+    @property
+    def T_place_query(self) -> np.ndarray:
+        """The edge's measurement: the dense refinement's where it was accepted."""
+        if self.dense is not None and self.dense.T_place_query is not None:
+            return self.dense.T_place_query
+        return self.match.T_place_query
+
+    @property
+    def information(self) -> np.ndarray | None:
+        return None if self.dense is None else self.dense.information
 
 
 def _node(record: RobotRecord, keyframe: int) -> int:
@@ -80,6 +98,8 @@ class MapMerger:
         self.events: list[dict[str, Any]] = []
         self.query_seconds: list[float] = []
         self.graph_seconds: list[float] = []
+        self.dense_seconds: list[float] = []
+        self.dense_odometry: dict[tuple[str, int], DenseRefinement] = {}
         # Global keyframe poses per robot from the last optimisation (None: stale).
         self._global: dict[str, np.ndarray] | None = None
 
@@ -238,6 +258,61 @@ class MapMerger:
                  newest.place.frame_index)
         return event
 
+    # -- dense refinement ---------------------------------------------------------------------
+
+    def refine_constraints(self, cloud_of: KeyframeCloud) -> int:
+        """Refine every constraint not refined yet whose two keyframes' depth clouds are at
+        hand (merging/dense_constraint.py); how many were tried. A refused refinement
+        leaves the feature edge as it was, and GNC still judges every untrusted edge."""
+        if not self.config.merge.dense_refine:
+            return 0
+        tried = 0
+        ready: dict[tuple[str, int], DenseCloud | None] = {}
+
+        def cloud(robot: str, keyframe: int) -> DenseCloud | None:
+            # Prepared once per keyframe: a keyframe often takes part in several constraints.
+            if (robot, keyframe) not in ready:
+                points = cloud_of(robot, keyframe)
+                ready[robot, keyframe] = None if points is None \
+                    else prepare(points, self.config.merge)
+            return ready[robot, keyframe]
+
+        for c in self.constraints:
+            if c.dense is not None:
+                continue
+            m = c.match
+            start = time.perf_counter()  # with the clouds' preparation, where this does it
+            place = cloud(m.place.robot, m.place.keyframe)
+            query = cloud(m.query.robot, m.query.keyframe)
+            if place is None or query is None:
+                continue
+            c.dense = refine(place, query, m.T_place_query, self.config.merge)
+            self.dense_seconds.append(time.perf_counter() - start)
+            tried += 1
+            if not c.dense.accepted:
+                log.info("dense refinement of %s frame %d ~ %s frame %d refused: %s",
+                         m.query.robot, m.query.frame_index, m.place.robot,
+                         m.place.frame_index, c.dense.reason)
+        if self.config.merge.dense_odometry:
+            for anchor, members in self.components().items():
+                if len(members) < 2:
+                    continue
+                for name in members:
+                    r = self.robots[name]
+                    for k in range(1, len(r.poses)):
+                        if (name, k) in self.dense_odometry:
+                            continue
+                        a, b = cloud(name, k - 1), cloud(name, k)
+                        if a is None or b is None:
+                            continue
+                        self.dense_odometry[(name, k)] = refine(
+                            a, b, invert(r.poses[k - 1]) @ r.poses[k], self.config.merge,
+                            odometry_information(self.config.merge))
+                        tried += 1
+        if tried:
+            self._global = None
+        return tried
+
     # -- the global pose graph ------------------------------------------------------------------
 
     def components(self) -> dict[str, list[str]]:
@@ -271,9 +346,15 @@ class MapMerger:
                 for k in range(len(T)):
                     values[_node(r, k)] = T[k]
                     if k:
-                        edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
-                                              invert(r.poses[k - 1]) @ r.poses[k], "odometry",
-                                              odometry))
+                        d = self.dense_odometry.get((r.name, k))
+                        if d is not None and d.accepted:
+                            edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
+                                                  d.T_place_query, "odometry",
+                                                  information=d.information))
+                        else:
+                            edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
+                                                  invert(r.poses[k - 1]) @ r.poses[k],
+                                                  "odometry", odometry))
             inter = (np.deg2rad(cfg.inter_sigma_rotation_deg), cfg.inter_sigma_translation_m)
             used = [c for c in self.constraints
                     if self.robots[c.match.query.robot].anchor == anchor]
@@ -281,7 +362,8 @@ class MapMerger:
                 m = c.match
                 edges.append(PoseEdge(_node(self.robots[m.place.robot], m.place.keyframe),
                                       _node(self.robots[m.query.robot], m.query.keyframe),
-                                      m.T_place_query, "loop", inter, trusted=c.trusted))
+                                      c.T_place_query, "loop", inter, trusted=c.trusted,
+                                      information=c.information))
             result = optimise_pose_graph(values, edges, fixed=_node(self.robots[anchor], 0),
                                          sigma_rotation_rad=odometry[0],
                                          sigma_translation_m=odometry[1])

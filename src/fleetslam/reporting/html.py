@@ -10,7 +10,8 @@ from typing import Any
 from fleetslam.tables import _cell
 from fleetslam.reporting.plots import Figure
 from fleetslam.reporting.run import RunData
-from fleetslam.outputs import merge_notes, merge_robot_table, robot_table, transport_table
+from fleetslam.outputs import (constraint_table, merge_notes, merge_robot_table, robot_table,
+                               transport_table)
 
 STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px;
@@ -91,6 +92,8 @@ def render_page(run: RunData, figures: list[Figure], skipped: dict[str, str]) ->
         parts.append(f"<h2>Merge</h2><p>{html.escape(head)}</p>"
                      + _table(*merge_robot_table(merge))
                      + "".join(f"<p>{html.escape(line)}</p>" for line in lines))
+        if merge.get("constraints"):
+            parts.append("<h3>Inter-robot constraints</h3>" + _table(*constraint_table(merge)))
     parts.append("<h2>Plots</h2>")
     for f in figures:
         parts.append(f'<figure><h3>{html.escape(f.title)}</h3>'
