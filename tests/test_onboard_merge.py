@@ -13,6 +13,7 @@ import pytest
 from conftest import SEVEN_SCENES, exact_config, require
 
 from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.cloud.memory_budget import held_bytes
 from fleetslam.cloud.robot_session import RobotSession
 from fleetslam.cloud.server import CloudServer
 from fleetslam.cloud.store import CloudStore
@@ -58,6 +59,8 @@ def test_a_keyframe_carries_its_features_and_the_keyframe_poses(tracked):
             assert decoded.features is None and decoded.keyframe_poses is None
             continue
         sent = state.posed.matched.features
+        # The session's memory budget charges a keyframe's features too.
+        assert held_bytes(decoded) > sent.descriptors.nbytes + sent.keypoints.nbytes
         assert decoded.reference_keyframe == len(state.keyframe_poses) - 1
         np.testing.assert_array_equal(decoded.keyframe_poses, state.keyframe_poses)
         assert decoded.features.descriptors.tobytes() == sent.descriptors.tobytes()
