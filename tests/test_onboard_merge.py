@@ -188,3 +188,33 @@ def test_robots_that_track_themselves_are_merged(tmp_path, points):
         server.close()
     assert merge["members"] == ["r0", "r1"] and merge["not_merged"] == {}
     assert merge["robots"]["r0"]["keyframes"] >= 3 and merge["robots"]["r1"]["keyframes"] >= 3
+
+
+@pytest.mark.realdata
+def test_a_keyframe_lost_on_the_link_leaves_no_gap_in_the_merger(tracked, tmp_path):
+    """The merger numbers a robot's keyframes 0, 1, ... as they come: a keyframe message
+    lost on the link is left out, and the frames that refer to it (by the robot's own id)
+    are placed with the robot's map frame, the later ones by their renumbered keyframes."""
+    camera, frames = tracked
+    keyframes = [i for i, t in enumerate(frames) if t.is_keyframe]
+    lost = keyframes[1]
+    session = RobotSession.open(ROBOT, Hello(6, camera, "test"), exact_config(),
+                                CloudStore(tmp_path), lambda k, d: None)
+    try:
+        for seq, state in enumerate(frames):
+            if seq != lost:
+                session.submit_frame(_message(camera, state, seq), time.monotonic())
+        session.drain()
+    finally:
+        session.close()
+    kept = [i for i in keyframes if i != lost]
+    assert [kf.frame_index for kf in session.all_keyframes()] == kept
+    assert [kf.keyframe for kf in session.all_keyframes()] == list(range(len(kept)))
+    robot_ids = [frames[i].reference_keyframe for i in kept]
+    np.testing.assert_array_equal(session.merger_poses(),
+                                  frames[kept[-1]].keyframe_poses[robot_ids])
+    rows = [t for i, t in enumerate(frames) if i != lost]
+    expected = [-1 if t.reference_keyframe == 1 else
+                t.reference_keyframe - (t.reference_keyframe > 1) for t in rows]
+    track = session.outputs.track(np.array([t.timestamp for t in rows]))
+    assert track.references.tolist() == expected
