@@ -75,8 +75,8 @@ _CONFIGS = [c for c in vars(config).values()
 # its two states by their old names.
 CHECKPOINT_CLASSES = data_tree.classes_of(
     SessionState, TrajectoryRow, Hello, Camera, BackEndState, FrontEndState, LocalMap,
-    Keyframe, FeatureFrame, KeyframeSummary, KeyframeDatabase, LoopClosingState, LoopDetection, PoseEdge,
-    BowDatabase, *_CONFIGS,
+    Keyframe, FeatureFrame, KeyframeSummary, KeyframeDatabase, LoopClosingState,
+    LoopDetection, PoseEdge, BowDatabase, *_CONFIGS,
     aliases={"CloudSession": BackEndState, "EdgeSession": FrontEndState})
 
 
