@@ -7,7 +7,8 @@ Two robots on 7-Scenes redkitchen (0-299 and 400-599) as real processes (one clo
 process per robot, Zenoh over loopback), each behind an emulated link. "fleetslam" runs at
 the point `fleetslam plan` chooses for this link from a profile measured on the first frames;
 "total offloading" sends the RGB-D frames (point 0); when the choice is not the paper's point
-3, point 3 runs too (robots at point 6 send no features, so the cloud merges no map). Energies from the run's measured times
+3, point 3 runs too (robots at point 6 send their keyframes' features, so the cloud merges
+them as at point 3). Energies from the run's measured times
 (planner/energy_report.py); the planner's parameters are the paper's.
 """
 
@@ -48,7 +49,7 @@ def main() -> None:
     link = ["--bandwidth-mbps", f"{args.bandwidth_mbps:g}"]
     results = {}
     plan = [(f"fleetslam's choice (k = {chosen.k}, eta {chosen.eta:.3f})", chosen.k)]
-    if chosen.k != 3:  # the paper's point too: at 6 robots send no features, so no merge
+    if chosen.k != 3:  # the paper's point too, side by side
         plan.append(("the paper's point (k = 3)", 3))
     plan.append(("total offloading (k = 0)", 0))
     for label, k in plan:

@@ -66,6 +66,9 @@ def test_a_measured_profile_round_trips_and_a_bad_one_is_named(tmp_path_factory,
     assert len(profile.stage_ms) == 6 and len(profile.frame_bytes) == 7
     assert profile.frame_bytes[0] > profile.frame_bytes[3] > 0
     assert profile.keyframe_bytes > 0 and 0 < profile.keyframe_fraction <= 1
+    # Point 6's payload is the real message: its keyframes carry their features (about a
+    # point-3 frame each), so the merger gets them and the planner counts them.
+    assert profile.frame_bytes[6] > 0.8 * profile.keyframe_fraction * profile.frame_bytes[3]
     path = tmp_path / "profile.json"
     profile.save(path)
     assert Profile.load(path) == profile

@@ -191,7 +191,10 @@ class DecideKeyframe:
             state = replace(state, T_world_camera=self.new_keyframe(state))
         reference, T_reference_camera = session.reference_pose(state.T_world_camera)
         session.record(state, f, is_kf)
-        return TrackedFrame(state, is_kf, reference, T_reference_camera)
+        # A keyframe carries the map's keyframe poses as they are now: a robot that tracks
+        # itself sends them to the cloud's merger with the keyframe's features.
+        return TrackedFrame(state, is_kf, reference, T_reference_camera,
+                            session.map.keyframe_poses() if is_kf else None)
 
 
 def needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:

@@ -30,13 +30,15 @@ from fleetslam.config import Config, check_config
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transport.protocol import Hello
 from fleetslam.wire.data_tree import CheckpointError
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 # An array's dtype kinds and shape; a letter names a length shared by the object's arrays.
 Spec = tuple[str, tuple[int | str, ...]]
 _POSE: Spec = ("f", (4, 4))
 # Arrays whose every value must be finite (a NaN pose or landmark poisons every later pose).
 _FINITE = {(TrajectoryRow, "T_world_camera"), (BackEndState, "T_last"),
-           (BackEndState, "T_before_last"), (Keyframe, "T_world_camera"), (LocalMap, "xyz")}
+           (BackEndState, "T_before_last"), (Keyframe, "T_world_camera"), (LocalMap, "xyz"),
+           (KeyframeSummary, "T_map_keyframe")}
 _ARRAYS: dict[type, dict[str, Spec]] = {
     TrajectoryRow: {"T_world_camera": _POSE, "T_reference_camera": _POSE},
     BackEndState: {"T_last": _POSE, "T_before_last": _POSE},
@@ -44,6 +46,7 @@ _ARRAYS: dict[type, dict[str, Spec]] = {
     PoseEdge: {"T_a_b": _POSE},
     # The map's indices are signed (-1: none; numpy's bincount refuses uint64).
     Keyframe: {"T_world_camera": _POSE, "keypoint_landmark": ("i", ("n",))},
+    KeyframeSummary: {"T_map_keyframe": _POSE},
     FeatureFrame: {"keypoints": ("f", ("n", 7)), "descriptors": ("u", ("n", 32)),
                    "depth": ("f", ("n",)), "uv": ("f", ("n", 2))},
     KeyframeDatabase: {"descriptors": ("u", ("D", 32)), "owner": ("iu", ("D",))},
@@ -207,6 +210,22 @@ def _indices(state: SessionState) -> None:
     for index, T in state.robot_keyframe_poses.items():
         if T.shape != (4, 4):
             raise _Refused(f"robot keyframe pose {index} has shape {T.shape}")
+    _robot_keyframes(state)
+
+
+def _robot_keyframes(state: SessionState) -> None:
+    """The keyframes a robot that tracks itself sent: numbered 0, 1, ... (the merger's
+    order), its own, each with a pose, their ids in its map increasing."""
+    kfs, ids = state.robot_keyframes, state.robot_keyframe_ids
+    if [kf.keyframe for kf in kfs] != list(range(len(kfs))) or len(ids) != len(kfs):
+        raise _Refused(f"robot keyframes numbered {[kf.keyframe for kf in kfs][:8]}... with "
+                       f"{len(ids)} ids for {len(kfs)}")
+    if any(b <= a for a, b in zip(ids, ids[1:])) or (ids and ids[0] < 0):
+        raise _Refused("robot keyframe ids are not increasing")
+    for kf in kfs:
+        if kf.robot != state.robot_id or kf.frame_index not in state.robot_keyframe_poses:
+            raise _Refused(f"robot keyframe {kf.keyframe} is robot {kf.robot!r}'s, frame "
+                           f"{kf.frame_index} without a pose")
 
 
 def _hello(state: SessionState) -> None:

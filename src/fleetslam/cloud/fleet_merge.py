@@ -119,7 +119,7 @@ class FleetMerge:
                 continue
             state = session.state
             self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
-                                  state.tracking.map.keyframe_poses())
+                                  session.merger_poses())
             found.append(session.outputs.finished_map())
         return found
 

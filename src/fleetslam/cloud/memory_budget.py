@@ -25,12 +25,12 @@ from fleetslam.config import TransportConfig
 MB = 1 << 20
 
 def held_bytes(state: object) -> int:
-    """Bytes of the arrays a decoded frame state holds (its dataclass fields; the rest is
-    small)."""
+    """Bytes of the arrays a decoded frame state holds (its dataclass fields, and theirs:
+    a point-6 keyframe holds its features; the rest is small)."""
     if not dataclasses.is_dataclass(state):
         return 0
-    return sum(v.nbytes for v in (getattr(state, f.name) for f in dataclasses.fields(state))
-               if isinstance(v, np.ndarray))
+    values = [getattr(state, f.name) for f in dataclasses.fields(state)]
+    return sum(v.nbytes if isinstance(v, np.ndarray) else held_bytes(v) for v in values)
 
 
 def captured_frame_bytes(camera: Camera) -> int:

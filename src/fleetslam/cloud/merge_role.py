@@ -65,7 +65,7 @@ class MergeRole:
                 self.merger.add_robot(robot_id, camera)
             else:
                 self.merger.add_robot(robot_id, camera, restored.all_keyframes(),
-                                      restored.state.tracking.map.keyframe_poses())
+                                      restored.merger_poses())
 
     def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
         """A session's new keyframe: to the merger here, or published for the worker that
@@ -89,5 +89,4 @@ class MergeRole:
         session = self.sessions.live(robot_id) or self.sessions.stored(robot_id)
         if session is None:
             return None
-        return (session.state.hello.camera, session.all_keyframes(),
-                session.state.tracking.map.keyframe_poses())
+        return (session.state.hello.camera, session.all_keyframes(), session.merger_poses())

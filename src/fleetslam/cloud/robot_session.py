@@ -40,7 +40,7 @@ from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.pipeline.front_end import FrontEndState
 from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, StageTimer
-from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
+from fleetslam.pipeline.states import CapturedFrame, TrackedFrame, TrackedPose
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
@@ -396,14 +396,18 @@ class RobotSession:
         out_of_sequence = self._out_of_sequence(header, state_index_time(state)[0])
         if out_of_sequence is not None:
             return self._reject("frame", out_of_sequence)
+        wrong_keyframe = self._wrong_robot_keyframe(state)
+        if wrong_keyframe is not None:
+            return self._reject("frame", wrong_keyframe)
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
         out = self._track(state, header.split_point)
         cloud_ms = 1000.0 * (time.perf_counter() - start)
         self._record(header, out, cloud_ms)
+        merged = isinstance(out, TrackedPose) and self._take_robot_keyframe(out)
         if out.is_keyframe:
-            self._on_new_keyframe(state, header.seq, out.index)
+            self._on_new_keyframe(state, header.seq, out.index, self.tracks or merged)
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
                             out.n_inliers, out.T_world_camera, cloud_ms)
         self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
@@ -431,6 +435,37 @@ class RobotSession:
             return (f"timestamp {header.timestamp:.6f} is not after the "
                     f"last frame's {st.rows[-1].timestamp:.6f}")
         return None
+
+    def _wrong_robot_keyframe(self, state: Any) -> str | None:
+        """Why a keyframe a robot that tracks itself sent cannot join its keyframes (its id
+        not after the last one's, more than the session keeps), or None."""
+        if self.tracks or not isinstance(state, TrackedPose) or state.features is None:
+            return None
+        ids = self.state.robot_keyframe_ids
+        if ids and state.reference_keyframe <= ids[-1]:
+            return (f"keyframe {state.reference_keyframe} is not after the last keyframe's "
+                    f"{ids[-1]}")
+        limit = self.config.transport.max_keyframes
+        if len(ids) >= limit:
+            return f"the session keeps at most {limit} keyframes (transport.max_keyframes)"
+        return None
+
+    def _take_robot_keyframe(self, out: TrackedPose) -> bool:
+        """A robot that tracks itself sent a keyframe's features: kept (the checkpoint holds
+        it) for the merger, as the next of its keyframes, with the robot's keyframe poses
+        then. Whether it was one."""
+        if out.features is None or out.keyframe_poses is None:
+            return False
+        st = self.state
+        st.robot_keyframes.append(KeyframeSummary(
+            self.robot_id, len(st.robot_keyframes), out.index, out.timestamp, out.features,
+            out.keyframe_poses[-1].copy()))
+        st.robot_keyframe_ids.append(out.reference_keyframe)
+        # The poses by id: those of the keyframes the cloud has (a lost one's is not known
+        # by its frame index, and the merger numbers without it).
+        for kf, robot_id in zip(st.robot_keyframes, st.robot_keyframe_ids):
+            st.robot_keyframe_poses[kf.frame_index] = out.keyframe_poses[robot_id].copy()
+        return True
 
     def _track(self, state: Any, split_point: int) -> TrackedFrame:
         """The stages after ``split_point`` (timed per stage), or the robot's own result."""
@@ -463,17 +498,18 @@ class RobotSession:
         self.view.frame(self.robot_id, out.index, st.rows[-1].T_world_camera, out.tracked,
                         out.is_keyframe, header.split_point, cloud_ms)
 
-    def _on_new_keyframe(self, state: Any, seq: int, frame_index: int) -> None:
+    def _on_new_keyframe(self, state: Any, seq: int, frame_index: int,
+                         to_merger: bool) -> None:
         """The frame became a keyframe: its RGB-D to the store if the cloud has it, and a
         checkpoint of the session as it is now (the snapshot here, the slow durable write on
         the writer thread). The keyframe's upload is acknowledged, and the keyframe handed to
-        the merger, only once this checkpoint is on disk, so no acknowledged or merged
-        keyframe is one a restart or a takeover forgets."""
+        the merger (``to_merger``: it has features, which a robot that tracks itself sends
+        with each keyframe), only once this checkpoint is on disk, so no acknowledged or
+        merged keyframe is one a restart or a takeover forgets."""
         if isinstance(state, CapturedFrame):
             # Total offloading: the cloud already has the keyframe's RGB-D.
             self._store_captured_keyframe(state, seq)
-        self.checkpoints.checkpoint(frame_index,
-                                    self.newest_keyframe() if self.tracks else None)
+        self.checkpoints.checkpoint(frame_index, self.newest_keyframe() if to_merger else None)
         if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
             lmap = self.state.tracking.map
             self.view.keyframe_poses(self.robot_id, [kf.frame_index for kf in lmap.keyframes],
@@ -569,14 +605,27 @@ class RobotSession:
 
     def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
         """The newest keyframe as the merger takes it, and every keyframe's current pose."""
+        if not self.tracks:
+            return self.state.robot_keyframes[-1], self.merger_poses()
         lmap = self.state.tracking.map
         return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
             lmap.keyframe_poses()
 
     def all_keyframes(self) -> list[KeyframeSummary]:
-        """Every keyframe as the merger takes it (a restored session re-joins the merger)."""
+        """Every keyframe as the merger takes it (a restored session re-joins the merger):
+        the tracking map's, or those a robot that tracks itself sent."""
+        if not self.tracks:
+            return list(self.state.robot_keyframes)
         lmap = self.state.tracking.map
         return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
+
+    def merger_poses(self) -> np.ndarray:
+        """The current pose of every keyframe of ``all_keyframes`` (K x 4 x 4, in order)."""
+        if self.tracks:
+            return self.state.tracking.map.keyframe_poses()
+        poses = self.state.robot_keyframe_poses
+        return np.array([poses[kf.frame_index] for kf in self.state.robot_keyframes]
+                        ).reshape(-1, 4, 4)
 
     # -- control (the tracking thread, in order with the frames) --------------------------
 

@@ -120,8 +120,21 @@ class SessionOutputs:
             return upload.rgb, camera.depth_to_metres(upload.depth_raw), upload.stride
 
         return RobotTrack(self.robot_id, camera, timestamps, self.trajectory(),
-                          np.array([r.reference_keyframe for r in rows], np.int64),
-                          [r.T_reference_camera for r in rows], keyframe_image)
+                          self._merger_references(), [r.T_reference_camera for r in rows],
+                          keyframe_image)
+
+    def _merger_references(self) -> np.ndarray:
+        """Each frame's reference keyframe as the merger numbers keyframes (-1: none). A
+        robot that tracks itself names its own ids: those the merger lacks (a keyframe lost
+        on the link) become -1, and such a frame is moved with its robot's map frame."""
+        references = np.array([r.reference_keyframe for r in self.state.rows], np.int64)
+        if self.state.hello.offload_at != ROBOT_TRACKS:
+            return references
+        ids = np.asarray(self.state.robot_keyframe_ids, np.int64)
+        position = np.searchsorted(ids, references)
+        known = (position < len(ids)) & (ids[np.minimum(position, len(ids) - 1)] == references) \
+            if len(ids) else np.zeros(len(references), bool)
+        return np.where(known, position, -1)
 
     def summary(self, map_points: int, camera: dict[str, Any] | None = None
                 ) -> dict[str, Any]:

@@ -22,6 +22,7 @@ from fleetslam.pipeline.front_end import FrontEndState
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transport.protocol import Hello
 from fleetslam.wire import data_tree
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 
 @dataclass
@@ -49,8 +50,13 @@ class SessionState:
     last_seq: int = -1
     last_index: int = -1
     rows: list[TrajectoryRow] = field(default_factory=list)
-    # Keyframe poses reported by a robot that tracks itself (offloading point 6).
+    # Keyframe poses reported by a robot that tracks itself (offloading point 6), by frame
+    # index: with each keyframe's features, and at its end.
     robot_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    # The keyframes with features such a robot sent, numbered 0, 1, ... as the merger takes
+    # them (one lost on the link leaves no gap), and each one's id in the robot's own map.
+    robot_keyframes: list[KeyframeSummary] = field(default_factory=list)
+    robot_keyframe_ids: list[int] = field(default_factory=list)
     counts: Counter = field(default_factory=Counter)
     stage_seconds: dict[str, float] = field(default_factory=dict)
     cloud_ms: list[float] = field(default_factory=list)
@@ -69,8 +75,8 @@ _CONFIGS = [c for c in vars(config).values()
 # its two states by their old names.
 CHECKPOINT_CLASSES = data_tree.classes_of(
     SessionState, TrajectoryRow, Hello, Camera, BackEndState, FrontEndState, LocalMap,
-    Keyframe, FeatureFrame, KeyframeDatabase, LoopClosingState, LoopDetection, PoseEdge,
-    BowDatabase, *_CONFIGS,
+    Keyframe, FeatureFrame, KeyframeSummary, KeyframeDatabase, LoopClosingState,
+    LoopDetection, PoseEdge, BowDatabase, *_CONFIGS,
     aliases={"CloudSession": BackEndState, "EdgeSession": FrontEndState})
 
 

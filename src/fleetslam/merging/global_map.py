@@ -126,8 +126,8 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
         if name in members and len(members) > 1:
             continue
         if name not in merger.robots or not merger.robots[name].keyframes:
-            result.not_merged[name] = "no keyframe features reached the merger (a robot " \
-                                      "that tracks itself sends none)"
+            result.not_merged[name] = "no keyframe features reached the merger (it made " \
+                                      "no keyframe, or none of its keyframe messages arrived)"
         elif len(members) > 1:
             result.not_merged[name] = "shares no verified place with " + ", ".join(members)
         else:

@@ -94,6 +94,10 @@ class TrackedFrame:
     # trajectory follows later corrections of the keyframes (local BA, loop closing).
     reference_keyframe: int = -1
     T_reference_camera: np.ndarray | None = None
+    # A keyframe's: every keyframe's pose (K x 4 x 4, by keyframe id; this one is the last)
+    # once local mapping and loop closing took it. A robot that tracks itself sends them
+    # with the keyframe's features, so the cloud's map merger takes its keyframes.
+    keyframe_poses: np.ndarray | None = None
 
     @property
     def index(self) -> int:
@@ -115,18 +119,28 @@ class TrackedFrame:
     def n_inliers(self) -> int:
         return int(self.posed.inliers.sum())
 
+    @property
+    def sends_keyframe(self) -> bool:
+        """Whether a robot that tracks itself sends this frame's features (a keyframe)."""
+        return self.is_keyframe and self.keyframe_poses is not None
+
     def pose_only(self) -> "TrackedPose":
-        """What a robot that tracks itself sends (point 6): the result, not its features."""
+        """What a robot that tracks itself sends (point 6): the result; of a keyframe also
+        its features and every keyframe's pose (what the cloud's merger needs)."""
+        kf = self.sends_keyframe
         return TrackedPose(self.index, self.timestamp, self.T_world_camera.copy(), self.tracked,
                            self.is_keyframe, self.n_inliers, self.reference_keyframe,
                            None if self.T_reference_camera is None
-                           else self.T_reference_camera.copy())
+                           else self.T_reference_camera.copy(),
+                           self.posed.matched.features if kf else None,
+                           np.array(self.keyframe_poses, np.float64) if kf else None)
 
 
 @dataclass
 class TrackedPose:
-    """A tracked frame's result alone, as the cloud receives it from a robot that tracks
-    itself: the fields of TrackedFrame the cloud records, without the features."""
+    """A tracked frame's result, as the cloud receives it from a robot that tracks itself:
+    the fields of TrackedFrame the cloud records; a keyframe's features and the robot's
+    keyframe poses too, for the map merger (non-keyframes carry no features)."""
 
     index: int
     timestamp: float
@@ -136,3 +150,7 @@ class TrackedPose:
     n_inliers: int
     reference_keyframe: int = -1
     T_reference_camera: np.ndarray | None = None
+    # A keyframe's only: its features (as point 3 sends them) and every keyframe's pose
+    # (K x 4 x 4 by keyframe id; this keyframe, ``reference_keyframe``, is the last).
+    features: FeatureFrame | None = None
+    keyframe_poses: np.ndarray | None = None

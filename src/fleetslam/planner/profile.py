@@ -27,7 +27,7 @@ SENDS = (
     "features with a depth per keypoint",
     "features, their map matches",
     "features, matches, pose",
-    "its pose and flags (the robot tracks)",
+    "its pose and flags (the robot tracks); a keyframe's features and keyframe poses",
 )
 
 # The paper's Table "Time using of each part" (s per frame) and its stated total.

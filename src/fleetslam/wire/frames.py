@@ -22,9 +22,11 @@ is reproduced bit for bit:
   sends uv as float64 if it differs).
 - descriptors as raw bytes; landmark ids (int32 if in range), their float64 world points for
   the matched rows, float64 poses, inlier bits and flags as they are.
-- k=6 (the robot tracked): only the result (``TrackedPose``: pose, flags, inlier count,
-  reference keyframe and the pose relative to it); no stage runs after it, and the cloud
-  needs nothing else. The robot's TrackedFrame goes in, a TrackedPose comes out.
+- k=6 (the robot tracked): the result (``TrackedPose``: pose, flags, inlier count,
+  reference keyframe and the pose relative to it); no stage runs after it. A keyframe also
+  carries what the cloud's map merger needs: its features (coded as at k=3) and every
+  keyframe's pose (K x 3 x 4 float64, the rigid last row implied), so a robot that tracks
+  itself joins the global map. The robot's TrackedFrame goes in, a TrackedPose comes out.
 
 Quantised or dropped, as no stage after Describe reads them (k>=2 only):
 - ``angle``: uint8 steps of 360/256 degrees (1.4 deg);
@@ -572,6 +574,16 @@ def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig,
     w.pack("i", int(s.reference_keyframe))
     if s.reference_keyframe >= 0:
         _put_pose(w, s.T_reference_camera, "pose relative to the reference keyframe")
+    # A keyframe: its features and every keyframe's pose, for the cloud's map merger.
+    w.pack("B", s.sends_keyframe)
+    if s.sends_keyframe:
+        poses = np.asarray(s.keyframe_poses, np.float64)
+        _require(poses.ndim == 3 and poses.shape[1:] == (4, 4)
+                 and len(poses) == s.reference_keyframe + 1,
+                 f"keyframe poses {poses.shape}: keyframe {s.reference_keyframe} is the last")
+        w.pack("I", len(poses))
+        w.shuffled(poses[:, :3, :], "f8")  # rigid: the last row is implied
+        _put_features(w, s.posed.matched.features, camera, config)
 
 
 def _rigid_pose(r: Reader, what: str) -> np.ndarray:
@@ -586,6 +598,29 @@ def _rigid_pose(r: Reader, what: str) -> np.ndarray:
     return T
 
 
+def _rigid_poses(T: np.ndarray, what: str) -> np.ndarray:
+    """``T`` (K x 4 x 4) if every pose is a finite rigid transform; WireError otherwise."""
+    if not np.isfinite(T).all():
+        raise WireError(f"{what} are not finite")
+    R = T[:, :3, :3]
+    if len(T) and (np.abs(T[:, 3] - [0, 0, 0, 1]).max() > 1e-9
+                   or np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-6
+                   or (np.linalg.det(R) < 0).any()):
+        raise WireError(f"{what} are not all rigid transforms")
+    return T
+
+
+def _get_keyframe_poses(r: Reader, reference: int) -> np.ndarray:
+    """Every keyframe's pose a keyframe message carries: the keyframe (``reference``) last."""
+    (n,) = r.unpack("I", "keyframe pose count")
+    if n != reference + 1:
+        raise WireError(f"{n} keyframe poses, but keyframe {reference} is the newest")
+    poses = np.zeros((n, 4, 4))
+    poses[:, :3, :] = r.shuffled("f8", 12 * n, "keyframe poses").reshape(n, 3, 4)
+    poses[:, 3, 3] = 1.0
+    return _rigid_poses(poses, "keyframe poses")
+
+
 def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera,
                   ctx: _Coding = INTRA) -> TrackedPose:
     T = _rigid_pose(r, "pose")
@@ -597,8 +632,15 @@ def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera,
         raise WireError(f"reference keyframe {reference} < -1")
     T_reference = _rigid_pose(r, "pose relative to the reference keyframe") \
         if reference >= 0 else None
+    features = poses = None
+    if r.flag("keyframe features flag"):
+        if not is_keyframe or reference < 0:
+            raise WireError(f"keyframe features on a frame that is no keyframe (keyframe flag "
+                            f"{is_keyframe}, reference keyframe {reference})")
+        poses = _get_keyframe_poses(r, reference)
+        features = _get_features(r, index, timestamp, camera)
     return TrackedPose(index, timestamp, T, tracked, is_keyframe, int(n_inliers), reference,
-                       T_reference)
+                       T_reference, features, poses)
 
 
 _ENCODERS: tuple[Callable[[Writer, Any, Camera, WireConfig, _Coding], None], ...] = (
@@ -694,6 +736,8 @@ def _check_keypoint_content(kp: np.ndarray, camera: Camera) -> None:
 
 def _check_content(state: State, camera: Camera) -> None:
     """Sizes against the camera, finite values, plausible counts: what the stages assume."""
+    if isinstance(state, TrackedPose):
+        state = state.features  # a keyframe's (point 6), else nothing to check
     if isinstance(state, PosedFrame):
         state = state.matched
     if isinstance(state, MatchedFrame):
