@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/merge_fleet.py [--out bench/results/merge_fleet.json] [--keep DIR]
                                           [--only CASE ...] [--config FILE.toml]
+                                          [--processes POINT]
 
 Cases (real data from ../shared/data, plus the built-in synthetic scene):
   rk-2       redkitchen 0-299 and 400-599 (frames 500-560 revisit 272-339's places)
@@ -34,6 +35,7 @@ from fleetslam.config import Config, load_config  # noqa: E402
 from fleetslam.datasets.synthetic import ensure_scene  # noqa: E402
 from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
+from fleetslam.demo import run_demo  # noqa: E402
 from fleetslam.system import run_fleet  # noqa: E402
 
 FALSE_ROTATION_DEG = 5.0
@@ -52,10 +54,14 @@ def cases(synthetic: Path) -> dict[str, list[str]]:
     }
 
 
-def run_case(name: str, specs: list[str], out: Path, config: Config) -> dict[str, Any]:
-    robots = [(f"r{i}", spec, open_source(spec)) for i, spec in enumerate(specs)]
+def run_case(name: str, specs: list[str], out: Path, config: Config, config_path: str | None,
+             processes_at: str | None) -> dict[str, Any]:
     start = time.perf_counter()
-    summary = run_fleet(robots, config, out / name, show_progress=False)
+    if processes_at is None:
+        robots = [(f"r{i}", spec, open_source(spec)) for i, spec in enumerate(specs)]
+        summary = run_fleet(robots, config, out / name, show_progress=False)
+    else:  # a cloud and one robot per source as processes, on loopback over TLS
+        summary = run_demo(specs, out / name, processes_at, config_path, show_progress=False)
     merge = summary["merge"]
     ev = merge.get("evaluation") or {}
     scored = [c for c in ev.get("constraints", []) if "rotation_error_deg" in c]
@@ -73,6 +79,11 @@ def run_case(name: str, specs: list[str], out: Path, config: Config) -> dict[str
         "dense_used": sum(c.get("used") == "dense" for c in merge["constraints"]),
         "dense_ms_median": merge.get("dense_ms_median"), "dense_ms_p95": merge.get("dense_ms_p95"),
         "global_map_seconds": merge.get("global_map_seconds"),
+        "offload_at": processes_at,
+        # What each robot sent (processes only): frames, control, keyframe uploads.
+        "bytes_per_frame": {r["name"]: sum(r["robot"].get(k, 0) for k in
+                                           ("frame_bytes", "control_bytes", "keyframe_bytes"))
+                            / max(r["frames"], 1) for r in summary["robots"] if "robot" in r},
         "keyframes": sum(r["keyframes"] for r in merge["robots"].values()),
         "false_constraints": len(false) + len(unscored_kept),
         "relative_poses": ev.get("relative_poses", []),
@@ -91,6 +102,10 @@ def main() -> None:
     parser.add_argument("--keep", help="write the runs here (default: a temporary folder)")
     parser.add_argument("--only", nargs="*", help="case names to run")
     parser.add_argument("--config", help="a fleetslam TOML config (default: the defaults)")
+    parser.add_argument("--processes", metavar="POINT",
+                        help="run each case as real cloud and robot processes (fleetslam demo) "
+                             "with the robots at this offloading point, instead of in one "
+                             "process")
     args = parser.parse_args()
     config = load_config(args.config)
     if not SEVEN_SCENES.exists() or not TUM_RPY.exists():
@@ -98,7 +113,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         runs = Path(args.keep) if args.keep else Path(tmp)
         synthetic = ensure_scene(Path(tmp) / "synthetic", Config().synthetic)[0]
-        results = [run_case(name, specs, runs, config) for name, specs in cases(synthetic).items()
+        results = [run_case(name, specs, runs, config, args.config, args.processes) for name, specs in cases(synthetic).items()
                    if not args.only or name in args.only]
     rows = []
     for r in results:
@@ -121,11 +136,12 @@ def main() -> None:
                      for p in rel if "final_rotation_error_deg" in p) or "-",
             r["joint_ate_cm"],
             " ".join(f"{v:.2f}" for v in r["robot_ate_cm"].values() if v is not None),
-            r["query_ms_median"], r["dense_ms_median"]])
+            r["query_ms_median"], r["dense_ms_median"],
+            " ".join(f"{v / 1000:.1f}" for v in r["bytes_per_frame"].values()) or "-"])
     print(format_table(["case", "groups", "joined at", "constraints", "dense", "false",
                         "features: max deg", "max cm", "kept edges: max deg", "max cm",
                         "rel. pose graph deg/cm", "after FS-HICP deg/cm", "joint ATE cm",
-                        "robot ATE cm", "query ms", "dense ms"], rows))
+                        "robot ATE cm", "query ms", "dense ms", "kB/frame sent"], rows))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"false_constraint": {"rotation_deg": FALSE_ROTATION_DEG,
