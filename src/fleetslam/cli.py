@@ -86,6 +86,7 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     _apply_link(args, config)  # checked here: the demo's robot processes are given them
     if config.synthetic.n_robots < 2:
         raise ValueError("the demo needs at least 2 robots (--robots)")
+    _check_offload_at(args.offload_at)  # before the scene, the cloud and the run folder
     scene = Path(args.scene) if args.scene else _scene_dir(config)
     total = config.synthetic.n_robots * config.synthetic.frames_per_robot
     progress = Progress(f"synthetic scene {scene}", total, enabled=not args.quiet)
@@ -111,6 +112,17 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
                            workers=args.workers)
     _finish(summary, out, args.quiet)
     return 0
+
+
+def _check_offload_at(text: str) -> int | None:
+    """The split point ``--offload-at`` names (None: 'auto'), ValueError saying what is
+    allowed: checked before anything starts."""
+    from fleetslam.pipeline.split import parse_offload_point
+
+    try:
+        return None if text == "auto" else parse_offload_point(text)
+    except ValueError as exc:
+        raise ValueError(f"--offload-at {text}: {exc}") from None
 
 
 def _link_args(args: argparse.Namespace) -> list[str]:
@@ -326,9 +338,10 @@ def _run_until_stopped(robot: Any, robot_id: str) -> Any:
 
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.edge.robot import Robot
-    from fleetslam.pipeline.split import ROBOT_TRACKS, parse_offload_point
+    from fleetslam.pipeline.split import ROBOT_TRACKS
 
     _setup_logging(args.quiet)
+    point = _check_offload_at(args.offload_at)  # before a camera starts
     _apply_link(args, config)
     if args.link_seed is not None:
         set_from_flag(config.link, "seed", args.link_seed, "--link-seed")
@@ -342,14 +355,14 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
             raise ValueError("--link-trace must start at frame 0")
         config.link.bandwidth_mbps = trace[0][1]
     planner = None
-    if args.offload_at == "auto":
+    if point is None:
         k = 3
         if recording is None and not args.plan_profile:
             raise ValueError(f"--source {args.source} --offload-at auto: a camera cannot be "
                              f"profiled before it runs; give --plan-profile")
         planner = _online_planner(args, config, recording)
     else:
-        k = parse_offload_point(args.offload_at)
+        k = point
     robot = Robot(args.id, sequence, args.source, k, config, args.connect,
                   "max" if live else args.rate or "max", show_progress=not args.quiet,
                   paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None,
