@@ -4,6 +4,7 @@ export, view, generate, vocabulary."""
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -45,6 +46,13 @@ def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
     if summary.get("mcap"):
         print(f"mcap: {out / summary['mcap']}")
     print(f"report: {page}")
+
+
+def cmd_config(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.config_reference import config_toml, reference_markdown
+
+    print(reference_markdown() if args.markdown else config_toml(config), end="")
+    return 0
 
 
 def cmd_report(args: argparse.Namespace, config: Config) -> int:
@@ -543,16 +551,30 @@ def cmd_certs(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _add_global_options(parser: argparse.ArgumentParser, default: Any) -> None:
+    """--config, --quiet, --zenoh-config; ``default``: None on the main parser,
+    argparse.SUPPRESS on each command's (given there, they override)."""
+    parser.add_argument("--config", default=default, metavar="FILE",
+                        help="TOML file overriding the defaults of config.py (all of them: "
+                        "fleetslam config)")
+    parser.add_argument("--quiet", action="store_true",
+                        default=False if default is None else default, help="no progress lines")
+    parser.add_argument("--zenoh-config", metavar="FILE", default=default,
+                        help="a Zenoh config file (JSON5) to start from: TLS, authentication, "
+                        "access control, routers (also [transport] zenoh_config)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
         "FS-HICP map merging.")
-    parser.add_argument("--config", help="TOML file overriding the defaults of config.py")
-    parser.add_argument("--quiet", action="store_true", help="no progress lines")
-    parser.add_argument("--zenoh-config", metavar="FILE",
-                        help="a Zenoh config file (JSON5) to start from: TLS, authentication, "
-                        "access control, routers (also [transport] zenoh_config)")
+    _add_global_options(parser, None)
     sub = parser.add_subparsers(dest="command", required=True)
+    # The same options after the command too: `fleetslam run --config f.toml` as well as
+    # `fleetslam --config f.toml run` (there, unset ones keep what was given before it).
+    common = argparse.ArgumentParser(add_help=False)
+    _add_global_options(common, argparse.SUPPRESS)
+    sub.add_parser = functools.partial(sub.add_parser, parents=[common])  # type: ignore
 
     demo = sub.add_parser("demo", help="run >= 2 robots on the built-in synthetic scene")
     demo.add_argument("--out", help="run folder to create (default runs/demo-<time>)")
@@ -717,6 +739,13 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--save", metavar="FILE.rrd", help="write a recording (open it with "
                       "rerun FILE.rrd) instead of spawning a viewer")
     view.set_defaults(func=cmd_view)
+
+    settings = sub.add_parser("config", help="print every setting as a TOML file to start "
+                              "from: its value (the defaults, or with --config those in "
+                              "effect), what it means and what it may be")
+    settings.add_argument("--markdown", action="store_true", help="the defaults as the "
+                          "reference page docs/config.md instead")
+    settings.set_defaults(func=cmd_config)
     return parser
 
 

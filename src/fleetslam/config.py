@@ -23,13 +23,15 @@ from fleetslam.validation.rules import (ANY_TEXT, FINITE, FRACTION, Bound, OneOf
 IMAGE_CODECS = ("png", "jpeg")
 OBJECTIVES = ("energy", "latency", "fps", "mix")
 
-ENDPOINT = Text(endpoint_problem)
-HOST = Text(host_problem)
+ENDPOINT = Text(endpoint_problem, "a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
+HOST = Text(host_problem, "a host name or an IP address")
 # A worker id is a Zenoh key chunk (transport/keys.py); empty: chosen by the worker.
-WORKER_ID = Text(lambda s: name_problem(s) if s else None)
+WORKER_ID = Text(lambda s: name_problem(s) if s else None,
+                 "empty, or 1..64 characters of A-Z a-z 0-9 _ -")
 # rerun's memory limit syntax: a size with a unit, or a share of the RAM.
 MEMORY_SIZE = Text(lambda s: None if re.fullmatch(r"\d+(\.\d+)?\s*([KMGT]i?B|B|%)", s)
-                   else "must be a size such as 1GiB, 512MB or 25%")
+                   else "must be a size such as 1GiB, 512MB or 25%",
+                   "a size such as 1GiB, 512MB or 25%")
 
 
 @dataclass

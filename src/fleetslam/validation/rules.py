@@ -26,13 +26,17 @@ class Bound:
             return "must be a finite number"
         low = self.lo is not None and (x <= self.lo if self.lo_open else x < self.lo)
         high = self.hi is not None and (x >= self.hi if self.hi_open else x > self.hi)
-        if not (low or high):
-            return None
+        return f"must be {self.describe()}" if low or high else None
+
+    def describe(self) -> str:
+        """The bound in words: 'at least 1', 'in (0, 1]'."""
+        if self.lo is None and self.hi is None:
+            return "a finite number"
         if self.hi is None:
-            return f"must be {'above' if self.lo_open else 'at least'} {_number(self.lo)}"
+            return f"{'above' if self.lo_open else 'at least'} {_number(self.lo)}"
         if self.lo is None:
-            return f"must be {'below' if self.hi_open else 'at most'} {_number(self.hi)}"
-        return (f"must be in {'(' if self.lo_open else '['}{_number(self.lo)}, {_number(self.hi)}"
+            return f"{'below' if self.hi_open else 'at most'} {_number(self.hi)}"
+        return (f"in {'(' if self.lo_open else '['}{_number(self.lo)}, {_number(self.hi)}"
                 f"{')' if self.hi_open else ']'}")
 
 
@@ -48,9 +52,11 @@ class OneOf:
 
 @dataclass(frozen=True)
 class Text:
-    """Free text (a path, a topic), or text whose ``test`` says what is wrong with it."""
+    """Free text (a path, a topic), or text whose ``test`` says what is wrong with it;
+    ``what`` names what the text must be (the config reference prints it)."""
 
     test: Callable[[str], str | None] | None = None
+    what: str = "text"
 
     def problem(self, s: str) -> str | None:
         return self.test(s) if self.test is not None else None
