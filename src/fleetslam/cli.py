@@ -158,6 +158,13 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
                         "(keyframe uploads are resent until acknowledged)")
 
 
+def _add_deadline_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--deadline", type=float, metavar="SECONDS",
+                        help="wait this long for the cloud's first answer, then say what to "
+                        "check (default from config: transport.ask_deadline_s, "
+                        f"{Config().transport.ask_deadline_s:g} s)")
+
+
 def _add_topic_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rgb-topic", help="a bag's colour image topic (default: its only "
                         "colour Image or CompressedImage topic)")
@@ -392,13 +399,23 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
 
 
 def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[str, Any]:
-    """One request (merge, status) to the running cloud at ``--connect``, as the operator."""
+    """One request (merge, status) to the running cloud at ``--connect``, as the operator:
+    its first answer within --deadline (reaching the endpoint included), else an error
+    saying what to check; a merge, once the cloud answered, within merge_timeout_s."""
     from fleetslam.launch import CloudClient
 
-    client = CloudClient(args.connect, config.transport.reach_deadline_s,
-                         config.transport.zenoh_config or None)
+    cfg = config.transport
+    if args.deadline is not None:
+        set_from_flag(cfg, "ask_deadline_s", args.deadline, "--deadline")
+    deadline = time.monotonic() + cfg.ask_deadline_s
+    client = CloudClient(args.connect, cfg.ask_deadline_s, cfg.zenoh_config or None,
+                         silence_hint_s=cfg.silence_hint_s)
     try:
-        return client.merge() if request == "merge" else client.status()
+        left = max(deadline - time.monotonic(), 1.0)
+        if request == "status":
+            return client.status(timeout=left)
+        client.ping(left)  # the cloud is there and answers us: now it may take its time
+        return client.merge(cfg.merge_timeout_s, answered=True)
     finally:
         client.close()
 
@@ -666,11 +683,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")
     merge.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    _add_deadline_option(merge)
     merge.set_defaults(func=cmd_merge)
 
     status = sub.add_parser("status", help="ask a running cloud which robots it serves and "
                             "how their maps are joined")
     status.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    _add_deadline_option(status)
     status.set_defaults(func=cmd_status)
 
     planner = sub.add_parser("plan", help="choose the offloading point: the paper's energy "
@@ -773,6 +792,10 @@ def main(argv: list[str] | None = None) -> int:
     # small_gicp's OpenMP threads busy-wait by default, which slows everything else on a
     # 2-core robot or a shared server; they must sleep instead.
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+    if os.environ.get("RUST_LOG"):  # Zenoh's own log (why a session did not open) on request
+        import zenoh
+
+        zenoh.try_init_log_from_env()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -482,8 +482,17 @@ class TransportConfig:
     max_attempts: Annotated[int, at_least(1)] = 30
     # A robot waits this long for the cloud to answer its hello before retrying.
     connect_timeout_s: Annotated[float, above(0.0)] = 2.0
-    # How long a robot or client waits for anything to answer at the cloud's endpoint.
+    # How long a robot or a cloud worker waits for anything to answer at the endpoint.
     reach_deadline_s: Annotated[float, at_least(0.0)] = 600.0
+    # How long `fleetslam status` and `merge` wait for the cloud's first answer, reaching
+    # its endpoint included (their --deadline), before saying what to check ...
+    ask_deadline_s: Annotated[float, above(0.0)] = 20.0
+    # ... and how long a merge may then take (tens of seconds on large maps).
+    merge_timeout_s: Annotated[float, above(0.0)] = 600.0
+    # A robot or operator whose open session hears nothing from the cloud this long says
+    # what to check (no cloud there, or its access control dropping our messages, which
+    # Zenoh does not report), and keeps waiting.
+    silence_hint_s: Annotated[float, above(0.0)] = 3.0
     # The cloud's bounds: robots it serves at once, and frames waiting per robot (the
     # oldest is dropped beyond it: frames are best effort, keyframes are not).
     max_sessions: Annotated[int, at_least(1)] = 64

@@ -4,6 +4,7 @@ what ``fleetslam demo``, the tests and the benchmarks share."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import queue
@@ -16,7 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from fleetslam.transport import keys, protocol
+from fleetslam.transport.reachability import no_answer
 from fleetslam.transport.zenoh_session import open_connecting, put
+
+log = logging.getLogger("fleetslam.client")
 
 
 def free_endpoint() -> str:
@@ -111,24 +115,38 @@ class CloudClient:
     """Ask a running cloud something over its control key (status, merge)."""
 
     def __init__(self, endpoint: str, reach_deadline_s: float = 600.0,
-                 zenoh_config: str | None = None) -> None:
+                 zenoh_config: str | None = None, silence_hint_s: float | None = None
+                 ) -> None:
+        """``silence_hint_s``: when the open session has heard no answer this long, say
+        what to check (a command's user waits; None: say nothing)."""
         self.endpoint = endpoint
+        self.zenoh_config = zenoh_config
+        self.silence_hint_s = silence_hint_s
         self._session = open_connecting(endpoint, reach_deadline_s, zenoh_config)
         self._replies: queue.Queue = queue.Queue()
         self._sub = self._session.declare_subscriber(
             keys.CLOUD_REPLY, lambda s: self._replies.put(s.payload.to_bytes()))
 
     def request(self, message: dict[str, Any], reply_type: str, timeout: float,
-                resend_s: float = 1.0) -> dict[str, Any]:
+                resend_s: float = 1.0, answered: bool = False) -> dict[str, Any]:
         """Send ``message`` (a protocol request with an id) until the cloud's reply to that
-        id arrives; replies to other requests (other clients') are ignored."""
+        id arrives; replies to other requests (other clients') are ignored. ``answered``:
+        the cloud answered this client before, so its silence is work, not a refusal."""
         rid = message["id"]
-        deadline = time.monotonic() + timeout
+        start = time.monotonic()
+        deadline = start + timeout
         sent = -math.inf
+        hint_at = math.inf if answered or self.silence_hint_s is None \
+            else start + self.silence_hint_s
         while time.monotonic() < deadline:
             if time.monotonic() - sent > resend_s:
                 put(self._session, keys.CLOUD_CONTROL, protocol.encode(message))
                 sent = time.monotonic()
+            if time.monotonic() >= hint_at:
+                hint_at = math.inf
+                log.warning("no answer from the cloud at %s yet (%.0f s): %s; waiting up to "
+                            "%.0f s", self.endpoint, time.monotonic() - start,
+                            no_answer(self.endpoint, self.zenoh_config), timeout)
             try:
                 reply = json.loads(self._replies.get(timeout=0.2))
             except queue.Empty:
@@ -139,8 +157,15 @@ class CloudClient:
                 return reply
             if reply.get("type") == "error":
                 raise RuntimeError(f"cloud: {reply.get('reason')}")
-        raise TimeoutError(f"no '{reply_type}' from the cloud at {self.endpoint} within "
-                           f"{timeout:.0f} s")
+        if answered:
+            raise TimeoutError(f"the cloud at {self.endpoint} answered but sent no "
+                               f"'{reply_type}' within {timeout:.0f} s")
+        raise TimeoutError(f"no answer from the cloud at {self.endpoint} within "
+                           f"{timeout:.0f} s: {no_answer(self.endpoint, self.zenoh_config)}")
+
+    def ping(self, timeout: float) -> dict[str, Any]:
+        """The first cloud worker's status answer: the cloud is there and answers us."""
+        return self.request(protocol.request("status"), "status", timeout)
 
     def status(self, timeout: float = 30.0, gather_s: float = 2.0) -> dict[str, Any]:
         """Every cloud worker's answer in one: all robots (each with the worker serving it),
@@ -165,10 +190,10 @@ class CloudClient:
         merged["answered"] = sorted(str(w) for w in answers)
         return merged
 
-    def merge(self, timeout: float = 600.0) -> dict[str, Any]:
+    def merge(self, timeout: float = 600.0, answered: bool = False) -> dict[str, Any]:
         # Resent with the same id until answered: the cloud merges once per id.
         return self.request(protocol.request("merge"), "merged", timeout,
-                            resend_s=2.0)["summary"]
+                            resend_s=2.0, answered=answered)["summary"]
 
     def close(self) -> None:
         self._sub.undeclare()

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -51,6 +52,7 @@ from fleetslam.progress import Progress
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.link import EmulatedLink
 from fleetslam.transport.protocol import Hello
+from fleetslam.transport.reachability import no_answer
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.messages import decode_feedback
@@ -381,7 +383,13 @@ class Robot:
             None if self.live is not None else len(self.sequence))
         cfg = self.config.transport
         full = 0  # refusals because the cloud was full
+        hint_at = time.monotonic() + cfg.silence_hint_s
         for _ in range(cfg.max_attempts):
+            if time.monotonic() >= hint_at:  # once: the session is open, the cloud silent
+                hint_at = math.inf
+                log.warning("robot %s: no answer to its hello from the cloud at %s yet: %s; "
+                            "saying hello %d times in all", self.robot_id, self.endpoint,
+                            self._silence(), cfg.max_attempts)
             self.sender.control(message)
             try:
                 welcome = self._await_reply(("welcome",), cfg.connect_timeout_s, "hello")
@@ -398,6 +406,7 @@ class Robot:
                                        f"{full + 1} times: {refusal.reason}") from None
                 wait = cfg.full_retry_s * 2 ** full
                 full += 1
+                hint_at = math.inf  # it answers: not silence
                 log.warning("robot %s: the cloud at %s is full (%s sessions); hello again "
                             "in %.0f s", self.robot_id, self.endpoint, refusal.max_sessions,
                             wait)
@@ -409,7 +418,13 @@ class Robot:
                 self.window.clear()  # a new or resumed session answers none of them
                 return welcome
         raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
-                           f"{self.endpoint} after {cfg.max_attempts} hellos")
+                           f"{self.endpoint} after {cfg.max_attempts} hellos: "
+                           f"{self._silence()}")
+
+    def _silence(self) -> str:
+        """What to check when the cloud does not answer this robot's open session."""
+        return no_answer(self.endpoint, self.config.transport.zenoh_config or None,
+                         self.robot_id)
 
     def _finish(self) -> None:
         """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait

@@ -9,6 +9,7 @@ import time
 
 import zenoh
 
+from fleetslam.transport.reachability import session_not_opened
 from fleetslam.validation.endpoints import check_endpoint
 
 log = logging.getLogger("fleetslam.transport")
@@ -67,14 +68,16 @@ def open_router(endpoint: str, others: list[str] | None = None,
 
 def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.0,
                          zenoh_config: str | None = None) -> None:
-    """Block until something answers at ``endpoint``, saying so on every failed attempt;
-    RuntimeError after ``deadline_s`` seconds; ValueError at once for an endpoint that cannot
-    work (its form, an unknown host, TLS without certificates)."""
+    """Block until something answers at ``endpoint``, saying so on every failed attempt
+    (the first time with what to check); RuntimeError after ``deadline_s`` seconds, naming
+    what to check; ValueError at once for an endpoint that cannot work (its form, an unknown
+    host, TLS without certificates)."""
     check_endpoint(endpoint, "endpoint", zenoh_config)
     probe = _base_config(zenoh_config)
     probe.insert_json5("connect/endpoints", json.dumps([endpoint]))
     probe.insert_json5("connect/exit_on_failure", "true")
-    probe.insert_json5("connect/timeout_ms", str(int(attempt_s * 1000)))
+    probe.insert_json5("connect/timeout_ms", str(int(min(attempt_s, max(deadline_s, 0.1))
+                                                     * 1000)))
     probe.insert_json5("listen/endpoints", "[]")
     start = time.monotonic()
     attempt = 0
@@ -85,14 +88,18 @@ def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.
             if attempt > 1:
                 log.warning("%s answers now (attempt %d)", endpoint, attempt)
             return
-        except zenoh.ZError:
+        except zenoh.ZError:  # Zenoh says only "Timeout!", whatever the cause
             waited = time.monotonic() - start
             if waited >= deadline_s:
                 raise RuntimeError(f"nothing answers at {endpoint} after {waited:.0f} s "
-                                   f"({attempt} attempts): is the cloud running there?") \
-                    from None
-            log.warning("nothing answers at %s yet (attempt %d, %.0f s of %.0f); retrying",
-                        endpoint, attempt, waited, deadline_s)
+                                   f"({attempt} attempt{'s' if attempt > 1 else ''}): "
+                                   f"{session_not_opened(endpoint, zenoh_config)}") from None
+            if attempt == 1:
+                log.warning("nothing answers at %s yet: %s; retrying for up to %.0f s",
+                            endpoint, session_not_opened(endpoint, zenoh_config), deadline_s)
+            else:
+                log.warning("nothing answers at %s yet (attempt %d, %.0f s of %.0f); "
+                            "retrying", endpoint, attempt, waited, deadline_s)
 
 
 def open_connecting(endpoint: str, deadline_s: float = 600.0,
