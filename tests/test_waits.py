@@ -108,7 +108,30 @@ def test_a_robot_with_another_robots_certificate_is_hinted_at_early(tls_cloud, t
     told = ("a robot may use only its own keys: is it robot r1's certificate "
             "(robot-r1.json5 of the lab)")
     assert "after 3 hellos" in error_line(done) and told in error_line(done)
-    hint = [line for line in done.stderr.splitlines()
-            if "WARNING robot r1: no answer to its hello" in line]
+    lines = done.stderr.splitlines()
+    # At once, before any hello: the certificate its Zenoh config connects with is r2's.
+    certificate = (lab["r2"].parent / "r2.pem").resolve()
+    assert lines[0] == (f"fleetslam robot r1: warning: --zenoh-config {lab['r2']} connects "
+                        f"with the certificate of 'r2' ({certificate}), not of 'r1': a "
+                        f"lab's cloud admits a robot's messages "
+                        f"only under its own certificate (robot-r1.json5 of the lab) and "
+                        f"drops the others unseen")
+    hint = [line for line in lines if "WARNING robot r1: no answer to its hello" in line]
     assert len(hint) == 1 and told in hint[0]
     assert took < 20
+
+
+def test_the_common_name_is_read_without_an_x509_library(tls_cloud):
+    """The robot reads its certificate's name by walking the DER (its install has no
+    cryptography): the same name cryptography reads, for each identity of a lab."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    from fleetslam.transport.identity import certificate_name
+
+    _, lab, _ = tls_cloud
+    for who in ("r1", "r2", "client", "worker"):
+        path, name = certificate_name(str(lab[who]))
+        cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+        assert name == cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
+    assert certificate_name(str(lab["cloud"])) is None  # a listener: no client certificate

@@ -351,12 +351,30 @@ def _run_until_stopped(robot: Any, robot_id: str) -> Any:
             signal.signal(sig, handler)
 
 
+def _warn_of_another_identity(robot_id: str, config: Config) -> None:
+    """Said at once: a lab's cloud drops, without a word, a robot's messages sent under
+    another identity's certificate (Zenoh reports no access control refusal)."""
+    zenoh_config = config.transport.zenoh_config
+    if not zenoh_config:
+        return
+    from fleetslam.transport.identity import certificate_name
+
+    found = certificate_name(zenoh_config)
+    if found is not None and found[1] != robot_id:
+        print(f"fleetslam robot {robot_id}: warning: --zenoh-config {zenoh_config} connects "
+              f"with the certificate of '{found[1]}' ({found[0]}), not of '{robot_id}': a "
+              f"lab's cloud admits a robot's messages only under its own certificate "
+              f"(robot-{robot_id}.json5 of the lab) and drops the others unseen",
+              file=sys.stderr, flush=True)
+
+
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.edge.robot import Robot
     from fleetslam.pipeline.split import ROBOT_TRACKS
 
     _setup_logging(args.quiet)
     point = _check_offload_at(args.offload_at)  # before a camera starts
+    _warn_of_another_identity(args.id, config)
     _apply_link(args, config)
     if args.link_seed is not None:
         set_from_flag(config.link, "seed", args.link_seed, "--link-seed")
