@@ -97,6 +97,9 @@ def test_the_operator_asking_with_a_robots_certificate_is_hinted_at_early(tls_cl
     done, _ = fleetslam(["status", "--connect", endpoint, "--zenoh-config",
                          str(lab["client"]), "--deadline", "10"], tmp_path)
     assert done.returncode == 0 and "workers:" in done.stdout  # the operator is answered
+    done, _ = fleetslam(["merge", "--connect", endpoint, "--zenoh-config", str(lab["client"]),
+                         "--deadline", "10"], tmp_path)
+    assert done.returncode == 0 and "robot" in done.stdout, done.stderr  # an empty merge
 
 
 def test_a_robot_with_another_robots_certificate_is_hinted_at_early(tls_cloud, tmp_path):
