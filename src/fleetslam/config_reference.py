@@ -26,7 +26,8 @@ def field_comments(cls: type) -> dict[str, list[str]]:
     for line in inspect.getsource(cls).splitlines():
         stripped = line.strip()
         if stripped.startswith("#"):
-            pending.append(stripped.lstrip("#").strip())
+            text = stripped[1:]  # its own indentation kept (a list under a key)
+            pending.append(text[1:] if text.startswith(" ") else text)
             continue
         match = _FIELD.match(line)
         if match:
