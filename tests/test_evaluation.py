@@ -1,4 +1,5 @@
-"""ATE (translation and rotation), RPE and trajectory I/O, checked against hand-made cases and against evo."""
+"""ATE (translation and rotation), RPE and trajectory I/O, checked against hand-made cases
+and against evo."""
 
 from __future__ import annotations
 
