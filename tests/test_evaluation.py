@@ -1,4 +1,5 @@
-"""ATE and trajectory I/O, checked against hand-made cases and against evo."""
+"""ATE (translation and rotation), RPE and trajectory I/O, checked against hand-made cases
+and against evo."""
 
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import pytest
 
 from conftest import SHARED_DATA, require
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.evaluation.ate import absolute_trajectory_error, umeyama
+from fleetslam.evaluation.ate import (absolute_trajectory_error, relative_pose_error,
+                                      rpe_errors, umeyama)
 from fleetslam.evaluation.fleet import trajectory_ate
 from fleetslam.io.trajectory import read_tum_trajectory, write_tum_trajectory
 from fleetslam.registration.metrics import random_perturbation
-from fleetslam.transforms import interpolate_poses, make_T
+from fleetslam.transforms import interpolate_poses, make_T, matrix_from_quaternion
 
 
 def test_umeyama_recovers_a_rigid_transform():
@@ -99,3 +101,64 @@ def test_ate_agrees_with_evo(tmp_path):
     assert ours["rmse_m"] == pytest.approx(expected["rmse"], rel=0.01)
     assert ours["mean_m"] == pytest.approx(expected["mean"], rel=0.01)
     assert ours["median_m"] == pytest.approx(expected["median"], rel=0.01)
+
+
+def test_rotation_error_and_rpe_by_hand():
+    """Four poses along x; the estimate's second step is 1 cm too long and turned 2 degrees
+    about z, the third step right again. By hand: RPE pairs (0,1) (1,2) (2,3) have errors 0,
+    (1 cm, 2 deg), 0 (the RPE sees each step, not the heading carried on); frame 2 without
+    ground truth joins 1 and 3 into one pair, whose step is wrong by the turn."""
+    turn = make_T(matrix_from_quaternion(np.array([0, 0, np.sin(np.radians(1)),
+                                                  np.cos(np.radians(1))])), np.zeros(3))
+    step = make_T(np.eye(3), [0.1, 0.0, 0.0])
+    gt = np.stack([np.linalg.matrix_power(step, i) for i in range(4)])
+    est = gt.copy()
+    est[2:] = est[1] @ make_T(np.eye(3), [0.11, 0, 0]) @ turn @ np.stack([np.eye(4), step])
+    _, trans, rot = rpe_errors(est, gt)
+    np.testing.assert_allclose(trans, [0.0, 0.01, 0.0], atol=1e-12)
+    np.testing.assert_allclose(rot, [0.0, 2.0, 0.0], atol=1e-9)
+    # Without ground truth at frame 2, frames 1 and 3 are a pair: 2 steps, 1 cm, 2 degrees.
+    gt_gap = gt.copy()
+    gt_gap[2] = np.nan
+    later, trans, rot = rpe_errors(est, gt_gap)
+    assert list(later) == [1, 3]
+    # est 1 -> 3: 0.11 m along x, then 0.1 m at 2 degrees; true: 0.2 m along x.
+    c, s = np.cos(np.radians(2)), np.sin(np.radians(2))
+    np.testing.assert_allclose(trans[1], np.hypot(0.11 + 0.1 * c - 0.2, 0.1 * s), atol=1e-12)
+    np.testing.assert_allclose(rot[1], 2.0, atol=1e-9)
+    # The ATE's rotation: the alignment cannot undo a turn of only the last two poses.
+    ate = absolute_trajectory_error(est, gt)
+    assert 0.5 < ate.rotation_max_deg <= 2.0 and ate.rotation_rmse_deg > 0.3
+
+
+def test_rotation_error_and_rpe_agree_with_evo():
+    """On the pose pairs evo associates (freiburg1_xyz, an RGBD-SLAM estimate), our ATE
+    rotation (evo_ape -a -r angle_deg) and RPE (evo_rpe, delta 1 frame, translation and
+    -r angle_deg) equal evo's."""
+    evo_sync = pytest.importorskip("evo.core.sync")
+    from evo.core import metrics
+    from evo.tools import file_interface
+
+    folder = require(SHARED_DATA / "tum_trajectories_evo")
+    ref = file_interface.read_tum_trajectory_file(str(folder / "freiburg1_xyz-groundtruth.txt"))
+    est = file_interface.read_tum_trajectory_file(str(folder / "freiburg1_xyz-rgbdslam.txt"))
+    ref, est = evo_sync.associate_trajectories(ref, est, max_diff=0.01)
+    P, Q = np.array(est.poses_se3), np.array(ref.poses_se3)
+    rpe = relative_pose_error(P, Q)
+    est.align(ref)
+    evo = {}
+    for name, metric in (
+            ("ape_rot", metrics.APE(metrics.PoseRelation.rotation_angle_deg)),
+            ("rpe_trans", metrics.RPE(metrics.PoseRelation.translation_part)),
+            ("rpe_rot", metrics.RPE(metrics.PoseRelation.rotation_angle_deg))):
+        metric.process_data((ref, est))
+        evo[name] = metric.get_all_statistics()
+    ate = absolute_trajectory_error(P, Q)
+    assert ate.rotation_rmse_deg == pytest.approx(evo["ape_rot"]["rmse"], rel=1e-6)
+    assert ate.rotation_mean_deg == pytest.approx(evo["ape_rot"]["mean"], rel=1e-6)
+    assert ate.rotation_max_deg == pytest.approx(evo["ape_rot"]["max"], rel=1e-6)
+    assert rpe.n_pairs == len(P) - 1
+    assert rpe.translation_rmse_m == pytest.approx(evo["rpe_trans"]["rmse"], rel=1e-6)
+    assert rpe.translation_max_m == pytest.approx(evo["rpe_trans"]["max"], rel=1e-6)
+    assert rpe.rotation_rmse_deg == pytest.approx(evo["rpe_rot"]["rmse"], rel=1e-6)
+    assert rpe.rotation_mean_deg == pytest.approx(evo["rpe_rot"]["mean"], rel=1e-6)

@@ -24,7 +24,7 @@ import numpy as np
 from fleetslam.config import Config, config_to_dict
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
-from fleetslam.tables import format_table
+from fleetslam.tables import _cell, format_table
 
 SUMMARY_VERSION = 3
 ROBOT_SUMMARY = "robot.json"
@@ -141,21 +141,34 @@ def camera_skipped(robot: dict[str, Any]) -> int | None:
     return report.get("camera_skipped")
 
 
+def _cm_deg(cm: float | None, deg: float | None) -> str | None:
+    """An error as "cm / deg" in one cell, 3 digits each as the tables print numbers (None:
+    not scored; only cm: a summary from before rotations were scored)."""
+    if cm is None:
+        return None
+    return _cell(cm) + ("" if deg is None else f" / {_cell(deg)}")
+
+
 def robot_table(summary: dict[str, Any]) -> Table:
-    """One row per robot: frames, losses, loops, ATE (if scored), speed, map size; with a
-    live camera, the frames it skipped."""
+    """One row per robot: frames, losses, loops, ATE and RPE (if scored: RMSE of the
+    translation and of the rotation, as evo_ape -a and evo_rpe give them), speed, map size;
+    with a live camera, the frames it skipped."""
     robots = summary["robots"]
     live = any(camera_skipped(r) is not None for r in robots)
     rows = []
     for r in robots:
-        ate = r["ate"]["rmse_m"] * 100 if r.get("ate") else None
+        ate, rpe = r.get("ate") or {}, r.get("rpe") or {}
         loops = r.get("loop_closing") or {}
         rows.append([r["name"], r["frames"], *([camera_skipped(r)] if live else []),
                      r["keyframes"], r["lost_frames"],
-                     loops.get("relocalisations"), loops.get("loops_accepted"), ate,
+                     loops.get("relocalisations"), loops.get("loops_accepted"),
+                     _cm_deg(ate["rmse_m"] * 100 if ate else None, ate.get("rotation_rmse_deg")),
+                     _cm_deg(rpe["translation_rmse_m"] * 100 if rpe else None,
+                             rpe.get("rotation_rmse_deg")),
                      r.get("tracking_fps"), r["map_points"]])
     return (["robot", "frames", *(["camera skipped"] if live else []), "keyframes", "lost",
-             "relocalised", "loops", "ATE RMSE cm", "fps", "map points"], rows)
+             "relocalised", "loops", "ATE RMSE cm / deg", "RPE RMSE cm / deg", "fps",
+             "map points"], rows)
 
 
 def transport_table(summary: dict[str, Any]) -> Table | None:

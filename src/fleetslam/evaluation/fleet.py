@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from fleetslam.datasets.source import RecordedSource
-from fleetslam.evaluation.ate import absolute_trajectory_error
+from fleetslam.evaluation.ate import absolute_trajectory_error, relative_pose_error
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.registration.metrics import transform_error
 from fleetslam.transforms import invert
@@ -43,7 +43,24 @@ def ate_summary(poses: np.ndarray, gt: np.ndarray) -> dict[str, Any] | None:
         return None
     ate = absolute_trajectory_error(poses, gt)
     return {"rmse_m": ate.rmse_m, "mean_m": ate.mean_m, "median_m": ate.median_m,
-            "max_m": ate.max_m, "n_poses": ate.n_poses, "alignment": "SE(3) Umeyama"}
+            "max_m": ate.max_m, "rotation_rmse_deg": ate.rotation_rmse_deg,
+            "rotation_mean_deg": ate.rotation_mean_deg, "rotation_max_deg": ate.rotation_max_deg,
+            "n_poses": ate.n_poses, "alignment": "SE(3) Umeyama"}
+
+
+def rpe_summary(poses: np.ndarray, gt: np.ndarray) -> dict[str, Any] | None:
+    """RPE between consecutive poses with ground truth (evo_rpe's default, delta 1 frame);
+    None with fewer than 2 such poses."""
+    if np.sum(np.isfinite(gt).all(axis=(1, 2)) & np.isfinite(poses).all(axis=(1, 2))) < 2:
+        return None
+    rpe = relative_pose_error(poses, gt)
+    return {"translation_rmse_m": rpe.translation_rmse_m,
+            "translation_mean_m": rpe.translation_mean_m,
+            "translation_max_m": rpe.translation_max_m,
+            "rotation_rmse_deg": rpe.rotation_rmse_deg,
+            "rotation_mean_deg": rpe.rotation_mean_deg,
+            "rotation_max_deg": rpe.rotation_max_deg, "n_pairs": rpe.n_pairs,
+            "delta": "1 frame"}
 
 
 def run_ate(run: Any) -> dict[str, Any] | None:
@@ -52,12 +69,24 @@ def run_ate(run: Any) -> dict[str, Any] | None:
     return None if gt is None else ate_summary(run.poses, gt)
 
 
-def trajectory_ate(trajectory: Path, sequence: RecordedSource) -> dict[str, Any] | None:
-    """ATE of a written TUM trajectory against the sequence's ground truth, frames paired by
-    timestamp (a cloud's trajectory misses frames the link lost)."""
+def _with_ground_truth(trajectory: Path, sequence: RecordedSource
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """(poses of a written TUM trajectory that are frames of ``sequence`` with ground truth,
+    that ground truth), paired by timestamp (a cloud's trajectory misses frames the link
+    lost)."""
     times, poses = read_tum_trajectory(trajectory)
     ok, gt = ground_truth_at(times, sequence)
-    return ate_summary(poses[ok], gt)
+    return poses[ok], gt
+
+
+def trajectory_ate(trajectory: Path, sequence: RecordedSource) -> dict[str, Any] | None:
+    """ATE of a written TUM trajectory against the sequence's ground truth."""
+    return ate_summary(*_with_ground_truth(trajectory, sequence))
+
+
+def trajectory_rpe(trajectory: Path, sequence: RecordedSource) -> dict[str, Any] | None:
+    """RPE of a written TUM trajectory against the sequence's ground truth."""
+    return rpe_summary(*_with_ground_truth(trajectory, sequence))
 
 
 def same_world(a: RecordedSource, b: RecordedSource) -> bool:
@@ -125,11 +154,13 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, Recor
 
 def score_fleet(summary: dict[str, Any], out_dir: Path, sequences: dict[str, RecordedSource]
                 ) -> None:
-    """Add ground-truth scores to ``summary`` in place (robots' ATE, merge evaluation)."""
+    """Add ground-truth scores to ``summary`` in place (robots' ATE and RPE, merge
+    evaluation)."""
     for robot in summary["robots"]:
         sequence = sequences.get(robot["name"])
-        robot["ate"] = trajectory_ate(out_dir / robot["trajectory"], sequence) \
-            if sequence is not None else None
+        trajectory = out_dir / robot["trajectory"]
+        robot["ate"] = trajectory_ate(trajectory, sequence) if sequence is not None else None
+        robot["rpe"] = trajectory_rpe(trajectory, sequence) if sequence is not None else None
     merge = summary.get("merge")
     if merge is not None and all(n in sequences for n in merge.get("robots", {})):
         merge["evaluation"] = score_merge(merge, out_dir, sequences)

@@ -63,7 +63,8 @@ def write_plots(result: dict[str, Any], out_dir: Path) -> list[Path]:
         ax.set_title(f"{label.split(' per')[0]} against eta (star: the choice)")
         fig.tight_layout()
         path = out_dir / name
-        fig.savefig(path, dpi=120)
+        with matplotlib.rc_context({"axes.formatter.min_exponent": 4}):  # "20", not "2×10¹"
+            fig.savefig(path, dpi=120)
         plt.close(fig)
         paths.append(path)
     return paths

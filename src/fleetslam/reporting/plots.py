@@ -2,9 +2,12 @@
 and returns a Figure, or returns the reason it has nothing to show, so the page can say why
 a figure is missing.
 
-Views: "up" is the mean up direction of the cameras (-y of each camera), which holds in any
-frame (a map frame is a camera, ground truth may have z up or y up); the top view looks down
-it, with the trajectories' main horizontal direction across the page.
+Views: "up" is the up direction of the cameras (-y of each camera when held level), which
+holds in any frame (a map frame is a camera, ground truth may have z up or y up). Where it is
+within SNAP_DEG of an axis of the frame, the views show the frame's own axes, named as evo
+names them ("x (m)", "z (m)"; "-y (m)" when -y is up); otherwise the top view looks down the
+cameras' up, with the trajectories' main horizontal direction across the page, and each axis
+is named by its direction in the frame ("0.97x + 0.24z (m)").
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from PIL import Image  # noqa: E402
 
+from fleetslam.evaluation.ate import ate_errors, rpe_errors  # noqa: E402
+
 from fleetslam.reporting.run import (  # noqa: E402
     RunData,
     Trajectory,
@@ -33,11 +38,16 @@ from fleetslam.reporting.run import (  # noqa: E402
 )
 
 DPI = 110
+# Log axes label 0.001 .. 9999 as plain numbers ("20", "0.5"), not "2×10¹".
+PLAIN_TICKS = {"axes.formatter.min_exponent": 4}
 # The map's top view is drawn as an image of at most this many cells on its long side.
 MAP_CELLS = 400
 # Points higher than the highest camera by this much are left out of the top view: a
 # ceiling would hide the floor plan.
 CEILING_MARGIN_M = 0.3
+# The views use the frame's own axes when the cameras' up is this close to one of them.
+SNAP_DEG = 15.0
+AXIS_NAMES = "xyz"
 
 
 @dataclass
@@ -70,11 +80,38 @@ def _up(R: np.ndarray) -> np.ndarray:
     return up / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])
 
 
+def _frame_axes(up: np.ndarray) -> np.ndarray | None:
+    """Rows: the frame's two axes across ``up`` and the axis along it (signed so it points
+    up, the two ordered so the top view is right-handed), or None if ``up`` is more than
+    SNAP_DEG from every axis."""
+    k = int(np.argmax(np.abs(up)))
+    if abs(up[k]) < np.cos(np.radians(SNAP_DEG)):
+        return None
+    eye = np.eye(3)
+    a, b = eye[(k + 1) % 3], eye[(k + 2) % 3]  # a x b = +e_k
+    return np.stack([a, b, eye[k]]) if up[k] > 0 else np.stack([b, a, -eye[k]])
+
+
+def axis_label(v: np.ndarray) -> str:
+    """The name of a view axis (a unit vector of the frame): "x (m)", "-y (m)", or its
+    components where it is no axis of the frame ("0.97x + 0.24z (m)")."""
+    k = int(np.argmax(np.abs(v)))
+    if abs(v[k]) > 0.9999:
+        return f"{'-' if v[k] < 0 else ''}{AXIS_NAMES[k]} (m)"
+    terms = [(c, n) for c, n in zip(v, AXIS_NAMES) if abs(c) >= 0.005]
+    text = "".join(f"{' - ' if c < 0 else ' + '}{abs(c):.2f}{n}" for c, n in terms)
+    return f"{text[3:] if text.startswith(' + ') else '-' + text[3:]} (m)"
+
+
 def view_basis(poses: np.ndarray, spread: np.ndarray | None = None) -> np.ndarray:
-    """Rows: horizontal axis 1 (the main direction of ``spread``: points (N, 3), default
-    the camera positions), horizontal axis 2, up (the cameras' mean up vector)."""
+    """Rows: horizontal axis 1, horizontal axis 2, up (the cameras' up vector): the frame's
+    own axes when up is near one of them, else horizontal axis 1 along the main direction of
+    ``spread`` (points (N, 3), default the camera positions)."""
     finite = poses[np.isfinite(poses).all(axis=(1, 2))]
     up = _up(finite[:, :3, :3]) if len(finite) else np.array([0.0, 0.0, 1.0])
+    axes = _frame_axes(up)
+    if axes is not None:
+        return axes
     if spread is None:
         spread = finite[:, :3, 3] if len(finite) else np.eye(3)
     p = spread - spread.mean(axis=0)
@@ -95,7 +132,8 @@ def _save(fig: plt.Figure, path: Path, dpi: int = DPI) -> None:
     """PNG, palette-quantised when that is lossless enough: plots have few colours, and
     the page (and the README's picture) load faster."""
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=dpi)
+    with matplotlib.rc_context(PLAIN_TICKS):  # ticks are formatted when drawn
+        fig.savefig(buffer, format="png", dpi=dpi)
     plt.close(fig)
     buffer.seek(0)
     image = Image.open(buffer).convert("RGB")
@@ -115,14 +153,15 @@ def _legend_below(fig: plt.Figure, ax: Axes, handles: list | None = None,
     fig.tight_layout(rect=(0, (0.12 + 0.2 * rows) / fig.get_figheight(), 1, 1))
 
 
-def _views(axes: Views) -> None:
+def _views(axes: Views, basis: np.ndarray) -> None:
+    """Axis names from the view's ``basis`` (rows: across, up the page, up)."""
     top, side = axes
-    top.set_xlabel("horizontal (m)")
-    top.set_ylabel("horizontal (m)")
+    top.set_xlabel(axis_label(basis[0]))
+    top.set_ylabel(axis_label(basis[1]))
     top.set_title("top view", fontsize=9)
     if side is not None:
-        side.set_xlabel("horizontal (m)")
-        side.set_ylabel("up (m)")
+        side.set_xlabel(axis_label(basis[0]))
+        side.set_ylabel(axis_label(basis[2]))
         side.set_title("side view", fontsize=9)
     for ax in axes:
         if ax is None:
@@ -169,8 +208,9 @@ def plot_trajectories_own(run: RunData, path: Path) -> Figure | str:
             _draw_path(axes, gt[:, :3, 3], basis, "0.45", "ground truth", dashed=True)
         _draw_path(axes, poses[:, :3, 3], basis, run.color(r.name),
                    f"{r.name} estimate" + (" (SE(3)-aligned)" if T is not None else ""))
-        _views(axes)
-        frame = "ground-truth frame" if T is not None else "its map frame, no ground truth"
+        _views(axes, basis)
+        frame = "ground-truth frame" if T is not None else \
+            f"its map frame ({r.name}'s first camera), no ground truth"
         row[0].set_title(f"{r.name}: top view ({frame})", fontsize=9)
         row[0].legend(fontsize=7, loc="best")
     fig.tight_layout()
@@ -190,6 +230,12 @@ def _global_frame(run: RunData) -> tuple[np.ndarray | None, list[Trajectory]]:
     return T, trajs
 
 
+def global_map_frame(run: RunData) -> str:
+    """The name of the global map frame: the map frame of the merge's anchor robot."""
+    anchor = (run.summary.get("merge") or {}).get("anchor")
+    return f"global map frame = {anchor}'s first camera" if anchor else "global map frame"
+
+
 def draw_global_trajectories(run: RunData, axes: Views) -> str:
     """The merged robots in the global frame on (top, side) axes; returns the frame's name."""
     T, trajs = _global_frame(run)
@@ -203,12 +249,12 @@ def draw_global_trajectories(run: RunData, axes: Views) -> str:
         basis = view_basis(np.concatenate(posed))
     for r, poses in zip(run.merged, posed):
         _draw_path(axes, poses[:, :3, 3], basis, run.color(r.name), r.name)
-    _views(axes)
+    _views(axes, basis)
     if T is not None:
         axes[0].plot([], [], "--", color="0.45", label="ground truth")
     axes[0].legend(fontsize=7, loc="best")
-    return "one SE(3) alignment to ground truth" if T is not None else \
-        "global map frame, no ground truth"
+    return "ground-truth frame: one SE(3) alignment of all merged robots" if T is not None \
+        else f"{global_map_frame(run)}, no ground truth"
 
 
 def plot_trajectories_global(run: RunData, path: Path) -> Figure | str:
@@ -216,14 +262,16 @@ def plot_trajectories_global(run: RunData, path: Path) -> Figure | str:
         return "no merged robots (global/<robot>.tum) in this run"
     fig, (top, side) = plt.subplots(1, 2, figsize=(10, 4.2))
     frame = draw_global_trajectories(run, (top, side))
-    top.set_title(f"merged robots: top view ({frame})", fontsize=9)
+    top.set_title(f"merged robots: top view\n({frame})", fontsize=9)
     fig.tight_layout()
     _save(fig, path)
     return Figure(path.name, "Trajectories in the global frame",
                   "The merged robots' global/<robot>.tum together. With ground truth they "
                   "share ONE SE(3) alignment (all robots' frames at once), so an error in "
-                  "where the merge put a map shows here; without it, the global frame is "
-                  "the map frame of the group's first robot.")
+                  "where the merge put a map shows here, and the axes are the ground "
+                  "truth's: this is NOT the frame of the global map plot, which is drawn in "
+                  "the global map frame (the map frame of the group's first robot). Without "
+                  "ground truth, both are in the global map frame.")
 
 
 # -- error over time ---------------------------------------------------------------------
@@ -268,6 +316,52 @@ def plot_errors(run: RunData, path: Path) -> Figure | str:
                   "(frames without ground truth are gaps).")
 
 
+def plot_rotation_and_rpe(run: RunData, path: Path) -> Figure | str:
+    """Per robot in its own map frame: the ATE's rotation error (evo_ape -a -r angle_deg)
+    and the RPE between consecutive frames (evo_rpe, translation and angle), over time."""
+    own = [(r, r.own) for r in run.robots if r.own is not None and r.own.has_gt]
+    if not own:
+        return "no ground truth: the rotation error and the RPE need it"
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7.6), sharex=True)
+    panels = (("ATE rotation error (deg)", "ATE rotation: angle of (aligned estimate)^-1 "
+               "ground truth, SE(3)-aligned per robot (evo_ape -a -r angle_deg)"),
+              ("RPE translation (cm)", "RPE between consecutive frames (evo_rpe, delta 1 "
+               "frame): translation of the relative motion's error"),
+              ("RPE rotation (deg)", "RPE between consecutive frames: angle of the relative "
+               "motion's error (evo_rpe -r angle_deg)"))
+    for r, traj in own:
+        assert traj.gt is not None
+        T = alignment([traj])
+        if T is None:
+            continue
+        t = traj.times - traj.times[0]
+        _, rot = ate_errors(traj.poses, traj.gt, T)
+        later, rpe_t, rpe_r = rpe_errors(traj.poses, traj.gt)
+        for ax, values, times, unit in ((axes[0], rot, t, "deg"),
+                                        (axes[1], rpe_t * 100, t[later], "cm"),
+                                        (axes[2], rpe_r, t[later], "deg")):
+            rmse = np.sqrt(np.nanmean(values**2)) if len(values) else float("nan")
+            ax.plot(times, values, color=run.color(r.name), lw=1,
+                    label=f"{r.name} (RMSE {rmse:.3g} {unit})")
+    for ax, (ylabel, title) in zip(axes, panels):
+        ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=9)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+        ax.set_ylim(bottom=0)
+    axes[-1].set_xlabel("time since the robot's first frame (s)")
+    fig.tight_layout()
+    _save(fig, path)
+    return Figure(path.name, "Rotation error and relative pose error over time",
+                  "Each robot against its ground truth, as evo computes them: the absolute "
+                  "rotation error after the robot's SE(3) alignment, and the relative pose "
+                  "error of each step between consecutive frames with ground truth (drift "
+                  "per frame; an alignment cancels in it), at the later frame of the step. "
+                  "The alignment matches positions only: along a short or straight path it "
+                  "leaves the roll about the path open, which shows as a constant rotation "
+                  "error (evo's too) while the RPE stays small.")
+
+
 # -- global map --------------------------------------------------------------------------
 
 
@@ -306,8 +400,8 @@ def draw_global_map(run: RunData, ax: Axes) -> None:
         ax.plot(p[:, 0], p[:, 1], color=run.color(r.name), lw=1.6, label=r.name)
         ax.plot(p[:1, 0], p[:1, 1], "o", color=run.color(r.name), ms=5, mec="white")
     ax.set_aspect("equal")
-    ax.set_xlabel("horizontal (m)")
-    ax.set_ylabel("horizontal (m)")
+    ax.set_xlabel(axis_label(basis[0]))
+    ax.set_ylabel(axis_label(basis[1]))
     ax.tick_params(labelsize=7)
     ax.legend(fontsize=7, loc="best")
 
@@ -322,14 +416,17 @@ def plot_global_map(run: RunData, path: Path) -> Figure | str:
     x0, x1 = ax.get_xlim()
     y0, y1 = ax.get_ylim()
     fig.set_figheight(float(np.clip(7 * (y1 - y0) / max(x1 - x0, 1e-6), 3, 9)) + 1.2)
-    ax.set_title(f"global map, top view ({len(run.map_points):,} points; above the highest "
-                 f"camera + {CEILING_MARGIN_M} m left out) and global paths", fontsize=9)
+    ax.set_title(f"global map, top view, {global_map_frame(run)}\n({len(run.map_points):,} "
+                 f"points; above the highest camera + {CEILING_MARGIN_M} m left out) and "
+                 "global paths", fontsize=9)
     fig.tight_layout()
     _save(fig, path)
     return Figure(path.name, "Global map from above",
                   "global_map.ply seen from above (each cell shows its highest point; the "
-                  "ceiling is cut off) with every merged robot's global path. Global map "
-                  "frame: no ground truth involved.")
+                  "ceiling is cut off) with every merged robot's global path, both in the "
+                  "global map frame (the map frame of the group's first robot): no ground "
+                  "truth involved, so where the trajectory plots align to ground truth their "
+                  "axes differ from these.")
 
 
 # -- stage times -------------------------------------------------------------------------
@@ -488,17 +585,21 @@ def plot_overview(run: RunData, path: Path) -> Figure | str:
         frame = draw_global_trajectories(run, (tx, None))
         tx.set_title(f"merged trajectories, top view\n({frame})", fontsize=9)
         draw_global_map(run, mx)
-        mx.set_title("global map from above with the robots' paths", fontsize=9)
+        mx.set_title(f"global map from above with the robots' paths\n({global_map_frame(run)})",
+                     fontsize=9)
     else:
         robots = [r for r in run.robots if r.own is not None]
         if not robots:
             return "nothing to show"
         fig, tx = plt.subplots(figsize=(6, 4.3))
+        # One view for all: each robot's map frame is its first camera, alike if the
+        # cameras are mounted alike.
+        basis = view_basis(np.concatenate([r.own.poses for r in robots if r.own is not None]))
         for r in robots:
             assert r.own is not None
-            _draw_path((tx, None), r.own.poses[:, :3, 3], view_basis(r.own.poses),
-                       run.color(r.name), f"{r.name} (own map frame)")
-        _views((tx, None))
+            _draw_path((tx, None), r.own.poses[:, :3, 3], basis, run.color(r.name),
+                       f"{r.name} (own map frame)")
+        _views((tx, None), basis)
         tx.legend(fontsize=7)
         tx.set_title("trajectories, top view", fontsize=9)
     fig.suptitle(f"fleetslam run {run.folder.resolve().name}", fontsize=10)
@@ -512,6 +613,7 @@ PLOTS: list[tuple[str, Plot]] = [
     ("trajectories_global.png", plot_trajectories_global),
     ("trajectories_own.png", plot_trajectories_own),
     ("error_over_time.png", plot_errors),
+    ("rotation_rpe_over_time.png", plot_rotation_and_rpe),
     ("global_map.png", plot_global_map),
     ("stage_times.png", plot_stage_times),
     ("link.png", plot_link),
