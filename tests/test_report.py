@@ -107,3 +107,22 @@ def test_report_names_a_folder_without_summary(tmp_path, capsys):
     assert main(["--quiet", "report", str(tmp_path)]) == 2
     assert f"{tmp_path}: no summary.json" in capsys.readouterr().err
     assert not (tmp_path / "report").exists()
+
+
+def test_report_from_another_directory_finds_ground_truth(run_dir, tmp_path, monkeypatch,
+                                                          capsys):
+    """A run given a relative source, reported from elsewhere: the summary names the source
+    absolutely, so the report still reads its ground truth."""
+    source = Path(json.loads((run_dir / "summary.json").read_text())["robots"][0]["source"])
+    monkeypatch.chdir(source.parent)
+    out = tmp_path / "run"
+    assert main(["--quiet", "run", "--robot", f"{source.name}:0-11", "--out", str(out)]) == 0
+    assert json.loads((out / "summary.json").read_text())["robots"][0]["source"] == \
+        f"{source}:0-11"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    capsys.readouterr()
+    assert main(["--quiet", "report", "../run"]) == 0
+    text = Path(capsys.readouterr().out.strip()).read_text()
+    assert "Ground truth (evaluation only" in text and "Ground truth: none" not in text

@@ -89,7 +89,9 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     scene = Path(args.scene) if args.scene else _scene_dir(config)
     total = config.synthetic.n_robots * config.synthetic.frames_per_robot
     progress = Progress(f"synthetic scene {scene}", total, enabled=not args.quiet)
-    folders = ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))
+    # Absolute, so `fleetslam report` finds the scene's ground truth from any directory.
+    folders = [f.resolve() for f in
+               ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))]
     out = Path(args.out) if args.out else _default_out("demo")
     view_args = _view_args(args, config)
     if view_args and args.in_process:
@@ -325,6 +327,7 @@ def _run_until_stopped(robot: Any, robot_id: str) -> Any:
 
 
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.datasets.recording import absolute_spec
     from fleetslam.edge.robot import Robot
     from fleetslam.pipeline.split import ROBOT_TRACKS, parse_offload_point
 
@@ -350,7 +353,9 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
         planner = _online_planner(args, config, recording)
     else:
         k = parse_offload_point(args.offload_at)
-    robot = Robot(args.id, sequence, args.source, k, config, args.connect,
+    # The cloud's summary names this source: absolute, so its report finds the ground truth.
+    source = args.source if recording is None else absolute_spec(args.source)
+    robot = Robot(args.id, sequence, source, k, config, args.connect,
                   "max" if live else args.rate or "max", show_progress=not args.quiet,
                   paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None,
                   planner=planner, link_trace=trace,
@@ -411,7 +416,7 @@ def cmd_status(args: argparse.Namespace, config: Config) -> int:
 
 
 def cmd_run(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.datasets.recording import open_source
+    from fleetslam.datasets.recording import absolute_spec, open_source
     from fleetslam.system import run_fleet
 
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
@@ -422,7 +427,8 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     robots = []
     for i, spec in enumerate(args.robot):
         name = names[i] if names else f"r{i}"
-        robots.append((name, spec, open_source(spec, camera, config.source)))
+        # Absolute, so `fleetslam report` finds its ground truth from any directory.
+        robots.append((name, absolute_spec(spec), open_source(spec, camera, config.source)))
     out = Path(args.out) if args.out else _default_out("run")
     summary = run_fleet(robots, config, out, show_progress=not args.quiet)
     _finish(summary, out, args.quiet)
