@@ -39,6 +39,12 @@ def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
 
     page = write_report(out, show_progress=not quiet)
     print(summary_table(summary))
+    interrupted = summary.get("interrupted")
+    if interrupted:
+        tracked = interrupted["frames_tracked"]
+        print(f"\ninterrupted (Ctrl-C): kept the frames tracked ("
+              + ", ".join(f"{r} {n}/{interrupted['frames_given'][r]}" for r, n in tracked.items())
+              + "); not built: " + (", ".join(interrupted["not_built"]) or "nothing"))
     merged = (summary.get("merge") or {}).get("members")
     print(f"\noutputs in {out}/ (summary.json, <robot>/trajectory.tum, <robot>/map.ply"
           + (", global/<robot>.tum, global_map.ply, global_map.bt)" if merged else ")"))
@@ -430,9 +436,26 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
         # Absolute, so `fleetslam report` finds its ground truth from any directory.
         robots.append((name, absolute_spec(spec), open_source(spec, camera, config.source)))
     out = Path(args.out) if args.out else _default_out("run")
+    _free_out(out, args.overwrite)
     summary = run_fleet(robots, config, out, show_progress=not args.quiet)
     _finish(summary, out, args.quiet)
-    return 0
+    return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
+
+
+def _free_out(out: Path, overwrite: bool) -> None:
+    """Make room for a run folder: an existing one is replaced only with --overwrite, and
+    only if it is empty or a run folder (has summary.json): never someone's other files."""
+    import shutil
+
+    if not out.exists():
+        return
+    if not overwrite:
+        raise ValueError(f"--out {out}: the folder exists; give another --out, or add "
+                         f"--overwrite to replace it")
+    if not out.is_dir() or (any(out.iterdir()) and not (out / "summary.json").is_file()):
+        raise ValueError(f"--out {out}: not a run folder (no summary.json): --overwrite "
+                         f"replaces only a run folder; give another --out")
+    shutil.rmtree(out)
 
 
 def cmd_vocabulary(args: argparse.Namespace, config: Config) -> int:
@@ -575,6 +598,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--camera", help="camera.json overriding the detected camera")
     _add_topic_options(run)
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
+    run.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
+                     "earlier run folder (an interrupted one, say)")
     run.set_defaults(func=cmd_run)
 
     cloud = sub.add_parser("cloud", help="serve robots over Zenoh: track, map, merge")

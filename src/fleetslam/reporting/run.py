@@ -97,6 +97,8 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
     except ValueError as exc:
         raise ValueError(f"{path}: not JSON: {exc}") from exc
     run = RunData(folder, summary, [], ground_truth_read=ground_truth)
+    if summary.get("interrupted"):
+        run.notes.append(_interrupted_note(summary["interrupted"]))
     sequences: dict[str, RecordedSource] = {}
     merge = summary.get("merge") or {}
     global_files = merge.get("global_trajectories") or {}
@@ -134,6 +136,14 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
         run.map_points, run.map_colors = read_ply(map_path)
     run.bandwidth_mbps = _bandwidth(summary)
     return run
+
+
+def _interrupted_note(interrupted: dict[str, Any]) -> str:
+    """What a run stopped by Ctrl-C kept and left out."""
+    tracked = ", ".join(f"{r} {n}" for r, n in interrupted.get("frames_tracked", {}).items())
+    not_built = ", ".join(interrupted.get("not_built") or []) or "nothing"
+    return (f"interrupted ({interrupted.get('by', 'Ctrl-C')}): only the frames tracked before "
+            f"it are shown (frames: {tracked}); not built: {not_built}")
 
 
 def _read_trajectory(path: Path, notes: list[str]) -> Trajectory | None:
