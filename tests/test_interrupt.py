@@ -106,3 +106,16 @@ def test_ctrl_c_stops_the_cloud_in_one_line(tmp_path):
     assert cloud.returncode == 0, output
     assert "Traceback" not in output and "KeyboardInterrupt" not in output
     assert output.rstrip().splitlines()[-1] == "fleetslam cloud: stopped"
+
+
+def test_demo_reuses_out_only_with_overwrite(tmp_path):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "summary.json").write_text("{}")
+    result = subprocess.run(_cli("--quiet", "demo", "--in-process", "--frames", "4", "--scene",
+                                 str(tmp_path / "scene"), "--out", str(out)),
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip() == (f"fleetslam: error: --out {out}: the folder exists; give "
+                                     f"another --out, or add --overwrite to replace it")
+    assert (out / "summary.json").read_text() == "{}"

@@ -92,19 +92,20 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     _apply_link(args, config)  # checked here: the demo's robot processes are given them
     if config.synthetic.n_robots < 2:
         raise ValueError("the demo needs at least 2 robots (--robots)")
+    out = Path(args.out) if args.out else _default_out("demo")
     scene = Path(args.scene) if args.scene else _scene_dir(config)
     total = config.synthetic.n_robots * config.synthetic.frames_per_robot
     progress = Progress(f"synthetic scene {scene}", total, enabled=not args.quiet)
     # Absolute, so `fleetslam report` finds the scene's ground truth from any directory.
     folders = [f.resolve() for f in
                ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))]
-    out = Path(args.out) if args.out else _default_out("demo")
     view_args = _view_args(args, config)
     if view_args and args.in_process:
         raise ValueError("--view / --save show the cloud process: not with --in-process")
     if args.workers < 1 or (args.in_process and args.workers > 1):
         raise ValueError("--workers N: at least 1, and cloud workers are processes (not with "
                          "--in-process)")
+    _free_out(out, args.overwrite)  # after every check: an earlier run is replaced only to run
     if args.in_process:
         from fleetslam.datasets.tum import RgbdSequence
         from fleetslam.system import run_fleet
@@ -118,7 +119,7 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
                            secure=not args.insecure, cloud_args=view_args,
                            workers=args.workers)
     _finish(summary, out, args.quiet)
-    return 0
+    return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
 
 
 def _link_args(args: argparse.Namespace) -> list[str]:
@@ -572,6 +573,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="run >= 2 robots on the built-in synthetic scene")
     demo.add_argument("--out", help="run folder to create (default runs/demo-<time>)")
+    demo.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
+                      "earlier run folder")
     demo.add_argument("--scene", help="where the synthetic scene is generated or reused "
                       "(default: a cache folder)")
     demo.add_argument("--robots", type=int, help="number of robots (default from config: 2)")
