@@ -45,12 +45,17 @@ def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
         print(f"\ninterrupted (Ctrl-C): kept the frames tracked ("
               + ", ".join(f"{r} {n}/{interrupted['frames_given'][r]}" for r, n in tracked.items())
               + "); not built: " + (", ".join(interrupted["not_built"]) or "nothing"))
-    merged = (summary.get("merge") or {}).get("members")
-    print(f"\noutputs in {out}/ (summary.json, <robot>/trajectory.tum, <robot>/map.ply"
-          + (", global/<robot>.tum, global_map.ply, global_map.bt)" if merged else ")"))
+    print(f"\noutputs in {out}/ ({_output_files(summary)})")
     if summary.get("mcap"):
         print(f"mcap: {out / summary['mcap']}")
     print(f"report: {page}")
+
+
+def _output_files(summary: dict) -> str:
+    """The files a run's folder holds, by the summary."""
+    merged = (summary.get("merge") or {}).get("members")
+    return ("summary.json, <robot>/trajectory.tum, <robot>/map.ply"
+            + (", global/<robot>.tum, global_map.ply, global_map.bt" if merged else ""))
 
 
 def cmd_report(args: argparse.Namespace, config: Config) -> int:
@@ -398,9 +403,19 @@ def cmd_merge(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.outputs import summary_table
 
     summary = _ask_cloud(args, config, "merge")
-    print(summary_table(summary))
-    if summary.get("mcap"):
-        print(f"mcap: {summary['mcap']} in the cloud's --out folder")
+    print(summary_table(summary, drop_empty=True))
+    outputs = summary.get("outputs") or {}
+    # On the cloud's machine (a cloud too old to say: its --out folder).
+    folder = outputs.get("folder")
+    print(f"\noutputs in {f'{folder}/' if folder else 'its --out folder'} on the cloud's "
+          f"machine ({_output_files(summary)}"
+          + (f", {summary['mcap']}" if summary.get("mcap") else "") + ")")
+    if outputs.get("report"):
+        print(f"report: {folder}/{outputs['report']} (made without ground truth: "
+              f"`fleetslam report {folder}` where the robots' sequences are adds the errors "
+              f"against it)")
+    elif outputs:
+        print("report: none (the cloud could not write it: see its log)")
     return 0
 
 
@@ -416,9 +431,10 @@ def cmd_status(args: argparse.Namespace, config: Config) -> int:
               f"{m.get('keyframes', 0):>10} {m.get('anchor', '-'):>10}  {s.get('worker', '-')}")
     print(f"workers: {', '.join(status.get('workers') or [])} (answered: "
           f"{', '.join(status.get('answered') or [])})")
-    print(f"map groups (merger of worker {status.get('worker')}): "
-          f"{merge.get('components', {})}; inter-robot constraints: "
-          f"{merge.get('constraints', 0)} ({merge.get('constraints_rejected', 0)} rejected)")
+    groups = " | ".join("+".join(m) for m in (merge.get("components") or {}).values())
+    print(f"map groups (merger of worker {status.get('worker')}): {groups or 'none'}; "
+          f"inter-robot constraints: {merge.get('constraints', 0)} "
+          f"({merge.get('constraints_rejected', 0)} rejected)")
     return 0
 
 
