@@ -126,3 +126,12 @@ def test_report_from_another_directory_finds_ground_truth(run_dir, tmp_path, mon
     assert main(["--quiet", "report", "../run"]) == 0
     text = Path(capsys.readouterr().out.strip()).read_text()
     assert "Ground truth (evaluation only" in text and "Ground truth: none" not in text
+
+
+def test_report_progress_counts_the_pngs_written(run_dir, capsys):
+    """Plots the run has no data for are checked, not written: the progress says which."""
+    write_report(run_dir, ground_truth=False, show_progress=True)
+    written = len(list((run_dir / "report").glob("*.png")))
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "8/8 plots checked" in last
+    assert last.endswith(f"{written} PNG written, {8 - written} left out (no data)"), last

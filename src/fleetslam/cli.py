@@ -270,9 +270,13 @@ def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> 
         # Measuring runs the back-end: the cloud extra (a robot without it plans from a
         # saved profile, --plan-profile).
         from fleetslam.planner.profiling import measure_profile
+        from fleetslam.progress import Progress
 
-        profile = measure_profile(sequence, args.source, copy.deepcopy(config),
-                                  min(cfg.profile_frames, len(sequence)))
+        frames = min(cfg.profile_frames, len(sequence))
+        progress = Progress(f"profile {args.source} (for --offload-at auto)", frames,
+                            enabled=not args.quiet)
+        profile = measure_profile(sequence, args.source, copy.deepcopy(config), frames,
+                                  progress.update)
     return OnlinePlanner(profile, cfg, Setting(3, n, 1))
 
 
@@ -391,7 +395,8 @@ def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[s
     """One request (merge, status) to the running cloud at ``--connect``, as the operator."""
     from fleetslam.launch import CloudClient
 
-    client = CloudClient(args.connect, config.transport.reach_deadline_s,
+    client = CloudClient(args.connect or config.transport.endpoint,
+                         config.transport.reach_deadline_s,
                          config.transport.zenoh_config or None)
     try:
         return client.merge() if request == "merge" else client.status()
@@ -520,6 +525,7 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     if args.frames is not None:
         set_from_flag(cfg, "profile_frames", args.frames, "--frames")
     offered: tuple[int, ...] | None = SUPPORTED_POINTS
+    measured = ""  # a profile measured here on part of a sequence: which part
     if args.paper:
         if args.profile or args.source:
             raise ValueError("--paper plans with the paper's numbers: no --profile / --source")
@@ -536,13 +542,23 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
         if args.source:
             source = args.source
         else:
-            scene = ensure_scene(_scene_dir(config), config.synthetic)
+            # Made once (then cached): a minute or more, so it shows progress.
+            scene_progress = Progress(f"synthetic scene {_scene_dir(config)}",
+                                      config.synthetic.n_robots
+                                      * config.synthetic.frames_per_robot,
+                                      enabled=not args.quiet)
+            scene = ensure_scene(_scene_dir(config), config.synthetic,
+                                 progress=lambda d, t: scene_progress.update(d))
             source = str(scene[0])
         sequence = open_source(source, None, config.source)
-        frames = cfg.profile_frames
-        progress = Progress(f"profile {source}", min(frames, len(sequence)),
-                            enabled=not args.quiet)
+        frames = min(cfg.profile_frames, len(sequence))
+        if not args.quiet:
+            print(f"profile: measuring the first {frames} of the {len(sequence)} frames of "
+                  f"{source} (--frames N, or [planner] profile_frames)", file=sys.stderr)
+        progress = Progress(f"profile {source}", frames, enabled=not args.quiet)
         profile = measure_profile(sequence, source, config, frames, progress.update)
+        if frames < len(sequence):
+            measured = f"measured on the first {frames} of its {len(sequence)} frames: --frames"
         if args.save_profile:
             profile.save(Path(args.save_profile))
     bandwidths = SWEEP_MBPS if args.sweep else (cfg.bandwidth_mbps,)
@@ -550,7 +566,8 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
                   args.objective)
     out = Path(args.out) if args.out else _default_out("plan")
     paths = write_plan(result, out)
-    print(f"profile: {profile.source} ({profile.label}, {profile.frames} frames)")
+    print(f"profile: {profile.source} ("
+          + (measured or f"{profile.label}, {profile.frames} frames") + ")")
     print(report(result, cfg))
     print("\nwrote " + ", ".join(str(p) for p in paths))
     return 0
@@ -574,6 +591,14 @@ def cmd_certs(args: argparse.Namespace, config: Config) -> int:
         print(f"robot {robot}: fleetslam --zenoh-config {files[robot]} robot --id {robot} "
               f"--connect tls/HOST:7447 ...")
     return 0
+
+
+def _add_cloud_connect(parser: argparse.ArgumentParser) -> None:
+    """--connect of a command that asks a running cloud (merge, status)."""
+    parser.add_argument("--connect", default=None, metavar="ENDPOINT",
+                        help="the cloud's Zenoh endpoint, as its --listen, or a router of "
+                        "several workers (default from config [transport] endpoint: "
+                        f"{Config().transport.endpoint}); tls/... needs --zenoh-config")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -680,12 +705,12 @@ def build_parser() -> argparse.ArgumentParser:
     robot.set_defaults(func=cmd_robot)
 
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")
-    merge.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    _add_cloud_connect(merge)
     merge.set_defaults(func=cmd_merge)
 
     status = sub.add_parser("status", help="ask a running cloud which robots it serves and "
                             "how their maps are joined")
-    status.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    _add_cloud_connect(status)
     status.set_defaults(func=cmd_status)
 
     planner = sub.add_parser("plan", help="choose the offloading point: the paper's energy "
