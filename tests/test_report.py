@@ -135,3 +135,16 @@ def test_report_progress_counts_the_pngs_written(run_dir, capsys):
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "8/8 plots checked" in last
     assert last.endswith(f"{written} PNG written, {8 - written} left out (no data)"), last
+
+
+def test_report_of_an_older_run_with_a_relative_source_says_where_from(run_dir, tmp_path):
+    """A run made before sources were stored absolute: the page says why ground truth is
+    missing and where to run the command from."""
+    old = tmp_path / "old"
+    shutil.copytree(run_dir, old)
+    summary = json.loads((old / "summary.json").read_text())
+    summary["robots"][0]["source"] = "relative/robot_0:0-19"
+    (old / "summary.json").write_text(json.dumps(summary))
+    text = write_report(old).read_text()
+    assert ("relative/robot_0: no such sequence folder; the path is relative to the directory "
+            "the run was started in: run `fleetslam report` from there") in text

@@ -164,7 +164,10 @@ def _open_source(source: str | None) -> tuple[RecordedSource | None, str]:
     try:
         sequence = open_source(source)
     except (ValueError, OSError) as exc:
-        return None, f"source not readable here ({exc})"
+        # Runs made before sources were stored absolute name them as given.
+        hint = ("; the path is relative to the directory the run was started in: run "
+                "`fleetslam report` from there" if not spec_path(source).is_absolute() else "")
+        return None, f"source not readable here ({exc}{hint})"
     if not sequence.has_ground_truth:
         return None, f"{sequence.folder} has no groundtruth.txt"
     return sequence, ""
