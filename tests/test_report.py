@@ -155,3 +155,44 @@ def test_log_axis_ticks_are_plain_numbers():
     plt.close(fig)
     assert labels and not any("times" in t or "^" in t for t in labels), labels
     assert any("20" in t for t in labels) and any("40" in t for t in labels), labels
+
+
+def test_report_from_another_directory_finds_ground_truth(run_dir, tmp_path, monkeypatch,
+                                                          capsys):
+    """A run given a relative source, reported from elsewhere: the summary names the source
+    absolutely, so the report still reads its ground truth."""
+    source = Path(json.loads((run_dir / "summary.json").read_text())["robots"][0]["source"])
+    monkeypatch.chdir(source.parent)
+    out = tmp_path / "run"
+    assert main(["--quiet", "run", "--robot", f"{source.name}:0-11", "--out", str(out)]) == 0
+    assert json.loads((out / "summary.json").read_text())["robots"][0]["source"] == \
+        f"{source}:0-11"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    capsys.readouterr()
+    assert main(["--quiet", "report", "../run"]) == 0
+    text = Path(capsys.readouterr().out.strip()).read_text()
+    assert "Ground truth (evaluation only" in text and "Ground truth: none" not in text
+
+
+def test_report_progress_counts_the_pngs_written(run_dir, capsys):
+    """Plots the run has no data for are checked, not written: the progress says which."""
+    write_report(run_dir, ground_truth=False, show_progress=True)
+    written = len(list((run_dir / "report").glob("*.png")))
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "8/8 plots checked" in last
+    assert last.endswith(f"{written} PNG written, {8 - written} left out (no data)"), last
+
+
+def test_report_of_an_older_run_with_a_relative_source_says_where_from(run_dir, tmp_path):
+    """A run made before sources were stored absolute: the page says why ground truth is
+    missing and where to run the command from."""
+    old = tmp_path / "old"
+    shutil.copytree(run_dir, old)
+    summary = json.loads((old / "summary.json").read_text())
+    summary["robots"][0]["source"] = "relative/robot_0:0-19"
+    (old / "summary.json").write_text(json.dumps(summary))
+    text = write_report(old).read_text()
+    assert ("relative/robot_0: no such sequence folder; the path is relative to the directory "
+            "the run was started in: run `fleetslam report` from there") in text

@@ -40,9 +40,13 @@ def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
 
     page = write_report(out, show_progress=not quiet)
     print(summary_table(summary))
-    merged = (summary.get("merge") or {}).get("members")
-    print(f"\noutputs in {out}/ (summary.json, <robot>/trajectory.tum, <robot>/map.ply"
-          + (", global/<robot>.tum, global_map.ply, global_map.bt)" if merged else ")"))
+    interrupted = summary.get("interrupted")
+    if interrupted:
+        tracked = interrupted["frames_tracked"]
+        print(f"\ninterrupted (Ctrl-C): kept the frames tracked ("
+              + ", ".join(f"{r} {n}/{interrupted['frames_given'][r]}" for r, n in tracked.items())
+              + "); not built: " + (", ".join(interrupted["not_built"]) or "nothing"))
+    print(f"\noutputs in {out}/ ({_output_files(summary)})")
     if summary.get("mcap"):
         print(f"mcap: {out / summary['mcap']}")
     print(f"report: {page}")
@@ -53,6 +57,13 @@ def cmd_config(args: argparse.Namespace, config: Config) -> int:
 
     print(reference_markdown() if args.markdown else config_toml(config), end="")
     return 0
+
+
+def _output_files(summary: dict) -> str:
+    """The files a run's folder holds, by the summary."""
+    merged = (summary.get("merge") or {}).get("members")
+    return ("summary.json, <robot>/trajectory.tum, <robot>/map.ply"
+            + (", global/<robot>.tum, global_map.ply, global_map.bt" if merged else ""))
 
 
 def cmd_report(args: argparse.Namespace, config: Config) -> int:
@@ -95,17 +106,20 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     if config.synthetic.n_robots < 2:
         raise ValueError("the demo needs at least 2 robots (--robots)")
     _check_offload_at(args.offload_at)  # before the scene, the cloud and the run folder
+    out = Path(args.out) if args.out else _default_out("demo")
     scene = Path(args.scene) if args.scene else _scene_dir(config)
     total = config.synthetic.n_robots * config.synthetic.frames_per_robot
     progress = Progress(f"synthetic scene {scene}", total, enabled=not args.quiet)
-    folders = ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))
-    out = Path(args.out) if args.out else _default_out("demo")
+    # Absolute, so `fleetslam report` finds the scene's ground truth from any directory.
+    folders = [f.resolve() for f in
+               ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))]
     view_args = _view_args(args, config)
     if view_args and args.in_process:
         raise ValueError("--view / --save show the cloud process: not with --in-process")
     if args.workers < 1 or (args.in_process and args.workers > 1):
         raise ValueError("--workers N: at least 1, and cloud workers are processes (not with "
                          "--in-process)")
+    _free_out(out, args.overwrite)  # after every check: an earlier run is replaced only to run
     if args.in_process:
         from fleetslam.datasets.tum import RgbdSequence
         from fleetslam.system import run_fleet
@@ -119,7 +133,7 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
                            secure=not args.insecure, cloud_args=view_args,
                            workers=args.workers)
     _finish(summary, out, args.quiet)
-    return 0
+    return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
 
 
 def _check_offload_at(text: str) -> int | None:
@@ -283,9 +297,13 @@ def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> 
         # Measuring runs the back-end: the cloud extra (a robot without it plans from a
         # saved profile, --plan-profile).
         from fleetslam.planner.profiling import measure_profile
+        from fleetslam.progress import Progress
 
-        profile = measure_profile(sequence, args.source, copy.deepcopy(config),
-                                  min(cfg.profile_frames, len(sequence)))
+        frames = min(cfg.profile_frames, len(sequence))
+        progress = Progress(f"profile {args.source} (for --offload-at auto)", frames,
+                            enabled=not args.quiet)
+        profile = measure_profile(sequence, args.source, copy.deepcopy(config), frames,
+                                  progress.update)
     return OnlinePlanner(profile, cfg, Setting(3, n, 1))
 
 
@@ -369,6 +387,7 @@ def _warn_of_another_identity(robot_id: str, config: Config) -> None:
 
 
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.datasets.recording import absolute_spec
     from fleetslam.edge.robot import Robot
     from fleetslam.pipeline.split import ROBOT_TRACKS
 
@@ -396,7 +415,9 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
         planner = _online_planner(args, config, recording)
     else:
         k = point
-    robot = Robot(args.id, sequence, args.source, k, config, args.connect,
+    # The cloud's summary names this source: absolute, so its report finds the ground truth.
+    source = args.source if recording is None else absolute_spec(args.source)
+    robot = Robot(args.id, sequence, source, k, config, args.connect,
                   "max" if live else args.rate or "max", show_progress=not args.quiet,
                   paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None,
                   planner=planner, link_trace=trace,
@@ -426,7 +447,7 @@ def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[s
     if args.deadline is not None:
         set_from_flag(cfg, "ask_deadline_s", args.deadline, "--deadline")
     deadline = time.monotonic() + cfg.ask_deadline_s
-    client = CloudClient(args.connect, cfg.ask_deadline_s, cfg.zenoh_config or None,
+    client = CloudClient(args.connect or cfg.endpoint, cfg.ask_deadline_s, cfg.zenoh_config or None,
                          silence_hint_s=cfg.silence_hint_s)
     try:
         left = max(deadline - time.monotonic(), 1.0)
@@ -442,9 +463,19 @@ def cmd_merge(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.outputs import summary_table
 
     summary = _ask_cloud(args, config, "merge")
-    print(summary_table(summary))
-    if summary.get("mcap"):
-        print(f"mcap: {summary['mcap']} in the cloud's --out folder")
+    print(summary_table(summary, drop_empty=True))
+    outputs = summary.get("outputs") or {}
+    # On the cloud's machine (a cloud too old to say: its --out folder).
+    folder = outputs.get("folder")
+    print(f"\noutputs in {f'{folder}/' if folder else 'its --out folder'} on the cloud's "
+          f"machine ({_output_files(summary)}"
+          + (f", {summary['mcap']}" if summary.get("mcap") else "") + ")")
+    if outputs.get("report"):
+        print(f"report: {folder}/{outputs['report']} (made without ground truth: "
+              f"`fleetslam report {folder}` where the robots' sequences are adds the errors "
+              f"against it)")
+    elif outputs:
+        print("report: none (the cloud could not write it: see its log)")
     return 0
 
 
@@ -460,14 +491,15 @@ def cmd_status(args: argparse.Namespace, config: Config) -> int:
               f"{m.get('keyframes', 0):>10} {m.get('anchor', '-'):>10}  {s.get('worker', '-')}")
     print(f"workers: {', '.join(status.get('workers') or [])} (answered: "
           f"{', '.join(status.get('answered') or [])})")
-    print(f"map groups (merger of worker {status.get('worker')}): "
-          f"{merge.get('components', {})}; inter-robot constraints: "
-          f"{merge.get('constraints', 0)} ({merge.get('constraints_rejected', 0)} rejected)")
+    groups = " | ".join("+".join(m) for m in (merge.get("components") or {}).values())
+    print(f"map groups (merger of worker {status.get('worker')}): {groups or 'none'}; "
+          f"inter-robot constraints: {merge.get('constraints', 0)} "
+          f"({merge.get('constraints_rejected', 0)} rejected)")
     return 0
 
 
 def cmd_run(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.datasets.recording import open_source
+    from fleetslam.datasets.recording import absolute_spec, open_source
     from fleetslam.system import run_fleet
 
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
@@ -478,11 +510,29 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     robots = []
     for i, spec in enumerate(args.robot):
         name = names[i] if names else f"r{i}"
-        robots.append((name, spec, open_source(spec, camera, config.source)))
+        # Absolute, so `fleetslam report` finds its ground truth from any directory.
+        robots.append((name, absolute_spec(spec), open_source(spec, camera, config.source)))
     out = Path(args.out) if args.out else _default_out("run")
+    _free_out(out, args.overwrite)
     summary = run_fleet(robots, config, out, show_progress=not args.quiet)
     _finish(summary, out, args.quiet)
-    return 0
+    return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
+
+
+def _free_out(out: Path, overwrite: bool) -> None:
+    """Make room for a run folder: an existing one is replaced only with --overwrite, and
+    only if it is empty or a run folder (has summary.json): never someone's other files."""
+    import shutil
+
+    if not out.exists():
+        return
+    if not overwrite:
+        raise ValueError(f"--out {out}: the folder exists; give another --out, or add "
+                         f"--overwrite to replace it")
+    if not out.is_dir() or (any(out.iterdir()) and not (out / "summary.json").is_file()):
+        raise ValueError(f"--out {out}: not a run folder (no summary.json): --overwrite "
+                         f"replaces only a run folder; give another --out")
+    shutil.rmtree(out)
 
 
 def cmd_vocabulary(args: argparse.Namespace, config: Config) -> int:
@@ -530,6 +580,7 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     if args.frames is not None:
         set_from_flag(cfg, "profile_frames", args.frames, "--frames")
     offered: tuple[int, ...] | None = SUPPORTED_POINTS
+    measured = ""  # a profile measured here on part of a sequence: which part
     if args.paper:
         if args.profile or args.source:
             raise ValueError("--paper plans with the paper's numbers: no --profile / --source")
@@ -546,13 +597,23 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
         if args.source:
             source = args.source
         else:
-            scene = ensure_scene(_scene_dir(config), config.synthetic)
+            # Made once (then cached): a minute or more, so it shows progress.
+            scene_progress = Progress(f"synthetic scene {_scene_dir(config)}",
+                                      config.synthetic.n_robots
+                                      * config.synthetic.frames_per_robot,
+                                      enabled=not args.quiet)
+            scene = ensure_scene(_scene_dir(config), config.synthetic,
+                                 progress=lambda d, t: scene_progress.update(d))
             source = str(scene[0])
         sequence = open_source(source, None, config.source)
-        frames = cfg.profile_frames
-        progress = Progress(f"profile {source}", min(frames, len(sequence)),
-                            enabled=not args.quiet)
+        frames = min(cfg.profile_frames, len(sequence))
+        if not args.quiet:
+            print(f"profile: measuring the first {frames} of the {len(sequence)} frames of "
+                  f"{source} (--frames N, or [planner] profile_frames)", file=sys.stderr)
+        progress = Progress(f"profile {source}", frames, enabled=not args.quiet)
         profile = measure_profile(sequence, source, config, frames, progress.update)
+        if frames < len(sequence):
+            measured = f"measured on the first {frames} of its {len(sequence)} frames: --frames"
         if args.save_profile:
             profile.save(Path(args.save_profile))
     bandwidths = SWEEP_MBPS if args.sweep else (cfg.bandwidth_mbps,)
@@ -560,7 +621,8 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
                   args.objective)
     out = Path(args.out) if args.out else _default_out("plan")
     paths = write_plan(result, out)
-    print(f"profile: {profile.source} ({profile.label}, {profile.frames} frames)")
+    print(f"profile: {profile.source} ("
+          + (measured or f"{profile.label}, {profile.frames} frames") + ")")
     print(report(result, cfg))
     print("\nwrote " + ", ".join(str(p) for p in paths))
     return 0
@@ -599,6 +661,14 @@ def _add_global_options(parser: argparse.ArgumentParser, default: Any) -> None:
                         "access control, routers (also [transport] zenoh_config)")
 
 
+def _add_cloud_connect(parser: argparse.ArgumentParser) -> None:
+    """--connect of a command that asks a running cloud (merge, status)."""
+    parser.add_argument("--connect", default=None, metavar="ENDPOINT",
+                        help="the cloud's Zenoh endpoint, as its --listen, or a router of "
+                        "several workers (default from config [transport] endpoint: "
+                        f"{Config().transport.endpoint}); tls/... needs --zenoh-config")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
@@ -613,6 +683,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="run >= 2 robots on the built-in synthetic scene")
     demo.add_argument("--out", help="run folder to create (default runs/demo-<time>)")
+    demo.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
+                      "earlier run folder")
     demo.add_argument("--scene", help="where the synthetic scene is generated or reused "
                       "(default: a cache folder)")
     demo.add_argument("--robots", type=int, help="number of robots (default from config: 2)")
@@ -639,6 +711,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--camera", help="camera.json overriding the detected camera")
     _add_topic_options(run)
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
+    run.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
+                     "earlier run folder (an interrupted one, say)")
     run.set_defaults(func=cmd_run)
 
     cloud = sub.add_parser("cloud", help="serve robots over Zenoh: track, map, merge")
@@ -700,13 +774,13 @@ def build_parser() -> argparse.ArgumentParser:
     robot.set_defaults(func=cmd_robot)
 
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")
-    merge.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    _add_cloud_connect(merge)
     _add_deadline_option(merge)
     merge.set_defaults(func=cmd_merge)
 
     status = sub.add_parser("status", help="ask a running cloud which robots it serves and "
                             "how their maps are joined")
-    status.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT")
+    _add_cloud_connect(status)
     _add_deadline_option(status)
     status.set_defaults(func=cmd_status)
 

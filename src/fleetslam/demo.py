@@ -130,6 +130,7 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         if client is not None:
             client.close()
         stop_all([*cloud_workers, cloud])
+    summary.pop("outputs", None)  # where the cloud wrote them: ``out``
     score_fleet(summary, out, sequences)  # ground truth, read only now
     add_robot_reports(summary, out)
     add_deployment(summary, time.perf_counter() - started, endpoint,

@@ -192,15 +192,42 @@ def transport_table(summary: dict[str, Any]) -> Table | None:
              "retries", "cloud ms/frame", "cloud latency ms", "round trip ms", "p95"], trows)
 
 
-def summary_table(summary: dict[str, Any]) -> str:
-    text = format_table(*robot_table(summary))
+def _has_value(value: Any) -> bool:
+    return value is not None and value != "" and value == value  # NaN != NaN
+
+
+def without_empty_columns(table: Table) -> tuple[Table, list[str]]:
+    """``table`` without the columns no row has a value in, and their headers (a cloud's
+    merge has no ground truth, and the robots' own counts stay on the robots)."""
+    headers, rows = table
+    keep = [i for i in range(len(headers)) if any(_has_value(r[i]) for r in rows)] \
+        if rows else list(range(len(headers)))
+    dropped = [h for i, h in enumerate(headers) if i not in keep]
+    return ([headers[i] for i in keep], [[r[i] for i in keep] for r in rows]), dropped
+
+
+def summary_table(summary: dict[str, Any], drop_empty: bool = False) -> str:
+    """The run's tables as text; ``drop_empty``: without the columns empty in every row,
+    named on a line of their own."""
+    dropped: list[str] = []
+
+    def text_of(table: Table) -> str:
+        if drop_empty:
+            table, empty = without_empty_columns(table)
+            dropped.extend(h for h in empty if h not in dropped)
+        return format_table(*table)
+
+    text = text_of(robot_table(summary))
     transport = transport_table(summary)
     if transport:
-        text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + format_table(*transport)
+        text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + text_of(transport)
     merge = summary.get("merge")
     if merge:
-        text += "\n\n" + merge_table(merge)
+        head, lines = merge_notes(merge)
+        text += "\n\n" + "\n".join([head, text_of(merge_robot_table(merge)), *lines])
     text += f"\n\nwall time {summary['wall_time_s']:.1f} s"
+    if dropped:
+        text += f"\nnot shown (no value for any robot): {', '.join(dropped)}"
     return text
 
 
@@ -289,9 +316,3 @@ def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
     if joint:
         lines.append(f"joint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm")
     return head, lines
-
-
-def merge_table(merge: dict[str, Any]) -> str:
-    """Which robots joined, when, with how many constraints; the errors if scored."""
-    head, lines = merge_notes(merge)
-    return "\n".join([head, format_table(*merge_robot_table(merge)), *lines])

@@ -8,6 +8,9 @@ work as separate processes is cloud/ and edge/.
 
 from __future__ import annotations
 
+import signal
+import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -114,13 +117,40 @@ class RobotTracker:
         session, sequence = self.session, self.sequence
         kfs = session.map.keyframes
         return RobotRun(
-            self.name, self.source, sequence, sequence.timestamps.copy(),
+            # Only the frames tracked (fewer than the sequence's after a Ctrl-C).
+            self.name, self.source, sequence, sequence.timestamps[:len(self.poses)].copy(),
             session.final_poses(self.refs, self.T_refs, self.poses), np.array(self.tracked),
             [kf.frame_index for kf in kfs], session.map.keyframe_poses(),
             self.pipeline.timer.mean_ms(), session.lost_total, session.loss_events,
             session.repeated_frames, session.resets, self.seconds,
             references=np.array(self.refs, np.int64), T_reference_camera=list(self.T_refs),
             online_poses=np.array(self.poses), loop_closing=self.pipeline.back_end.summary())
+
+
+class Interrupt:
+    """Ctrl-C during a run as a request to stop: the first sets ``requested`` and the run
+    ends at its next check (between frames, between maps), keeping what it has; the second
+    aborts (KeyboardInterrupt). Only the main thread receives signals: elsewhere (a run in a
+    thread) it is never requested."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def __enter__(self) -> Interrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *_: Any) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+    def _handle(self, _signum: int, _frame: Any) -> None:
+        self.requested = True
+        print("\ninterrupted: stopping at the next frame (or map) and writing what was tracked "
+              "(Ctrl-C again to abort)", file=sys.stderr, flush=True)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def track_robot(name: str, source: str, sequence: RecordedSource, config: Config,
@@ -136,9 +166,12 @@ def track_robot(name: str, source: str, sequence: RecordedSource, config: Config
 
 
 def track_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config,
-                show_progress: bool = True) -> tuple[list[RobotRun], MapMerger]:
+                show_progress: bool = True, interrupt: Interrupt | None = None
+                ) -> tuple[list[RobotRun], MapMerger]:
     """Every robot tracked, taking turns frame by frame; each new keyframe goes to the
-    merger at once, so robots join as soon as they share a place (as in the cloud)."""
+    merger at once, so robots join as soon as they share a place (as in the cloud). An
+    ``interrupt`` requested ends it early: each robot's run holds the frames it tracked."""
+    interrupt = interrupt or Interrupt()
     trackers = [RobotTracker(name, source, seq, config) for name, source, seq in robots]
     merger = MapMerger(config)
     for t in trackers:
@@ -148,13 +181,15 @@ def track_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config,
     done = 0
     for i in range(max(len(t.sequence) for t in trackers)):
         for t in trackers:
-            if i >= len(t.sequence):
+            if i >= len(t.sequence) or interrupt.requested:
                 continue
             summary = t.step(i)
             if summary is not None:
                 merger.add_keyframe(summary, t.session.map.keyframe_poses())
             done += 1
         progress.update(done, f"groups {len(merger.components())}")
+        if interrupt.requested:
+            break
     return [t.finish() for t in trackers], merger
 
 
@@ -174,36 +209,55 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
 def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,
               show_progress: bool = True) -> dict[str, Any]:
     """Track, map and merge; write everything under ``out_dir``; score against ground truth
-    where a sequence has it (after the run); return the summary."""
+    where a sequence has it (after the run); return the summary. A Ctrl-C ends it early:
+    the trajectories tracked so far are written, and ``summary["interrupted"]`` says so."""
     start = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=False)
-    runs, merger = track_fleet(robots, config, show_progress)
-    for run in runs:
-        build_robot_map(run, config, show_progress)
-        write_robot_files(out_dir / run.name, run.name, run.source, run.timestamps, run.poses,
-                          run.timestamps[run.keyframe_indices], run.keyframe_poses,
-                          run.map_points, run.map_colors)
-    global_map = build_global_map(merger, [r.track() for r in runs], config, out_dir) \
-        if len(runs) > 1 else None
-    summary = make_summary(runs, merger, global_map, config, time.perf_counter() - start)
+    skipped: list[str] = []  # what a Ctrl-C left unbuilt
+    with Interrupt() as interrupt:
+        runs, merger = track_fleet(robots, config, show_progress, interrupt)
+        for run in runs:
+            # After a Ctrl-C the trajectories are written, the maps are not built.
+            if interrupt.requested:
+                skipped.append(f"{run.name}'s dense map")
+            else:
+                build_robot_map(run, config, show_progress)
+            write_robot_files(out_dir / run.name, run.name, run.source, run.timestamps,
+                              run.poses, run.timestamps[run.keyframe_indices],
+                              run.keyframe_poses, run.map_points, run.map_colors)
+        merged = len(runs) > 1 and not interrupt.requested
+        if len(runs) > 1 and not merged:
+            skipped.append("the merge and the global map")
+        global_map = build_global_map(merger, [r.track() for r in runs], config, out_dir) \
+            if merged else None
+        interrupted = interrupt.requested
+    summary = make_summary(runs, merger if merged else None, global_map, config,
+                           time.perf_counter() - start)
+    if interrupted:
+        summary["interrupted"] = {
+            "by": "Ctrl-C", "frames_tracked": {r.name: len(r.timestamps) for r in runs},
+            "frames_given": {r.name: len(r.sequence) for r in runs}, "not_built": skipped}
     # Evaluation: ground truth is read only now, after every output is written.
     score_fleet(summary, out_dir, {r.name: r.sequence for r in runs})
-    if config.outputs.mcap:
+    if config.outputs.mcap and not interrupted:
         summary["mcap"] = write_run_mcap(out_dir, summary).name
     write_summary(out_dir, summary)
     return summary
 
 
-def make_summary(runs: list[RobotRun], merger: MapMerger, global_map: GlobalMap | None,
-                 config: Config, wall_s: float) -> dict[str, Any]:
+def make_summary(runs: list[RobotRun], merger: MapMerger | None,
+                 global_map: GlobalMap | None, config: Config, wall_s: float
+                 ) -> dict[str, Any]:
+    """The run's summary; ``merger`` None: no merge (one robot, or an interrupted run)."""
     robots = [{
         "name": r.name, "source": r.source, "camera": r.sequence.camera_source,
         "frames": len(r.timestamps), "keyframes": len(r.keyframe_indices),
         "lost_frames": r.lost_frames, "loss_events": r.loss_events,
         "repeated_frames": r.repeated_frames, "map_resets": r.resets,
-        "ate": None, "tracking_fps": len(r.timestamps) / r.wall_s,
+        "ate": None,
+        "tracking_fps": len(r.timestamps) / r.wall_s if r.wall_s > 0 else None,
         "stage_ms": r.stage_ms, "map_points": len(r.map_points),
         "loop_closing": r.loop_closing, **robot_files(r.name),
     } for r in runs]
-    return fleet_summary(robots, merge_summary(merger, global_map) if len(runs) > 1 else None,
+    return fleet_summary(robots, merge_summary(merger, global_map) if merger is not None else None,
                          config, wall_s)

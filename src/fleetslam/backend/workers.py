@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -34,6 +35,14 @@ from fleetslam.backend.local_ba import LocalBAProblem, solve_local_ba
 log = logging.getLogger(__name__)
 # How often a worker checks that the cloud process that started it is still there.
 PARENT_POLL_S = 1.0
+
+
+def _start_worker(parent_pid: int) -> None:
+    """In each worker: Ctrl-C is the cloud's to handle (a terminal sends SIGINT to the whole
+    process group; a worker interrupted on its queue printed a traceback while the cloud
+    shut its pool down cleanly), and exit with the cloud."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _exit_with_parent(parent_pid)
 
 
 def _exit_with_parent(parent_pid: int) -> None:
@@ -70,7 +79,7 @@ class LocalMappingPool:
         # spawn, not fork: the cloud process has Zenoh's and the sessions' threads.
         self._executor = ProcessPoolExecutor(
             max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_exit_with_parent, initargs=(os.getpid(),))
+            initializer=_start_worker, initargs=(os.getpid(),))
         self._executor.submit(_warm_up)
 
     def submit(self, problem: LocalBAProblem) -> Future:

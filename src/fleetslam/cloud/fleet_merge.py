@@ -103,7 +103,10 @@ class FleetMerge:
         write_summary(self.out_dir, summary)
         self.merger.show()
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
-        self._write_report()
+        page = self._write_report()
+        # For the client (not in summary.json): where the files are on this machine.
+        summary["outputs"] = {"folder": str(self.out_dir.resolve()),
+                              "report": str(page.relative_to(self.out_dir)) if page else None}
         return summary
 
     def _finished_elsewhere(self) -> list[FinishedMap]:
@@ -136,12 +139,16 @@ class FleetMerge:
                  time.perf_counter() - start)
         return path.name
 
-    def _write_report(self) -> None:
+    def _write_report(self) -> Path | None:
         """The run report of what was just merged, in the cloud's folder, without ground
-        truth (the cloud never reads it). A plot that fails costs the report, not the merge."""
+        truth (the cloud never reads it); its page, None if it failed (a plot that fails
+        costs the report, not the merge)."""
         from fleetslam.reporting import write_report
 
         try:
-            log.info("report: %s", write_report(self.out_dir, ground_truth=False))
+            page = write_report(self.out_dir, ground_truth=False)
         except Exception:
             log.exception("the run report could not be written")
+            return None
+        log.info("report: %s", page)
+        return page

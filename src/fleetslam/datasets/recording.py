@@ -22,6 +22,17 @@ def spec_path(spec: str) -> Path:
     return parse_robot_spec(spec)[0]
 
 
+def absolute_spec(spec: str) -> str:
+    """``spec`` with its recording's path made absolute (frame ranges kept), so a run's
+    summary names a source that ``fleetslam report`` finds from any directory; a spec that
+    names no existing path (a live camera) is returned as given."""
+    path, ranges = parse_robot_spec(spec)
+    if path.is_absolute() or not path.exists():
+        return spec
+    # Ranges hold no ':', so the last ':' of a spec with ranges starts them.
+    return str(path.resolve()) + (":" + spec.rpartition(":")[2] if ranges else "")
+
+
 def spec_is_bag(spec: str) -> bool:
     return is_bag(spec_path(spec))
 

@@ -37,7 +37,8 @@ def _write(run: RunData, out: Path, show_progress: bool) -> Path:
     out.mkdir(exist_ok=True)
     figures: list[Figure] = []
     skipped: dict[str, str] = {}
-    progress = Progress(f"report {out}", len(PLOTS), "plots", enabled=show_progress)
+    # Counted as checked: a plot the run has no data for is left out, not written.
+    progress = Progress(f"report {out}", len(PLOTS), "plots checked", enabled=show_progress)
     for i, (name, plot) in enumerate(PLOTS):
         path = out / name
         path.unlink(missing_ok=True)  # a plot this run no longer has must not linger
@@ -46,7 +47,8 @@ def _write(run: RunData, out: Path, show_progress: bool) -> Path:
             skipped[name] = result
         elif name != "overview.png":  # the overview repeats the others (README picture)
             figures.append(result)
-        progress.update(i + 1, name)
+        progress.update(i + 1, f"{i + 1 - len(skipped)} PNG written, {len(skipped)} left out "
+                               f"(no data)")
     page = out / "report.html"
     page.write_text(render_page(run, figures, skipped))
     return page

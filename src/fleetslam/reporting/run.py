@@ -97,6 +97,8 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
     except ValueError as exc:
         raise ValueError(f"{path}: not JSON: {exc}") from exc
     run = RunData(folder, summary, [], ground_truth_read=ground_truth)
+    if summary.get("interrupted"):
+        run.notes.append(_interrupted_note(summary["interrupted"]))
     sequences: dict[str, RecordedSource] = {}
     merge = summary.get("merge") or {}
     global_files = merge.get("global_trajectories") or {}
@@ -136,6 +138,14 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
     return run
 
 
+def _interrupted_note(interrupted: dict[str, Any]) -> str:
+    """What a run stopped by Ctrl-C kept and left out."""
+    tracked = ", ".join(f"{r} {n}" for r, n in interrupted.get("frames_tracked", {}).items())
+    not_built = ", ".join(interrupted.get("not_built") or []) or "nothing"
+    return (f"interrupted ({interrupted.get('by', 'Ctrl-C')}): only the frames tracked before "
+            f"it are shown (frames: {tracked}); not built: {not_built}")
+
+
 def _read_trajectory(path: Path, notes: list[str]) -> Trajectory | None:
     try:
         times, poses = read_tum_trajectory(path)
@@ -154,7 +164,10 @@ def _open_source(source: str | None) -> tuple[RecordedSource | None, str]:
     try:
         sequence = open_source(source)
     except (ValueError, OSError) as exc:
-        return None, f"source not readable here ({exc})"
+        # Runs made before sources were stored absolute name them as given.
+        hint = ("; the path is relative to the directory the run was started in: run "
+                "`fleetslam report` from there" if not spec_path(source).is_absolute() else "")
+        return None, f"source not readable here ({exc}{hint})"
     if not sequence.has_ground_truth:
         return None, f"{sequence.folder} has no groundtruth.txt"
     return sequence, ""

@@ -1,0 +1,55 @@
+"""What `fleetslam status` and `fleetslam merge` print against a running cloud: a table and
+plain lines (no Python dict), the merge's tables without columns empty for every robot, and
+where the cloud wrote the outputs and the report."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import fleetslam
+from conftest import TUM_RPY, require
+
+from fleetslam.cli import main
+from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
+
+# Two robots on overlapping parts of one recording: they join.
+SOURCES = (":0-19", ":10-29")
+
+
+def test_status_and_merge_say_what_and_where(tmp_path, capsys, monkeypatch):
+    # Robots given relative sources (the cloud's summary must name them absolutely); the
+    # processes still import this fleetslam from the other directory.
+    package = str(Path(fleetslam.__file__).resolve().parents[1])
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([package, os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.chdir(require(TUM_RPY).parent)
+    scene = [f"{TUM_RPY.name}{frames}" for frames in SOURCES]
+    endpoint, store = free_endpoint(), tmp_path / "store"
+    cloud = start_cloud(endpoint, store, tmp_path / "cloud.log")
+    try:
+        robots = [start_robot(endpoint, f"r{i}", folder, 3, tmp_path / f"r{i}.log")
+                  for i, folder in enumerate(scene)]
+        for i, robot in enumerate(robots):
+            assert robot.wait(120) == 0, (tmp_path / f"r{i}.log").read_text()
+        capsys.readouterr()
+        assert main(["--quiet", "status", "--connect", endpoint]) == 0
+        status = capsys.readouterr().out
+        assert "{" not in status and "[" not in status, status
+        assert "map groups (merger of worker " in status and "): r0+r1; " in status
+        assert main(["--quiet", "merge", "--connect", endpoint]) == 0
+        merged = capsys.readouterr().out
+    finally:
+        stop(cloud)
+    folder = store.resolve()
+    assert f"outputs in {folder}/ on the cloud's machine (summary.json" in merged
+    assert f"report: {folder}/report/report.html (made without ground truth" in merged
+    assert (folder / "report" / "report.html").is_file()
+    sources = [r["source"] for r in json.loads((folder / "summary.json").read_text())["robots"]]
+    assert sources == [f"{TUM_RPY}{frames}" for frames in SOURCES]
+    # No ground truth in the cloud and no robot reports: those columns are left out, named.
+    assert "ATE RMSE cm" not in merged.split("not shown")[0]
+    assert "not shown (no value for any robot): ATE RMSE cm" in merged
+    for line in merged.splitlines():
+        cells = line.split()
+        assert not cells or cells.count("-") < len(cells) // 2, line
