@@ -28,6 +28,10 @@ def test_status_and_merge_say_what_and_where(tmp_path, capsys, monkeypatch):
     endpoint, store = free_endpoint(), tmp_path / "store"
     cloud = start_cloud(endpoint, store, tmp_path / "cloud.log")
     try:
+        # Before any robot finished: one line saying there is nothing to merge yet.
+        assert main(["--quiet", "merge", "--connect", endpoint]) != 0
+        early = capsys.readouterr().err
+        assert "no robot has finished yet" in early and "Traceback" not in early, early
         robots = [start_robot(endpoint, f"r{i}", folder, 3, tmp_path / f"r{i}.log")
                   for i, folder in enumerate(scene)]
         for i, robot in enumerate(robots):
@@ -41,6 +45,7 @@ def test_status_and_merge_say_what_and_where(tmp_path, capsys, monkeypatch):
         merged = capsys.readouterr().out
     finally:
         stop(cloud)
+    assert "Traceback" not in (tmp_path / "cloud.log").read_text()
     folder = store.resolve()
     assert f"outputs in {folder}/ on the cloud's machine (summary.json" in merged
     assert f"report: {folder}/report/report.html (made without ground truth" in merged

@@ -30,6 +30,10 @@ MERGE_RUNNING = b""
 MERGES_REMEMBERED = 16
 
 
+class NothingToMerge(RuntimeError):
+    """A merge asked for before any robot finished: told to the client, not a failure."""
+
+
 class MergeRequests:
     def __init__(self, merge: Callable[[], dict[str, Any]], publish: Publish) -> None:
         """``merge``: merges and returns the summary (raises if it cannot)."""
@@ -58,6 +62,9 @@ class MergeRequests:
     def _merge_and_reply(self, rid: str | None) -> None:
         try:
             reply = protocol.encode(protocol.merged(rid, self._merge()))
+        except NothingToMerge as exc:
+            log.warning("merge asked for: %s", exc)
+            reply = protocol.encode(protocol.error(protocol.Code.FAILED, str(exc), id=rid))
         except Exception as exc:
             log.exception("merge failed")
             reply = protocol.encode(protocol.error(protocol.Code.FAILED, f"merge failed: {exc}",
@@ -88,6 +95,10 @@ class FleetMerge:
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not taken the other workers' robots within "
                                f"{timeout_s:.0f} s; ask again")
+        if not finished:
+            raise NothingToMerge("no robot has finished yet, so there is nothing to merge (a "
+                                 "robot finishes at the end of its stream; `fleetslam status` "
+                                 "lists the robots this cloud serves)")
         global_map = None
         if len(finished) > 1:
             global_map = self.merger.locked(lambda m: build_global_map(
