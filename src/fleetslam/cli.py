@@ -172,13 +172,6 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
                         "(keyframe uploads are resent until acknowledged)")
 
 
-def _add_deadline_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--deadline", type=float, metavar="SECONDS",
-                        help="wait this long for the cloud's first answer, then say what to "
-                        "check (default from config: transport.ask_deadline_s, "
-                        f"{Config().transport.ask_deadline_s:g} s)")
-
-
 def _add_topic_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rgb-topic", help="a bag's colour image topic (default: its only "
                         "colour Image or CompressedImage topic)")
@@ -661,12 +654,17 @@ def _add_global_options(parser: argparse.ArgumentParser, default: Any) -> None:
                         "access control, routers (also [transport] zenoh_config)")
 
 
-def _add_cloud_connect(parser: argparse.ArgumentParser) -> None:
-    """--connect of a command that asks a running cloud (merge, status)."""
+def _add_cloud_request_options(parser: argparse.ArgumentParser) -> None:
+    """--connect and --deadline of a command that asks a running cloud (merge, status)."""
+    defaults = Config().transport
     parser.add_argument("--connect", default=None, metavar="ENDPOINT",
                         help="the cloud's Zenoh endpoint, as its --listen, or a router of "
                         "several workers (default from config [transport] endpoint: "
-                        f"{Config().transport.endpoint}); tls/... needs --zenoh-config")
+                        f"{defaults.endpoint}); tls/... needs --zenoh-config")
+    parser.add_argument("--deadline", type=float, metavar="SECONDS",
+                        help="wait this long for the cloud's first answer, then say what to "
+                        "check (default from config: transport.ask_deadline_s, "
+                        f"{defaults.ask_deadline_s:g} s)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -774,14 +772,12 @@ def build_parser() -> argparse.ArgumentParser:
     robot.set_defaults(func=cmd_robot)
 
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")
-    _add_cloud_connect(merge)
-    _add_deadline_option(merge)
+    _add_cloud_request_options(merge)
     merge.set_defaults(func=cmd_merge)
 
     status = sub.add_parser("status", help="ask a running cloud which robots it serves and "
                             "how their maps are joined")
-    _add_cloud_connect(status)
-    _add_deadline_option(status)
+    _add_cloud_request_options(status)
     status.set_defaults(func=cmd_status)
 
     planner = sub.add_parser("plan", help="choose the offloading point: the paper's energy "
