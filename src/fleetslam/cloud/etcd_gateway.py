@@ -1,0 +1,199 @@
+"""A small synchronous etcd v3 client over etcd's JSON gateway (``/v3/kv/...``), standard
+library only.
+
+Why not a gRPC client: the workers are threaded, not asyncio (``aetcd`` would need an event
+loop thread and brings grpcio + protobuf to the cloud install), ``etcd3`` is unmaintained,
+and on loopback the gateway's grant transaction is as fast (bench/etcd_clients.py). Only
+what ownership and the fenced store need is here: put, range, delete, txn, lease grant,
+keepalive and revoke. Keys and values are bytes on our side, base64 on the wire; int64s come
+back as JSON strings.
+
+One HTTP connection per thread (kept alive); every request has a timeout, and a failure is
+an :class:`EtcdError` saying what was asked of which endpoint.
+"""
+
+from __future__ import annotations
+
+import base64
+import http.client
+import json
+import threading
+import urllib.parse
+from dataclasses import dataclass
+from typing import Any
+
+
+class EtcdError(RuntimeError):
+    pass
+
+
+def b64(data: bytes | str) -> str:
+    return base64.b64encode(data.encode() if isinstance(data, str) else data).decode()
+
+
+def unb64(text: str) -> bytes:
+    return base64.b64decode(text)
+
+
+def prefix_end(prefix: bytes) -> bytes:
+    """The range end that selects every key starting with ``prefix`` (etcd's convention)."""
+    end = bytearray(prefix)
+    while end:
+        if end[-1] < 0xFF:
+            end[-1] += 1
+            return bytes(end)
+        end.pop()
+    return b"\0"
+
+
+@dataclass(frozen=True)
+class KeyValue:
+    key: bytes
+    value: bytes
+    create_revision: int
+    mod_revision: int
+    version: int
+    lease: int
+
+    @staticmethod
+    def from_json(kv: dict[str, Any]) -> "KeyValue":
+        return KeyValue(unb64(kv["key"]), unb64(kv.get("value", "")),
+                        int(kv.get("create_revision", 0)), int(kv.get("mod_revision", 0)),
+                        int(kv.get("version", 0)), int(kv.get("lease", 0)))
+
+
+# -- the pieces of a transaction (etcd's Compare and RequestOp, as the gateway spells them) --
+
+def compare(key: bytes | str, target: str, value: int | bytes, result: str = "EQUAL"
+            ) -> dict[str, Any]:
+    """``target``: VERSION, CREATE, MOD, VALUE or LEASE; ``result``: EQUAL, GREATER, LESS,
+    NOT_EQUAL. A missing key has version, create and mod revision and lease 0."""
+    field = {"VERSION": "version", "CREATE": "create_revision", "MOD": "mod_revision",
+             "LEASE": "lease", "VALUE": "value"}[target]
+    operand = b64(value) if target == "VALUE" else str(value)
+    return {"key": b64(key), "target": target, "result": result, field: operand}
+
+
+def put_op(key: bytes | str, value: bytes | str, lease: int = 0) -> dict[str, Any]:
+    request: dict[str, Any] = {"key": b64(key), "value": b64(value)}
+    if lease:
+        request["lease"] = str(lease)
+    return {"request_put": request}
+
+
+def range_op(key: bytes | str) -> dict[str, Any]:
+    return {"request_range": {"key": b64(key)}}
+
+
+def delete_op(key: bytes | str) -> dict[str, Any]:
+    return {"request_delete_range": {"key": b64(key)}}
+
+
+@dataclass(frozen=True)
+class TxnResult:
+    succeeded: bool
+    revision: int
+    responses: list[dict[str, Any]]
+
+    def ranged(self, index: int) -> list[KeyValue]:
+        """The key-values of the ``index``-th operation (a range)."""
+        body = self.responses[index].get("response_range", {})
+        return [KeyValue.from_json(kv) for kv in body.get("kvs", [])]
+
+
+class EtcdClient:
+    def __init__(self, endpoint: str, timeout_s: float = 2.0) -> None:
+        """``endpoint``: http://HOST:PORT of an etcd member."""
+        url = urllib.parse.urlsplit(endpoint)
+        if url.scheme != "http" or not url.hostname or not url.port:
+            raise ValueError(f"etcd endpoint {endpoint!r}: expected http://HOST:PORT")
+        self.endpoint = endpoint
+        self._host, self._port = url.hostname, url.port
+        self.timeout_s = timeout_s
+        self._local = threading.local()
+
+    def _connection(self) -> http.client.HTTPConnection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = http.client.HTTPConnection(self._host, self._port, timeout=self.timeout_s)
+            self._local.conn = conn
+        return conn
+
+    def close(self) -> None:
+        """This thread's connection (others close with their threads)."""
+        conn = getattr(self._local, "conn", None)
+        if conn is not None:
+            conn.close()
+            self._local.conn = None
+
+    def call(self, path: str, body: dict[str, Any], timeout_s: float | None = None
+             ) -> dict[str, Any]:
+        """POST ``body`` to ``/v3/<path>``; the reply's JSON. EtcdError if etcd cannot be
+        reached within the timeout or answers with an error."""
+        conn = self._connection()
+        conn.timeout = timeout_s or self.timeout_s
+        if conn.sock is not None:
+            conn.sock.settimeout(conn.timeout)
+        data = json.dumps(body).encode()
+        try:
+            conn.request("POST", f"/v3/{path}", data, {"Content-Type": "application/json"})
+            reply = conn.getresponse()
+            text = reply.read()
+        except (OSError, http.client.HTTPException) as exc:
+            conn.close()  # a half-read reply must not be taken for the next one's
+            raise EtcdError(f"etcd {self.endpoint} /v3/{path}: {exc or type(exc).__name__}"
+                            ) from None
+        try:
+            answer = json.loads(text)
+        except ValueError:
+            raise EtcdError(f"etcd {self.endpoint} /v3/{path}: HTTP {reply.status}, not JSON: "
+                            f"{text[:200]!r}") from None
+        if reply.status != 200 or "error" in answer:
+            message = answer.get("message") or answer.get("error") or answer
+            raise EtcdError(f"etcd {self.endpoint} /v3/{path}: HTTP {reply.status}: {message}")
+        return answer
+
+    # -- keys ---------------------------------------------------------------------------------
+
+    def put(self, key: bytes | str, value: bytes | str, lease: int = 0) -> int:
+        """The revision of the write."""
+        body = put_op(key, value, lease)["request_put"]
+        return int(self.call("kv/put", body)["header"]["revision"])
+
+    def get(self, key: bytes | str) -> KeyValue | None:
+        kvs = self.call("kv/range", {"key": b64(key)}).get("kvs", [])
+        return KeyValue.from_json(kvs[0]) if kvs else None
+
+    def get_prefix(self, prefix: bytes | str) -> list[KeyValue]:
+        raw = prefix.encode() if isinstance(prefix, str) else prefix
+        answer = self.call("kv/range", {"key": b64(raw), "range_end": b64(prefix_end(raw))})
+        return [KeyValue.from_json(kv) for kv in answer.get("kvs", [])]
+
+    def delete(self, key: bytes | str) -> int:
+        """How many keys were deleted."""
+        return int(self.call("kv/deleterange", {"key": b64(key)}).get("deleted", 0))
+
+    def txn(self, compares: list[dict[str, Any]], success: list[dict[str, Any]],
+            failure: list[dict[str, Any]] | None = None) -> TxnResult:
+        answer = self.call("kv/txn", {"compare": compares, "success": success,
+                                      "failure": failure or []})
+        return TxnResult(bool(answer.get("succeeded", False)),
+                         int(answer["header"]["revision"]), answer.get("responses", []))
+
+    # -- leases -------------------------------------------------------------------------------
+
+    def lease_grant(self, ttl_s: int) -> tuple[int, int]:
+        """A new lease: (its id, the TTL etcd granted, which may be longer than asked)."""
+        answer = self.call("lease/grant", {"TTL": ttl_s})
+        return int(answer["ID"]), int(answer["TTL"])
+
+    def lease_keepalive(self, lease: int, timeout_s: float | None = None) -> int:
+        """Renew the lease; the TTL it has again. EtcdError if it has expired (TTL <= 0)."""
+        result = self.call("lease/keepalive", {"ID": str(lease)}, timeout_s).get("result", {})
+        ttl = int(result.get("TTL", 0))
+        if ttl <= 0:
+            raise EtcdError(f"etcd {self.endpoint}: lease {lease:x} has expired")
+        return ttl
+
+    def lease_revoke(self, lease: int) -> None:
+        self.call("lease/revoke", {"ID": str(lease)})
