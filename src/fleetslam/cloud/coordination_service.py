@@ -115,8 +115,10 @@ class EtcdService:
                 raise CoordinationServiceError(
                     f"etcd exited with status {code} while starting (data {self.data_dir}); "
                     f"the end of {self.log_path}:\n  {self._log_tail()}")
+            # Never past the deadline: etcd may have bound its port and not serve yet.
+            timeout = min(1.0, max(0.001, deadline - time.monotonic()))
             try:
-                with urllib.request.urlopen(f"{self.endpoint}/health", timeout=1.0) as reply:
+                with urllib.request.urlopen(f"{self.endpoint}/health", timeout=timeout) as reply:
                     if json.loads(reply.read()).get("health") == "true":
                         return
                     last = "it answered, not healthy yet"
