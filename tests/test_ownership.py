@@ -226,3 +226,40 @@ def test_a_finished_robot_stays_finished(etcd, keys, tmp_path):
     finally:
         a.close()
         b.close()
+
+
+def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
+    """etcd itself stalls (SIGSTOP) longer than the lease: no renewal reaches it, so every
+    worker stops serving within the lease; resumed, the robot is granted again with a larger
+    epoch and the old epoch's writes are refused."""
+    import os
+    import signal
+
+    with EtcdService(tmp_path / "etcd") as etcd:
+        fenced: list = []
+        a = _worker(etcd.endpoint, "wa", keys, fenced)
+        store_a = FencedStore(tmp_path / "store", a)
+        try:
+            epoch_a, lease_a = a.grant("r1"), a.lease
+            store_a.save_checkpoint("r1", _state(3))
+            paused = time.monotonic()
+            os.kill(etcd.pid, signal.SIGSTOP)
+            try:
+                wait_for(lambda: fenced, LEASE_S * 2, "A to fence itself", interval=0.02)
+                assert fenced[0][0] - paused <= LEASE_S * 0.75 + 0.1
+                assert a.epoch("r1") is None
+                time.sleep(0.5)  # past the lease at etcd too
+            finally:
+                os.kill(etcd.pid, signal.SIGCONT)
+            b = _worker(etcd.endpoint, "wb", keys)
+            try:
+                epoch_b = wait_for(lambda: b.grant("r1"), LEASE_S * 3, "B's grant of r1",
+                                   interval=0.05)
+                assert epoch_b > epoch_a
+                with pytest.raises(NotOwner):
+                    store_a.write_as("r1", b"stale", epoch_a, lease_a)
+                assert store_a.current("r1").epoch == epoch_a  # A's last good one, unmoved
+            finally:
+                b.close()
+        finally:
+            a.close()
