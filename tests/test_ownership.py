@@ -22,7 +22,7 @@ from fleetslam.cloud.coordination_service import (CoordinationServiceError, Etcd
                                                   etcd_binary)
 from fleetslam.cloud.etcd_gateway import EtcdClient
 from fleetslam.cloud.fenced_store import FencedStore
-from fleetslam.cloud.ownership import Keys, NotOwner, Ownership
+from fleetslam.cloud.ownership import MERGER, Keys, NotOwner, Ownership
 from fleetslam.cloud.session_state import SessionState
 from fleetslam.config import Config, PlacementConfig
 from fleetslam.transport.protocol import Hello
@@ -99,7 +99,7 @@ def test_two_workers_competing_get_one_owner_and_increasing_epochs(etcd, keys):
     a, b = _worker(etcd.endpoint, "wa", keys), _worker(etcd.endpoint, "wb", keys)
     try:
         epochs: list[int] = []
-        for robot in ("r1", "r2", "r3", "r4"):
+        for robot in ("r1", "r2", "r3", MERGER):  # the merger is granted as a robot is
             results: dict[str, int | None] = {}
             go = threading.Barrier(2)
 
@@ -127,6 +127,11 @@ def test_two_workers_competing_get_one_owner_and_increasing_epochs(etcd, keys):
             epochs.append(again)
             assert winner.release(robot, owner.epoch) is False  # not its grant any more
         assert epochs == sorted(epochs) and len(set(epochs)) == len(epochs)
+        # A grant whose answer was lost (asked again): the worker's own key is adopted, not
+        # left owned and unserved while its lease lives.
+        epoch = a.grant("r9")
+        a._mine.pop("r9")
+        assert a.grant("r9") == epoch and b.grant("r9") is None
     finally:
         a.close()
         b.close()

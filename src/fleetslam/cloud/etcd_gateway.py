@@ -27,6 +27,10 @@ class EtcdError(RuntimeError):
     pass
 
 
+class LeaseExpired(EtcdError):
+    """etcd says the lease is gone: whatever was attached to it has been deleted."""
+
+
 def b64(data: bytes | str) -> str:
     return base64.b64encode(data.encode() if isinstance(data, str) else data).decode()
 
@@ -130,19 +134,27 @@ class EtcdClient:
              ) -> dict[str, Any]:
         """POST ``body`` to ``/v3/<path>``; the reply's JSON. EtcdError if etcd cannot be
         reached within the timeout or answers with an error."""
-        conn = self._connection()
-        conn.timeout = timeout_s or self.timeout_s
-        if conn.sock is not None:
-            conn.sock.settimeout(conn.timeout)
         data = json.dumps(body).encode()
-        try:
-            conn.request("POST", f"/v3/{path}", data, {"Content-Type": "application/json"})
-            reply = conn.getresponse()
-            text = reply.read()
-        except (OSError, http.client.HTTPException) as exc:
-            conn.close()  # a half-read reply must not be taken for the next one's
-            raise EtcdError(f"etcd {self.endpoint} /v3/{path}: {exc or type(exc).__name__}"
-                            ) from None
+        for attempt in (1, 2):
+            conn = self._connection()
+            reused = conn.sock is not None
+            conn.timeout = timeout_s or self.timeout_s
+            if conn.sock is not None:
+                conn.sock.settimeout(conn.timeout)
+            try:
+                conn.request("POST", f"/v3/{path}", data, {"Content-Type": "application/json"})
+                reply = conn.getresponse()
+                text = reply.read()
+                break
+            except (OSError, http.client.HTTPException) as exc:
+                conn.close()  # a half-read reply must not be taken for the next one's
+                # A kept-alive connection the server had closed: once more on a new one
+                # (our transactions are safe to repeat: ownership.grant adopts its own key).
+                if attempt == 1 and reused and isinstance(exc, (
+                        http.client.RemoteDisconnected, BrokenPipeError, ConnectionResetError)):
+                    continue
+                raise EtcdError(f"etcd {self.endpoint} /v3/{path}: "
+                                f"{exc or type(exc).__name__}") from None
         try:
             answer = json.loads(text)
         except ValueError:
@@ -192,7 +204,7 @@ class EtcdClient:
         result = self.call("lease/keepalive", {"ID": str(lease)}, timeout_s).get("result", {})
         ttl = int(result.get("TTL", 0))
         if ttl <= 0:
-            raise EtcdError(f"etcd {self.endpoint}: lease {lease:x} has expired")
+            raise LeaseExpired(f"etcd {self.endpoint}: lease {lease:x} has expired")
         return ttl
 
     def lease_revoke(self, lease: int) -> None:

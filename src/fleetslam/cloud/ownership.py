@@ -16,6 +16,7 @@ A robot's owner is the key ``<prefix>owner/<robot>`` = worker id, attached to th
 - Fenced, the worker asks for a new lease (its robots are gone: they are granted again, to
   whoever asks, with new epochs).
 
+The merger is granted the same way, under the name ``MERGER``: one at a time, fenced alike.
 Every grant, release and fence is logged with its epoch (the partition tests check them).
 """
 
@@ -27,14 +28,19 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from fleetslam.cloud.etcd_gateway import EtcdClient, EtcdError, compare, delete_op, put_op, \
-    range_op
+from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, LeaseExpired, compare,
+                                          delete_op, put_op, range_op)
 
 log = logging.getLogger("fleetslam.ownership")
 
 # Told which (robot, epoch) this worker may no longer serve; called on the lease thread, must
 # return quickly (stop serving; the store refuses the rest anyway).
 Fenced = Callable[[list[tuple[str, int]]], None]
+
+
+# The merger is granted like a robot (one at a time, with an epoch); robot ids are
+# [A-Za-z0-9_-] (validation/names.py), so this name is never a robot's.
+MERGER = "@merger"
 
 
 @dataclass(frozen=True)
@@ -177,13 +183,18 @@ class Ownership:
             if "lease not found" in str(exc):  # expired at etcd: fenced meanwhile
                 return None
             raise
-        if not result.succeeded:
+        if result.succeeded:
+            epoch = result.ranged(1)[0].create_revision
+        else:
             held = result.ranged(0)
-            if held:
-                log.debug("robot %s: owned by %s (epoch %d)", robot, held[0].value.decode(),
-                          held[0].create_revision)
-            return None
-        epoch = result.ranged(1)[0].create_revision
+            if not held or held[0].lease != lease:
+                if held:
+                    log.debug("robot %s: owned by %s (epoch %d)", robot,
+                              held[0].value.decode(), held[0].create_revision)
+                return None
+            # Our own key under our lease (a grant whose answer was lost, then repeated):
+            # ours, or the robot would stay owned and unserved as long as the lease lives.
+            epoch = held[0].create_revision
         with self._lock:
             if self._lease != lease:  # fenced while asking: it is not ours to serve
                 return None
@@ -231,6 +242,10 @@ class Ownership:
                 # Never waits past the fence: an answer after it is no use.
                 ttl = self.client.lease_keepalive(lease, timeout_s=max(0.05, min(
                     every, valid_until - sent)))
+            except LeaseExpired as exc:  # expired at etcd already (a pause of this process)
+                log.warning("worker %s: %s", self.worker_id, exc)
+                self._fence(lease, valid_until)
+                continue
             except EtcdError as exc:
                 log.warning("worker %s: lease %x not renewed (%s); fenced in %.2f s without "
                             "a renewal", self.worker_id, lease, exc,
