@@ -268,3 +268,27 @@ def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
                 b.close()
         finally:
             a.close()
+
+
+def test_a_watch_hears_puts_deletes_and_expiries(etcd, keys):
+    from fleetslam.cloud.etcd_gateway import Watch
+
+    client = EtcdClient(etcd.endpoint)
+    heard: list = []
+    watch = Watch(etcd.endpoint, keys.prefix, heard.extend).start()
+    try:
+        assert watch.created.wait(5.0), "the watch stream never opened"
+        client.put(keys.owner("r1"), "wa")
+        client.delete(keys.owner("r1"))
+        lease, _ = client.lease_grant(LEASE_S)
+        client.put(keys.owner("r2"), "wb", lease)
+        started = time.monotonic()
+        wait_for(lambda: len(heard) >= 4, LEASE_S * 3, "the lease's expiry to be heard",
+                 interval=0.02)
+        assert [(e.deleted, e.kv.key.decode()) for e in heard] == [
+            (False, keys.owner("r1")), (True, keys.owner("r1")),
+            (False, keys.owner("r2")), (True, keys.owner("r2"))]
+        assert LEASE_S - 0.2 < time.monotonic() - started < LEASE_S + 1.2
+    finally:
+        watch.close()
+    assert not watch._thread.is_alive()
