@@ -11,6 +11,7 @@ peer ports free ports on loopback (nothing outside the machine reaches it), stop
 
 from __future__ import annotations
 
+import atexit
 import json
 import logging
 import shutil
@@ -89,6 +90,8 @@ class EtcdService:
         with open(self.log_path, "ab") as out:
             self._process = subprocess.Popen(args, stdout=out, stderr=out,
                                              stdin=subprocess.DEVNULL)
+        # Stopped when this interpreter exits, whatever the caller forgot (not on SIGKILL).
+        atexit.register(self.stop)
         try:
             self._wait_healthy()
         except BaseException:
@@ -133,7 +136,10 @@ class EtcdService:
     def stop(self, deadline_s: float = 5.0) -> None:
         """SIGTERM, then SIGKILL after ``deadline_s``."""
         process, self._process = self._process, None
-        if process is None or process.poll() is not None:
+        if process is None:
+            return
+        atexit.unregister(self.stop)
+        if process.poll() is not None:
             return
         process.send_signal(signal.SIGTERM)
         process.send_signal(signal.SIGCONT)  # a paused etcd (a test's SIGSTOP) must hear it
