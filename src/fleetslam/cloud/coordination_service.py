@@ -86,7 +86,10 @@ class EtcdService:
                 "--listen-client-urls", self.endpoint, "--advertise-client-urls", self.endpoint,
                 "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
                 "--initial-cluster", f"fleetslam={peer}",
-                "--initial-cluster-state", "new", "--logger", "zap", "--log-outputs", "stderr"]
+                "--initial-cluster-state", "new", "--logger", "zap", "--log-outputs", "stderr",
+                # Every checkpoint moves a pointer: keep the last 10k revisions, not all of
+                # a long run's (a watch resuming from before them starts at the oldest kept).
+                "--auto-compaction-mode", "revision", "--auto-compaction-retention", "10000"]
         with open(self.log_path, "ab") as out:
             self._process = subprocess.Popen(args, stdout=out, stderr=out,
                                              stdin=subprocess.DEVNULL)
