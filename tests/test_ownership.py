@@ -167,7 +167,9 @@ def test_a_cut_off_worker_is_fenced_before_the_other_is_granted(etcd, keys, tmp_
         assert fenced, "A never fenced itself"
         fence_at, robots = fenced[0]
         assert robots == [("r1", epoch_a)]
-        assert fence_at < granted, "two owners overlapped"
+        # A's every check (epoch, holding) says no from its deadline on, whatever its
+        # lease thread does; the callback comes at that deadline.
+        assert a._valid_until < granted and fence_at < granted, "two owners overlapped"
         assert epoch_b > epoch_a
         assert a.epoch("r1") is None and not a.live()
         print(f"\nfailover (lease_s {LEASE_S}): cut -> B granted {granted - cut:.2f} s; "
