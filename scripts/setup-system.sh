@@ -1,8 +1,8 @@
 #!/bin/sh
 # System packages fleetslam needs: a Python 3.11+ with venv and pip, and libusb for the
 # pyrealsense2 wheel (the realsense extra; its wheel links libusb-1.0.so.0 but does not ship
-# it). Everything else comes from PyPI wheels (OpenCV headless, small_gicp, ...), which need
-# no system libraries.
+# it), and etcd for many cloud workers (Debian's etcd-server). Everything else comes from PyPI
+# wheels (OpenCV headless, small_gicp, ...), which need no system libraries.
 set -e
 PYTHON="${1:-python3}"
 need_install=0
@@ -31,5 +31,19 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
             echo "could not install libusb-1.0: a RealSense cannot be opened here" >&2
     else
         echo "pyrealsense2 (the realsense extra) needs libusb-1.0; install it for RealSense" >&2
+    fi
+fi
+# etcd, the coordination service many cloud workers agree on robot ownership through
+# (cloud/coordination_service.py; `fleetslam demo --workers N` starts one per run). The
+# package's own service is not needed (each run starts its own etcd on loopback).
+if ! command -v etcd >/dev/null 2>&1; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""
+        [ "$(id -u)" = 0 ] || SUDO="sudo"
+        # Not fatal: a single cloud process never needs it (the many-worker tests skip).
+        { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq etcd-server; } ||
+            echo "could not install etcd-server: many cloud workers cannot run here" >&2
+    else
+        echo "many cloud workers need etcd (3.4+) on PATH; install it for them" >&2
     fi
 fi

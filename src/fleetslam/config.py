@@ -553,7 +553,8 @@ class TransportConfig:
 
 @dataclass
 class PlacementConfig:
-    """Cloud workers sharing robots (cloud/placement.py): how bids for a robot are settled."""
+    """Cloud workers sharing robots (cloud/placement.py): how bids for a robot are settled,
+    and the leases of their coordination service (cloud/ownership.py)."""
 
     # A worker's name in the liveliness tokens; empty: w-<host>-<pid>.
     worker_id: Annotated[str, WORKER_ID] = ""
@@ -566,6 +567,13 @@ class PlacementConfig:
     max_rounds: Annotated[int, at_least(1)] = 5
     # A worker's load is its robots heard from within this many seconds.
     active_s: Annotated[float, above(0.0)] = 10.0
+    # Many workers with a coordination service (cloud/ownership.py): each worker's etcd
+    # lease, in whole seconds (etcd's unit; 2 is its least). A worker that cannot renew it
+    # stops serving 3/4 of it after its last renewal; its robots go to another worker once
+    # etcd expires it, so a lost machine's robots fail over in about this.
+    lease_s: Annotated[int, between(2, 600)] = 2
+    # The etcd a run starts (cloud/coordination_service.py) must be healthy within this.
+    coordination_start_s: Annotated[float, above(0.0)] = 10.0
 
 
 @dataclass

@@ -110,6 +110,11 @@ class CloudStore:
                                                 f"Move it away to start robot {robot_id}'s "
                                                 f"session afresh")
             return None
+        return self.load_checkpoint_file(path)
+
+    def load_checkpoint_file(self, path: Path) -> SessionState:
+        """The checkpoint in ``path`` (CheckpointError as load_checkpoint, also if there is
+        none)."""
         limit = self.max_checkpoint_bytes
         try:
             with open(path, "rb") as f:

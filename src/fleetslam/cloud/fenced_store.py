@@ -1,0 +1,218 @@
+"""The store for many workers: checkpoints a stale owner writes can never become current.
+
+Beside ``store.py`` (whose single-process layout and behaviour it keeps for keyframes):
+
+    <robot>/session.<epoch>.<seq>.ckpt   immutable checkpoint blobs, named by the writer's
+                                         epoch (ownership.py) and its own sequence number
+
+and in etcd, ``<prefix>current/<robot>`` = the checkpoint readers load
+(``{"epoch", "seq", "file", "ended", "worker"}``), ``<prefix>ended/<robot>`` once the robot
+has finished. A blob is written first; the pointer moves to it only in a transaction
+conditioned on the robot's owner key still having the writer's epoch and lease, and, for an
+unfinished checkpoint, on the robot not having ended. So a worker fenced meanwhile (or one
+cut off and healed) has its write refused, its blob is removed, and the pointer stays; and a
+finished robot stays finished whoever writes later.
+
+A write refused is a :class:`NotOwner` (an OSError: a checkpoint writer counts it as a write
+that did not happen, and acknowledges nothing it covered).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+from collections import deque
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from fleetslam.cloud import session_state
+from fleetslam.cloud.etcd_gateway import EtcdError, compare, delete_op, put_op, range_op
+from fleetslam.cloud.ownership import NotOwner, Ownership
+from fleetslam.cloud.session_state import SessionState
+from fleetslam.cloud.store import CloudStore, write_durably
+from fleetslam.config import TransportConfig
+from fleetslam.wire.data_tree import Capture, CheckpointError
+
+log = logging.getLogger("fleetslam.cloud")
+
+# Blobs kept per robot by their writer: the current one and the one before (a reader that
+# read the pointer just before it moved still finds its file).
+KEPT_BLOBS = 2
+# Re-reads of the pointer when the blob it named is gone (it moved on meanwhile).
+READ_ATTEMPTS = 3
+
+
+@dataclass(frozen=True)
+class Pointer:
+    epoch: int
+    seq: int
+    file: str
+    ended: bool
+    worker: str
+
+    @staticmethod
+    def parse(value: bytes, where: str) -> "Pointer":
+        try:
+            d = json.loads(value)
+            pointer = Pointer(int(d["epoch"]), int(d["seq"]), str(d["file"]), bool(d["ended"]),
+                              str(d["worker"]))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise CheckpointError(where, f"the checkpoint pointer is not one ({exc!r})") from None
+        if "/" in pointer.file or not pointer.file.endswith(".ckpt"):
+            raise CheckpointError(where, f"the pointer names {pointer.file!r}, not a checkpoint "
+                                         f"file of the robot's folder")
+        return pointer
+
+
+class CoordinationUnavailable(ConnectionError):
+    """etcd could not be asked: the checkpoint is not current (an OSError, like NotOwner)."""
+
+
+class FencedStore(CloudStore):
+    def __init__(self, root: Path, ownership: Ownership,
+                 max_checkpoint_bytes: int = TransportConfig.max_checkpoint_bytes) -> None:
+        super().__init__(root, max_checkpoint_bytes)
+        self.ownership = ownership
+        self.client = ownership.client
+        self.keys = ownership.keys
+        self._lock = threading.Lock()
+        self._seq: dict[tuple[str, int], int] = {}
+        self._written: dict[str, deque[Path]] = {}
+        self.refused = 0
+
+    # -- writing --------------------------------------------------------------------------------
+
+    def save_checkpoint(self, robot_id: str, state: SessionState) -> None:
+        self.write_checkpoint(robot_id, session_state.capture(state), ended=state.ended)
+
+    def write_checkpoint(self, robot_id: str, blob: bytes | Capture, ended: bool = False
+                         ) -> None:
+        """Write the blob and make it the robot's current checkpoint; NotOwner if this worker
+        does not own the robot with a live lease (or the robot has ended and this one has
+        not), CoordinationUnavailable if etcd cannot be asked. Either way nothing changed."""
+        held = self.ownership.holding(robot_id)
+        if held is None:
+            self.refused += 1
+            raise NotOwner(f"robot {robot_id}: worker {self.ownership.worker_id} does not own "
+                           f"it (never granted, released or fenced): checkpoint refused")
+        self.write_as(robot_id, blob, *held, ended=ended)
+
+    def write_as(self, robot_id: str, blob: bytes | Capture, epoch: int, lease: int,
+                 ended: bool = False) -> None:
+        """The write of a worker that was granted ``robot_id`` with ``epoch`` under ``lease``,
+        whatever it believes now (a worker paused past its own fence still gets here): etcd
+        decides, in one transaction. NotOwner / CoordinationUnavailable as write_checkpoint."""
+        with self._lock:
+            seq = self._seq.get((robot_id, epoch), 0) + 1
+            self._seq[(robot_id, epoch)] = seq
+        name = f"session.{epoch}.{seq:06d}.ckpt"
+        path = self.robot_dir(robot_id) / name
+        self.write_checkpoint_file(robot_id, path, blob)
+        owner = self.keys.owner(robot_id)
+        pointer = Pointer(epoch, seq, name, ended, self.ownership.worker_id)
+        compares = [compare(owner, "CREATE", epoch), compare(owner, "LEASE", lease)]
+        success = [put_op(self.keys.current(robot_id), json.dumps(asdict(pointer)))]
+        if ended:
+            success.append(put_op(self.keys.ended(robot_id), str(epoch)))
+        else:  # a finished robot is never turned back into an unfinished one
+            compares.append(compare(self.keys.ended(robot_id), "CREATE", 0))
+        try:
+            result = self.client.txn(compares, success,
+                                     [range_op(owner), range_op(self.keys.ended(robot_id))])
+        except EtcdError as exc:
+            self._drop(path)
+            raise CoordinationUnavailable(f"robot {robot_id}: checkpoint epoch {epoch} not made"
+                                          f" current ({exc})") from None
+        if not result.succeeded:
+            self._drop(path)
+            self.refused += 1
+            owners, ends = result.ranged(0), result.ranged(1)
+            if owners and owners[0].create_revision == epoch and owners[0].lease == lease:
+                why = "the robot has ended and this checkpoint has not"
+            elif owners:
+                why = (f"its owner is now {owners[0].value.decode()} epoch "
+                       f"{owners[0].create_revision}")
+            else:
+                why = "it has no owner now"
+            log.warning("robot %s: checkpoint of worker %s epoch %d refused: %s%s", robot_id,
+                        self.ownership.worker_id, epoch, why, " (ended)" if ends else "")
+            raise NotOwner(f"robot {robot_id}: checkpoint of epoch {epoch} refused: {why}")
+        self._keep_few(robot_id, path)
+
+    def write_checkpoint_file(self, robot_id: str, path: Path, blob: bytes | Capture) -> None:
+        """The blob, durably, to ``path`` (the size check of CloudStore.write_checkpoint)."""
+        data = blob.to_bytes() if isinstance(blob, Capture) else blob
+        if len(data) > self.max_checkpoint_bytes:
+            log.error("robot %s: a checkpoint of %d bytes, over transport.max_checkpoint_bytes"
+                      " (%d): a restart will not restore it", robot_id, len(data),
+                      self.max_checkpoint_bytes)
+        write_durably(path, data)
+
+    def _drop(self, path: Path) -> None:
+        # Never current, and never to be: a stale blob left behind would only mislead.
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+
+    def _keep_few(self, robot_id: str, path: Path) -> None:
+        with self._lock:
+            written = self._written.setdefault(robot_id, deque())
+            written.append(path)
+            old = [written.popleft() for _ in range(max(0, len(written) - KEPT_BLOBS))]
+        for p in old:
+            self._drop(p)
+
+    # -- reading --------------------------------------------------------------------------------
+
+    def current(self, robot_id: str) -> Pointer | None:
+        """The robot's current checkpoint as etcd has it (None: none yet)."""
+        kv = self.client.get(self.keys.current(robot_id))
+        if kv is None:
+            return None
+        return Pointer.parse(kv.value, f"etcd {self.keys.current(robot_id)}")
+
+    def has_checkpoint(self, robot_id: str) -> bool:
+        return self.current(robot_id) is not None
+
+    def load_checkpoint(self, robot_id: str) -> SessionState | None:
+        """The checkpoint the pointer names (None: none); CheckpointError as CloudStore's."""
+        for _ in range(READ_ATTEMPTS):
+            pointer = self.current(robot_id)
+            if pointer is None:
+                return None
+            path = self.robot_dir(robot_id) / pointer.file
+            if path.exists():
+                return self.load_checkpoint_file(path)
+            # Gone: the pointer has moved on since it was read (its writer keeps two), or the
+            # blob was lost; the pointer, read again, says which.
+        raise CheckpointError(str(path), "the current checkpoint's file is missing")
+
+    def robots_with_checkpoints(self) -> list[str]:
+        prefix = self.keys.currents()
+        return sorted(kv.key.decode()[len(prefix):] for kv in self.client.get_prefix(prefix))
+
+    def set_aside(self, robot_id: str) -> list[Path]:
+        """As CloudStore's (the current blob and the keyframes moved aside, kept), and the
+        pointer deleted: only by the robot's owner (NotOwner otherwise, nothing moved)."""
+        held = self.ownership.holding(robot_id)
+        pointer = self.current(robot_id)
+        if held is None:
+            raise NotOwner(f"robot {robot_id}: worker {self.ownership.worker_id} does not own "
+                           f"it: its checkpoint is not set aside")
+        epoch, lease = held
+        owner = self.keys.owner(robot_id)
+        result = self.client.txn([compare(owner, "CREATE", epoch), compare(owner, "LEASE", lease)],
+                                 [delete_op(self.keys.current(robot_id))])
+        if not result.succeeded:
+            raise NotOwner(f"robot {robot_id}: epoch {epoch} is no longer its owner's: its "
+                           f"checkpoint is not set aside")
+        folder = self.robot_dir(robot_id)
+        moved = super().set_aside(robot_id)  # the keyframes (no session.ckpt in this layout)
+        if pointer is not None and (folder / pointer.file).exists():
+            aside = folder / f"{pointer.file}.damaged"
+            os.rename(folder / pointer.file, aside)
+            moved.append(aside)
+        return moved

@@ -1,0 +1,279 @@
+"""Which worker owns which robot, decided by etcd (not by who is reachable), with fencing tokens.
+
+Each worker holds one etcd lease of ``placement.lease_s`` seconds, renewed every third of it.
+A robot's owner is the key ``<prefix>owner/<robot>`` = worker id, attached to that lease:
+
+- ``grant(robot)`` is one transaction: it succeeds only if the robot has no owner key (a dead
+  worker's key went with its lease), and writes the key. Its **epoch** (the fencing token) is
+  the key's create revision: etcd's revisions only grow, so every later grant of the robot,
+  by any worker, has a larger epoch. Writes that matter (``fenced_store.py``) are
+  transactions conditioned on the owner key still having this epoch and this lease.
+- A worker that has not renewed its lease for ``lease_s - margin`` (``margin`` = a quarter
+  of the lease) fences itself: it drops every robot and calls ``on_fenced`` so the worker
+  stops serving them, before etcd can expire the lease and grant them to anyone else. etcd
+  expires a lease no earlier than ``lease_s`` after the renewal it last received, which was
+  sent after the time this worker counts from; so the fence comes at least ``margin`` first.
+- Fenced, the worker asks for a new lease (its robots are gone: they are granted again, to
+  whoever asks, with new epochs).
+
+The merger is granted the same way, under the name ``MERGER``: one at a time, fenced alike.
+Every grant, release and fence is logged with its epoch (the partition tests check them).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, LeaseExpired, compare,
+                                          delete_op, put_op, range_op)
+
+log = logging.getLogger("fleetslam.ownership")
+
+# Told which (robot, epoch) this worker may no longer serve; called on the lease thread, must
+# return quickly (stop serving; the store refuses the rest anyway).
+Fenced = Callable[[list[tuple[str, int]]], None]
+
+
+# The merger is granted like a robot (one at a time, with an epoch); robot ids are
+# [A-Za-z0-9_-] (validation/names.py), so this name is never a robot's.
+MERGER = "@merger"
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Where ownership and the checkpoint pointers live in etcd (one prefix per fleet)."""
+
+    prefix: str = "fleetslam/"
+
+    def owner(self, robot: str) -> str:
+        return f"{self.prefix}owner/{robot}"
+
+    def current(self, robot: str) -> str:
+        return f"{self.prefix}current/{robot}"
+
+    def ended(self, robot: str) -> str:
+        return f"{self.prefix}ended/{robot}"
+
+    def currents(self) -> str:
+        return f"{self.prefix}current/"
+
+
+@dataclass(frozen=True)
+class Owner:
+    worker: str
+    epoch: int
+    lease: int
+
+
+class NotOwner(PermissionError):
+    """A write by a worker that does not (or no longer) own the robot with that epoch: an
+    OSError, so a checkpoint writer treats it as a write that did not happen."""
+
+
+class Ownership:
+    def __init__(self, client: EtcdClient, worker_id: str, lease_s: int,
+                 on_fenced: Fenced | None = None, keys: Keys = Keys()) -> None:
+        self.client = client
+        self.worker_id = worker_id
+        self.lease_s = lease_s
+        self.keys = keys
+        self._on_fenced = on_fenced or (lambda robots: None)
+        self._lock = threading.Lock()
+        self._lease = 0  # 0: none (not started, or fenced and not yet renewed)
+        self._valid_until = 0.0  # monotonic: this worker serves its robots until then
+        self._mine: dict[str, int] = {}  # robot -> epoch
+        self._closed = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.fences = 0
+
+    @property
+    def ttl_s(self) -> float:
+        return float(self.lease_s)
+
+    @property
+    def margin_s(self) -> float:
+        return self.ttl_s / 4
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> "Ownership":
+        self._new_lease()
+        self._thread = threading.Thread(target=self._keep, name=f"lease-{self.worker_id}",
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Give every robot back at once (revoking the lease deletes their owner keys)."""
+        self._closed.set()
+        if self._thread is not None:
+            self._thread.join(self.ttl_s)
+        with self._lock:
+            lease, self._lease, self._mine = self._lease, 0, {}
+        if lease:
+            try:
+                self.client.lease_revoke(lease)
+            except EtcdError as exc:  # it expires by itself
+                log.warning("worker %s: lease %x not revoked (%s); it expires within %g s",
+                            self.worker_id, lease, exc, self.ttl_s)
+
+    def _new_lease(self) -> None:
+        sent = time.monotonic()
+        lease, ttl = self.client.lease_grant(self.lease_s)
+        with self._lock:
+            self._lease = lease
+            self._valid_until = sent + ttl - self.margin_s
+        log.info("worker %s: lease %x of %d s", self.worker_id, lease, ttl)
+
+    # -- what the worker asks -------------------------------------------------------------------
+
+    @property
+    def lease(self) -> int:
+        return self._lease
+
+    def live(self) -> bool:
+        """Whether this worker's lease is surely alive at etcd now (not fenced)."""
+        with self._lock:
+            return self._lease != 0 and time.monotonic() < self._valid_until
+
+    def epoch(self, robot: str) -> int | None:
+        """This worker's epoch for ``robot`` if it owns it now (None: it does not)."""
+        with self._lock:
+            if self._lease == 0 or time.monotonic() >= self._valid_until:
+                return None
+            return self._mine.get(robot)
+
+    def holding(self, robot: str) -> tuple[int, int] | None:
+        """(epoch, lease) under which this worker owns ``robot`` now; None if it does not
+        (the fenced store conditions its writes on both)."""
+        with self._lock:
+            if self._lease == 0 or time.monotonic() >= self._valid_until:
+                return None
+            epoch = self._mine.get(robot)
+            return None if epoch is None else (epoch, self._lease)
+
+    def robots(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._mine)
+
+    def owner(self, robot: str) -> Owner | None:
+        """The robot's owner as etcd has it now (None: nobody)."""
+        kv = self.client.get(self.keys.owner(robot))
+        return None if kv is None else Owner(kv.value.decode(), kv.create_revision, kv.lease)
+
+    def grant(self, robot: str) -> int | None:
+        """Own ``robot``: its new epoch, or None if another worker (or this one, under an
+        older lease) owns it or this worker is fenced. EtcdError if etcd cannot be asked."""
+        with self._lock:
+            lease = self._lease
+            if not lease or time.monotonic() >= self._valid_until:
+                return None
+            if robot in self._mine:
+                return self._mine[robot]
+        key = self.keys.owner(robot)
+        try:
+            result = self.client.txn([compare(key, "CREATE", 0)],
+                                     [put_op(key, self.worker_id, lease), range_op(key)],
+                                     [range_op(key)])
+        except EtcdError as exc:
+            if "lease not found" in str(exc):  # expired at etcd: fenced meanwhile
+                return None
+            raise
+        if result.succeeded:
+            epoch = result.ranged(1)[0].create_revision
+        else:
+            held = result.ranged(0)
+            if not held or held[0].lease != lease:
+                if held:
+                    log.debug("robot %s: owned by %s (epoch %d)", robot,
+                              held[0].value.decode(), held[0].create_revision)
+                return None
+            # Our own key under our lease (a grant whose answer was lost, then repeated):
+            # ours, or the robot would stay owned and unserved as long as the lease lives.
+            epoch = held[0].create_revision
+        with self._lock:
+            if self._lease != lease:  # fenced while asking: it is not ours to serve
+                return None
+            self._mine[robot] = epoch
+        log.info("grant robot %s to worker %s epoch %d (lease %x)", robot, self.worker_id,
+                 epoch, lease)
+        return epoch
+
+    def release(self, robot: str, epoch: int) -> bool:
+        """Give ``robot`` up (only the grant of ``epoch`` under this worker's lease is
+        deleted); whether it was still ours at etcd."""
+        with self._lock:
+            if self._mine.get(robot) == epoch:
+                del self._mine[robot]
+            lease = self._lease
+        key = self.keys.owner(robot)
+        result = self.client.txn([compare(key, "CREATE", epoch), compare(key, "LEASE", lease)],
+                                 [delete_op(key)])
+        log.info("release robot %s by worker %s epoch %d%s", robot, self.worker_id, epoch,
+                 "" if result.succeeded else " (it was no longer ours)")
+        return result.succeeded
+
+    # -- the lease ----------------------------------------------------------------------------
+
+    def _keep(self) -> None:
+        """Renew the lease every third of it; fence at ``valid_until`` without a renewal;
+        fenced, ask for a new lease."""
+        every = self.ttl_s / 3
+        while not self._closed.is_set():
+            with self._lock:
+                lease, valid_until = self._lease, self._valid_until
+            now = time.monotonic()
+            if lease and now >= valid_until:
+                self._fence(lease, valid_until)
+                continue
+            if not lease:
+                try:
+                    self._new_lease()
+                except EtcdError as exc:
+                    log.debug("worker %s: no new lease yet (%s)", self.worker_id, exc)
+                    self._closed.wait(every)
+                continue
+            sent = time.monotonic()
+            try:
+                # Never waits past the fence: an answer after it is no use.
+                ttl = self.client.lease_keepalive(lease, timeout_s=max(0.05, min(
+                    every, valid_until - sent)))
+            except LeaseExpired as exc:  # expired at etcd already (a pause of this process)
+                log.warning("worker %s: %s", self.worker_id, exc)
+                self._fence(lease, valid_until)
+                continue
+            except EtcdError as exc:
+                log.warning("worker %s: lease %x not renewed (%s); fenced in %.2f s without "
+                            "a renewal", self.worker_id, lease, exc,
+                            max(0.0, valid_until - time.monotonic()))
+                self._closed.wait(min(every / 4, max(0.0, valid_until - time.monotonic())))
+                continue
+            with self._lock:
+                if self._lease == lease:
+                    self._valid_until = max(self._valid_until, sent + ttl - self.margin_s)
+            self._closed.wait(max(0.0, min(sent + every, valid_until) - time.monotonic()))
+
+    def _fence(self, lease: int, valid_until: float) -> None:
+        with self._lock:
+            if self._lease != lease:
+                return
+            robots = sorted(self._mine.items())
+            self._lease, self._mine = 0, {}
+            self.fences += 1
+        log.warning("worker %s fenced: lease %x not renewed by its deadline (%.2f s late); "
+                    "stops serving %s", self.worker_id, lease, time.monotonic() - valid_until,
+                    ", ".join(f"{r} (epoch {e})" for r, e in robots) or "no robot")
+        for robot, epoch in robots:
+            log.info("fence robot %s on worker %s epoch %d", robot, self.worker_id, epoch)
+        try:
+            self._on_fenced(robots)
+        except Exception:
+            log.exception("worker %s: the fence callback failed", self.worker_id)
+        try:  # the old lease, if etcd still has it: its robots are free sooner
+            self.client.lease_revoke(lease)
+        except EtcdError:
+            pass

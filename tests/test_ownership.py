@@ -1,0 +1,296 @@
+"""Robot ownership through a real etcd (cloud/ownership.py) and the store that refuses stale
+writers (cloud/fenced_store.py): two workers (two clients in this process, one of them
+talking to etcd through a link the test cuts) compete for robots; grants carry increasing
+epochs and never overlap in time; a cut-off worker fences itself before etcd can grant its
+robot to the other; its later writes never become current; a finished robot stays finished.
+Also the service helper (cloud/coordination_service.py) that starts etcd for a run."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from conftest import wait_for
+from link_cutter import LinkCutter
+
+from fleetslam.backend.back_end import new_state
+from fleetslam.camera import Camera
+from fleetslam.cloud.coordination_service import (CoordinationServiceError, EtcdService,
+                                                  etcd_binary)
+from fleetslam.cloud.etcd_gateway import EtcdClient
+from fleetslam.cloud.fenced_store import FencedStore
+from fleetslam.cloud.ownership import MERGER, Keys, NotOwner, Ownership
+from fleetslam.cloud.session_state import SessionState
+from fleetslam.config import Config, PlacementConfig
+from fleetslam.transport.protocol import Hello
+
+pytestmark = pytest.mark.skipif(
+    etcd_binary() is None,
+    reason="the etcd program is not installed (scripts/setup-system.sh installs etcd-server)")
+
+CAMERA = Camera(525.0, 525.0, 319.5, 239.5)
+LEASE_S = PlacementConfig.lease_s
+
+
+@pytest.fixture(scope="module")
+def etcd(tmp_path_factory):
+    with EtcdService(tmp_path_factory.mktemp("run") / "etcd") as service:
+        yield service
+
+
+@pytest.fixture
+def keys(request) -> Keys:
+    # Each test its own prefix: one etcd for the module, no test sees another's robots.
+    return Keys(f"test/{request.node.name}/")
+
+
+def _worker(endpoint: str, name: str, keys: Keys, fenced: list | None = None) -> Ownership:
+    on_fenced = None if fenced is None else (lambda robots: fenced.append(
+        (time.monotonic(), robots)))
+    return Ownership(EtcdClient(endpoint), name, LEASE_S, on_fenced, keys).start()
+
+
+def _state(last_index: int, ended: bool = False) -> SessionState:
+    state = SessionState("r1", Hello(3, CAMERA, "test"), new_state(Config(), CAMERA))
+    state.last_index, state.ended = last_index, ended
+    return state
+
+
+# -- the service ----------------------------------------------------------------------------
+
+def test_the_service_starts_healthy_on_loopback_and_stops(tmp_path):
+    service = EtcdService(tmp_path / "run" / "etcd").start()
+    try:
+        assert service.endpoint.startswith("http://127.0.0.1:")
+        pid = service.pid
+        client = EtcdClient(service.endpoint)
+        client.put("k", "v")
+        assert client.get("k").value == b"v"
+        assert (tmp_path / "run" / "etcd").is_dir()  # its data under the run's folder
+    finally:
+        service.stop()
+    assert service.pid is None
+    with pytest.raises(ProcessLookupError):
+        import os
+        os.kill(pid, 0)
+
+
+def test_the_service_says_why_it_did_not_start(tmp_path):
+    with pytest.raises(CoordinationServiceError, match="not on PATH: install it with scripts"):
+        EtcdService(tmp_path / "etcd", binary="etcd-not-installed-here").start()
+    # No etcd is healthy within a millisecond: the deadline names itself and the log.
+    started = time.monotonic()
+    with pytest.raises(CoordinationServiceError, match=r"not healthy within 0.001 s.*etcd.log"):
+        EtcdService(tmp_path / "slow" / "etcd", start_deadline_s=0.001).start()
+    assert time.monotonic() - started < 5.0
+    # A data folder that is a file: etcd exits, and the error quotes its log.
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "etcd").write_text("not a folder")
+    with pytest.raises(CoordinationServiceError, match="etcd exited with status"):
+        EtcdService(tmp_path / "bad" / "etcd").start()
+
+
+# -- ownership ----------------------------------------------------------------------------
+
+def test_two_workers_competing_get_one_owner_and_increasing_epochs(etcd, keys):
+    a, b = _worker(etcd.endpoint, "wa", keys), _worker(etcd.endpoint, "wb", keys)
+    try:
+        epochs: list[int] = []
+        for robot in ("r1", "r2", "r3", MERGER):  # the merger is granted as a robot is
+            results: dict[str, int | None] = {}
+            go = threading.Barrier(2)
+
+            def bid(worker: Ownership) -> None:
+                go.wait(5.0)
+                results[worker.worker_id] = worker.grant(robot)
+
+            threads = [threading.Thread(target=bid, args=(w,)) for w in (a, b)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(5.0)
+            won = [w for w, e in results.items() if e is not None]
+            assert len(won) == 1, results
+            owner = a.owner(robot)
+            assert owner is not None and owner.worker == won[0]
+            assert owner.epoch == results[won[0]]
+            epochs.append(owner.epoch)
+            # Handed over: the other worker's grant has a larger epoch.
+            winner, loser = (a, b) if won[0] == "wa" else (b, a)
+            assert loser.grant(robot) is None
+            assert winner.release(robot, owner.epoch)
+            again = loser.grant(robot)
+            assert again is not None and again > owner.epoch
+            epochs.append(again)
+            assert winner.release(robot, owner.epoch) is False  # not its grant any more
+        assert epochs == sorted(epochs) and len(set(epochs)) == len(epochs)
+        # A grant whose answer was lost (asked again): the worker's own key is adopted, not
+        # left owned and unserved while its lease lives.
+        epoch = a.grant("r9")
+        a._mine.pop("r9")
+        assert a.grant("r9") == epoch and b.grant("r9") is None
+    finally:
+        a.close()
+        b.close()
+
+
+def test_a_cut_off_worker_is_fenced_before_the_other_is_granted(etcd, keys, tmp_path, caplog):
+    """Worker A loses etcd (its link cut; etcd and worker B go on). A stops serving before its
+    lease can expire; B is granted the robot after the expiry with a larger epoch; healed, A's
+    checkpoint writes are refused and the pointer stays B's. Prints the failover time."""
+    caplog.set_level(logging.INFO, logger="fleetslam")
+    link = LinkCutter(etcd.client_port)
+    fenced: list = []
+    a = _worker(link.endpoint, "wa", keys, fenced)
+    b = _worker(etcd.endpoint, "wb", keys)
+    store_a = FencedStore(tmp_path / "store", a)
+    store_b = FencedStore(tmp_path / "store", b)
+    try:
+        epoch_a, old_lease = a.grant("r1"), a.lease
+        assert epoch_a is not None
+        store_a.save_checkpoint("r1", _state(10))
+        assert store_a.current("r1").epoch == epoch_a
+        time.sleep(LEASE_S / 3 * 1.5)  # past a renewal or two: the cut falls mid-lease
+
+        cut = time.monotonic()
+        link.cut()
+        epoch_b = None
+        while epoch_b is None:  # B asks as a worker would when the owner is gone
+            assert time.monotonic() - cut < LEASE_S * 3, "B was never granted r1"
+            epoch_b = b.grant("r1")
+            granted = time.monotonic()
+            if epoch_b is None:
+                time.sleep(0.02)
+        assert fenced, "A never fenced itself"
+        fence_at, robots = fenced[0]
+        assert robots == [("r1", epoch_a)]
+        # A's every check (epoch, holding) says no from its deadline on, whatever its
+        # lease thread does; the callback comes at that deadline.
+        assert a._valid_until < granted and fence_at < granted, "two owners overlapped"
+        assert epoch_b > epoch_a
+        assert a.epoch("r1") is None and not a.live()
+        print(f"\nfailover (lease_s {LEASE_S}): cut -> B granted {granted - cut:.2f} s; "
+              f"A fenced at +{fence_at - cut:.2f} s, {granted - fence_at:.2f} s before B's "
+              f"grant")
+        assert granted - cut <= 3.0
+
+        store_b.save_checkpoint("r1", _state(20))
+        pointer = store_b.current("r1")
+        assert (pointer.epoch, pointer.worker) == (epoch_b, "wb")
+
+        link.heal()
+        # A knows it is fenced: refused before anything is written.
+        with pytest.raises(NotOwner, match="does not own"):
+            store_a.save_checkpoint("r1", _state(30))
+        # A paused past its own fence (it still believes its grant): etcd refuses it.
+        with pytest.raises(NotOwner, match=f"its owner is now wb epoch {epoch_b}"):
+            store_a.write_as("r1", b"a stale checkpoint", epoch_a, old_lease)
+        assert store_a.current("r1") == pointer
+        assert store_b.load_checkpoint("r1").last_index == 20
+        blobs = sorted(p.name for p in (tmp_path / "store" / "r1").glob("*.ckpt"))
+        assert all(f"session.{epoch_a}." in n or f"session.{epoch_b}." in n for n in blobs)
+        assert f"session.{epoch_a}.000002.ckpt" not in blobs  # the refused one is gone
+
+        logged = [r.message for r in caplog.records]
+        assert f"grant robot r1 to worker wa epoch {epoch_a} (lease {old_lease:x})" in logged
+        assert f"fence robot r1 on worker wa epoch {epoch_a}" in logged
+        assert any(m.startswith(f"grant robot r1 to worker wb epoch {epoch_b}") for m in logged)
+        # Back in touch, A gets a new lease and may be granted robots again.
+        wait_for(a.live, LEASE_S * 3, "A's new lease")
+        assert a.grant("r1") is None  # B's, still
+    finally:
+        link.close()
+        a.close()
+        b.close()
+
+
+def test_a_finished_robot_stays_finished(etcd, keys, tmp_path):
+    a, b = _worker(etcd.endpoint, "wa", keys), _worker(etcd.endpoint, "wb", keys)
+    store_a, store_b = FencedStore(tmp_path, a), FencedStore(tmp_path, b)
+    try:
+        epoch_a = a.grant("r1")
+        store_a.save_checkpoint("r1", _state(5))
+        store_a.save_checkpoint("r1", _state(9, ended=True))
+        assert a.release("r1", epoch_a)
+        epoch_b = b.grant("r1")
+        assert epoch_b > epoch_a
+        with pytest.raises(NotOwner, match="the robot has ended"):
+            store_b.save_checkpoint("r1", _state(12))
+        assert store_b.current("r1").ended and store_b.current("r1").epoch == epoch_a
+        restored = store_b.load_checkpoint("r1")
+        assert restored.ended and restored.last_index == 9
+        # Finished again (the new owner's final checkpoint) is allowed.
+        store_b.save_checkpoint("r1", _state(9, ended=True))
+        assert store_b.current("r1").epoch == epoch_b
+        assert store_b.robots_with_checkpoints() == ["r1"]
+        # Only the newest two blobs of a writer are kept.
+        for i in range(4):
+            store_b.save_checkpoint("r1", _state(9, ended=True))
+        assert len(list(tmp_path.glob(f"r1/session.{epoch_b}.*.ckpt"))) == 2
+    finally:
+        a.close()
+        b.close()
+
+
+def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
+    """etcd itself stalls (SIGSTOP) longer than the lease: no renewal reaches it, so every
+    worker stops serving within the lease; resumed, the robot is granted again with a larger
+    epoch and the old epoch's writes are refused."""
+    import os
+    import signal
+
+    with EtcdService(tmp_path / "etcd") as etcd:
+        fenced: list = []
+        a = _worker(etcd.endpoint, "wa", keys, fenced)
+        store_a = FencedStore(tmp_path / "store", a)
+        try:
+            epoch_a, lease_a = a.grant("r1"), a.lease
+            store_a.save_checkpoint("r1", _state(3))
+            paused = time.monotonic()
+            os.kill(etcd.pid, signal.SIGSTOP)
+            try:
+                wait_for(lambda: fenced, LEASE_S * 2, "A to fence itself", interval=0.02)
+                assert fenced[0][0] - paused <= LEASE_S * 0.75 + 0.1
+                assert a.epoch("r1") is None
+                time.sleep(0.5)  # past the lease at etcd too
+            finally:
+                os.kill(etcd.pid, signal.SIGCONT)
+            b = _worker(etcd.endpoint, "wb", keys)
+            try:
+                epoch_b = wait_for(lambda: b.grant("r1"), LEASE_S * 3, "B's grant of r1",
+                                   interval=0.05)
+                assert epoch_b > epoch_a
+                with pytest.raises(NotOwner):
+                    store_a.write_as("r1", b"stale", epoch_a, lease_a)
+                assert store_a.current("r1").epoch == epoch_a  # A's last good one, unmoved
+            finally:
+                b.close()
+        finally:
+            a.close()
+
+
+def test_a_watch_hears_puts_deletes_and_expiries(etcd, keys):
+    from fleetslam.cloud.etcd_gateway import Watch
+
+    client = EtcdClient(etcd.endpoint)
+    heard: list = []
+    watch = Watch(etcd.endpoint, keys.prefix, heard.extend).start()
+    try:
+        assert watch.created.wait(5.0), "the watch stream never opened"
+        client.put(keys.owner("r1"), "wa")
+        client.delete(keys.owner("r1"))
+        lease, _ = client.lease_grant(LEASE_S)
+        client.put(keys.owner("r2"), "wb", lease)
+        started = time.monotonic()
+        wait_for(lambda: len(heard) >= 4, LEASE_S * 3, "the lease's expiry to be heard",
+                 interval=0.02)
+        assert [(e.deleted, e.kv.key.decode()) for e in heard] == [
+            (False, keys.owner("r1")), (True, keys.owner("r1")),
+            (False, keys.owner("r2")), (True, keys.owner("r2"))]
+        assert LEASE_S - 0.2 < time.monotonic() - started < LEASE_S + 1.2
+    finally:
+        watch.close()
+    assert not watch._thread.is_alive()
