@@ -41,7 +41,7 @@ if ! command -v etcd >/dev/null 2>&1; then
         SUDO=""
         [ "$(id -u)" = 0 ] || SUDO="sudo"
         # Not fatal: a single cloud process never needs it (the many-worker tests skip).
-        { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq etcd-server; } ||
+        { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq etcd-server; } ||
             echo "could not install etcd-server: many cloud workers cannot run here" >&2
     else
         echo "many cloud workers need etcd (3.4+) on PATH; install it for them" >&2
