@@ -135,9 +135,14 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray) -
     return out
 
 
+def rotation_angles_deg(R: np.ndarray) -> np.ndarray:
+    """Angle of each rotation of a stack (N, 3, 3), degrees (evo's so3_log_angle)."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    return float(rotation_angles_deg(np.asarray(R)[None])[0])
 
 
 def transforms_agree(A: np.ndarray, B: np.ndarray, at: np.ndarray, rotation_deg: float,

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetslam.transforms import make_T
+from fleetslam.transforms import make_T, rotation_angles_deg
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False
@@ -28,12 +28,6 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False
     scale = float(np.trace(np.diag(d) @ S) / (xs**2).sum(axis=1).mean()) if with_scale else 1.0
     t = mu_t - scale * R @ mu_s
     return make_T(R, t), scale
-
-
-def rotation_angles_deg(R: np.ndarray) -> np.ndarray:
-    """Angle of each rotation of a stack (N, 3, 3), degrees (evo's so3_log_angle)."""
-    c = (np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
 @dataclass

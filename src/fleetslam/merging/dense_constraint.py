@@ -56,11 +56,15 @@ class DenseRefinement:
                 "ms": 1000.0 * self.seconds}
 
 
+def information(sigma_rotation_deg: float, sigma_translation_m: float) -> np.ndarray:
+    """The 6 x 6 information of an edge with these isotropic sigmas (tangent order)."""
+    sigmas = np.array([np.deg2rad(sigma_rotation_deg)] * 3 + [sigma_translation_m] * 3)
+    return np.diag(1.0 / sigmas ** 2)
+
+
 def feature_information(cfg: MergeConfig) -> np.ndarray:
     """The information of a feature constraint (the inter-robot edge's sigmas)."""
-    sigmas = np.array([np.deg2rad(cfg.inter_sigma_rotation_deg)] * 3
-                      + [cfg.inter_sigma_translation_m] * 3)
-    return np.diag(1.0 / sigmas ** 2)
+    return information(cfg.inter_sigma_rotation_deg, cfg.inter_sigma_translation_m)
 
 
 def _scaled_hessian(H: np.ndarray, sigma_translation_m: float) -> np.ndarray:
@@ -83,9 +87,7 @@ def fuse(T_feature: np.ndarray, info_feature: np.ndarray, T_dense: np.ndarray,
 
 def odometry_information(cfg: MergeConfig) -> np.ndarray:
     """The information of a robot's own keyframe-to-keyframe edge in the global graph."""
-    sigmas = np.array([np.deg2rad(cfg.odometry_sigma_rotation_deg)] * 3
-                      + [cfg.odometry_sigma_translation_m] * 3)
-    return np.diag(1.0 / sigmas ** 2)
+    return information(cfg.odometry_sigma_rotation_deg, cfg.odometry_sigma_translation_m)
 
 
 @dataclass
