@@ -134,7 +134,8 @@ class RobotSession:
         self._over_budget_told = Throttle(REJECTION_REPLY_INTERVAL_S)
         # A restored session's checkpoint on disk covers all of it.
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
-                                            state.last_index, keyframe_sink)
+                                            state.last_index, keyframe_sink,
+                                            ended=lambda: self.state.ended)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
