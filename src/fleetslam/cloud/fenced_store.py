@@ -190,6 +190,12 @@ class FencedStore(CloudStore):
             # blob was lost; the pointer, read again, says which.
         raise CheckpointError(str(path), "the current checkpoint's file is missing")
 
+    def unfenced_checkpoints(self) -> list[str]:
+        """Robots with a checkpoint of the plain layout (``session.ckpt``, written without a
+        coordination service) and none named in etcd: this store never reads those."""
+        named = set(self.robots_with_checkpoints())
+        return [r for r in super().robots_with_checkpoints() if r not in named]
+
     def robots_with_checkpoints(self) -> list[str]:
         prefix = self.keys.currents()
         return sorted(kv.key.decode()[len(prefix):] for kv in self.client.get_prefix(prefix))

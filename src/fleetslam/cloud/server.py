@@ -139,6 +139,10 @@ class CloudServer:
         else:
             self.placement = Placement(z, self.worker_id, self.config.placement,
                                        *callbacks).start()
+        if isinstance(self.store, FencedStore) and (old := self.store.unfenced_checkpoints()):
+            log.warning("the store %s holds checkpoints written without a coordination service "
+                        "(robots %s): they are not read with one; run those robots' workers "
+                        "without --coordination to finish them", self.out_dir, ", ".join(old))
         self.router.listen(z, every_robot=not self.connect)
         self._reaper.start()
         threading.Thread(target=self._claim_orphans, name="cloud-orphans", daemon=True).start()
