@@ -532,8 +532,9 @@ class TransportConfig:
     max_control_per_s: Annotated[float, above(0.0)] = 20.0
     # Keyframe uploads the cloud stores per robot (about 0.2 MB each at the map's stride).
     max_keyframes: Annotated[int, at_least(1)] = 20_000
-    # A session checkpoint larger than this is refused unread, and no more than this is
-    # ever read from one (nothing in it is decompressed: cloud/store.py). A session's
+    # A session checkpoint larger than this (with all the chunks it names) is refused
+    # unread, and no more than this is ever read of one (nothing in it is decompressed:
+    # cloud/store.py). A session's
     # checkpoint grows by ~0.19 MB a keyframe (fr1_rpy, 150 frames: 37 keyframes, 7.1 MB),
     # so a session at max_keyframes needs ~3.8 GB.
     max_checkpoint_bytes: Annotated[int, at_least(1 << 20)] = 4 << 30
