@@ -581,6 +581,12 @@ class PlacementConfig:
     # stops serving 3/4 of it after its last renewal; its robots go to another worker once
     # etcd expires it, so a lost machine's robots fail over in about this.
     lease_s: Annotated[int, between(2, 600)] = 2
+    # The Zenoh lease a worker announces to its router: the router drops the link of a
+    # worker it has not heard from this long. Until then the router may wait on that link
+    # (a reliable message blocks behind a full queue), holding up every robot's messages
+    # (measured: the whole fleet silent ~10 s, Zenoh's default lease, after a worker's
+    # machine was cut off). Keep-alives go 4 times per lease.
+    zenoh_lease_s: Annotated[float, between(0.5, 600.0)] = 2.0
     # The etcd a run starts (cloud/coordination_service.py) must be healthy within this.
     coordination_start_s: Annotated[float, above(0.0)] = 10.0
 
