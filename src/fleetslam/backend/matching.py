@@ -42,25 +42,27 @@ def radius_pairs(points: np.ndarray, point_layer: np.ndarray, queries: np.ndarra
     empty = np.zeros(0, np.int64)
     if not len(points) or not len(queries):
         return empty, empty
-    points = np.asarray(points, np.float64)
-    queries = np.asarray(queries, np.float64)
+    # Coordinates as contiguous columns (reductions and gathers on them are the fast ones).
+    px, py = (np.ascontiguousarray(points[:, c], np.float64) for c in (0, 1))
+    qx, qy = (np.ascontiguousarray(queries[:, c], np.float64) for c in (0, 1))
     radius = np.asarray(radius, np.float64)
     # Bands a hair over half the radius high: rounding cannot put two points within the
     # radius three bands apart.
     band_h = radius * (0.5 + 1e-6)
-    origin = np.minimum(points.min(axis=0), queries.min(axis=0))
-    bp = ((points[:, 1] - origin[1]) // band_h[point_layer]).astype(np.int64)
-    bq = ((queries[:, 1] - origin[1]) // band_h[query_layer]).astype(np.int64)
+    x0, y0 = min(px.min(), qx.min()), min(py.min(), qy.min())
+    bp = ((py - y0) // band_h[point_layer]).astype(np.int64)
+    bq = ((qy - y0) // band_h[query_layer]).astype(np.int64)
     # One sort key: band (with two empty bands each side of a layer's) times a span wider
     # than the image plus the radius both sides, plus x. The x window of one band never
     # reaches the next; the key's rounding (~1e-10 px) is far below the window's margin.
     reach = float(radius.max()) * 2.0
-    span = float(max(points[:, 0].max(), queries[:, 0].max()) - origin[0]) + 2.0 * reach
+    span = float(max(px.max(), qx.max()) - x0) + 2.0 * reach
     bands = int(max(bp.max(), bq.max())) + 5
-    key = ((point_layer * bands + bp + 2) * span + reach) + (points[:, 0] - origin[0])
-    order = np.argsort(key, kind="stable")
+    key = ((point_layer * bands + bp + 2) * span + reach) + (px - x0)
+    # Points with equal keys may come in any order: pairs are a set per query.
+    order = np.argsort(key)
     sorted_key = key[order]
-    centre = ((query_layer * bands + bq + 2) * span + reach) + (queries[:, 0] - origin[0])
+    centre = ((query_layer * bands + bq + 2) * span + reach) + (qx - x0)
     band_keys = centre[:, None] + span * np.arange(-2, 3)  # queries x 5 bands
     margin = (radius * (1.0 + 1e-6))[query_layer, None]
     begin = np.searchsorted(sorted_key, band_keys - margin, "left").ravel()
@@ -72,8 +74,8 @@ def radius_pairs(points: np.ndarray, point_layer: np.ndarray, queries: np.ndarra
     run_start = np.cumsum(count) - count
     i = np.take(order, np.arange(total) - np.repeat(run_start - begin, count))
     per_query = count.reshape(-1, 5).sum(axis=1)
-    dx = np.take(points[:, 0], i) - np.repeat(queries[:, 0], per_query)
-    dy = np.take(points[:, 1], i) - np.repeat(queries[:, 1], per_query)
+    dx = np.take(px, i) - np.repeat(qx, per_query)
+    dy = np.take(py, i) - np.repeat(qy, per_query)
     near = dx * dx + dy * dy <= np.repeat(radius[query_layer] ** 2, per_query)
     j = np.repeat(np.arange(len(queries)), per_query)
     return i[near], j[near]
@@ -132,11 +134,14 @@ def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.nd
     level = predicted_level[:, None] + np.arange(-1, 2)
     copy = np.isin(level, octave).ravel()  # only the levels some keypoint is at
     source = np.repeat(np.arange(len(candidates)), 3)[copy]
-    lm, kp = radius_pairs(projected[source], level.ravel()[copy], state.uv, octave, radius)
+    lm, kp = radius_pairs(np.take(projected, source, axis=0), level.ravel()[copy], state.uv,
+                          octave, radius)
     lm = source[lm]
     if len(lm) == 0:
         return ids
-    ham = hamming_rows(state.descriptors, kp, descriptors, np.take(candidates, lm))
+    # The candidates' descriptors first: the pairs then gather from a block that stays in
+    # cache, not from all over the map's.
+    ham = hamming_rows(state.descriptors, kp, np.take(descriptors, candidates, axis=0), lm)
     # Best and second-best distance per keypoint, by reductions over its run of pairs (no
     # sort). A tie for the best fails the ratio test (ratio <= 1) whichever pair comes
     # first, so the result does not depend on the order of the pairs.
