@@ -139,7 +139,8 @@ class LocalMap:
         ``T_world_camera`` within the depth range. Returns (ids, pixels (n, 2), camera-frame
         points (n, 3))."""
         ids = np.flatnonzero(self.alive) if ids is None else ids[self.alive[ids]]
-        P = (self.xyz[ids] - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]
+        # np.take: fancy indexing gathers short rows several times slower.
+        P = (np.take(self.xyz, ids, axis=0) - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]
         front = (P[:, 2] > min_depth) & (P[:, 2] < max_depth)
         ids, P = ids[front], P[front]
         proj = camera.project(P)

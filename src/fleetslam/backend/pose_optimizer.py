@@ -8,9 +8,10 @@ then a chi-square inlier test; all vectorised over matches.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fleetslam.camera import Camera
 from fleetslam.transforms import invert
@@ -21,10 +22,24 @@ CHI2_STEREO = 7.815
 
 
 def _se3_exp(delta: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(delta[:3]).as_matrix()
-    T[:3, 3] = delta[3:]
-    return T
+    """The 4 x 4 pose increment of ``delta`` (rotation vector, translation). The rotation is
+    scipy's ``Rotation.from_rotvec(v).as_matrix()`` written out (its quaternion, with the
+    small-angle series below 1e-3 rad, then the matrix; the same operations in the same
+    order, so the same bits) without its ~100 us of array-API overhead per call."""
+    v0, v1, v2, t0, t1, t2 = delta.tolist()
+    angle = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    if angle <= 1e-3:
+        a2 = angle * angle
+        scale = 0.5 - a2 / 48 + a2 * a2 / 3840
+    else:
+        scale = math.sin(angle / 2) / angle
+    x, y, z, w = scale * v0, scale * v1, scale * v2, math.cos(angle / 2)
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array([[x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw), t0],
+                     [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw), t1],
+                     [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2, t2],
+                     [0.0, 0.0, 0.0, 1.0]])
 
 
 def optimize_pose(camera: Camera, T_world_camera: np.ndarray, xyz_world: np.ndarray,
@@ -37,44 +52,64 @@ def optimize_pose(camera: Camera, T_world_camera: np.ndarray, xyz_world: np.ndar
     n = len(xyz_world)
     inlier = np.ones(n, bool)
     stereo = depth > 0
-    bf = camera.fx * virtual_baseline_m
-    ur_meas = uv[:, 0] - bf / np.where(stereo, depth, 1.0)
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    bf = fx * virtual_baseline_m
+    u, v = uv[:, 0], uv[:, 1]
+    ur_meas = u - bf / np.where(stereo, depth, 1.0)
     info = 1.0 / octave_scale**2
+    threshold = np.where(stereo, CHI2_STEREO, CHI2_MONO)
+    # Huber's threshold on the whitened residual norm.
+    k = np.sqrt(threshold)
+    damping = 1e-9 * np.eye(6)
+    # Residuals (u, v, virtual right u) by row, and their Jacobian for a left perturbation
+    # (rotation, translation) of T_camera_world, parameter by row: each entry a contiguous
+    # run over the matches, filled in place each iteration (the always-zero ones stay so).
+    r = np.zeros((3, n))
+    J = np.zeros((6, 3, n))
     for _ in range(rounds):
         for _ in range(iterations):
             P = xyz_world @ T_cw[:3, :3].T + T_cw[:3, 3]
-            X, Y, Z = P[:, 0], P[:, 1], np.maximum(P[:, 2], 1e-6)
+            X, Y, Z_raw = P[:, 0], P[:, 1], P[:, 2]
+            Z = np.maximum(Z_raw, 1e-6)
             iz = 1.0 / Z
-            r = np.zeros((n, 3))
-            r[:, 0] = camera.fx * X * iz + camera.cx - uv[:, 0]
-            r[:, 1] = camera.fy * Y * iz + camera.cy - uv[:, 1]
-            r[:, 2] = np.where(stereo, camera.fx * X * iz + camera.cx - bf * iz - ur_meas, 0.0)
-            # d(residual)/dP, then dP/d(delta) = [-[P]x | I] for a left perturbation.
-            J_p = np.zeros((n, 3, 3))
-            J_p[:, 0, 0] = camera.fx * iz
-            J_p[:, 0, 2] = -camera.fx * X * iz**2
-            J_p[:, 1, 1] = camera.fy * iz
-            J_p[:, 1, 2] = -camera.fy * Y * iz**2
-            J_p[:, 2, 0] = np.where(stereo, camera.fx * iz, 0.0)
-            J_p[:, 2, 2] = np.where(stereo, -camera.fx * X * iz**2 + bf * iz**2, 0.0)
-            skew = np.zeros((n, 3, 3))
-            skew[:, 0, 1], skew[:, 0, 2] = -P[:, 2], P[:, 1]
-            skew[:, 1, 0], skew[:, 1, 2] = P[:, 2], -P[:, 0]
-            skew[:, 2, 0], skew[:, 2, 1] = -P[:, 1], P[:, 0]
-            J = np.concatenate([J_p @ -skew, J_p], axis=2)  # n x 3 x 6
-            chi2 = (r**2).sum(axis=1) * info
-            threshold = np.where(stereo, CHI2_STEREO, CHI2_MONO)
-            # Huber weight on the whitened residual norm.
-            k = np.sqrt(threshold)
+            iz2 = iz**2
+            u_hat = fx * X * iz + cx
+            np.subtract(u_hat, u, out=r[0])
+            r[1] = fy * Y * iz + cy - v
+            r[2] = np.where(stereo, u_hat - bf * iz - ur_meas, 0.0)
+            # d(residual)/dP, rows (a, 0, b), (0, c, d), stereo only (a, 0, e) ...
+            a = fx * iz
+            b = -fx * X * iz2
+            c = fy * iz
+            d = -fy * Y * iz2
+            a_s = np.where(stereo, a, 0.0)
+            e_s = np.where(stereo, b + bf * iz2, 0.0)
+            # ... times dP/d(delta) = [-[P]x | I], written out per entry.
+            np.multiply(b, Y, out=J[0, 0])
+            J[1, 0] = a * Z_raw + b * -X
+            J[2, 0] = a * -Y
+            J[3, 0] = a
+            J[5, 0] = b
+            J[0, 1] = c * -Z_raw + d * Y
+            J[1, 1] = d * -X
+            np.multiply(c, X, out=J[2, 1])
+            J[4, 1] = c
+            J[5, 1] = d
+            np.multiply(e_s, Y, out=J[0, 2])
+            J[1, 2] = a_s * Z_raw + e_s * -X
+            J[2, 2] = a_s * -Y
+            J[3, 2] = a_s
+            J[5, 2] = e_s
+            chi2 = (r[0]**2 + r[1]**2 + r[2]**2) * info
             norm = np.sqrt(chi2)
             w = np.where(norm <= k, 1.0, k / np.maximum(norm, 1e-12)) * info * inlier
-            # Normal equations as two matrix products (a 3-operand einsum takes numpy's
-            # slow generic path): H = sum w J^T J, g = sum w J^T r.
-            Jw = (J * w[:, None, None]).reshape(-1, 6)
-            H = Jw.T @ J.reshape(-1, 6)
-            g = Jw.T @ r.reshape(-1)
+            # Normal equations as two matrix products: H = sum w J^T J, g = sum w J^T r.
+            Jf = J.reshape(6, -1)
+            Jw = (J * w).reshape(6, -1)
+            H = Jw @ Jf.T
+            g = Jw @ r.reshape(-1)
             try:
-                delta = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+                delta = -np.linalg.solve(H + damping, g)
             except np.linalg.LinAlgError:
                 break
             T_cw = _se3_exp(delta) @ T_cw
@@ -82,11 +117,11 @@ def optimize_pose(camera: Camera, T_world_camera: np.ndarray, xyz_world: np.ndar
                 break
         P = xyz_world @ T_cw[:3, :3].T + T_cw[:3, 3]
         Z = np.maximum(P[:, 2], 1e-6)
-        r0 = camera.fx * P[:, 0] / Z + camera.cx - uv[:, 0]
-        r1 = camera.fy * P[:, 1] / Z + camera.cy - uv[:, 1]
-        r2 = np.where(stereo, camera.fx * P[:, 0] / Z + camera.cx - bf / Z - ur_meas, 0.0)
+        r0 = fx * P[:, 0] / Z + cx - u
+        r1 = fy * P[:, 1] / Z + cy - v
+        r2 = np.where(stereo, fx * P[:, 0] / Z + cx - bf / Z - ur_meas, 0.0)
         chi2 = (r0**2 + r1**2 + r2**2) * info
-        inlier = (chi2 < np.where(stereo, CHI2_STEREO, CHI2_MONO)) & (P[:, 2] > 0)
+        inlier = (chi2 < threshold) & (P[:, 2] > 0)
     return invert(T_cw), inlier
 
 
