@@ -482,9 +482,10 @@ def table(result: dict[str, Any]) -> str:
                      r["checkpoint_keyframes"], r["acknowledged_lost"], r["grants"],
                      _fmt(r.get("ate_cm"))])
     merge = result["merge"] or {}
+    overlaps = ", ".join(f"{o['robot']} {'/'.join(o['workers'])} {o['seconds']} s"
+                         for o in result["overlaps"])
     head = (f"{result['case']} [{result['placement']}] A={result['a']} B={result['b']}: "
-            f"one owner at a time: {'yes' if result['one_owner'] else 'NO'}"
-            f"{'' if result['one_owner'] else ' (' + ', '.join(o['robot'] + ' ' + '/'.join(o['workers']) + ' ' + str(o['seconds']) + ' s' for o in result['overlaps']) + ')'}"
+            f"one owner at a time: {'yes' if result['one_owner'] else f'NO ({overlaps})'}"
             f"; merge groups {' | '.join(merge.get('groups', [])) or '-'}"
             f"; joint ATE {_fmt(merge.get('joint_ate_cm'))} cm"
             f"; load {result['load_before'][0]:.1f} -> {result['load_after'][0]:.1f}")
