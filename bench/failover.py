@@ -29,6 +29,7 @@ from typing import Any
 
 from shared_data import SEVEN_SCENES
 
+from fleetslam.cloud.fenced_store import stored_run
 from fleetslam.cloud.store import CloudStore
 from fleetslam.demo import run_demo
 from fleetslam.tables import format_table
@@ -61,8 +62,8 @@ class Killer:
               flush=True)
 
 
-def acknowledged_lost(out: Path, robot: dict[str, Any]) -> int:
-    state = CloudStore(out).load_checkpoint(robot["name"])
+def acknowledged_lost(store: CloudStore, robot: dict[str, Any]) -> int:
+    state = store.load_checkpoint(robot["name"])
     kept = {kf.frame_index for kf in state.tracking.map.keyframes}
     return len(set(robot["robot"].get("acknowledged", [])) - kept)
 
@@ -77,12 +78,14 @@ def run(name: str, workers: int, kill_at: float | None, rate: str, work: Path
     summary = run_demo(sources, out, "3", None, link_args=["--rate", rate],
                        show_progress=False, workers=workers, watch=killer)
     robots = {}
+    with stored_run(out) as store:  # with etcd (2 workers): the checkpoints it names
+        lost = {r["name"]: acknowledged_lost(store, r) for r in summary["robots"]}
     for r in summary["robots"]:
         report = r["robot"]
         robots[r["name"]] = {
             "frames_sent": report["frames"], "frames_tracked": r["frames"],
             "keyframes": r["keyframes"], "acknowledged": len(report.get("acknowledged", [])),
-            "acknowledged_lost": acknowledged_lost(out, r),
+            "acknowledged_lost": lost[r["name"]],
             "takeovers": report.get("takeovers", 0),
             "pause_s": report.get("longest_feedback_gap_s"),
             "lost_frames": r["lost_frames"], "relocalised": r["loop_closing"].get(

@@ -31,6 +31,7 @@ from pathlib import Path
 from fleet import Fleet, robot_messages, robot_messages_for
 from shared_data import SEVEN_SCENES, TUM_RPY
 
+from fleetslam.cloud.coordination_service import EtcdService
 from fleetslam.launch import (
     CloudClient,
     free_endpoint,
@@ -78,14 +79,17 @@ def prepare(n: int, frames: int) -> list[tuple[list[bytes], dict]]:
     return out
 
 
-def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work: Path
-                ) -> dict:
+def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work: Path,
+                placement: str = "etcd") -> dict:
     work.mkdir(parents=True, exist_ok=True)
     endpoint = free_endpoint()
+    # With etcd (as `demo --workers` runs them), every worker is placed and fenced by it.
+    etcd = EtcdService(work / "etcd").start() if placement == "etcd" else None
+    extra = ["--coordination", etcd.endpoint] if etcd else []
     router = start_router(endpoint, work / "router.log")
     cores = os.cpu_count() or 1
     workers = {f"w{i}": start_worker(endpoint, f"w{i}", work / "store", work / f"w{i}.log",
-                                     cpus=[i % cores] if pinned else None)
+                                     cpus=[i % cores] if pinned else None, extra=extra)
                for i in range(n_workers)}
     client = CloudClient(endpoint)
     z = open_connecting(endpoint)
@@ -137,6 +141,8 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
         z.close()
         client.close()
         stop_all([*workers.values(), router])
+        if etcd is not None:
+            etcd.stop()
     return results
 
 
@@ -148,6 +154,8 @@ def main() -> None:
     parser.add_argument("--pinned", default="1,2", help="worker counts, one core each")
     parser.add_argument("--load", type=float, default=0.8,
                         help="paced run: offered rate as a fraction of the sustained rate")
+    parser.add_argument("--placement", default="etcd",
+                        help="comma list of liveliness, etcd: how workers agree on robots")
     parser.add_argument("--out", default="bench/results/worker_scaling.json")
     args = parser.parse_args()
     for folder in (SEVEN_SCENES, TUM_RPY):
@@ -158,13 +166,18 @@ def main() -> None:
     prepared = prepare(args.robots, args.frames)
     out = Path(args.out)
     work = out.parent / "worker-scaling-runs" / time.strftime("%Y%m%d-%H%M%S")
+    placements = [p for p in args.placement.split(",") if p]
+    if not set(placements) <= {"liveliness", "etcd"}:
+        sys.exit(f"--placement {args.placement}: give liveliness, etcd or both")
     settings = [(int(n), False) for n in args.workers.split(",") if n] + \
         [(int(n), True) for n in args.pinned.split(",") if n]
     results = {}
     for n, pinned in settings:
-        name = f"{n} worker{'s' if n > 1 else ''}{', 1 core each' if pinned else ''}"
-        results[name] = run_setting(n, pinned, prepared, args.load, work / name.replace(
-            " ", "_").replace(",", ""))
+        for placement in placements:
+            name = (f"{n} worker{'s' if n > 1 else ''}{', 1 core each' if pinned else ''}"
+                    + (f", {placement}" if len(placements) > 1 else ""))
+            results[name] = run_setting(n, pinned, prepared, args.load, work / name.replace(
+                " ", "_").replace(",", ""), placement)
     rows = []
     for name, phases in results.items():
         for phase, r in phases.items():

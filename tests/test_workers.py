@@ -14,6 +14,10 @@ import pytest
 
 from conftest import secure_endpoint, small_scene, wait_for
 
+from fleetslam.cloud.coordination_service import EtcdService, etcd_binary
+from fleetslam.cloud.etcd_gateway import EtcdClient
+from fleetslam.cloud.fenced_store import FencedStore
+from fleetslam.cloud.ownership import Ownership
 from fleetslam.cloud.placement import Placement, rank
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import PlacementConfig
@@ -116,13 +120,29 @@ def _status(client: CloudClient) -> dict:
         return {"robots": {}, "answered": []}
 
 
-def test_a_killed_worker_hands_its_robot_over_without_losing_a_keyframe(scene, tmp_path):
+@pytest.fixture
+def coordination(request, tmp_path):
+    """None: workers placed by liveliness; else the etcd they are placed by."""
+    if not request.param:
+        yield None
+        return
+    if etcd_binary() is None:
+        pytest.skip("the etcd program is not installed (scripts/setup-system.sh installs it)")
+    with EtcdService(tmp_path / "etcd") as service:
+        yield service
+
+
+@pytest.mark.parametrize("coordination", [False, True], indirect=True,
+                         ids=["liveliness", "etcd"])
+def test_a_killed_worker_hands_its_robot_over_without_losing_a_keyframe(scene, tmp_path,
+                                                                        coordination):
     lab = {k: str(v) for k, v in make_lab(tmp_path / "lab", ["localhost"], ["r0", "r1"]).items()}
     endpoint = secure_endpoint()
     out = tmp_path / "store"
     router = start_router(endpoint, tmp_path / "router.log", lab["cloud"])
+    extra = ["--coordination", coordination.endpoint] if coordination else []
     workers = [start_worker(endpoint, f"w{i}", out, tmp_path / f"w{i}.log",
-                            zenoh_config=lab["worker"]) for i in range(2)]
+                            zenoh_config=lab["worker"], extra=extra) for i in range(2)]
     client = CloudClient(endpoint, zenoh_config=lab["client"])
     robots = []
     try:
@@ -156,7 +176,12 @@ def test_a_killed_worker_hands_its_robot_over_without_losing_a_keyframe(scene, t
     report = json.loads((tmp_path / "r0.json").read_text())
     assert report["takeovers"] == 1
     # Every keyframe the cloud acknowledged is a keyframe of the final map.
-    final = CloudStore(out).load_checkpoint("r0")
+    if coordination:  # the checkpoint etcd names current (an immutable blob per epoch)
+        reader = Ownership(EtcdClient(coordination.endpoint), "reader", 2)
+        final = FencedStore(out, reader).load_checkpoint("r0")
+        assert "grant robot r0 to worker" in survivor  # placed by etcd, not by liveliness
+    else:
+        final = CloudStore(out).load_checkpoint("r0")
     kept = {kf.frame_index for kf in final.tracking.map.keyframes}
     assert report["acknowledged"] and set(report["acknowledged"]) <= kept
     kf_times, _ = read_tum_trajectory(out / "r0" / "keyframes.tum")

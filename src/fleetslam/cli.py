@@ -238,6 +238,8 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
     if args.worker_id:
         set_from_flag(config.placement, "worker_id", args.worker_id, "--worker-id")
+    if args.coordination:
+        set_from_flag(config.placement, "coordination", args.coordination, "--coordination")
     server = CloudServer(config, Path(args.out), args.listen, view=view,
                          connect=args.connect).start()
     stop = threading.Event()
@@ -723,6 +725,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "(`fleetslam router`); robots are shared among the workers")
     cloud.add_argument("--worker-id", help="this worker's name in the placement (A-Z a-z 0-9 "
                        "_ -; default w-<host>-<pid>)")
+    cloud.add_argument("--coordination", metavar="http://HOST:PORT",
+                       help="with several workers: the etcd that decides which worker owns "
+                            "which robot, fenced against partitions (config [placement] "
+                            "coordination; every worker of a fleet is given the same)")
     cloud.add_argument("--out", required=True, help="the store: maps, trajectories, "
                        "keyframes and checkpoints (reused after a restart; every worker of "
                        "a fleet is given the same folder, a shared volume across machines)")

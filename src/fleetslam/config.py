@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
-from fleetslam.validation.endpoints import endpoint_problem, host_problem
+from fleetslam.validation.endpoints import endpoint_problem, host_problem, http_endpoint_problem
 from fleetslam.validation.names import name_problem
 from fleetslam.validation.rules import (ANY_TEXT, FINITE, FRACTION, Bound, OneOf, Text, above,
                                         at_least, between, checked, rules_of)
@@ -25,6 +25,9 @@ OBJECTIVES = ("energy", "latency", "fps", "mix")
 
 ENDPOINT = Text(endpoint_problem, "a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
 HOST = Text(host_problem, "a host name or an IP address")
+# The coordination service of many workers; empty: none.
+ETCD_ENDPOINT = Text(lambda s: http_endpoint_problem(s) if s else None,
+                     "empty, or an etcd endpoint http://HOST:PORT")
 # A worker id is a Zenoh key chunk (transport/keys.py); empty: chosen by the worker.
 WORKER_ID = Text(lambda s: name_problem(s) if s else None,
                  "empty, or 1..64 characters of A-Z a-z 0-9 _ -")
@@ -567,6 +570,11 @@ class PlacementConfig:
     max_rounds: Annotated[int, at_least(1)] = 5
     # A worker's load is its robots heard from within this many seconds.
     active_s: Annotated[float, above(0.0)] = 10.0
+    # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides
+    # which worker owns which robot and the merger, with fencing (cloud/fenced_placement.py)
+    # and whose checkpoint is current (cloud/fenced_store.py). Empty: workers agree through
+    # Zenoh liveliness alone (placement.py), which is not fenced against partitions.
+    coordination: Annotated[str, ETCD_ENDPOINT] = ""
     # Many workers with a coordination service (cloud/ownership.py): each worker's etcd
     # lease, in whole seconds (etcd's unit; 2 is its least). A worker that cannot renew it
     # stops serving 3/4 of it after its last renewal; its robots go to another worker once

@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from fleetslam.cloud.coordination_service import INSTALL_HINT, EtcdService, etcd_binary
+from fleetslam.config import load_config
 from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.launch import (
@@ -47,6 +49,18 @@ def _await_workers(client: CloudClient, workers: int, timeout_s: float) -> None:
         time.sleep(0.5)
 
 
+def _start_coordination(out: Path, config_path: str | None) -> EtcdService | None:
+    """The etcd that fences the workers' ownership of robots, under the run's folder; None,
+    said once, when etcd is not installed (the workers then agree through liveliness, which
+    a partition can fool)."""
+    if etcd_binary() is None:
+        print(f"fleetslam demo: etcd is not installed, so the workers' ownership of robots is "
+              f"not fenced against partitions; {INSTALL_HINT}", file=sys.stderr)
+        return None
+    deadline = load_config(config_path).placement.coordination_start_s
+    return EtcdService(out / "etcd", deadline).start()
+
+
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
              link_args: list[str] | None = None, show_progress: bool = True,
              timeout_s: float = 1800.0, zenoh_config: str | None = None,
@@ -70,10 +84,15 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
         configs = {name: str(path) for name, path in lab.items()}
     logs = out / "logs"
+    coordination = None
     if workers > 1:
+        coordination = _start_coordination(out, config_path)
+        worker_args = list(cloud_args or [])
+        if coordination is not None:
+            worker_args += ["--coordination", coordination.endpoint]
         cloud = start_router(endpoint, logs / "router.log", configs["cloud"])
         cloud_workers = [start_worker(endpoint, f"w{i}", out, logs / f"w{i}.log", config_path,
-                                      extra=cloud_args, zenoh_config=configs["worker"])
+                                      extra=worker_args, zenoh_config=configs["worker"])
                          for i in range(workers)]
     else:
         cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path, extra=cloud_args,
@@ -130,6 +149,8 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         if client is not None:
             client.close()
         stop_all([*cloud_workers, cloud])
+        if coordination is not None:
+            coordination.stop()
     summary.pop("outputs", None)  # where the cloud wrote them: ``out``
     score_fleet(summary, out, sequences)  # ground truth, read only now
     add_robot_reports(summary, out)

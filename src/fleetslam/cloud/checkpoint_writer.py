@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from fleetslam.cloud.ownership import NotOwner
 from fleetslam.cloud.store import CloudStore
 from fleetslam.wire.data_tree import Capture
 from fleetslam.wire.merger_keyframes import KeyframeSummary
@@ -31,13 +32,16 @@ NewKeyframe = tuple[KeyframeSummary, np.ndarray]
 
 class CheckpointWriter:
     def __init__(self, robot_id: str, store: CloudStore, snapshot: Callable[[], Capture],
-                 durable_index: int, keyframe_sink: KeyframeSink | None = None) -> None:
+                 durable_index: int, keyframe_sink: KeyframeSink | None = None,
+                 ended: Callable[[], bool] = lambda: False) -> None:
         """``snapshot``: the session's state as a checkpoint now; ``durable_index``: the
-        newest frame index a checkpoint on disk covers already (a restored session: all)."""
+        newest frame index a checkpoint on disk covers already (a restored session: all);
+        ``ended``: whether the robot has finished (taken with each snapshot)."""
         self.robot_id = robot_id
         self.store = store
         self.keyframe_sink = keyframe_sink
         self._snapshot = snapshot
+        self._ended = ended
         self._queue: queue.Queue = queue.Queue()
         self._durable_index = durable_index
         # Checkpoints queued and written, counted: the end's checkpoint is awaited by number
@@ -64,7 +68,7 @@ class CheckpointWriter:
         with self._durable:
             self._queued += 1
             number = self._queued
-        self._queue.put((frame_index, number, self._snapshot(), keyframe))
+        self._queue.put((frame_index, number, self._snapshot(), self._ended(), keyframe))
         return number
 
     def wait_for_frame(self, frame_index: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
@@ -79,17 +83,22 @@ class CheckpointWriter:
 
     def _write(self) -> None:
         while (item := self._queue.get()) is not None:
-            index, number, blob, keyframe = item
+            index, number, blob, ended, keyframe = item
             keyframes = [keyframe]
             while not self._queue.empty():  # only the newest one matters
                 newer = self._queue.get()
                 if newer is None:
                     self._queue.put(None)
                     break
-                index, number, blob, keyframe = newer
+                index, number, blob, ended, keyframe = newer
                 keyframes.append(keyframe)
             try:
-                self.store.write_checkpoint(self.robot_id, blob)
+                self.store.write_checkpoint(self.robot_id, blob, ended=ended)
+            except NotOwner as exc:
+                # Fenced or taken over: the placement drops this session; nothing it holds
+                # is acknowledged or merged from here on.
+                log.warning("robot %s: checkpoint not written: %s", self.robot_id, exc)
+                continue
             except OSError:
                 log.exception("robot %s: checkpoint not written", self.robot_id)
             else:

@@ -24,11 +24,15 @@ import logging
 import os
 import threading
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Iterator
 
 from fleetslam.cloud import session_state
-from fleetslam.cloud.etcd_gateway import EtcdError, compare, delete_op, put_op, range_op
+from fleetslam.cloud.coordination_service import EtcdService
+from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, compare, delete_op, put_op,
+                                          range_op)
 from fleetslam.cloud.ownership import NotOwner, Ownership
 from fleetslam.cloud.session_state import SessionState
 from fleetslam.cloud.store import CloudStore, write_durably
@@ -190,6 +194,12 @@ class FencedStore(CloudStore):
             # blob was lost; the pointer, read again, says which.
         raise CheckpointError(str(path), "the current checkpoint's file is missing")
 
+    def unfenced_checkpoints(self) -> list[str]:
+        """Robots with a checkpoint of the plain layout (``session.ckpt``, written without a
+        coordination service) and none named in etcd: this store never reads those."""
+        named = set(self.robots_with_checkpoints())
+        return [r for r in super().robots_with_checkpoints() if r not in named]
+
     def robots_with_checkpoints(self) -> list[str]:
         prefix = self.keys.currents()
         return sorted(kv.key.decode()[len(prefix):] for kv in self.client.get_prefix(prefix))
@@ -216,3 +226,22 @@ class FencedStore(CloudStore):
             os.rename(folder / pointer.file, aside)
             moved.append(aside)
         return moved
+
+
+@contextmanager
+def stored_run(out_dir: Path, etcd_endpoint: str | None = None) -> Iterator[CloudStore]:
+    """A run's store to read after the run (benchmarks, tests): with a coordination service,
+    the checkpoints etcd names current, through ``etcd_endpoint`` or, when the run's own etcd
+    has stopped, an etcd started again on its data (``<out>/etcd``, as ``demo --workers``
+    leaves it) for as long as the block runs; else the plain layout."""
+    data = Path(out_dir) / "etcd"
+    if etcd_endpoint is None and not data.is_dir():
+        yield CloudStore(out_dir)
+        return
+    service = None if etcd_endpoint else EtcdService(data).start()
+    try:
+        reader = Ownership(EtcdClient(etcd_endpoint or service.endpoint), "reader", 2)
+        yield FencedStore(out_dir, reader)
+    finally:
+        if service is not None:
+            service.stop()

@@ -77,11 +77,20 @@ class MergeRequests:
 
 class FleetMerge:
     def __init__(self, config: Config, out_dir: Path, sessions: SessionTable,
-                 merger: MergerService) -> None:
+                 merger: MergerService, merges: Callable[[], bool] = lambda: True) -> None:
+        """``merges``: whether this worker still holds the merger's role (with a
+        coordination service, its fenced grant): asked before each output is written."""
         self.config = config
         self.out_dir = out_dir
         self.sessions = sessions
         self.merger = merger
+        self._merges = merges
+
+    def _still_merger(self, what: str) -> None:
+        # A worker fenced mid-merge stops before its next output: another worker merges now.
+        if not self._merges():
+            raise RuntimeError(f"this worker is no longer the fleet's merger (fenced): "
+                               f"{what} not written; ask again")
 
     def merge(self, timeout_s: float = 300.0) -> dict[str, Any]:
         """Write the global outputs of the finished robots (global trajectories, map, OctoMap)
@@ -100,6 +109,7 @@ class FleetMerge:
                                  "robot finishes at the end of its stream; `fleetslam status` "
                                  "lists the robots this cloud serves)")
         global_map = None
+        self._still_merger("the global map")
         if len(finished) > 1:
             global_map = self.merger.locked(lambda m: build_global_map(
                 m, [f.track for f in finished], self.config, self.out_dir))
@@ -109,6 +119,7 @@ class FleetMerge:
         summary = fleet_summary([f.summary for f in finished],
                                 merge if len(finished) > 1 else None, self.config,
                                 time.perf_counter() - start)
+        self._still_merger("summary.json")
         if self.config.outputs.mcap:
             summary["mcap"] = self._write_mcap(summary)
         write_summary(self.out_dir, summary)

@@ -42,10 +42,11 @@ class MergeRole:
         self._merging = False  # this worker runs the fleet's merger (see is_merger)
 
     def is_merger(self) -> bool:
-        """The live worker whose id sorts first merges; a worker that becomes it (the last
+        """The worker the placement names merges (the live worker whose id sorts first, or
+        the holder of the merger's grant with a coordination service); a worker that becomes it (the last
         one died or stopped) first takes every other robot's keyframes from the store."""
         placement = self._placement()
-        merging = placement is None or placement.live_workers()[0] == self.worker_id
+        merging = placement is None or placement.merges()
         if merging and not self._merging:
             # Its own robots' keyframes went to the merger that was; all robots are taken
             # (its own from their sessions here). No lock: callers may hold it.

@@ -81,7 +81,8 @@ class Ownership:
         self.worker_id = worker_id
         self.lease_s = lease_s
         self.keys = keys
-        self._on_fenced = on_fenced or (lambda robots: None)
+        # Public: the placement that serves the robots sets it once it exists.
+        self.on_fenced: Fenced = on_fenced or (lambda robots: None)
         self._lock = threading.Lock()
         self._lease = 0  # 0: none (not started, or fenced and not yet renewed)
         self._valid_until = 0.0  # monotonic: this worker serves its robots until then
@@ -270,7 +271,7 @@ class Ownership:
         for robot, epoch in robots:
             log.info("fence robot %s on worker %s epoch %d", robot, self.worker_id, epoch)
         try:
-            self._on_fenced(robots)
+            self.on_fenced(robots)
         except Exception:
             log.exception("worker %s: the fence callback failed", self.worker_id)
         try:  # the old lease, if etcd still has it: its robots are free sooner

@@ -77,13 +77,23 @@ class Placement:
 
     def start(self) -> "Placement":
         self._elector.start()
+        self._discover()
+        self._subscribers.append(self.z.liveliness().declare_subscriber(
+            f"{keys.OWNERS}/**", self._on_owner, history=True))
+        return self
+
+    def _discover(self) -> None:
+        """This worker's token, and the other workers' (which workers are up)."""
         live = self.z.liveliness()
         self._token = live.declare_token(keys.worker(self.worker_id))
-        self._subscribers = [
-            live.declare_subscriber(f"{keys.OWNERS}/**", self._on_owner, history=True),
-            live.declare_subscriber(f"{keys.WORKERS}/*", self._on_worker, history=True),
-        ]
-        return self
+        self._subscribers.append(
+            live.declare_subscriber(f"{keys.WORKERS}/*", self._on_worker, history=True))
+
+    def _undiscover(self) -> None:
+        for sub in self._subscribers:
+            sub.undeclare()
+        if self._token is not None:
+            self._token.undeclare()
 
     def close(self) -> None:
         """Give every robot back (the other workers take them from their checkpoints)."""
@@ -93,16 +103,17 @@ class Placement:
             tokens, self._mine = list(self._mine.values()), {}
         for token in tokens:
             token.undeclare()
-        for sub in self._subscribers:
-            sub.undeclare()
-        if self._token is not None:
-            self._token.undeclare()
+        self._undiscover()
 
     # -- what the worker asks ---------------------------------------------------------------
 
     def serves(self, robot: str) -> bool:
         with self._lock:
             return robot in self._mine
+
+    def merges(self) -> bool:
+        """Whether this worker runs the fleet's merger: the live worker whose id sorts first."""
+        return self.live_workers()[0] == self.worker_id
 
     def owner(self, robot: str) -> str | None:
         """The worker serving ``robot`` as this worker last heard (None: nobody)."""

@@ -84,7 +84,9 @@ class RobotSession:
         self.view = view or NullView()
         self.config = config
         self.store = store
-        self.publish = publish
+        self._send = publish
+        # Set when another worker owns the robot now (a fence): nothing more is said to it.
+        self._dropped = threading.Event()
         # Whether this cloud tracks the robot (else it tracks itself, point 6, and sends its
         # poses); the back-end's state is kept either way (its counts go in the summary).
         self.tracks = state.hello.offload_at in CLOUD_TRACKS
@@ -134,7 +136,8 @@ class RobotSession:
         self._over_budget_told = Throttle(REJECTION_REPLY_INTERVAL_S)
         # A restored session's checkpoint on disk covers all of it.
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
-                                            state.last_index, keyframe_sink)
+                                            state.last_index, keyframe_sink,
+                                            ended=lambda: self.state.ended)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
@@ -178,6 +181,17 @@ class RobotSession:
             self.checkpoints.checkpoint(self.state.last_index)
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
         self.checkpoints.close(timeout)
+
+    def publish(self, key: str, data: bytes) -> None:
+        if not self._dropped.is_set():
+            self._send(key, data)
+
+    def drop(self) -> None:
+        """Stop at once saying anything to the robot (another worker serves it now), and
+        close without a checkpoint (the store would refuse it) on a thread of its own: the
+        caller may be the lease's, which must not wait for the work queued."""
+        self._dropped.set()
+        threading.Thread(target=self.close, name=f"drop-{self.robot_id}", daemon=True).start()
 
     def drain(self, timeout: float = 60.0) -> None:
         """Wait until everything submitted so far is processed (tests, shutdown)."""

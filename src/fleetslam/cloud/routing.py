@@ -122,14 +122,15 @@ class Router:
             self._on_robot_control(robot_id, *pending)
 
     def give_up(self, robot_id: str) -> None:
-        """Another worker serves ``robot_id`` too (a partition healed): drop ours unsaved."""
+        """Another worker serves ``robot_id`` (a partition healed, or this worker was
+        fenced): drop ours unsaved, silent at once."""
         with self.sessions.lock:
             subs = self._robot_subscribers.pop(robot_id, [])
             session = self.sessions.remove(robot_id)
         for sub in subs:
             sub.undeclare()
         if session is not None:
-            session.close()
+            session.drop()
 
     def close_robots(self) -> None:
         """Stop hearing the robots this worker serves."""

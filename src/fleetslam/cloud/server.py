@@ -13,7 +13,9 @@ The server composes its parts and runs their lifecycle:
 
     sessions.py     SessionTable: the robots' sessions (open, restore, read from the store)
     routing.py      Router: each message to its session, the status or the merge
-    placement.py    Placement: which worker serves which robot
+    placement.py    Placement: which worker serves which robot (Zenoh liveliness)
+    fenced_placement.py  FencedPlacement: the same, decided by etcd with fencing
+                    (``placement.coordination``; its store is fenced_store.py)
     idle_reaper.py  IdleReaper: checkpoint and close the sessions of quiet robots
     merge_role.py   MergeRole: which worker merges; the keyframes its merger gets
     fleet_merge.py  FleetMerge, MergeRequests: the merge a client asks for, once per request
@@ -32,10 +34,14 @@ from typing import Any
 import zenoh
 
 from fleetslam.backend.workers import LocalMappingPool
+from fleetslam.cloud.etcd_gateway import EtcdClient
+from fleetslam.cloud.fenced_placement import FencedPlacement, wait_for_etcd
+from fleetslam.cloud.fenced_store import FencedStore
 from fleetslam.cloud.fleet_merge import FleetMerge, MergeRequests
 from fleetslam.cloud.idle_reaper import IdleReaper
 from fleetslam.cloud.merge_role import MergeRole
 from fleetslam.cloud.memory_budget import MB
+from fleetslam.cloud.ownership import Ownership
 from fleetslam.cloud.placement import Placement
 from fleetslam.cloud.robot_session import OVER_BUDGET
 from fleetslam.cloud.routing import Router
@@ -68,7 +74,16 @@ class CloudServer:
         self.endpoint = connect or endpoint or config.transport.endpoint
         self.worker_id = keys.check_worker_id(config.placement.worker_id or default_worker_id())
         self.placement: Placement | None = None
-        self.store = CloudStore(self.out_dir, config.transport.max_checkpoint_bytes)
+        # With a coordination service, etcd decides ownership and whose checkpoint is
+        # current (fenced); without, the store is plain and liveliness decides.
+        self.ownership: Ownership | None = None
+        if config.placement.coordination:
+            self.ownership = Ownership(EtcdClient(config.placement.coordination),
+                                       self.worker_id, config.placement.lease_s)
+            self.store: CloudStore = FencedStore(self.out_dir, self.ownership,
+                                                 config.transport.max_checkpoint_bytes)
+        else:
+            self.store = CloudStore(self.out_dir, config.transport.max_checkpoint_bytes)
         self.stopped = threading.Event()
         self._zenoh: zenoh.Session | None = None
         self.local_mapping: LocalMappingPool | None = None
@@ -80,7 +95,9 @@ class CloudServer:
         self.merging = MergeRole(config, self.view, self.worker_id, self.sessions, self.publish,
                                  lambda: self.placement)
         self.merger = self.merging.merger
-        self.fleet_merge = FleetMerge(config, self.out_dir, self.sessions, self.merger)
+        self.fleet_merge = FleetMerge(config, self.out_dir, self.sessions, self.merger,
+                                      lambda: self.placement is None
+                                      or self.placement.merges())
         # Through self.merge, whatever it is when a request comes (a test slows it down).
         self.merge_requests = MergeRequests(lambda: self.merge(), self.publish)
         self.router = Router(config, self.sessions, self.merging, self.publish,
@@ -113,15 +130,26 @@ class CloudServer:
         # Placement first: a hello heard before it existed was served at once, unowned, and
         # the robot's next frames were dropped while this worker then bid for it (seen in
         # test_processes when a robot's hello met a cloud starting).
-        self.placement = Placement(z, self.worker_id, self.config.placement, self._load,
-                                   self.router.take, self.router.give_up,
-                                   self.router.worth_serving).start()
+        callbacks = (self._load, self.router.take, self.router.give_up,
+                     self.router.worth_serving)
+        if self.ownership is not None:
+            wait_for_etcd(self.ownership, self.config.placement.coordination_start_s)
+            self.placement = FencedPlacement(z, self.worker_id, self.config.placement,
+                                             *callbacks, self.ownership).start()
+        else:
+            self.placement = Placement(z, self.worker_id, self.config.placement,
+                                       *callbacks).start()
+        if isinstance(self.store, FencedStore) and (old := self.store.unfenced_checkpoints()):
+            log.warning("the store %s holds checkpoints written without a coordination service "
+                        "(robots %s): they are not read with one; run those robots' workers "
+                        "without --coordination to finish them", self.out_dir, ", ".join(old))
         self.router.listen(z, every_robot=not self.connect)
         self._reaper.start()
         threading.Thread(target=self._claim_orphans, name="cloud-orphans", daemon=True).start()
-        log.info("cloud worker %s %s %s, store %s", self.worker_id,
+        log.info("cloud worker %s %s %s, store %s%s", self.worker_id,
                  "connected to" if self.connect else "listening on", self.endpoint,
-                 self.out_dir)
+                 self.out_dir, f", ownership by etcd at {self.config.placement.coordination}"
+                 if self.ownership is not None else "")
         return self
 
     def close(self) -> None:
@@ -176,7 +204,7 @@ class CloudServer:
 
     def _merge_request(self, rid: str | None) -> None:
         if not self.merging.is_merger():
-            return  # one worker merges: the live one whose id sorts first
+            return  # one worker merges (merge_role.py)
         self.merge_requests.request(rid)
 
     def _status(self, rid: str | None) -> dict[str, Any]:

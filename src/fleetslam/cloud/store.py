@@ -85,7 +85,10 @@ class CloudStore:
     def save_checkpoint(self, robot_id: str, state: SessionState) -> None:
         self.write_checkpoint(robot_id, session_state.capture(state))
 
-    def write_checkpoint(self, robot_id: str, blob: bytes | Capture) -> None:
+    def write_checkpoint(self, robot_id: str, blob: bytes | Capture, ended: bool = False
+                         ) -> None:
+        """``ended``: the checkpoint is of a finished robot (this layout keeps it inside the
+        checkpoint only; fenced_store.py also tells etcd)."""
         data = blob.to_bytes() if isinstance(blob, Capture) else blob
         if len(data) > self.max_checkpoint_bytes:
             # Written all the same (the newest state is safer on disk than not), but said.

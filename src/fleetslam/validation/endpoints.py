@@ -30,6 +30,19 @@ def host_problem(host: str) -> str | None:
     return f"{host!r} is not a host name or an IP address"
 
 
+def http_endpoint_problem(url: str) -> str | None:
+    """What is wrong with ``url`` as an etcd endpoint ``http://HOST:PORT``, or None."""
+    scheme, sep, address = url.partition("://")
+    if scheme != "http" or not sep:
+        return "not http://HOST:PORT"
+    host, colon, port = address.rstrip("/").rpartition(":")
+    if not colon or not host:
+        return "not http://HOST:PORT"
+    if not (port.isdigit() and 1 <= int(port) <= 65535):
+        return f"port {port!r} is not a number in 1..65535"
+    return host_problem(host.strip("[]"))
+
+
 def endpoint_problem(endpoint: str) -> str | None:
     """What is wrong with the form of ``endpoint``, or None."""
     protocol, slash, address = endpoint.partition("/")

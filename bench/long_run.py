@@ -1,0 +1,159 @@
+"""A long run through real processes: does the cloud's cost per frame stay flat as the map
+grows? One robot plays 7-Scenes redkitchen forwards and back (0-599, 598-1, 0-599, ...)
+for ``--frames`` frames at offloading point 3 to one cloud process over Zenoh on loopback.
+
+    .venv/bin/python bench/long_run.py [--frames 5000] [--block 1000] [--rate max]
+
+Sampled every ``--every`` seconds from outside (``status`` and /proc): per block of
+``--block`` frames the cloud tracked, the wall time per frame, the cloud's CPU time per
+frame (its process and its local-mapping processes), its resident memory at the block's
+end, and its keyframes. The last block against the first is the number that matters: the
+issue's target is "the last 1000 frames no slower than the first 1000". After the run,
+the robot's ATE against ground truth (read only then). Writes bench/results/long_run.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from shared_data import SEVEN_SCENES
+from worker_scaling import tree_cpu_s
+
+from fleetslam.datasets.recording import open_source
+from fleetslam.evaluation.fleet import score_fleet
+from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop_all
+from fleetslam.tables import format_table
+
+SEQUENCE_FRAMES = 600
+
+
+def forth_and_back(frames: int, length: int = SEQUENCE_FRAMES) -> str:
+    """Ranges of a ``length``-frame recording played forwards and back until ``frames``:
+    0-599, 598-1, 0-599, ... (no frame twice in a row at a turn), the last one cut."""
+    ranges, left, forward = [], frames, True
+    while left > 0:
+        a, b = (0, length - 1) if forward else (length - 2, 1)
+        n = min(left, abs(b - a) + 1)
+        b = a + n - 1 if forward else a - n + 1
+        ranges.append(f"{a}-{b}")
+        left -= n
+        forward = not forward
+    return ",".join(ranges)
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory of ``pid`` and its children (MB, Linux /proc)."""
+    total = 0.0
+    pids = [pid]
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    for p in pids:
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) / 1024
+        except OSError:
+            continue
+    return total
+
+
+def run(frames: int, block: int, rate: str, every_s: float, work: Path) -> dict[str, Any]:
+    spec = f"{SEVEN_SCENES}:{forth_and_back(frames)}"
+    endpoint = free_endpoint()
+    out = work / "cloud"
+    cloud = start_cloud(endpoint, out, work / "cloud.log")
+    client = CloudClient(endpoint, reach_deadline_s=60.0)
+    robot = None
+    samples: list[dict[str, float]] = []
+    try:
+        client.status(timeout=60.0, gather_s=0.2)
+        robot = start_robot(endpoint, "r0", spec, 3, work / "r0.log", work / "r0_report.json",
+                            extra=["--rate", rate])
+        start = time.monotonic()
+        next_block = block
+        samples.append({"frames": 0, "t": 0.0, "cpu_s": tree_cpu_s(cloud.pid),
+                        "rss_mb": tree_rss_mb(cloud.pid), "keyframes": 0})
+        while robot.poll() is None:
+            time.sleep(every_s)
+            if time.monotonic() - start > 3 * 3600:
+                raise RuntimeError("the robot is still running after 3 h")
+            try:
+                status = client.status(timeout=10.0, gather_s=0.2)
+            except TimeoutError:
+                continue
+            robot_status = status["robots"].get("r0")
+            if robot_status is None:
+                continue
+            done = robot_status["frames"]
+            merger = (status.get("merge") or {}).get("robots", {}).get("r0", {})
+            if done >= next_block or robot.poll() is not None:
+                samples.append({"frames": done, "t": time.monotonic() - start,
+                                "cpu_s": tree_cpu_s(cloud.pid), "rss_mb": tree_rss_mb(cloud.pid),
+                                "keyframes": merger.get("keyframes", 0)})
+                print(f"  {done} frames at {samples[-1]['t']:.0f} s, cloud RSS "
+                      f"{samples[-1]['rss_mb']:.0f} MB", flush=True)
+                while next_block <= done:
+                    next_block += block
+        if robot.returncode != 0:
+            raise RuntimeError(f"the robot failed (exit {robot.returncode}): see {work}/r0.log")
+        summary = client.merge(timeout=600.0)
+    finally:
+        client.close()
+        stop_all([p for p in (robot, cloud) if p is not None])
+    score_fleet(summary, out, {"r0": open_source(spec)})  # ground truth, read only now
+    blocks = []
+    for a, b in zip(samples, samples[1:]):
+        n = b["frames"] - a["frames"]
+        if n <= 0:
+            continue
+        blocks.append({"frames": f"{a['frames']}-{b['frames']}",
+                       "wall_ms_per_frame": 1000 * (b["t"] - a["t"]) / n,
+                       "cloud_cpu_ms_per_frame": 1000 * (b["cpu_s"] - a["cpu_s"]) / n,
+                       "rss_mb": b["rss_mb"], "keyframes": b["keyframes"]})
+    robot_summary = summary["robots"][0]
+    report = json.loads((work / "r0_report.json").read_text())
+    return {"frames": frames, "rate": rate, "blocks": blocks,
+            "ate_cm": 100 * robot_summary["ate"]["rmse_m"] if robot_summary.get("ate") else None,
+            "cloud_ms_median": robot_summary.get("cloud_ms_median"),
+            "cloud_ms_p95": robot_summary.get("cloud_ms_p95"),
+            "round_trip_ms_p95": report.get("round_trip_ms_p95"),
+            "keyframes": robot_summary.get("keyframes")}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=5000)
+    parser.add_argument("--block", type=int, default=1000)
+    parser.add_argument("--rate", default="max", help="the robot's --rate")
+    parser.add_argument("--every", type=float, default=1.0, help="seconds between samples")
+    parser.add_argument("--out", default="bench/results/long_run.json")
+    args = parser.parse_args()
+    if not SEVEN_SCENES.exists():
+        sys.exit(f"{SEVEN_SCENES} missing: this benchmark needs ../shared/data")
+    work = Path(args.out).parent / "long-runs" / time.strftime("%Y%m%d-%H%M%S")
+    result = run(args.frames, args.block, args.rate, args.every, work)
+    rows = [[b["frames"], b["wall_ms_per_frame"], b["cloud_cpu_ms_per_frame"], b["rss_mb"],
+             b["keyframes"]] for b in result["blocks"]]
+    print(format_table(["frames", "wall ms/frame", "cloud CPU ms/frame", "cloud RSS MB",
+                        "keyframes (merger)"], rows))
+    first, last = result["blocks"][0], result["blocks"][-1]
+    print(f"last block / first block: cloud CPU {last['cloud_cpu_ms_per_frame'] / first['cloud_cpu_ms_per_frame']:.2f}x, "
+          f"wall {last['wall_ms_per_frame'] / first['wall_ms_per_frame']:.2f}x; ATE "
+          f"{result['ate_cm']:.2f} cm; cloud ms median {result['cloud_ms_median']}, p95 "
+          f"{result['cloud_ms_p95']}; round trip p95 {result['round_trip_ms_p95']} ms")
+    Path(args.out).write_text(json.dumps(result, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

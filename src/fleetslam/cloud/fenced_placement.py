@@ -1,0 +1,236 @@
+"""Which cloud worker serves which robot, decided by etcd with fencing (``placement.coordination``).
+
+The same questions as placement.py (serves, owner, claim, release), answered by the
+coordination service instead of liveliness tokens, so a partition can never leave a robot
+with two owners:
+
+- A worker serves a robot only while it holds the robot's grant (ownership.py): an etcd key
+  attached to the worker's lease, whose create revision is the grant's epoch. ``serves`` asks
+  the local lease clock, so a worker cut off from etcd stops serving by itself, a quarter of
+  the lease before etcd may expire the lease and grant the robot to another worker; the
+  fence then drops the robot's session unsaved (``give_up``), and the store
+  (fenced_store.py) refuses any write of the old epoch that was still under way.
+- A claim is one transaction (the first asker wins). A loaded worker waits a little before
+  it asks (``settle_s`` × load / ``LOAD_STEPS``), so new robots still go to the less loaded
+  worker first.
+- Every worker watches the owner keys: a key gone (its worker's lease expired, a release)
+  is a robot to take over if the store has its checkpoint, and the merger's key gone is a
+  merger to become. Zenoh liveliness still says which workers are up (the status), never
+  who owns.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from typing import Any, Callable
+
+import zenoh
+
+from fleetslam.cloud.coordination_service import CoordinationServiceError
+from fleetslam.cloud.etcd_gateway import EtcdError, Event, Watch
+from fleetslam.cloud.ownership import MERGER, Ownership
+from fleetslam.cloud.placement import Placement
+from fleetslam.config import PlacementConfig
+from fleetslam.transport import keys
+
+log = logging.getLogger("fleetslam.placement")
+
+# A worker with this many robots (or more) waits the whole settle_s before it claims a robot.
+LOAD_STEPS = 4
+
+
+class FencedPlacement(Placement):
+    def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
+                 load: Callable[[], int], won: Callable[[str], None],
+                 give_up: Callable[[str], None], wants: Callable[[str], bool],
+                 ownership: Ownership) -> None:
+        """As Placement's, and ``ownership``: this worker's lease and grants (not started:
+        ``start`` starts it)."""
+        super().__init__(z, worker_id, cfg, load, won, give_up, wants)
+        self.ownership = ownership
+        ownership.on_fenced = self._on_fenced
+        # robot -> (worker, epoch, mod revision) as etcd last said; the merger under MERGER.
+        self._owners: dict[str, tuple[str, int, int]] = {}
+        self.elections = {"won": 0, "lost": 0, "failovers": 0, "given_up": 0, "fenced": 0}
+        self._watch: Watch | None = None
+        # Robots claimed because their owner went (a takeover): claimed at once, not after
+        # the load's wait (failover time counts; a new robot's placement does not).
+        self._takeovers: set[str] = set()
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def start(self) -> "FencedPlacement":
+        self.ownership.start()
+        prefix = self.ownership.keys.owner("")
+        self._watch = Watch(self.ownership.client.endpoint, prefix, self._on_events).start()
+        if not self._watch.created.wait(self.ownership.ttl_s * 2):
+            log.warning("the etcd watch of owners at %s is not open yet; retrying",
+                        self.ownership.client.endpoint)
+        # What etcd holds now (a watch event of the same key and a newer revision wins).
+        for kv in self.ownership.client.get_prefix(prefix):
+            self._apply(kv.key.decode()[len(prefix):], False, kv)
+        self._discover()
+        self._elector.start()
+        self.claim(MERGER)
+        return self
+
+    def close(self) -> None:
+        """Give every robot and the merger back at once (revoking the lease)."""
+        self._closed.set()
+        self._bids.put(None)
+        self.ownership.close()
+        if self._watch is not None:
+            self._watch.close()
+        self._undiscover()
+
+    # -- what the worker asks ---------------------------------------------------------------
+
+    def serves(self, robot: str) -> bool:
+        # The local lease clock, not the table: a worker cut off stops serving on time.
+        return self.ownership.epoch(robot) is not None
+
+    def merges(self) -> bool:
+        return self.ownership.epoch(MERGER) is not None
+
+    def owner(self, robot: str) -> str | None:
+        with self._lock:
+            held = self._owners.get(robot)
+        return held[0] if held else None
+
+    def table(self) -> dict[str, str]:
+        with self._lock:
+            return {r: w for r, (w, _, _) in self._owners.items() if r != MERGER}
+
+    def claim(self, robot: str) -> None:
+        with self._lock:
+            if self._closed.is_set() or robot in self._electing or robot in self._owners:
+                return
+            self._electing.add(robot)
+        self._bids.put(robot)
+
+    def release(self, robot: str) -> None:
+        epoch = self.ownership.robots().get(robot)
+        if epoch is None:
+            return
+        try:
+            self.ownership.release(robot, epoch)
+        except EtcdError as exc:  # the grant goes with the lease, or at the next fence
+            log.warning("robot %s: not released (%s); it goes with this worker's lease",
+                        robot, exc)
+
+    # -- etcd's answers ---------------------------------------------------------------------
+
+    def _on_events(self, events: list[Event]) -> None:
+        prefix = self.ownership.keys.owner("")
+        for event in events:
+            self._apply(event.kv.key.decode()[len(prefix):], event.deleted, event.kv)
+
+    def _apply(self, robot: str, deleted: bool, kv: Any) -> None:
+        with self._lock:
+            known = self._owners.get(robot)
+            if known is not None and known[2] >= kv.mod_revision:
+                return  # older than what the table has (the snapshot and the watch overlap)
+            if deleted:
+                self._owners.pop(robot, None)
+            else:
+                self._owners[robot] = (kv.value.decode(), kv.create_revision, kv.mod_revision)
+        mine = self.ownership.robots().get(robot)
+        if not deleted and mine is not None and mine != kv.create_revision:
+            # Another grant of a robot this worker believes it holds: only possible if this
+            # process stood still past its own fence. The newer grant rules.
+            log.error("robot %s: granted to %s epoch %d while this worker held epoch %d: "
+                      "giving it up", robot, kv.value.decode(), kv.create_revision, mine)
+            self.elections["given_up"] += 1
+            self._give_up(robot)
+            return
+        if not deleted or self._closed.is_set() or mine is not None:
+            return
+        if robot == MERGER:
+            self.claim(MERGER)
+        elif self._wants(robot):
+            log.info("robot %s lost its owner: claiming it", robot)
+            self.elections["failovers"] += 1
+            with self._lock:
+                self._takeovers.add(robot)
+            self.claim(robot)
+
+    def _on_fenced(self, robots: list[tuple[str, int]]) -> None:
+        """The lease was not renewed in time: stop serving every robot at once (their
+        sessions go unsaved: the store would refuse their writes anyway)."""
+        for robot, _epoch in robots:
+            if robot == MERGER:
+                continue  # merges() says no from now on
+            self.elections["fenced"] += 1
+            self._give_up(robot)
+
+    # -- the election ---------------------------------------------------------------------------
+
+    def _run_elections(self) -> None:
+        while not self._closed.is_set():
+            try:
+                robot = self._bids.get(timeout=self.ownership.ttl_s)
+            except queue.Empty:
+                # A merger's key deleted while the watch was broken would otherwise wait for
+                # the next event: look now and then.
+                if self.owner(MERGER) is None and not self.merges():
+                    self.claim(MERGER)
+                continue
+            if robot is None:
+                return
+            self._elect(robot)
+
+    def _elect(self, robot: str) -> None:
+        try:
+            for attempt in range(self.cfg.max_rounds):
+                if self._closed.is_set() or (robot != MERGER and self.owner(robot)):
+                    return
+                with self._lock:
+                    takeover = robot in self._takeovers
+                if robot != MERGER and not takeover:  # the less loaded worker asks first
+                    self._closed.wait(self.cfg.settle_s * min(self._load(), LOAD_STEPS)
+                                      / LOAD_STEPS)
+                    if self.owner(robot):
+                        return
+                try:
+                    epoch = self.ownership.grant(robot)
+                except EtcdError as exc:
+                    log.warning("robot %s: etcd not asked (%s); again in %g s (round %d)",
+                                robot, exc, self.cfg.settle_s, attempt + 1)
+                    self._closed.wait(self.cfg.settle_s)
+                    continue
+                if epoch is None:
+                    self.elections["lost"] += 1
+                    return
+                if robot == MERGER:
+                    log.info("worker %s merges (epoch %d)", self.worker_id, epoch)
+                    return
+                self.elections["won"] += 1
+                log.info("worker %s serves robot %s (epoch %d)", self.worker_id, robot, epoch)
+                self._won(robot)
+                return
+        except Exception:
+            log.exception("robot %s: claim failed", robot)
+        finally:
+            with self._lock:
+                self._electing.discard(robot)
+                self._takeovers.discard(robot)
+
+
+def wait_for_etcd(ownership: Ownership, deadline_s: float) -> None:
+    """Until etcd answers ``ownership``'s client (a worker may start before it), or a
+    ConnectionError naming the endpoint and the setting."""
+    deadline = time.monotonic() + deadline_s
+    while True:
+        try:
+            ownership.client.get(ownership.keys.owner(MERGER))
+            return
+        except EtcdError as exc:
+            if time.monotonic() > deadline:
+                raise CoordinationServiceError(
+                    f"placement.coordination {ownership.client.endpoint}: etcd does not answer "
+                    f"after {deadline_s:.0f} s ({exc}); start it (`fleetslam demo --workers N` "
+                    f"starts one) or fix the endpoint") from None
+            time.sleep(0.2)

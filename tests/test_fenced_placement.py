@@ -1,0 +1,127 @@
+"""Workers placed by etcd (cloud/fenced_placement.py): two placements on one Zenoh router and
+one real etcd, one of them talking to etcd through a link the test cuts. The robot goes to
+one worker only; cut off, that worker stops serving it (its session dropped) before the
+other is granted the robot, which happens within about the lease; healed, the old owner
+does not take it back; the merger's role moves the same way."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from conftest import wait_for
+from link_cutter import LinkCutter
+
+from fleetslam.cloud.coordination_service import EtcdService, etcd_binary
+from fleetslam.cloud.etcd_gateway import EtcdClient
+from fleetslam.cloud.fenced_placement import FencedPlacement
+from fleetslam.cloud.ownership import Keys, Ownership
+from fleetslam.config import PlacementConfig
+from fleetslam.launch import free_endpoint
+from fleetslam.transport.zenoh_session import open_connecting, open_router
+
+pytestmark = pytest.mark.skipif(
+    etcd_binary() is None,
+    reason="the etcd program is not installed (scripts/setup-system.sh installs etcd-server)")
+
+CFG = PlacementConfig(settle_s=0.1)
+
+
+class Worker:
+    """A FencedPlacement on its own Zenoh session, recording when it won and gave up."""
+
+    def __init__(self, router: str, etcd: str, name: str, keys: Keys) -> None:
+        self.z = open_connecting(router, 20.0)
+        self.events: list[tuple[float, str, str]] = []
+        self.lock = threading.Lock()
+        ownership = Ownership(EtcdClient(etcd), name, CFG.lease_s, keys=keys)
+        self.placement = FencedPlacement(
+            self.z, name, CFG, lambda: 0, lambda r: self._note("won", r),
+            lambda r: self._note("gave up", r), lambda r: True, ownership).start()
+
+    def _note(self, what: str, robot: str) -> None:
+        with self.lock:
+            self.events.append((time.monotonic(), what, robot))
+
+    def when(self, what: str, robot: str) -> float | None:
+        with self.lock:
+            return next((t for t, w, r in self.events if w == what and r == robot), None)
+
+    def count(self, what: str, robot: str) -> int:
+        with self.lock:
+            return sum(1 for _, w, r in self.events if w == what and r == robot)
+
+    def close(self) -> None:
+        self.placement.close()
+        self.z.close()
+
+
+@pytest.fixture(scope="module")
+def etcd(tmp_path_factory):
+    with EtcdService(tmp_path_factory.mktemp("run") / "etcd") as service:
+        yield service
+
+
+def test_a_cut_off_owner_stops_serving_before_the_robot_moves_and_never_takes_it_back(
+        etcd, request):
+    keys = Keys(f"test/{request.node.name}/")
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    link = LinkCutter(etcd.client_port)
+    a = Worker(endpoint, link.endpoint, "wa", keys)
+    b = None
+    try:
+        wait_for(lambda: a.placement.merges(), 10, "wa to become the merger")
+        a.placement.claim("r1")
+        wait_for(lambda: a.placement.serves("r1"), 10, "wa to serve r1")
+        b = Worker(endpoint, etcd.endpoint, "wb", keys)
+        wait_for(lambda: b.placement.owner("r1") == "wa", 10, "wb to hear wa owns r1")
+        b.placement.claim("r1")  # a robot's hello heard by both: wa keeps it
+        time.sleep(0.5)
+        assert not b.placement.serves("r1") and b.when("won", "r1") is None
+        assert not b.placement.merges()
+
+        cut = time.monotonic()
+        link.cut()
+        wait_for(lambda: b.when("won", "r1") is not None, 3 * CFG.lease_s,
+                 "wb to take r1 over after wa's lease expired")
+        gave_up, taken = a.when("gave up", "r1"), b.when("won", "r1")
+        assert gave_up is not None and gave_up < taken  # never two servers at once
+        assert not a.placement.serves("r1") and b.placement.serves("r1")
+        assert taken - cut < CFG.lease_s + 1.5  # failover about the lease
+        wait_for(lambda: b.placement.merges(), 3 * CFG.lease_s, "wb to become the merger")
+        assert not a.placement.merges()
+        epoch_b = b.placement.ownership.robots()["r1"]
+
+        link.heal()  # wa gets a new lease, and nothing of what it held
+        wait_for(lambda: a.placement.ownership.live(), 3 * CFG.lease_s, "wa's new lease")
+        a.placement.claim("r1")
+        time.sleep(1.0)
+        assert not a.placement.serves("r1") and a.count("won", "r1") == 1  # the first
+        assert b.placement.ownership.robots()["r1"] == epoch_b
+        assert a.placement.table()["r1"] == "wb"
+    finally:
+        for w in (a, b):
+            if w is not None:
+                w.close()
+        link.close()
+        router.close()
+
+
+def test_a_closed_workers_robot_goes_to_the_other_at_once(etcd, request):
+    keys = Keys(f"test/{request.node.name}/")
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    a = Worker(endpoint, etcd.endpoint, "wa", keys)
+    b = Worker(endpoint, etcd.endpoint, "wb", keys)
+    try:
+        a.placement.claim("r2")
+        wait_for(lambda: a.placement.serves("r2"), 10, "wa to serve r2")
+        closed = time.monotonic()
+        a.close()  # revokes its lease: no need to wait for it to expire
+        wait_for(lambda: b.placement.serves("r2"), 5, "wb to take r2")
+        assert b.when("won", "r2") - closed < 1.0
+    finally:
+        b.close()
+        router.close()
