@@ -28,8 +28,8 @@ the cut after A was granted it (ownership from the workers' logs, bench/ownershi
 Frames lost: frames the robot sent that no feedback answered; answered twice: frames with
 more than one feedback. Acknowledged keyframes lost: keyframes in the robot's report
 (robot_report.json) acknowledged by the cloud, missing from the robot's final checkpoint in
-the store (liveliness: ``<robot>/session.ckpt``; etcd: the file ``fleetslam/current/<robot>``
-names), read after every worker stopped. One owner: no robot's ownership intervals of two
+the store (fenced_store.stored_run: liveliness, ``<robot>/session.ckpt``; etcd, the file
+``fleetslam/current/<robot>`` names), read after every worker stopped. One owner: no robot's ownership intervals of two
 workers overlap. Merge groups and joint ATE as bench/failover.py (ground truth only after).
 Writes bench/results/partition.json (``--out``).
 """
@@ -50,16 +50,17 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "src"), str(ROOT / "tests"), str(ROOT / "bench")]
+# The processes it starts run this tree's fleetslam too (an editable install may point at
+# another checkout).
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    [str(ROOT / "src"), *filter(None, [os.environ.get("PYTHONPATH")])])
 
 import ownership_log  # noqa: E402
 from netns_link import NamespaceLink, remove_leftovers, unavailable  # noqa: E402
 from shared_data import SEVEN_SCENES  # noqa: E402
 
 from fleetslam.cloud.coordination_service import EtcdService  # noqa: E402
-from fleetslam.cloud.etcd_gateway import EtcdClient  # noqa: E402
-from fleetslam.cloud.fenced_store import Pointer  # noqa: E402
-from fleetslam.cloud.ownership import Keys  # noqa: E402
-from fleetslam.cloud.store import CloudStore  # noqa: E402
+from fleetslam.cloud.fenced_store import FencedStore, stored_run  # noqa: E402
 from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.evaluation.fleet import score_fleet  # noqa: E402
 from fleetslam.launch import (CloudClient, free_endpoint, start_robot,  # noqa: E402
@@ -152,6 +153,14 @@ class FeedbackObserver:
                     counts[index] = counts.get(index, 0) + 1
         return counts
 
+    def longest_silence(self, start: float, end: float) -> float:
+        """The longest time in [start, end] without feedback to any robot (the whole fleet
+        waiting, not one robot)."""
+        with self._lock:
+            times = sorted(t for t, _, _ in self.feedback if start <= t <= end)
+        marks = [start, *times, end] if times else [start, end]
+        return max(b - a for a, b in zip(marks, marks[1:]))
+
     def first_after(self, robot: str, t: float) -> float | None:
         with self._lock:
             return next((ft for ft, r, _ in self.feedback if r == robot and ft > t), None)
@@ -190,20 +199,17 @@ def _await_workers(client: CloudClient, workers: set[str], deadline_s: float) ->
 def _acknowledged_lost(out: Path, robot: str, report: dict[str, Any], etcd: str | None
                        ) -> dict[str, Any]:
     """The robot's acknowledged keyframes that its final checkpoint does not hold, read the
-    way its placement's store does (etcd: the pointer names the file)."""
-    store = CloudStore(out)
+    way its placement's store does (fenced_store.stored_run: with etcd, the checkpoint the
+    pointer ``fleetslam/current/<robot>`` names; else ``<robot>/session.ckpt``)."""
     try:
-        if etcd is None:
+        with stored_run(out, etcd) as store:
             state = store.load_checkpoint(robot)
-            where = "session.ckpt"
-        else:
-            kv = EtcdClient(etcd).get(Keys().current(robot))
-            if kv is None:
-                state, where = None, "no pointer"
+            if isinstance(store, FencedStore):
+                pointer = store.current(robot)
+                where = "no pointer" if pointer is None else \
+                    f"{pointer.file} (worker {pointer.worker}, ended {pointer.ended})"
             else:
-                pointer = Pointer.parse(kv.value, f"etcd {Keys().current(robot)}")
-                state = store.load_checkpoint_file(store.robot_dir(robot) / pointer.file)
-                where = f"{pointer.file} (worker {pointer.worker}, ended {pointer.ended})"
+                where = "session.ckpt" if state is not None else "none"
     except Exception as exc:  # a damaged or missing checkpoint is a finding, not a crash
         return {"checkpoint": f"unreadable: {exc}", "lost": len(report.get("acknowledged", [])),
                 "checkpoint_keyframes": 0}
@@ -452,6 +458,9 @@ class Run:
             "link_events": [(round(t - self.events["start"], 3), what)
                             for t, what in link.events],
             "robots": robots, "merge": merge,
+            # After the cut, the longest the whole fleet heard no feedback at all.
+            "fleet_silence_s": None if cut is None or observer is None else round(
+                observer.longest_silence(cut, min(cut + 30.0, self.events["robots done"])), 3),
             "ownership": [{**asdict(iv), "start": round(iv.start - self.events["start"], 3),
                            "end": None if iv.end is None
                            else round(iv.end - self.events["start"], 3)} for iv in ivs],
@@ -488,6 +497,7 @@ def table(result: dict[str, Any]) -> str:
             f"one owner at a time: {'yes' if result['one_owner'] else f'NO ({overlaps})'}"
             f"; merge groups {' | '.join(merge.get('groups', [])) or '-'}"
             f"; joint ATE {_fmt(merge.get('joint_ate_cm'))} cm"
+            f"; no feedback to any robot for {_fmt(result['fleet_silence_s'])} s after the cut"
             f"; load {result['load_before'][0]:.1f} -> {result['load_after'][0]:.1f}")
     return head + "\n" + format_table(
         ["robot", "owner at cut", "failover s", "frames sent", "frames lost", "answered twice",
