@@ -25,6 +25,9 @@ feedback, B's link is cut on the host side (``ip link set <veth> down``):
 Measured: a passive Zenoh client on the host (the observer) records every feedback to the
 robots (time, robot, frame index). Failover: cut -> the first feedback to a robot B owned at
 the cut after A was granted it (ownership from the workers' logs, bench/ownership_log.py).
+The robot's longest pause (robot_report.json: the longest time between two feedbacks) and
+the fleet's longest silence after the cut (no feedback to any robot) say what the robots
+felt: the router goes on forwarding to B until Zenoh's own lease (10 s) expires B's session.
 Frames lost: frames the robot sent that no feedback answered; answered twice: frames with
 more than one feedback. Acknowledged keyframes lost: keyframes in the robot's report
 (robot_report.json) acknowledged by the cloud, missing from the robot's final checkpoint in
