@@ -8,7 +8,8 @@ Four robot processes play overlapping pieces of 7-Scenes redkitchen at offloadin
 (``--rate`` frames per second each), over mutual TLS on loopback, as ``fleetslam demo``
 runs them (demo.py). Settings, side by side:
   1 cloud       one cloud process (the router itself);
-  2 workers     a Zenoh router and two cloud workers sharing one store;
+  2 workers     a Zenoh router and two cloud workers sharing one store, placed by etcd
+                or by liveliness alone (``--placement``);
   2 workers, kill   the same, and once the robots have sent ``--kill-at`` of their frames,
                 the worker serving the most robots is killed with SIGKILL.
 Each run ends with a merge; ground truth is read only afterwards (evaluation/fleet.py).
@@ -68,15 +69,16 @@ def acknowledged_lost(store: CloudStore, robot: dict[str, Any]) -> int:
     return len(set(robot["robot"].get("acknowledged", [])) - kept)
 
 
-def run(name: str, workers: int, kill_at: float | None, rate: str, work: Path
-        ) -> dict[str, Any]:
+def run(name: str, workers: int, kill_at: float | None, rate: str, work: Path,
+        coordination: bool = True) -> dict[str, Any]:
     sources = [f"{SEVEN_SCENES}:{piece}" for piece in PIECES]
     total = sum(int(p.split("-")[1]) - int(p.split("-")[0]) + 1 for p in PIECES)
     killer = Killer(kill_at, total) if kill_at is not None else None
     out = work / name.replace(" ", "_").replace(",", "")
     print(f"{name}: {len(sources)} robots at {rate} fps ...", flush=True)
     summary = run_demo(sources, out, "3", None, link_args=["--rate", rate],
-                       show_progress=False, workers=workers, watch=killer)
+                       show_progress=False, workers=workers, watch=killer,
+                       coordination=coordination)
     robots = {}
     with stored_run(out) as store:  # with etcd (2 workers): the checkpoints it names
         lost = {r["name"]: acknowledged_lost(store, r) for r in summary["robots"]}
@@ -103,6 +105,9 @@ def main() -> None:
     parser.add_argument("--kill-at", type=float, default=0.4,
                         help="kill when the robots have sent this share of their frames")
     parser.add_argument("--runs", type=int, default=1, help="repeat every setting")
+    parser.add_argument("--placement", default="etcd",
+                        help="comma list of etcd, liveliness: how the workers agree on robots "
+                             "(each worker setting is run with each, alternating)")
     parser.add_argument("--out", default="bench/results/failover.json")
     args = parser.parse_args()
     if not SEVEN_SCENES.exists():
@@ -110,10 +115,15 @@ def main() -> None:
     out = Path(args.out)
     work = out.parent / "failover-runs" / time.strftime("%Y%m%d-%H%M%S")
     results: list[tuple[str, dict]] = []
+    placements = [p for p in args.placement.split(",") if p]
+    if not placements or not set(placements) <= {"etcd", "liveliness"}:
+        sys.exit(f"--placement {args.placement}: give etcd, liveliness or both")
     for i in range(args.runs):
-        for name, workers, kill in (("1 cloud", 1, None), ("2 workers", 2, None),
-                                    ("2 workers, kill", 2, args.kill_at)):
-            results.append((name, run(f"{name} {i}", workers, kill, args.rate, work)))
+        settings = [("1 cloud", 1, None, True)] + [
+            (f"2 workers{', kill' if kill else ''}, {p}", 2, kill, p == "etcd")
+            for kill in (None, args.kill_at) for p in placements]
+        for name, workers, kill, fenced in settings:
+            results.append((name, run(f"{name} {i}", workers, kill, args.rate, work, fenced)))
     rows = []
     for name, r in results:
         victims = set((r["killed"] or {}).get("robots", []))

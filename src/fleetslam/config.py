@@ -532,8 +532,9 @@ class TransportConfig:
     max_control_per_s: Annotated[float, above(0.0)] = 20.0
     # Keyframe uploads the cloud stores per robot (about 0.2 MB each at the map's stride).
     max_keyframes: Annotated[int, at_least(1)] = 20_000
-    # A session checkpoint larger than this is refused unread, and no more than this is
-    # ever read from one (nothing in it is decompressed: cloud/store.py). A session's
+    # A session checkpoint larger than this (with all the chunks it names) is refused
+    # unread, and no more than this is ever read of one (nothing in it is decompressed:
+    # cloud/store.py). A session's
     # checkpoint grows by ~0.19 MB a keyframe (fr1_rpy, 150 frames: 37 keyframes, 7.1 MB),
     # so a session at max_keyframes needs ~3.8 GB.
     max_checkpoint_bytes: Annotated[int, at_least(1 << 20)] = 4 << 30
@@ -580,6 +581,12 @@ class PlacementConfig:
     # stops serving 3/4 of it after its last renewal; its robots go to another worker once
     # etcd expires it, so a lost machine's robots fail over in about this.
     lease_s: Annotated[int, between(2, 600)] = 2
+    # The Zenoh lease a worker announces to its router: the router drops the link of a
+    # worker it has not heard from this long. Until then the router may wait on that link
+    # (a reliable message blocks behind a full queue), holding up every robot's messages
+    # (measured: the whole fleet silent ~10 s, Zenoh's default lease, after a worker's
+    # machine was cut off). Keep-alives go 4 times per lease.
+    zenoh_lease_s: Annotated[float, between(0.5, 600.0)] = 2.0
     # The etcd a run starts (cloud/coordination_service.py) must be healthy within this.
     coordination_start_s: Annotated[float, above(0.0)] = 10.0
 

@@ -66,14 +66,16 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
              timeout_s: float = 1800.0, zenoh_config: str | None = None,
              secure: bool = True, cloud_args: list[str] | None = None,
              workers: int = 1,
-             watch: Callable[[dict[str, Any], list[subprocess.Popen]], None] | None = None
-             ) -> dict[str, Any]:
+             watch: Callable[[dict[str, Any], list[subprocess.Popen]], None] | None = None,
+             coordination: bool = True) -> dict[str, Any]:
     """Cloud and robots as processes on loopback. ``secure``: over TLS, with a lab made for
     this run in ``out/tls`` (unless a Zenoh config file says how to connect).
     ``cloud_args``: more options of the cloud process (the live view's --view, --save).
     ``workers`` > 1: a Zenoh router and that many cloud workers sharing ``out`` as their
     store; the robots connect to the router and the workers share them out. ``watch``: called
-    with each status while the robots run, and the worker processes (a benchmark kills one)."""
+    with each status while the robots run, and the worker processes (a benchmark kills one).
+    ``coordination``: the workers are placed by an etcd started for the run (else by Zenoh
+    liveliness alone: benchmarks compare the two)."""
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=False)
     endpoint = free_endpoint()
@@ -84,12 +86,12 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
         configs = {name: str(path) for name, path in lab.items()}
     logs = out / "logs"
-    coordination = None
+    etcd = None
     if workers > 1:
-        coordination = _start_coordination(out, config_path)
+        etcd = _start_coordination(out, config_path) if coordination else None
         worker_args = list(cloud_args or [])
-        if coordination is not None:
-            worker_args += ["--coordination", coordination.endpoint]
+        if etcd is not None:
+            worker_args += ["--coordination", etcd.endpoint]
         cloud = start_router(endpoint, logs / "router.log", configs["cloud"])
         cloud_workers = [start_worker(endpoint, f"w{i}", out, logs / f"w{i}.log", config_path,
                                       extra=worker_args, zenoh_config=configs["worker"])
@@ -149,8 +151,8 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         if client is not None:
             client.close()
         stop_all([*cloud_workers, cloud])
-        if coordination is not None:
-            coordination.stop()
+        if etcd is not None:
+            etcd.stop()
     summary.pop("outputs", None)  # where the cloud wrote them: ``out``
     score_fleet(summary, out, sequences)  # ground truth, read only now
     add_robot_reports(summary, out)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -33,15 +33,18 @@ NewKeyframe = tuple[KeyframeSummary, np.ndarray]
 class CheckpointWriter:
     def __init__(self, robot_id: str, store: CloudStore, snapshot: Callable[[], Capture],
                  durable_index: int, keyframe_sink: KeyframeSink | None = None,
-                 ended: Callable[[], bool] = lambda: False) -> None:
+                 ended: Callable[[], bool] = lambda: False,
+                 written: Callable[[Iterable[str]], None] = lambda names: None) -> None:
         """``snapshot``: the session's state as a checkpoint now; ``durable_index``: the
         newest frame index a checkpoint on disk covers already (a restored session: all);
-        ``ended``: whether the robot has finished (taken with each snapshot)."""
+        ``ended``: whether the robot has finished (taken with each snapshot); ``written``:
+        told the chunks of each checkpoint written (later snapshots leave them out)."""
         self.robot_id = robot_id
         self.store = store
         self.keyframe_sink = keyframe_sink
         self._snapshot = snapshot
         self._ended = ended
+        self._chunks_written = written
         self._queue: queue.Queue = queue.Queue()
         self._durable_index = durable_index
         # Checkpoints queued and written, counted: the end's checkpoint is awaited by number
@@ -102,6 +105,7 @@ class CheckpointWriter:
             except OSError:
                 log.exception("robot %s: checkpoint not written", self.robot_id)
             else:
+                self._chunks_written(blob.chunks if isinstance(blob, Capture) else ())
                 with self._durable:
                     self._durable_index = max(self._durable_index, index)
                     self._written = max(self._written, number)

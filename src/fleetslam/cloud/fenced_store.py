@@ -113,6 +113,8 @@ class FencedStore(CloudStore):
             self._seq[(robot_id, epoch)] = seq
         name = f"session.{epoch}.{seq:06d}.ckpt"
         path = self.robot_dir(robot_id) / name
+        # Chunks are named by content: a stale writer's are the same files, never wrong.
+        self.write_chunks(robot_id, blob)
         self.write_checkpoint_file(robot_id, path, blob)
         owner = self.keys.owner(robot_id)
         pointer = Pointer(epoch, seq, name, ended, self.ownership.worker_id)

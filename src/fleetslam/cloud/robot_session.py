@@ -135,9 +135,12 @@ class RobotSession:
         # A robot over its memory budget hears so at most once per interval too.
         self._over_budget_told = Throttle(REJECTION_REPLY_INTERVAL_S)
         # A restored session's checkpoint on disk covers all of it.
+        # The checkpoints' parts that never change are written once (session_state.Chunks).
+        self.chunks = session_state.Chunks(lambda name: store.has_chunk(state.robot_id, name))
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
                                             state.last_index, keyframe_sink,
-                                            ended=lambda: self.state.ended)
+                                            ended=lambda: self.state.ended,
+                                            written=self.chunks.confirm)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
@@ -282,7 +285,7 @@ class RobotSession:
         """The state as a checkpoint now; under the counts lock, since the keyframe thread
         counts while this copies."""
         with self._counts_lock:
-            return session_state.capture(self.state)
+            return session_state.capture(self.state, self.chunks)
 
     # -- threads ------------------------------------------------------------------------
 

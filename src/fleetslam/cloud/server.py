@@ -123,7 +123,8 @@ class CloudServer:
         transport = self.config.transport
         if self.connect:
             self._zenoh = open_connecting(self.connect, transport.reach_deadline_s,
-                                          transport.zenoh_config or None)
+                                          transport.zenoh_config or None,
+                                          self.config.placement.zenoh_lease_s)
         else:
             self._zenoh = open_listening(self.endpoint, transport.zenoh_config or None)
         z = self._zenoh

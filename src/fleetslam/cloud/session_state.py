@@ -5,9 +5,13 @@ classes listed here.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import hashlib
+import threading
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -68,6 +72,157 @@ class SessionState:
     ended: bool = False
 
 
+@dataclass
+class RowBlock:
+    """``ROW_BLOCK`` consecutive trajectory rows, all tracked already: they never change
+    again, so a checkpoint keeps them as a chunk written once (only in checkpoints; a loaded
+    session's rows are rows again)."""
+
+    rows: list[TrajectoryRow]
+
+
+# Rows per chunk of the trajectory: a long run's checkpoint names a few hundred chunks
+# instead of holding thousands of small arrays.
+ROW_BLOCK = 256
+
+
+@dataclass
+class ArrayBlock:
+    """Rows [start, start + len(rows)) of an array that only ever grows at its end (the
+    place database's descriptors and their owners): a chunk."""
+
+    start: int
+    rows: np.ndarray
+
+
+@dataclass
+class AppendOnly:
+    """Such an array in a checkpoint: its full blocks (chunks) and the rows after them."""
+
+    blocks: list[ArrayBlock]
+    tail: np.ndarray
+
+
+# Rows per block of an append-only array (1 MB of descriptors).
+ARRAY_BLOCK = 32768
+# The place database's arrays that only grow at their end (KeyframeDatabase.add replaces
+# them by longer ones whose first rows are the old ones; each block is compared anyway).
+_APPEND_ONLY = ("descriptors", "owner")
+
+
+def _digest(*parts: bytes) -> str:
+    h = hashlib.blake2b(digest_size=8)
+    for part in parts:
+        h.update(part)
+    return h.hexdigest()
+
+
+def _content_name(value: Any) -> str | None:
+    """A chunk's name from its content (the same content, the same name: a chunk file any
+    worker writes is the one every other would write)."""
+    if type(value) is FeatureFrame:
+        f = value
+        return f"f{f.index:07d}-" + _digest(
+            np.float64(f.timestamp).tobytes(), *(np.ascontiguousarray(a).tobytes() for a in
+                                                 (f.keypoints, f.descriptors, f.depth, f.uv)))
+    if type(value) is RowBlock:
+        rows = value.rows
+        poses = np.stack([r.T_world_camera for r in rows])
+        refs = np.stack([np.full((4, 4), np.nan) if r.T_reference_camera is None
+                         else r.T_reference_camera for r in rows])
+        table = np.array([(r.index, r.timestamp, r.tracked, r.is_keyframe,
+                           r.reference_keyframe) for r in rows], np.float64)
+        return f"r{rows[0].index:07d}-" + _digest(table.tobytes(), poses.tobytes(),
+                                                 refs.tobytes())
+    if type(value) is ArrayBlock:
+        rows = np.ascontiguousarray(value.rows)
+        return f"a{value.start:07d}-" + _digest(f"{rows.dtype.str}{rows.shape}".encode(),
+                                                rows.tobytes())
+    return None
+
+
+class Chunks:
+    """A session's chunker (wire/data_tree.Chunker): each keyframe's features and each full
+    block of its trajectory are chunks, named once by their content and written once, so a
+    checkpoint's cost stays about that of what changed since the last (the map's landmark
+    arrays and keyframe poses, which do change, stay in every checkpoint)."""
+
+    def __init__(self, exists: Callable[[str], bool]) -> None:
+        """``exists``: whether the store holds a chunk (asked once per unknown name)."""
+        self._exists = exists
+        self._names: dict[int, tuple[Any, str]] = {}  # id(value) -> (value, its name)
+        self._seen: dict[int, tuple[Any, str]] = {}
+        self._written: set[str] = set()
+        self._blocks: dict[int, RowBlock] = {}  # first row's position -> its block
+        self._keyframe_features: set[int] = set()  # ids of the keyframes' features now
+        self._array_blocks: dict[tuple[str, int], ArrayBlock] = {}  # (array, start) -> block
+        self._lock = threading.Lock()
+
+    def name_of(self, value: Any) -> str | None:
+        if type(value) is not RowBlock and type(value) is not ArrayBlock \
+                and id(value) not in self._keyframe_features:
+            return None  # the last frame's features change with every frame
+        known = self._names.get(id(value))
+        name = known[1] if known is not None and known[0] is value else _content_name(value)
+        self._seen[id(value)] = (value, name)
+        return name
+
+    def written(self, name: str) -> bool:
+        with self._lock:
+            if name in self._written:
+                return True
+        if self._exists(name):
+            self.confirm([name])
+            return True
+        return False
+
+    def confirm(self, names: Iterable[str]) -> None:
+        """These chunks are durably written (a checkpoint naming them was)."""
+        with self._lock:
+            self._written.update(names)
+
+    def capture(self, state: SessionState) -> data_tree.Capture:
+        view = copy.copy(state)  # shallow: only what is put in blocks is replaced
+        view.rows = self._blocked(state.rows)
+        places = state.tracking.places
+        if type(places) is KeyframeDatabase:
+            view.tracking = copy.copy(state.tracking)
+            view.tracking.places = copy.copy(places)
+            for name in _APPEND_ONLY:
+                setattr(view.tracking.places, name,
+                        self._append_only(name, getattr(places, name)))
+        self._keyframe_features = {id(kf.features) for kf in state.tracking.map.keyframes} | \
+            {id(kf.features) for kf in state.robot_keyframes}
+        self._seen = {}
+        try:
+            return data_tree.capture(view, CHECKPOINT_CLASSES, self)
+        finally:
+            # Names of values no longer in the session (culled keyframes) are forgotten.
+            self._names, self._seen = self._seen, {}
+
+    def _blocked(self, rows: list[TrajectoryRow]) -> list[Any]:
+        full = len(rows) // ROW_BLOCK * ROW_BLOCK
+        out: list[Any] = []
+        for start in range(0, full, ROW_BLOCK):
+            block = self._blocks.get(start)
+            if block is None or block.rows[0] is not rows[start] \
+                    or block.rows[-1] is not rows[start + ROW_BLOCK - 1]:
+                block = self._blocks[start] = RowBlock(rows[start:start + ROW_BLOCK])
+            out.append(block)
+        return out + rows[full:]
+
+    def _append_only(self, name: str, array: np.ndarray) -> AppendOnly:
+        full = len(array) // ARRAY_BLOCK * ARRAY_BLOCK
+        blocks = []
+        for start in range(0, full, ARRAY_BLOCK):
+            rows = array[start:start + ARRAY_BLOCK]
+            block = self._array_blocks.get((name, start))
+            if block is None or not np.array_equal(block.rows, rows):
+                block = self._array_blocks[(name, start)] = ArrayBlock(start, rows.copy())
+            blocks.append(block)
+        return AppendOnly(blocks, array[full:])
+
+
 _CONFIGS = [c for c in vars(config).values()
             if isinstance(c, type) and dataclasses.is_dataclass(c)
             and c.__module__ == config.__name__]
@@ -76,22 +231,69 @@ _CONFIGS = [c for c in vars(config).values()
 CHECKPOINT_CLASSES = data_tree.classes_of(
     SessionState, TrajectoryRow, Hello, Camera, BackEndState, FrontEndState, LocalMap,
     Keyframe, FeatureFrame, KeyframeSummary, KeyframeDatabase, LoopClosingState,
-    LoopDetection, PoseEdge, BowDatabase, *_CONFIGS,
+    LoopDetection, PoseEdge, BowDatabase, RowBlock, ArrayBlock, AppendOnly, *_CONFIGS,
     aliases={"CloudSession": BackEndState, "EdgeSession": FrontEndState})
 
 
-def capture(state: SessionState) -> data_tree.Capture:
+def capture(state: SessionState, chunks: Chunks | None = None) -> data_tree.Capture:
     """The session as it is now (quick: the file's bytes are made later, by
-    ``Capture.to_bytes`` on the checkpoint writer's thread)."""
+    ``Capture.to_bytes`` on the checkpoint writer's thread). With ``chunks``, the parts
+    that never change are chunks (only those not yet written are captured)."""
+    if chunks is not None:
+        return chunks.capture(state)
     return data_tree.capture(state, CHECKPOINT_CLASSES)
 
 
-def load(data: bytes, where: str, max_bytes: int) -> SessionState:
+# A chunk's bytes by name (where: the file it came from); CheckpointError if it is missing.
+ReadChunk = Callable[[str, int], tuple[bytes, str]]
+_CHUNK_TYPES = {"f": FeatureFrame, "r": RowBlock, "a": ArrayBlock}
+
+
+def load(data: bytes, where: str, max_bytes: int, read_chunk: ReadChunk | None = None
+         ) -> SessionState:
     """A checkpoint's session (its shape is checked by checkpoint_shape.py); a
     CheckpointError naming ``where`` and what is wrong if it is not one. ``max_bytes``: the
-    most the file and all it holds may take (``transport.max_checkpoint_bytes``)."""
-    state = data_tree.loads(data, where, CHECKPOINT_CLASSES, max_bytes)
+    most the file and all it holds, its chunks too, may take
+    (``transport.max_checkpoint_bytes``). ``read_chunk(name, limit)``: the chunks it names."""
+    left = [max_bytes - len(data)]
+
+    def load_chunk(name: str) -> Any:
+        if read_chunk is None:
+            raise data_tree.CheckpointError(where, f"names chunk {name}, and there are none")
+        chunk, chunk_where = read_chunk(name, left[0])
+        left[0] -= len(chunk)
+        value = data_tree.loads(chunk, chunk_where, CHECKPOINT_CLASSES, max_bytes)
+        try:
+            same = type(value) is _CHUNK_TYPES.get(name[0]) and _content_name(value) == name
+        except (AttributeError, TypeError, ValueError):  # parts of the wrong kind
+            same = False
+        if not same:
+            raise data_tree.CheckpointError(chunk_where, "not the chunk its name says")
+        return value
+
+    state = data_tree.loads(data, where, CHECKPOINT_CLASSES, max_bytes, load_chunk)
     if not isinstance(state, SessionState):
         raise data_tree.CheckpointError(where, f"holds a {type(state).__name__}, not a "
                                                f"robot's session")
+    if isinstance(state.rows, list):  # blocks of rows back to rows (shape checked later)
+        state.rows = [r for item in state.rows
+                      for r in (item.rows if isinstance(item, RowBlock)
+                                and isinstance(item.rows, list) else [item])]
+    places = getattr(getattr(state, "tracking", None), "places", None)
+    for name in _APPEND_ONLY:
+        if isinstance(getattr(places, name, None), AppendOnly):
+            setattr(places, name, _joined(getattr(places, name), where))
     return state
+
+
+def _joined(array: AppendOnly, where: str) -> np.ndarray:
+    """The array an AppendOnly holds, its blocks in place (CheckpointError if they are not
+    consecutive arrays of one kind)."""
+    parts = [b.rows for b in array.blocks if isinstance(b, ArrayBlock)] + [array.tail]
+    starts = [b.start for b in array.blocks if isinstance(b, ArrayBlock)]
+    if len(starts) != len(array.blocks) or not all(isinstance(p, np.ndarray) for p in parts) \
+            or starts != [sum(len(p) for p in parts[:i]) for i in range(len(starts))] \
+            or len({(p.dtype, p.shape[1:]) for p in parts}) != 1:
+        raise data_tree.CheckpointError(where, "damaged checkpoint (an array in blocks that "
+                                               "do not join)")
+    return np.concatenate(parts)

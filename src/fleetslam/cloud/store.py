@@ -5,6 +5,10 @@ Layout under the cloud's output folder:
     <robot>/keyframes/<frame index>.fskf   KEYFRAME messages as received (checksummed)
     <robot>/session.ckpt                   checkpoint of the robot's cloud session (data:
                                            JSON + arrays, versioned; see session_state.py)
+    <robot>/chunks/<name>.chunk            the parts of checkpoints that never change (a
+                                           keyframe's features, a block of the trajectory),
+                                           named by their content, written once, before
+                                           the first checkpoint that names them
     <robot>/session.ckpt.damaged-<time>    a checkpoint that could not be restored and its
     <robot>/keyframes.damaged-<time>       keyframes, kept aside (never deleted) when its
                                            robot started afresh
@@ -52,6 +56,25 @@ def write_durably(path: Path, data: bytes) -> None:
         os.close(dir_fd)
 
 
+def _read_bounded(path: Path, limit: int, of_what: str) -> bytes:
+    """The file's bytes; CheckpointError naming it if it is missing, unreadable or over
+    ``limit`` bytes (never more than that is read)."""
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            if size > limit:
+                limit_of = f"the limit {of_what} of" if of_what else "the limit of"
+                raise CheckpointError(str(path), f"{size} bytes exceeds {limit_of} {limit} "
+                                                 f"(transport.max_checkpoint_bytes)")
+            # What the file holds, never more than the limit (read() allocates what it is
+            # asked for; a file growing meanwhile is cut and refused as damaged).
+            return f.read(size + 1)
+    except FileNotFoundError:
+        raise CheckpointError(str(path), "missing") from None
+    except OSError as exc:
+        raise CheckpointError(str(path), f"cannot be read ({exc})") from None
+
+
 class CloudStore:
     def __init__(self, root: Path,
                  max_checkpoint_bytes: int = TransportConfig.max_checkpoint_bytes) -> None:
@@ -82,6 +105,27 @@ class CloudStore:
         found = (_KEYFRAME_FILE.match(p.name) for p in folder.iterdir())
         return sorted(int(m.group(1)) for m in found if m)
 
+    def _chunk_path(self, robot_id: str, name: str) -> Path:
+        return self.robot_dir(robot_id) / "chunks" / f"{name}.chunk"
+
+    def has_chunk(self, robot_id: str, name: str) -> bool:
+        return self._chunk_path(robot_id, name).exists()
+
+    def write_chunks(self, robot_id: str, blob: bytes | Capture) -> None:
+        """The chunks a checkpoint names that it carries, each written once (the same name,
+        the same content: one already there is kept)."""
+        if isinstance(blob, Capture):
+            for name, chunk in blob.chunks.items():
+                path = self._chunk_path(robot_id, name)
+                if not path.exists():
+                    write_durably(path, chunk.to_bytes())
+
+    def read_chunk(self, robot_id: str, name: str, limit: int) -> tuple[bytes, str]:
+        """A chunk's bytes and its file's name; CheckpointError if it is missing or over
+        ``limit`` bytes."""
+        path = self._chunk_path(robot_id, name)
+        return _read_bounded(path, limit, "of the checkpoint and its chunks"), str(path)
+
     def save_checkpoint(self, robot_id: str, state: SessionState) -> None:
         self.write_checkpoint(robot_id, session_state.capture(state))
 
@@ -89,6 +133,7 @@ class CloudStore:
                          ) -> None:
         """``ended``: the checkpoint is of a finished robot (this layout keeps it inside the
         checkpoint only; fenced_store.py also tells etcd)."""
+        self.write_chunks(robot_id, blob)
         data = blob.to_bytes() if isinstance(blob, Capture) else blob
         if len(data) > self.max_checkpoint_bytes:
             # Written all the same (the newest state is safer on disk than not), but said.
@@ -118,19 +163,10 @@ class CloudStore:
     def load_checkpoint_file(self, path: Path) -> SessionState:
         """The checkpoint in ``path`` (CheckpointError as load_checkpoint, also if there is
         none)."""
-        limit = self.max_checkpoint_bytes
-        try:
-            with open(path, "rb") as f:
-                size = os.fstat(f.fileno()).st_size
-                if size > limit:
-                    raise CheckpointError(str(path), f"{size} bytes exceeds the limit of "
-                                                     f"{limit} (transport.max_checkpoint_bytes)")
-                # What the file holds, never more than the limit (read() allocates what it
-                # is asked for; a file growing meanwhile is cut and refused as damaged).
-                data = f.read(size + 1)
-        except OSError as exc:
-            raise CheckpointError(str(path), f"cannot be read ({exc})") from None
-        state = session_state.load(data, str(path), self.max_checkpoint_bytes)
+        data = _read_bounded(path, self.max_checkpoint_bytes, "")
+        robot_id = path.parent.name
+        state = session_state.load(data, str(path), self.max_checkpoint_bytes,
+                                   lambda name, limit: self.read_chunk(robot_id, name, limit))
         return checkpoint_shape.check(state, str(path))
 
     def set_aside(self, robot_id: str) -> list[Path]:
@@ -145,7 +181,7 @@ class CloudStore:
             n += 1
             stamp = f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{n}"
         moved = []
-        for name in (CHECKPOINT, "keyframes"):
+        for name in (CHECKPOINT, "keyframes", "chunks"):
             aside = folder / f"{name}.damaged-{stamp}"
             try:
                 os.rename(folder / name, aside)

@@ -103,11 +103,16 @@ def wait_until_reachable(endpoint: str, deadline_s: float, attempt_s: float = 2.
 
 
 def open_connecting(endpoint: str, deadline_s: float = 600.0,
-                    zenoh_config: str | None = None) -> zenoh.Session:
+                    zenoh_config: str | None = None, lease_s: float | None = None
+                    ) -> zenoh.Session:
     """Connect to ``endpoint`` once something answers there (saying so while it waits, up to
-    ``deadline_s``); the session then reconnects by itself if the cloud restarts."""
+    ``deadline_s``); the session then reconnects by itself if the cloud restarts.
+    ``lease_s``: the lease this session announces (None: Zenoh's, 10 s): the router drops
+    the link that long after it last heard from this session."""
     wait_until_reachable(endpoint, deadline_s, zenoh_config=zenoh_config)
     config = _base_config(zenoh_config)
+    if lease_s is not None:
+        config.insert_json5("transport/link/tx/lease", str(int(lease_s * 1000)))
     config.insert_json5("connect/endpoints", json.dumps([endpoint]))
     config.insert_json5("connect/exit_on_failure", "false")
     config.insert_json5("connect/timeout_ms", "-1")

@@ -16,7 +16,7 @@ import io
 import json
 import re
 from collections import Counter
-from typing import Any
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -24,6 +24,12 @@ from fleetslam.wire import npz_reader
 
 FORMAT = "fleetslam-session-checkpoint"
 VERSION = 1
+# A tree that names chunks (immutable parts kept in files of their own, written once: a
+# session's keyframe features and full blocks of its trajectory) is version 2, so an older
+# fleetslam refuses it by its version, not as damaged.
+CHUNKED_VERSION = 2
+# A chunk's name (it becomes a file name): nothing that could leave the chunks' folder.
+CHUNK_NAME = re.compile(r"[a-z]\d{7,12}-[0-9a-f]{16}")
 _TREE = "__tree__"
 # Deepest nesting of arrays and objects a tree may have: a session's is 14 (fr1_rpy, 150
 # frames), and decoding recurses once per level, far below Python's limit of 1000.
@@ -55,15 +61,29 @@ def classes_of(*types: type, aliases: dict[str, type] | None = None) -> Classes:
     return {**(aliases or {}), **{t.__name__: t for t in types}}
 
 
+class Chunker(Protocol):
+    """Which objects of a tree are kept as chunks (immutable, written once, named by their
+    content), and which chunks are surely written already."""
+
+    def name_of(self, value: Any) -> str | None:
+        """The chunk name of ``value`` (matching CHUNK_NAME), None to keep it in the tree."""
+
+    def written(self, name: str) -> bool:
+        """Whether chunk ``name`` is durably written (a capture then leaves it out)."""
+
+
 @dataclasses.dataclass
 class Capture:
     """A state as it was when captured: its object tree (JSON) and copies of its arrays.
     Capturing is quick (the tracking thread does it at every keyframe); writing the file
     (:meth:`to_bytes`, most of the time: one zip member per array) can wait for another
-    thread, since nothing here changes with the live state."""
+    thread, since nothing here changes with the live state. ``chunks``: the chunks the tree
+    names that are not known to be written yet, each captured on its own (write them, by
+    name, before the tree that names them)."""
 
     tree: str
     arrays: dict[str, np.ndarray]
+    chunks: dict[str, "Capture"] = dataclasses.field(default_factory=dict)
 
     def to_bytes(self) -> bytes:
         buffer = io.BytesIO()
@@ -76,14 +96,22 @@ def dumps(state: Any, classes: Classes) -> bytes:
     return capture(state, classes).to_bytes()
 
 
-def capture(state: Any, classes: Classes) -> Capture:
+def capture(state: Any, classes: Classes, chunker: Chunker | None = None) -> Capture:
     """``state`` as a tree and copies of its arrays; TypeError for anything ``classes`` does
-    not list."""
+    not list. With ``chunker``, the objects it names are chunks: the tree names them, and
+    those not yet written are captured in ``Capture.chunks``."""
     arrays: dict[str, np.ndarray] = {}
+    chunks: dict[str, Capture] = {}
 
     def enc(v: Any) -> Any:
         if v is None or isinstance(v, (bool, str, int, float)):
             return v
+        if chunker is not None and (name := chunker.name_of(v)) is not None:
+            if not CHUNK_NAME.fullmatch(name):
+                raise TypeError(f"chunk name {name!r} is not one")
+            if name not in chunks and not chunker.written(name):
+                chunks[name] = capture(v, classes)
+            return {"__chunk__": name}
         if isinstance(v, bytes):
             return {"__bytes__": v.hex()}
         if isinstance(v, np.generic):
@@ -109,8 +137,10 @@ def capture(state: Any, classes: Classes) -> Capture:
             return {"__obj__": name, "attributes": {k: enc(x) for k, x in attributes.items()}}
         raise TypeError(f"a {type(v).__module__}.{name} cannot be checkpointed")
 
-    tree = json.dumps({"format": FORMAT, "version": VERSION, "state": enc(state)})
-    return Capture(tree, arrays)
+    encoded = enc(state)
+    version = VERSION if chunker is None else CHUNKED_VERSION
+    tree = json.dumps({"format": FORMAT, "version": version, "state": encoded})
+    return Capture(tree, arrays, chunks)
 
 
 class CheckpointError(ValueError):
@@ -139,9 +169,16 @@ def nesting_depth(text: bytes) -> int:
     return deepest
 
 
-def loads(data: bytes, where: str, classes: Classes, max_bytes: int) -> Any:
+# Reads a chunk a tree names: its object (CheckpointError if it is missing or not one).
+ChunkLoader = Callable[[str], Any]
+
+
+def loads(data: bytes, where: str, classes: Classes, max_bytes: int,
+          load_chunk: ChunkLoader | None = None) -> Any:
     """The state :func:`dumps` saved; CheckpointError naming ``where`` for anything else.
-    ``max_bytes`` bounds the data and all it holds (nothing in it is decompressed)."""
+    ``max_bytes`` bounds the data and all it holds (nothing in it is decompressed).
+    ``load_chunk``: where the chunks a tree names come from (None: a tree naming one is
+    refused; so is a chunk naming another)."""
     # The tree is parsed into Python objects several times its size: its own bound.
     tree_bytes = max(1, max_bytes // TREE_SHARE)
     try:
@@ -160,20 +197,23 @@ def loads(data: bytes, where: str, classes: Classes, max_bytes: int) -> Any:
         raise CheckpointError(where, f"not a fleetslam session checkpoint ({exc})") from None
     if not isinstance(tree, dict) or tree.get("format") != FORMAT:
         raise CheckpointError(where, "not a fleetslam session checkpoint")
-    if tree.get("version") != VERSION:
+    if tree.get("version") not in (VERSION, CHUNKED_VERSION):
         raise CheckpointError(where, f"checkpoint format version {tree.get('version')!r}; "
-                                     f"this fleetslam reads version {VERSION}: not restored")
-    return _Decoder(files, where, classes).value(tree.get("state"))
+                                     f"this fleetslam reads versions {VERSION} and "
+                                     f"{CHUNKED_VERSION}: not restored")
+    return _Decoder(files, where, classes, load_chunk).value(tree.get("state"))
 
 
 class _Decoder:
     """Rebuilds a tree :func:`capture` made; every malformed node is a CheckpointError.
     Recursion is bounded: the tree's depth was checked before it was parsed."""
 
-    def __init__(self, arrays: dict[str, np.ndarray], where: str, classes: Classes) -> None:
+    def __init__(self, arrays: dict[str, np.ndarray], where: str, classes: Classes,
+                 load_chunk: ChunkLoader | None = None) -> None:
         self.arrays = arrays
         self.where = where
         self.classes = classes
+        self.load_chunk = load_chunk
 
     def fail(self, reason: str) -> CheckpointError:
         return CheckpointError(self.where, f"damaged checkpoint ({reason})")
@@ -198,6 +238,13 @@ class _Decoder:
             if array is None:
                 raise self.fail(f"array {v['__nd__']!r} missing or named twice")
             return array
+        if len(v) == 1 and "__chunk__" in v:
+            name = v["__chunk__"]
+            if not isinstance(name, str) or not CHUNK_NAME.fullmatch(name):
+                raise self.fail("a chunk name that is not one")
+            if self.load_chunk is None:
+                raise self.fail(f"chunk {name} named where none may be")
+            return self.load_chunk(name)
         if len(v) == 1 and "__bytes__" in v:
             text = v["__bytes__"]
             if not isinstance(text, str) or not _HEX.fullmatch(text):
