@@ -56,12 +56,13 @@ def start_router(endpoint: str, log_path: Path, zenoh_config: str | None = None
 
 def start_worker(router: str, worker_id: str, out_dir: Path, log_path: Path,
                  config_path: str | None = None, extra: list[str] | None = None,
-                 zenoh_config: str | None = None, cpus: list[int] | None = None
-                 ) -> subprocess.Popen:
+                 zenoh_config: str | None = None, cpus: list[int] | None = None,
+                 prefix: list[str] | None = None) -> subprocess.Popen:
     """A cloud worker connected to the router at ``router``, sharing the store ``out_dir``;
-    ``cpus``: pinned to these cores (Linux)."""
+    ``cpus``: pinned to these cores (Linux); ``prefix``: a command that runs it (``ip netns
+    exec NS``: a worker on a machine of its own for a partition experiment)."""
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    cmd = _python(config_path, zenoh_config) + ["cloud", "--connect", router, "--worker-id",
+    cmd = (prefix or []) + _python(config_path, zenoh_config) + ["cloud", "--connect", router, "--worker-id",
                                                 worker_id, "--out", str(out_dir),
                                                 *(extra or [])]
     pin = (lambda: os.sched_setaffinity(0, cpus)) if cpus else None

@@ -53,8 +53,12 @@ class EtcdService:
     ``etcd.endpoint`` is the URL clients use."""
 
     def __init__(self, data_dir: Path, start_deadline_s: float = 10.0,
-                 binary: str = BINARY) -> None:
+                 binary: str = BINARY, also_listen: tuple[str, ...] = ()) -> None:
+        """``also_listen``: IP addresses of this machine where clients reach it too, on the
+        same port (a partition experiment's worker in a network namespace), besides
+        loopback."""
         self.data_dir = Path(data_dir)
+        self.also_listen = tuple(also_listen)
         self.start_deadline_s = start_deadline_s
         self.binary = binary
         self.client_port = 0
@@ -82,8 +86,10 @@ class EtcdService:
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
         self.client_port, self.peer_port = _free_port(), _free_port()
         peer = f"http://127.0.0.1:{self.peer_port}"
+        clients = ",".join([self.endpoint] + [f"http://{host}:{self.client_port}"
+                                              for host in self.also_listen])
         args = [path, "--name", "fleetslam", "--data-dir", str(self.data_dir),
-                "--listen-client-urls", self.endpoint, "--advertise-client-urls", self.endpoint,
+                "--listen-client-urls", clients, "--advertise-client-urls", clients,
                 "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
                 "--initial-cluster", f"fleetslam={peer}",
                 "--initial-cluster-state", "new", "--logger", "zap", "--log-outputs", "stderr",
