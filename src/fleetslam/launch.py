@@ -62,9 +62,9 @@ def start_worker(router: str, worker_id: str, out_dir: Path, log_path: Path,
     ``cpus``: pinned to these cores (Linux); ``prefix``: a command that runs it (``ip netns
     exec NS``: a worker on a machine of its own for a partition experiment)."""
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    cmd = (prefix or []) + _python(config_path, zenoh_config) + ["cloud", "--connect", router, "--worker-id",
-                                                worker_id, "--out", str(out_dir),
-                                                *(extra or [])]
+    cmd = (prefix or []) + _python(config_path, zenoh_config) + [
+        "cloud", "--connect", router, "--worker-id", worker_id, "--out", str(out_dir),
+        *(extra or [])]
     pin = (lambda: os.sched_setaffinity(0, cpus)) if cpus else None
     return subprocess.Popen(cmd, stdout=open(log_path, "ab"), stderr=subprocess.STDOUT,
                             env=_env(), preexec_fn=pin)

@@ -43,8 +43,9 @@ class MergeRole:
 
     def is_merger(self) -> bool:
         """The worker the placement names merges (the live worker whose id sorts first, or
-        the holder of the merger's grant with a coordination service); a worker that becomes it (the last
-        one died or stopped) first takes every other robot's keyframes from the store."""
+        the holder of the merger's grant with a coordination service); a worker that
+        becomes it (the last one died or stopped, or was fenced) first takes every other
+        robot's keyframes from the store."""
         placement = self._placement()
         merging = placement is None or placement.merges()
         if merging and not self._merging:
