@@ -1,5 +1,6 @@
-"""Which worker merges, and the keyframes its merger gets. Of the fleet's workers the live
-one whose id sorts first runs the map merger (merger_service.py); it takes its own sessions'
+"""Which worker merges, and the keyframes its merger gets. One worker of the fleet runs the
+map merger (merger_service.py): with a coordination service the holder of the merger's
+fenced grant (fenced_placement.py), else the live one whose id sorts first. It takes its own sessions'
 keyframes as they are checkpointed, the other workers publish theirs to it
 (``fleet/cloud/keyframes/<robot>``), and a worker that becomes the merger (the last one died or
 stopped) first takes every robot's keyframes from the store. A lone cloud is the merger.

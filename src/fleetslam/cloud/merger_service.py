@@ -3,8 +3,8 @@ on tracking; it queries the other robots' places, joins robots and keeps the glo
 graph. A slow query never holds up a robot's frames, and a failure on one keyframe is
 logged and counted, never raised into a session.
 
-With several cloud workers, one of them merges (merge_role.py: the live worker whose id
-sorts first); the others publish their robots' keyframes to it (wire/merger_keyframes.py),
+With several cloud workers, one of them merges (merge_role.py: the holder of the merger's
+grant, or the live worker whose id sorts first); the others publish their robots' keyframes to it (wire/merger_keyframes.py),
 and a worker that becomes the merger takes every robot's keyframes from the store first.
 """
 
