@@ -33,7 +33,8 @@ log = logging.getLogger("fleetslam.cloud")
 class MergeRole:
     def __init__(self, config: Config, view: NullView, worker_id: str, sessions: SessionTable,
                  publish: Publish, placement: Callable[[], Placement | None]) -> None:
-        """``placement``: the worker's placement once it has one (None: a lone cloud)."""
+        """``publish``: to the merging worker (droppable: a gap is filled from the store);
+        ``placement``: the worker's placement once it has one (None: a lone cloud)."""
         self.worker_id = worker_id
         self.sessions = sessions
         self.store = sessions.store

@@ -124,7 +124,11 @@ def open_connecting(endpoint: str, deadline_s: float = 600.0,
         raise RuntimeError(f"cannot connect to {endpoint}: {exc}") from exc
 
 
-def put(session: zenoh.Session, key: str, data: bytes) -> None:
+def put(session: zenoh.Session, key: str, data: bytes, droppable: bool = False) -> None:
     """Publish without Zenoh dropping it under a burst: the emulated link decides losses,
-    the transport must not add its own."""
-    session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+    the transport must not add its own. ``droppable``: a message its receiver can do
+    without (it recovers it otherwise): dropped rather than waited for behind a full queue.
+    A router forwards a message that may not be dropped by waiting on each receiver's
+    queue, so one unreachable receiver would hold up its sender's other messages."""
+    session.put(key, data, congestion_control=zenoh.CongestionControl.DROP if droppable
+                else zenoh.CongestionControl.BLOCK)
