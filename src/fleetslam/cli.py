@@ -262,7 +262,8 @@ def cmd_router(args: argparse.Namespace, config: Config) -> int:
 
     _setup_logging(args.quiet)
     endpoint = args.listen or config.transport.endpoint
-    session = open_router(endpoint, args.connect, config.transport.zenoh_config or None)
+    session = open_router(endpoint, args.connect, config.transport.zenoh_config or None,
+                          config.transport.router_block_s)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

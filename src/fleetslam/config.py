@@ -487,6 +487,13 @@ class TransportConfig:
     connect_timeout_s: Annotated[float, above(0.0)] = 2.0
     # How long a robot or a cloud worker waits for anything to answer at the endpoint.
     reach_deadline_s: Annotated[float, at_least(0.0)] = 600.0
+    # A router (the lone cloud, `fleetslam router`) that has waited this long to hand a
+    # message to one receiver whose queue is full (an unreachable worker or robot) drops
+    # that receiver's link; it reconnects by itself. The wait holds one of the router's
+    # threads, and with a few such waits (a 2-core machine's router has 2) every robot's
+    # messages stop (measured: the whole fleet silent ~10 s after a worker's machine was cut
+    # off, with Zenoh's default of 5 s).
+    router_block_s: Annotated[float, between(0.1, 60.0)] = 1.0
     # How long `fleetslam status` and `merge` wait for the cloud's first answer, reaching
     # its endpoint included (their --deadline), before saying what to check ...
     ask_deadline_s: Annotated[float, above(0.0)] = 20.0

@@ -126,7 +126,8 @@ class CloudServer:
                                           transport.zenoh_config or None,
                                           self.config.placement.zenoh_lease_s)
         else:
-            self._zenoh = open_listening(self.endpoint, transport.zenoh_config or None)
+            self._zenoh = open_listening(self.endpoint, transport.zenoh_config or None,
+                                         transport.router_block_s)
         z = self._zenoh
         # Placement first: a hello heard before it existed was served at once, unowned, and
         # the robot's next frames were dropped while this worker then bid for it (seen in

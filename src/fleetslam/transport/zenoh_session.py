@@ -36,11 +36,21 @@ def _base_config(path: str | None = None, mode: str = "client") -> zenoh.Config:
     return config
 
 
-def open_listening(endpoint: str, zenoh_config: str | None = None) -> zenoh.Session:
-    """A router listening on ``endpoint`` (a lone cloud, or ``fleetslam router``)."""
+def _router_config(zenoh_config: str | None, block_s: float | None) -> zenoh.Config:
+    config = _base_config(zenoh_config, "router")
+    if block_s is not None:  # transport.router_block_s says why
+        config.insert_json5("transport/link/tx/queue/congestion_control/block/"
+                            "wait_before_close", str(int(block_s * 1e6)))
+    return config
+
+
+def open_listening(endpoint: str, zenoh_config: str | None = None,
+                   block_s: float | None = None) -> zenoh.Session:
+    """A router listening on ``endpoint`` (a lone cloud, or ``fleetslam router``);
+    ``block_s``: ``transport.router_block_s``."""
     # The command line checked its flags already; this covers every other caller.
     check_endpoint(endpoint, "endpoint", zenoh_config)
-    config = _base_config(zenoh_config, "router")
+    config = _router_config(zenoh_config, block_s)
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
     try:
         return zenoh.open(config)
@@ -49,11 +59,13 @@ def open_listening(endpoint: str, zenoh_config: str | None = None) -> zenoh.Sess
 
 
 def open_router(endpoint: str, others: list[str] | None = None,
-                zenoh_config: str | None = None) -> zenoh.Session:
-    """A router of its own on ``endpoint``, joined to the ``others`` (kept retrying)."""
+                zenoh_config: str | None = None, block_s: float | None = None
+                ) -> zenoh.Session:
+    """A router of its own on ``endpoint``, joined to the ``others`` (kept retrying);
+    ``block_s``: ``transport.router_block_s``."""
     for each in [endpoint, *(others or [])]:
         check_endpoint(each, "endpoint", zenoh_config)
-    config = _base_config(zenoh_config, "router")
+    config = _router_config(zenoh_config, block_s)
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
     if others:
         config.insert_json5("connect/endpoints", json.dumps(others))
