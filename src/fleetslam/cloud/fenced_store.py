@@ -35,7 +35,7 @@ from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, compare, delete
                                           range_op)
 from fleetslam.cloud.ownership import NotOwner, Ownership
 from fleetslam.cloud.session_state import SessionState
-from fleetslam.cloud.store import CloudStore, write_durably
+from fleetslam.cloud.store import CloudStore
 from fleetslam.config import TransportConfig
 from fleetslam.wire.data_tree import Capture, CheckpointError
 
@@ -146,15 +146,6 @@ class FencedStore(CloudStore):
                         self.ownership.worker_id, epoch, why, " (ended)" if ends else "")
             raise NotOwner(f"robot {robot_id}: checkpoint of epoch {epoch} refused: {why}")
         self._keep_few(robot_id, path)
-
-    def write_checkpoint_file(self, robot_id: str, path: Path, blob: bytes | Capture) -> None:
-        """The blob, durably, to ``path`` (the size check of CloudStore.write_checkpoint)."""
-        data = blob.to_bytes() if isinstance(blob, Capture) else blob
-        if len(data) > self.max_checkpoint_bytes:
-            log.error("robot %s: a checkpoint of %d bytes, over transport.max_checkpoint_bytes"
-                      " (%d): a restart will not restore it", robot_id, len(data),
-                      self.max_checkpoint_bytes)
-        write_durably(path, data)
 
     def _drop(self, path: Path) -> None:
         # Never current, and never to be: a stale blob left behind would only mislead.

@@ -134,13 +134,17 @@ class CloudStore:
         """``ended``: the checkpoint is of a finished robot (this layout keeps it inside the
         checkpoint only; fenced_store.py also tells etcd)."""
         self.write_chunks(robot_id, blob)
+        self.write_checkpoint_file(robot_id, self.robot_dir(robot_id) / CHECKPOINT, blob)
+
+    def write_checkpoint_file(self, robot_id: str, path: Path, blob: bytes | Capture) -> None:
+        """The blob, durably, to ``path``; one over ``max_checkpoint_bytes`` is written all
+        the same (the newest state is safer on disk than not), but said."""
         data = blob.to_bytes() if isinstance(blob, Capture) else blob
         if len(data) > self.max_checkpoint_bytes:
-            # Written all the same (the newest state is safer on disk than not), but said.
             log.error("robot %s: a checkpoint of %d bytes, over transport.max_checkpoint_bytes"
                       " (%d): a restart will not restore it", robot_id, len(data),
                       self.max_checkpoint_bytes)
-        write_durably(self.robot_dir(robot_id) / CHECKPOINT, data)
+        write_durably(path, data)
 
     def has_checkpoint(self, robot_id: str) -> bool:
         return (self.robot_dir(robot_id) / CHECKPOINT).exists()
