@@ -144,6 +144,7 @@ class FencedPlacement(Placement):
             log.error("robot %s: granted to %s epoch %d while this worker held epoch %d: "
                       "giving it up", robot, kv.value.decode(), kv.create_revision, mine)
             self.elections["given_up"] += 1
+            self.release(robot)  # out of this worker's grants too: serves() says no from now
             self._give_up(robot)
             return
         if not deleted or self._closed.is_set() or mine is not None:
