@@ -155,8 +155,8 @@ def test_a_checkpoint_holds_the_map_and_no_worker_handle(pool, tmp_path):
 
 def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
     """TUM fr1_rpy 0-149: the same frames, once with local BA at each keyframe and once with
-    it in the worker. The worker's solutions must land (nearly every keyframe's, none
-    in-line) and late landing must not cost accuracy (ATE within +25 % of in-line)."""
+    it in the worker. Every keyframe's request is accounted for, most solutions land (none
+    in-line), and late landing must not cost accuracy (ATE within +25 % of in-line)."""
     folder = require(TUM_RPY)
     ates = {}
     for mode in ("inline", "async"):
@@ -170,8 +170,18 @@ def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
         ates[mode] = run_ate(run)["rmse_m"]
         summary = run.loop_closing["local_mapping"]
         if mode == "async":
-            assert summary["applied"] >= 0.8 * len(run.keyframe_indices) - 1, summary
+            # Every keyframe after the first asked for a local BA; none got lost on the way:
+            # it was solved and applied, or replaced while it waited by a newer keyframe's
+            # (latest-only, as ORB-SLAM's mapper drops its BA for new keyframes). How many
+            # are replaced depends on how fast this machine tracks against how fast the
+            # worker solves, so the rate-free floor is that most land.
+            asked = len(run.keyframe_indices) - 1
+            assert summary["submitted"] + summary["superseded"] + summary["empty"] == asked, \
+                summary
+            assert summary["applied"] + summary["stale"] == summary["submitted"], summary
+            assert summary["applied"] > summary["superseded"], summary
             assert summary["inline"] == 0 and summary["failed"] == 0
+            assert summary["abandoned"] == 0, summary
             # The loop closer's database queries ran in the worker too, and every answer
             # was verified on the tracking thread.
             queries = summary["loop_queries"]

@@ -58,8 +58,10 @@ class LocalMapper:
     def __init__(self, session: BackEndState, workers: SessionWorkers | None = None) -> None:
         self.session = session
         self.workers = workers
+        # "empty": a keyframe whose window had nothing to adjust (no solve asked).
         self.counts: dict[str, int] = {"submitted": 0, "applied": 0, "superseded": 0,
-                                       "stale": 0, "abandoned": 0, "failed": 0, "inline": 0}
+                                       "stale": 0, "abandoned": 0, "failed": 0, "inline": 0,
+                                       "empty": 0}
         # The solve in flight and the newest keyframe whose solve waits for it.
         self.jobs = LatestOnly("local BA", session.config.tracking.local_ba_timeout_s,
                                self.counts, overdue="abandoned")
@@ -123,6 +125,7 @@ class LocalMapper:
     def _submit(self, kf_id: int) -> None:
         problem = build_problem(self.session, kf_id)
         if problem is None:
+            self.counts["empty"] += 1
             return
         future = self.workers.submit_local_ba(problem) if self.workers is not None else None
         if future is not None:
