@@ -32,6 +32,7 @@ from fleet import Fleet, robot_messages, robot_messages_for
 from shared_data import SEVEN_SCENES, TUM_RPY
 
 from fleetslam.cloud.coordination_service import EtcdService
+from fleetslam.cloud.worker_load import tree_cpu_seconds as tree_cpu_s
 from fleetslam.launch import (
     CloudClient,
     free_endpoint,
@@ -42,30 +43,8 @@ from fleetslam.launch import (
 from fleetslam.tables import format_table
 from fleetslam.transport.zenoh_session import open_connecting
 
-TICK = os.sysconf("SC_CLK_TCK")
 # A fleet at 10 fps per robot counts as sustained when its latency p95 stays under this.
 SUSTAINED_P95_MS = 300.0
-
-
-def tree_cpu_s(pid: int) -> float:
-    """User + system CPU seconds of ``pid`` and every process below it (Linux /proc)."""
-    parent: dict[int, int] = {}
-    cpu: dict[int, float] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        parent[int(entry.name)] = int(fields[1])
-        cpu[int(entry.name)] = (int(fields[11]) + int(fields[12])) / TICK
-    total, todo = 0.0, [pid]
-    while todo:
-        p = todo.pop()
-        total += cpu.get(p, 0.0)
-        todo += [c for c, pp in parent.items() if pp == p]
-    return total
 
 
 def prepare(n: int, frames: int) -> list[tuple[list[bytes], dict]]:

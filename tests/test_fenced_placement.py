@@ -2,7 +2,8 @@
 one real etcd, one of them talking to etcd through a link the test cuts. The robot goes to
 one worker only; cut off, that worker stops serving it (its session dropped) before the
 other is granted the robot, which happens within about the lease; healed, the old owner
-does not take it back; the merger's role moves the same way."""
+does not take it back; the merger's role moves the same way. Robots arriving together go by
+the workers' measured loads."""
 
 from __future__ import annotations
 
@@ -31,13 +32,14 @@ CFG = PlacementConfig(settle_s=0.1)
 class Worker:
     """A FencedPlacement on its own Zenoh session, recording when it won and gave up."""
 
-    def __init__(self, router: str, etcd: str, name: str, keys: Keys) -> None:
+    def __init__(self, router: str, etcd: str, name: str, keys: Keys, busy: float = 0.0,
+                 cfg: PlacementConfig = CFG) -> None:
         self.z = open_connecting(router, 20.0)
         self.events: list[tuple[float, str, str]] = []
         self.lock = threading.Lock()
-        ownership = Ownership(EtcdClient(etcd), name, CFG.lease_s, keys=keys)
+        ownership = Ownership(EtcdClient(etcd), name, cfg.lease_s, keys=keys)
         self.placement = FencedPlacement(
-            self.z, name, CFG, lambda: 0, lambda r: self._note("won", r),
+            self.z, name, cfg, lambda: busy, lambda r: self._note("won", r),
             lambda r: self._note("gave up", r), lambda r: True, ownership).start()
 
     def _note(self, what: str, robot: str) -> None:
@@ -123,5 +125,38 @@ def test_a_closed_workers_robot_goes_to_the_other_at_once(etcd, request):
         wait_for(lambda: b.placement.serves("r2"), 5, "wb to take r2")
         assert b.when("won", "r2") - closed < 1.0
     finally:
+        b.close()
+        router.close()
+
+
+@pytest.mark.parametrize("busy", [0.0, 1.6])
+def test_robots_arriving_together_go_by_measured_load(etcd, request, busy):
+    """Eight robots heard by both workers at once. Equally loaded, they spread; with one
+    worker measuring 1.6 cores busy (4 robots' worth at placement.robot_cost_cores), the
+    other takes robots until it weighs as much, then they alternate: 2 for the busy one."""
+    keys = Keys(f"test/{request.node.name}/")
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    cfg = PlacementConfig(settle_s=0.3)
+    a = Worker(endpoint, etcd.endpoint, "wa", keys, busy, cfg)
+    b = Worker(endpoint, etcd.endpoint, "wb", keys, 0.0, cfg)
+    robots = [f"r{i}" for i in range(8)]
+    try:
+        wait_for(lambda: all(o in w.placement.live_workers() and o in w.placement.loads.reports
+                             for w, o in ((a, "wb"), (b, "wa"))), 10,
+                 "the workers to hear each other's load")
+        for robot in robots:
+            a.placement.claim(robot)
+            b.placement.claim(robot)
+        wait_for(lambda: all(a.placement.serves(r) or b.placement.serves(r) for r in robots),
+                 20, "every robot to be served")
+        assert not any(a.placement.serves(r) and b.placement.serves(r) for r in robots)
+        n_a = sum(a.placement.serves(r) for r in robots)
+        if busy == 0.0:
+            assert 3 <= n_a <= 5, n_a
+        else:
+            assert n_a <= 3, n_a
+    finally:
+        a.close()
         b.close()
         router.close()

@@ -12,7 +12,11 @@ from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.ate import absolute_trajectory_error
 from fleetslam.backend.geometric_verification import ransac_rigid
 from fleetslam.backend.loop_closing import LoopDetection, correct
-from fleetslam.backend.place_recognition import KeyframeDatabase, snapshot
+from fleetslam.backend.place_recognition import (
+    ApproximateKeyframeDatabase,
+    KeyframeDatabase,
+    snapshot,
+)
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.system import track_robot
 from fleetslam.registration.metrics import random_perturbation
@@ -48,6 +52,31 @@ def test_place_recognition_finds_the_keyframe_that_shares_the_features():
     db.add("kf6", places[3])
     assert len(frozen) == 6 and frozen.query(query)[0].key == "kf3"
     assert len(db) == 7 and "kf6" in [c.key for c in db.query(query)]
+
+
+def test_the_approximate_place_index_votes_as_the_exact_one():
+    """The merger's index, exact for its first 10 keyframes, then a graph grown keyframe by
+    keyframe: the same best place and nearly the same votes as the exact search."""
+    rng = np.random.default_rng(1)
+    cfg = PlaceRecognitionConfig()
+    exact, approximate = KeyframeDatabase(cfg), ApproximateKeyframeDatabase(cfg, 10, 16, 64)
+    places = [rng.integers(0, 256, (300, 32), dtype=np.uint8) for _ in range(40)]
+    for k, d in enumerate(places):
+        exact.add(f"kf{k}", d)
+        approximate.add(f"kf{k}", d)
+        if k == 5:  # still exact: the same answer to the letter
+            query = _flip_bits(rng, places[3][:150], 10)
+            assert approximate.query(query) == exact.query(query)
+    assert approximate.exact is None and approximate.index is not None
+    for k in (0, 17, 39):
+        query = np.vstack([_flip_bits(rng, places[k][:150], 10),
+                           rng.integers(0, 256, (150, 32), dtype=np.uint8)])
+        a, b = exact.query(query), approximate.query(query)
+        assert a[0].key == b[0].key == f"kf{k}"
+        assert b[0].votes >= 0.9 * a[0].votes
+    assert approximate.query(np.zeros((0, 32), np.uint8)) == []
+    with pytest.raises(ValueError, match="restrict"):
+        approximate.query(query, np.ones(40, bool))
 
 
 def test_ransac_rigid_recovers_the_transform_among_outliers():

@@ -294,6 +294,16 @@ class MergeConfig:
     enabled: bool = True
     # Place-recognition candidates verified per other robot and new keyframe.
     candidates: Annotated[int, at_least(1)] = 3
+    # Each robot's keyframes as the merger searches them (nearest_neighbour place
+    # recognition): "exact" (every stored descriptor, as the loop closer) or "approximate":
+    # exact up to place_index_exact_up_to keyframes, then a graph index grown with each
+    # keyframe (backend/place_recognition.py). A new keyframe asks every other robot's map,
+    # so the exact search grows with robots x map; the graph's query stays about flat.
+    place_index: Annotated[str, OneOf(("exact", "approximate"))] = "approximate"
+    place_index_exact_up_to: Annotated[int, at_least(0)] = 100
+    # The graph index: neighbours per node, and the breadth of each search.
+    place_index_links: Annotated[int, between(4, 64)] = 16
+    place_index_breadth: Annotated[int, between(8, 1024)] = 64
     # A candidate is verified like a loop (loop_closing's RANSAC settings, keyframe to
     # keyframe); matches left after the reprojection refinement of the query pose:
     min_refined_inliers: Annotated[int, at_least(1)] = 50
@@ -576,8 +586,17 @@ class PlacementConfig:
     query_timeout_s: Annotated[float, above(0.0)] = 2.0
     # Bidding rounds for one robot before the worker leaves it to the robot's next message.
     max_rounds: Annotated[int, at_least(1)] = 5
-    # A worker's load is its robots heard from within this many seconds.
-    active_s: Annotated[float, above(0.0)] = 10.0
+    # Each worker measures the cores it keeps busy (its process and its local-mapping
+    # processes, averaged over load_window_s) and tells the others this often; a new robot
+    # goes to the worker with the least (cloud/worker_load.py).
+    load_report_s: Annotated[float, above(0.0)] = 0.5
+    load_window_s: Annotated[float, above(0.0)] = 5.0
+    # A robot heard from within this many seconds is at work: its worker's load counts it.
+    active_s: Annotated[float, above(0.0)] = 2.0
+    # What a robot counts until its cost is measured (cores): one granted since its worker's
+    # last report, or at work on a worker that has not had robots at work for a while.
+    # 4 robots at 10 fps at offloading point 3 kept 1.75 cores busy (bench/worker_scaling.py).
+    robot_cost_cores: Annotated[float, above(0.0)] = 0.4
     # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides
     # which worker owns which robot and the merger, with fencing (cloud/fenced_placement.py)
     # and whose checkpoint is current (cloud/fenced_store.py). Empty: workers agree through

@@ -10,9 +10,12 @@ with two owners:
   the lease before etcd may expire the lease and grant the robot to another worker; the
   fence then drops the robot's session unsaved (``give_up``), and the store
   (fenced_store.py) refuses any write of the old epoch that was still under way.
-- A claim is one transaction (the first asker wins). A loaded worker waits a little before
-  it asks (``settle_s`` × load / ``LOAD_STEPS``), so new robots still go to the less loaded
-  worker first.
+- A claim is one transaction (the first asker wins). Every worker ranks the live workers
+  for a new robot by their measured load (worker_load.py: cores busy, plus the robots
+  granted since each measured) and asks only after ``settle_s`` per worker ranked before
+  it, so the least loaded asks first and the others find the robot served. Robots that
+  arrive together are ranked one at a time as grants land, so they spread; a robot whose
+  owner went (a takeover) is asked for at once.
 - Every worker watches the owner keys: a key gone (its worker's lease expired, a release)
   is a robot to take over if the store has its checkpoint, and the merger's key gone is a
   merger to become. Zenoh liveliness still says which workers are up (the status), never
@@ -38,8 +41,6 @@ from fleetslam.transport import keys
 
 log = logging.getLogger("fleetslam.placement")
 
-# A worker with this many robots (or more) waits the whole settle_s before it claims a robot.
-LOAD_STEPS = 4
 
 
 class FencedPlacement(Placement):
@@ -64,6 +65,7 @@ class FencedPlacement(Placement):
 
     def start(self) -> "FencedPlacement":
         self.ownership.start()
+        self.loads.start()
         prefix = self.ownership.keys.owner("")
         self._watch = Watch(self.ownership.client.endpoint, prefix, self._on_events).start()
         if not self._watch.created.wait(self.ownership.ttl_s * 2):
@@ -84,6 +86,7 @@ class FencedPlacement(Placement):
         self.ownership.close()
         if self._watch is not None:
             self._watch.close()
+        self.loads.close()
         self._undiscover()
 
     # -- what the worker asks ---------------------------------------------------------------
@@ -94,6 +97,9 @@ class FencedPlacement(Placement):
 
     def merges(self) -> bool:
         return self.ownership.epoch(MERGER) is not None
+
+    def held(self) -> int:
+        return sum(1 for robot in self.ownership.robots() if robot != MERGER)
 
     def owner(self, robot: str) -> str | None:
         with self._lock:
@@ -170,31 +176,54 @@ class FencedPlacement(Placement):
     # -- the election ---------------------------------------------------------------------------
 
     def _run_elections(self) -> None:
+        # Robots asked for and not yet claimed: when each was first asked for.
+        asked: dict[str, float] = {}
         while not self._closed.is_set():
             try:
-                robot = self._bids.get(timeout=self.ownership.ttl_s)
+                robot = self._bids.get(timeout=self.cfg.settle_s / 4 if asked
+                                       else self.ownership.ttl_s)
             except queue.Empty:
                 # A merger's key deleted while the watch was broken would otherwise wait for
                 # the next event: look now and then.
-                if self.owner(MERGER) is None and not self.merges():
+                if not asked and self.owner(MERGER) is None and not self.merges():
                     self.claim(MERGER)
-                continue
-            if robot is None:
-                return
-            self._elect(robot)
+            else:
+                if robot is None:
+                    return
+                asked.setdefault(robot, time.monotonic())
+            # Ranked one robot at a time, oldest first: each grant changes the next ranking.
+            for robot, since in sorted(asked.items(), key=lambda item: item[1]):
+                if self._closed.is_set():
+                    return
+                if robot != MERGER and self.owner(robot):
+                    del asked[robot]
+                    self._done(robot)
+                elif self._my_turn(robot, since):
+                    del asked[robot]
+                    self._elect(robot)
+
+    def _my_turn(self, robot: str, since: float) -> bool:
+        """Whether this worker asks for ``robot`` now: the merger and a takeover at once, a
+        new robot after ``settle_s`` per live worker ranked before this one (the ranking is
+        taken again each time: grants and load reports change it)."""
+        with self._lock:
+            takeover = robot in self._takeovers
+        if robot == MERGER or takeover:
+            return True
+        workers = self.live_workers()
+        order = self.loads.ranking(robot, {w: self.load_score(w) for w in workers})
+        return time.monotonic() - since >= self.cfg.settle_s * order.index(self.worker_id)
+
+    def _done(self, robot: str) -> None:
+        with self._lock:
+            self._electing.discard(robot)
+            self._takeovers.discard(robot)
 
     def _elect(self, robot: str) -> None:
         try:
             for attempt in range(self.cfg.max_rounds):
                 if self._closed.is_set() or (robot != MERGER and self.owner(robot)):
                     return
-                with self._lock:
-                    takeover = robot in self._takeovers
-                if robot != MERGER and not takeover:  # the less loaded worker asks first
-                    self._closed.wait(self.cfg.settle_s * min(self._load(), LOAD_STEPS)
-                                      / LOAD_STEPS)
-                    if self.owner(robot):
-                        return
                 try:
                     epoch = self.ownership.grant(robot)
                 except EtcdError as exc:
@@ -215,9 +244,7 @@ class FencedPlacement(Placement):
         except Exception:
             log.exception("robot %s: claim failed", robot)
         finally:
-            with self._lock:
-                self._electing.discard(robot)
-                self._takeovers.discard(robot)
+            self._done(robot)
 
 
 def wait_for_etcd(ownership: Ownership, deadline_s: float) -> None:

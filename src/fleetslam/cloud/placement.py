@@ -5,9 +5,10 @@ knows which one serves it. A robot's session lives on exactly one worker at a ti
 
 - A worker hearing of a robot nobody serves (its hello, or its owner's token vanishing
   when that worker died) bids for it: a claim token whose name carries the worker's load
-  and id. After ``placement.settle_s`` every bidder lists the bids; the lowest (least
-  loaded, then a hash of robot and worker) wins, the others withdraw. So a new robot goes to the
-  least-loaded worker, and two bidders that see the same bids never both win.
+  (measured: worker_load.py) and id. After ``placement.settle_s`` every bidder lists the
+  bids; the lowest (least loaded, then a hash of robot and worker) wins, the others
+  withdraw. So a new robot goes to the least-loaded worker, and two bidders that see the
+  same bids never both win.
 - The winner declares the owner token ``fleet/cloud/owners/<robot>/<worker>`` before it
   withdraws its bid, and a worker bids only for a robot without an owner token. The token
   lives as long as the worker's Zenoh session: when the worker dies (SIGKILL, a lost
@@ -21,7 +22,6 @@ durable state lives in the shared store (``cloud/store.py``).
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import queue
 import threading
@@ -30,34 +30,35 @@ from typing import Any, Callable
 
 import zenoh
 
+from fleetslam.cloud.worker_load import WorkerLoads, spread
 from fleetslam.config import PlacementConfig
 from fleetslam.transport import keys
 
 log = logging.getLogger("fleetslam.placement")
 
 
-def rank(load: int, robot_id: str, worker_id: str) -> str:
-    """A bid's name: sorts by load first; equal loads by a hash of robot and worker (robots
-    arriving together spread over the workers instead of all going to the first id), and
-    the worker id last (unique)."""
-    # A real hash: a CRC is linear, so names differing in one character compare the same
-    # way whatever the robot.
-    spread = hashlib.blake2s(f"{robot_id}/{worker_id}".encode(), digest_size=4).hexdigest()
-    return f"{min(load, 999_999):06d}.{spread}.{worker_id}"
+def rank(load: float, robot_id: str, worker_id: str) -> str:
+    """A bid's name: sorts by load (cores busy, in thousandths) first; equal loads by a hash
+    of robot and worker (robots arriving together spread over the workers instead of all
+    going to the first id), and the worker id last (unique)."""
+    millicores = min(max(int(round(1000 * load)), 0), 999_999)
+    return f"{millicores:06d}.{spread(robot_id, worker_id)}.{worker_id}"
 
 
 class Placement:
     def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
-                 load: Callable[[], int], won: Callable[[str], None],
+                 load: Callable[[], float], won: Callable[[str], None],
                  give_up: Callable[[str], None], wants: Callable[[str], bool]) -> None:
-        """``load``: this worker's load now (its robots at work); ``won``: take the
-        robot (called once per win, on an election thread); ``give_up``: drop a robot
-        another worker also serves; ``wants``: whether a robot whose owner vanished is
-        worth serving (it has a checkpoint in the store)."""
+        """``load``: this worker's load now (cores busy, measured: worker_load.CpuMeter);
+        ``won``: take the robot (called once per win, on an election thread); ``give_up``:
+        drop a robot another worker also serves; ``wants``: whether a robot whose owner
+        vanished is worth serving (it has a checkpoint in the store)."""
         self.z = z
         self.worker_id = keys.check_worker_id(worker_id)
         self.cfg = cfg
-        self._load, self._won, self._give_up, self._wants = load, won, give_up, wants
+        self._won, self._give_up, self._wants = won, give_up, wants
+        # Every worker's measured load, this one's published (worker_load.py).
+        self.loads = WorkerLoads(z, self.worker_id, cfg, load, self.held)
         self._lock = threading.Lock()
         self.owners: dict[str, set[str]] = {}  # robot -> workers holding its owner token
         self.workers: set[str] = set()
@@ -77,6 +78,7 @@ class Placement:
 
     def start(self) -> "Placement":
         self._elector.start()
+        self.loads.start()
         self._discover()
         self._subscribers.append(self.z.liveliness().declare_subscriber(
             f"{keys.OWNERS}/**", self._on_owner, history=True))
@@ -103,6 +105,7 @@ class Placement:
             tokens, self._mine = list(self._mine.values()), {}
         for token in tokens:
             token.undeclare()
+        self.loads.close()
         self._undiscover()
 
     # -- what the worker asks ---------------------------------------------------------------
@@ -110,6 +113,19 @@ class Placement:
     def serves(self, robot: str) -> bool:
         with self._lock:
             return robot in self._mine
+
+    def held(self) -> int:
+        """Robots this worker serves now."""
+        with self._lock:
+            return len(self._mine)
+
+    def load_score(self, worker: str) -> float:
+        """Cores ``worker`` has busy as measured, plus the robots granted to it since
+        (as the owner table says; this worker's own as it holds them)."""
+        owned = sum(1 for w in self.table().values() if w == worker)
+        if worker == self.worker_id:
+            owned = max(owned, self.held())
+        return self.loads.score(worker, owned)
 
     def merges(self) -> bool:
         """Whether this worker runs the fleet's merger: the live worker whose id sorts first."""
@@ -191,7 +207,7 @@ class Placement:
             for attempt in range(self.cfg.max_rounds):
                 if self._closed.is_set() or self._listed(f"{keys.OWNERS}/{robot}/*"):
                     return
-                bid = rank(self._load(), robot, self.worker_id)
+                bid = rank(self.load_score(self.worker_id), robot, self.worker_id)
                 token = self.z.liveliness().declare_token(keys.claim(robot, bid))
                 try:
                     time.sleep(self.cfg.settle_s)

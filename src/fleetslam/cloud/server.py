@@ -47,6 +47,7 @@ from fleetslam.cloud.robot_session import OVER_BUDGET
 from fleetslam.cloud.routing import Router
 from fleetslam.cloud.sessions import SessionTable
 from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.worker_load import CpuMeter
 from fleetslam.config import Config
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.zenoh_session import open_connecting, open_listening, put
@@ -85,6 +86,10 @@ class CloudServer:
         else:
             self.store = CloudStore(self.out_dir, config.transport.max_checkpoint_bytes)
         self.stopped = threading.Event()
+        # This worker's load as placement weighs it: the cores it and its local-mapping
+        # processes keep busy for the robots at work.
+        self._cpu = CpuMeter(os.getpid(), config.placement.load_window_s, self._at_work,
+                             config.placement.robot_cost_cores)
         self._zenoh: zenoh.Session | None = None
         self.local_mapping: LocalMappingPool | None = None
         # The table hands the merge role each new keyframe and robot; the role reads the table.
@@ -132,7 +137,7 @@ class CloudServer:
         # Placement first: a hello heard before it existed was served at once, unowned, and
         # the robot's next frames were dropped while this worker then bid for it (seen in
         # test_processes when a robot's hello met a cloud starting).
-        callbacks = (self._load, self.router.take, self.router.give_up,
+        callbacks = (self._cpu.busy, self.router.take, self.router.give_up,
                      self.router.worth_serving)
         if self.ownership is not None:
             wait_for_etcd(self.ownership, self.config.placement.coordination_start_s)
@@ -187,9 +192,8 @@ class CloudServer:
 
     # -- placement (which worker serves which robot) ----------------------------------------
 
-    def _load(self) -> int:
-        """Robots this worker is working for: unfinished sessions heard from lately (a
-        session whose robot went quiet holds memory, not CPU)."""
+    def _at_work(self) -> int:
+        """Robots this worker is working for: unfinished sessions heard from lately."""
         now = time.monotonic()
         active_s = self.config.placement.active_s
         return sum(1 for _, s in self.sessions.now()

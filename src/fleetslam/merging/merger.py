@@ -31,7 +31,7 @@ from fleetslam.merging.dense_constraint import (DenseCloud, DenseRefinement, odo
                                                 prepare, refine)
 from fleetslam.merging.inter_robot import PlaceMatch, verify_places
 from fleetslam.wire.merger_keyframes import KeyframeSummary
-from fleetslam.backend.place_recognition import KeyframeDatabase
+from fleetslam.backend.place_recognition import ApproximateKeyframeDatabase, KeyframeDatabase
 from fleetslam.backend.places import make_database
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.transforms import invert, transforms_agree
@@ -56,7 +56,7 @@ class RobotRecord:
     camera: Camera
     keyframes: list[KeyframeSummary] = field(default_factory=list)
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_map_keyframe
-    places: "KeyframeDatabase | BowDatabase | None" = None
+    places: "KeyframeDatabase | ApproximateKeyframeDatabase | BowDatabase | None" = None
     # The component (by its anchor robot) and this robot's map frame in the anchor's frame.
     anchor: str = ""
     T_anchor_map: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -109,8 +109,14 @@ class MapMerger:
         if name in self.robots:
             return
         self.robots[name] = RobotRecord(name, len(self.robots), camera,
-                                        places=make_database(self.config.place_recognition),
-                                        anchor=name)
+                                        places=self._place_database(), anchor=name)
+
+    def _place_database(self) -> "KeyframeDatabase | ApproximateKeyframeDatabase | BowDatabase":
+        pr, cfg = self.config.place_recognition, self.config.merge
+        if cfg.place_index == "approximate" and pr.method == "nearest_neighbour":
+            return ApproximateKeyframeDatabase(pr, cfg.place_index_exact_up_to,
+                                               cfg.place_index_links, cfg.place_index_breadth)
+        return make_database(pr)
 
     def update_poses(self, robot: str, poses: np.ndarray) -> None:
         """The robot's latest keyframe poses (local BA and loop closing move them)."""

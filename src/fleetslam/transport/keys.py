@@ -77,6 +77,8 @@ WORKERS = f"{ROOT}/{CLOUD}/workers"
 MERGE_KEYFRAMES = f"{ROOT}/{CLOUD}/keyframes"
 CLAIMS = f"{ROOT}/{CLOUD}/claims"
 OWNERS = f"{ROOT}/{CLOUD}/owners"
+# Each worker's measured load (cloud/worker_load.py).
+LOADS = f"{ROOT}/{CLOUD}/load"
 
 
 def check_worker_id(worker_id: str) -> str:
@@ -91,6 +93,10 @@ def worker(worker_id: str) -> str:
 
 def claim(robot_id: str, rank: str) -> str:
     return f"{CLAIMS}/{robot_id}/{rank}"
+
+
+def load(worker_id: str) -> str:
+    return f"{LOADS}/{worker_id}"
 
 
 def owner(robot_id: str, worker_id: str) -> str:

@@ -1,0 +1,198 @@
+"""How loaded each cloud worker is, measured: the cores its process and its local-mapping
+processes kept busy lately, and how many robots it held when it measured. Every worker
+publishes its own every ``placement.load_report_s`` (``fleet/cloud/load/<worker>``) and
+keeps the others'; placement ranks the workers for a new robot by it, so robots go by
+measured cost, not by count (the merging worker, a robot tracking itself at point 6, a robot
+gone quiet: each weighs what it costs).
+
+A robot granted after a worker's last report is not in its measurement yet: it counts
+``placement.robot_cost_cores`` until the next report (robots arriving together would all
+go to the worker that measured least otherwise).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import zenoh
+
+from fleetslam.config import PlacementConfig
+from fleetslam.transport import keys
+from fleetslam.transport.zenoh_session import put
+
+log = logging.getLogger("fleetslam.placement")
+
+TICK = os.sysconf("SC_CLK_TCK")
+# Loads closer than this (cores) count as equal: the robot's hash decides between them.
+EQUAL_CORES = 0.05
+# A report is at most this large (bytes); anything else on the key is ignored.
+MAX_REPORT_BYTES = 256
+
+
+def tree_cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` and every process below it (Linux /proc; 0.0
+    elsewhere)."""
+    parent: dict[int, int] = {}
+    cpu: dict[int, float] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parent[int(entry.name)] = int(fields[1])
+        cpu[int(entry.name)] = (int(fields[11]) + int(fields[12])) / TICK
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        total += cpu.get(p, 0.0)
+        todo += [c for c, pp in parent.items() if pp == p]
+    return total
+
+
+class CpuMeter:
+    """Cores a process tree keeps busy for its robots now. It measures the cores used and
+    the robots at work (``active``), each smoothed over ``window_s`` (exponential averages
+    updated at each call), and weighs the robots at work now at the measured cost per
+    robot: a robot gone quiet stops counting at once, not a window later (measured: a fleet
+    that stopped together made its worker look busiest for the next robots, 4 + 1 and
+    2 + 4 placements). Until robots have been at work for a while, each counts
+    ``robot_cost`` cores on top of what was measured (a robot that just came would weigh
+    nothing until its frames show in the average: two robots started a second apart both
+    went to one worker)."""
+
+    def __init__(self, pid: int, window_s: float, active: Callable[[], int],
+                 robot_cost: float) -> None:
+        self.pid, self.window_s, self._active = pid, window_s, active
+        self.robot_cost = robot_cost
+        self._last = (time.monotonic(), tree_cpu_seconds(pid))
+        self._busy = 0.0
+        self._active_avg = 0.0
+        self._lock = threading.Lock()
+
+    def busy(self) -> float:
+        with self._lock:
+            now, cpu, active = time.monotonic(), tree_cpu_seconds(self.pid), self._active()
+            dt = now - self._last[0]
+            if dt > 0.05:
+                rate = max(cpu - self._last[1], 0.0) / dt
+                weight = 1.0 - math.exp(-dt / self.window_s)
+                self._busy += weight * (rate - self._busy)
+                self._active_avg += weight * (active - self._active_avg)
+                self._last = (now, cpu)
+            if self._active_avg < 0.5:  # robots too new to be measured
+                return self._busy + self.robot_cost * active
+            return self._busy * active / self._active_avg
+
+
+@dataclass(frozen=True)
+class LoadReport:
+    busy: float  # cores
+    owned: int  # robots the worker held when it measured
+
+
+def parse_report(data: bytes) -> LoadReport:
+    """A worker's report, or ValueError saying what is wrong with it."""
+    if len(data) > MAX_REPORT_BYTES:
+        raise ValueError(f"{len(data)} bytes (at most {MAX_REPORT_BYTES})")
+    try:
+        message: Any = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"not JSON ({exc})") from None
+    if not isinstance(message, dict):
+        raise ValueError("not a JSON object")
+    busy, owned = message.get("busy"), message.get("owned")
+    if not isinstance(busy, (int, float)) or not math.isfinite(busy) or not 0 <= busy < 1e4:
+        raise ValueError(f"busy is {busy!r}: cores, a number from 0")
+    if not isinstance(owned, int) or isinstance(owned, bool) or not 0 <= owned < 10**6:
+        raise ValueError(f"owned is {owned!r}: a robot count")
+    return LoadReport(float(busy), owned)
+
+
+def spread(robot: str, worker: str) -> str:
+    """Equal loads: robots spread over the workers by a hash of robot and worker, not all
+    to the first id. A real hash: a CRC is linear, so names differing in one character
+    would compare the same way whatever the robot."""
+    return hashlib.blake2s(f"{robot}/{worker}".encode(), digest_size=4).hexdigest()
+
+
+class WorkerLoads:
+    """This worker's reports (``measure``: its cores busy now; ``owned``: its robots) and
+    the other workers' as heard."""
+
+    def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
+                 measure: Callable[[], float], owned: Callable[[], int]) -> None:
+        self.z, self.worker_id, self.cfg = z, worker_id, cfg
+        self._measure, self._owned = measure, owned
+        self._lock = threading.Lock()
+        self.reports: dict[str, LoadReport] = {}
+        self._rejected: set[str] = set()  # workers whose bad report was logged
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="worker-load", daemon=True)
+        self._subscriber: Any = None
+
+    def start(self) -> "WorkerLoads":
+        self._subscriber = self.z.declare_subscriber(f"{keys.LOADS}/*", self._on_report)
+        self.report()
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._closed.set()
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+
+    def report(self) -> LoadReport:
+        """Measure this worker now, keep it as its own report and publish it."""
+        mine = LoadReport(round(float(self._measure()), 3), int(self._owned()))
+        with self._lock:
+            self.reports[self.worker_id] = mine
+        # Droppable: the next report replaces it; never waited for behind a full queue.
+        put(self.z, keys.load(self.worker_id),
+            json.dumps({"busy": mine.busy, "owned": mine.owned}).encode(), droppable=True)
+        return mine
+
+    def _run(self) -> None:
+        while not self._closed.wait(self.cfg.load_report_s):
+            try:
+                self.report()
+            except Exception:  # a closed session at shutdown; never the worker's end
+                if not self._closed.is_set():
+                    log.exception("load report of worker %s failed", self.worker_id)
+
+    def _on_report(self, sample: zenoh.Sample) -> None:
+        (worker,) = keys.last_chunks(str(sample.key_expr), 1)
+        if worker == self.worker_id:
+            return
+        try:
+            report = parse_report(sample.payload.to_bytes())
+        except ValueError as exc:
+            if worker not in self._rejected:
+                self._rejected.add(worker)
+                log.warning("load report of worker %s ignored: %s", worker, exc)
+            return
+        with self._lock:
+            self.reports[worker] = report
+
+    def score(self, worker: str, owned_now: int) -> float:
+        """Cores ``worker`` would have busy: its last measurement, plus the robots granted
+        to it since (``owned_now`` beyond those it held then) at the configured cost each."""
+        with self._lock:
+            report = self.reports.get(worker, LoadReport(0.0, 0))
+        return report.busy + self.cfg.robot_cost_cores * max(owned_now - report.owned, 0)
+
+    def ranking(self, robot: str, scores: dict[str, float]) -> list[str]:
+        """The workers of ``scores`` (cores, as ``score`` gives), the best to serve
+        ``robot`` first: the least loaded (within EQUAL_CORES), then by the robot's hash."""
+        return sorted(scores, key=lambda w: (round(scores[w] / EQUAL_CORES), spread(robot, w),
+                                             w))

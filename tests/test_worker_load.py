@@ -1,0 +1,56 @@
+"""A worker's measured load (cloud/worker_load.py): reports are checked before use, a robot
+granted since a report weighs the configured cost until it is measured, equal loads are
+decided by the robot's hash (robots spread), and the meter sees a busy process."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import pytest
+
+from fleetslam.cloud.worker_load import CpuMeter, LoadReport, WorkerLoads, parse_report
+from fleetslam.config import PlacementConfig
+
+
+def test_a_report_is_checked_before_it_is_used():
+    assert parse_report(b'{"busy": 1.25, "owned": 3}') == LoadReport(1.25, 3)
+    for data, reason in [(b"x" * 300, "bytes"), (b"{", "not JSON"), (b"[1]", "object"),
+                         (b'{"busy": -1, "owned": 0}', "busy"),
+                         (json.dumps({"busy": float("nan"), "owned": 0}).encode(), "busy"),
+                         (b'{"busy": 0.5, "owned": true}', "owned"),
+                         (b'{"busy": 0.5}', "owned")]:
+        with pytest.raises(ValueError, match=reason):
+            parse_report(data)
+
+
+def test_robots_granted_since_a_report_weigh_the_configured_cost():
+    cfg = PlacementConfig(robot_cost_cores=0.4)
+    loads = WorkerLoads(None, "w0", cfg, lambda: 0.0, lambda: 0)  # type: ignore[arg-type]
+    loads.reports = {"w0": LoadReport(1.0, 2), "w1": LoadReport(0.2, 0)}
+    assert loads.score("w0", 2) == pytest.approx(1.0)
+    assert loads.score("w0", 4) == pytest.approx(1.8)  # two granted since it measured
+    assert loads.score("w0", 1) == pytest.approx(1.0)  # one ended: measured next time
+    assert loads.score("w9", 1) == pytest.approx(0.4)  # never heard: its robots' cost
+    # The least loaded first; within EQUAL_CORES, the robot's hash decides, so robots
+    # arriving at equally loaded workers go to both.
+    assert loads.ranking("r0", {"w0": 1.0, "w1": 0.2}) == ["w1", "w0"]
+    firsts = {loads.ranking(f"r{i}", {"w0": 0.31, "w1": 0.30})[0] for i in range(16)}
+    assert firsts == {"w0", "w1"}
+
+
+def test_the_meter_sees_a_busy_process_and_robots_gone_quiet_at_once():
+    robots = [1]
+    meter = CpuMeter(os.getpid(), window_s=0.2, active=lambda: robots[0], robot_cost=0.4)
+    assert meter.busy() >= 0.4  # a robot too new to be measured: its configured cost
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        sum(i * i for i in range(10_000))
+    busy = meter.busy()
+    assert busy > 0.2  # one core busy, less what a loaded machine takes of it
+    robots[0] = 0
+    assert meter.busy() < 0.05 * busy  # its robot went quiet: nothing left to weigh
+    robots[0] = 1
+    time.sleep(1.2)
+    assert meter.busy() < 0.2  # idle for six windows
