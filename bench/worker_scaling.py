@@ -135,6 +135,8 @@ def main() -> None:
                         help="paced run: offered rate as a fraction of the sustained rate")
     parser.add_argument("--placement", default="etcd",
                         help="comma list of liveliness, etcd: how workers agree on robots")
+    parser.add_argument("--runs", type=int, default=1,
+                        help="runs of every setting, alternating (min-max reported)")
     parser.add_argument("--out", default="bench/results/worker_scaling.json")
     args = parser.parse_args()
     for folder in (SEVEN_SCENES, TUM_RPY):
@@ -151,12 +153,14 @@ def main() -> None:
     settings = [(int(n), False) for n in args.workers.split(",") if n] + \
         [(int(n), True) for n in args.pinned.split(",") if n]
     results = {}
-    for n, pinned in settings:
-        for placement in placements:
-            name = (f"{n} worker{'s' if n > 1 else ''}{', 1 core each' if pinned else ''}"
-                    + (f", {placement}" if len(placements) > 1 else ""))
-            results[name] = run_setting(n, pinned, prepared, args.load, work / name.replace(
-                " ", "_").replace(",", ""), placement)
+    for run in range(args.runs):
+        for n, pinned in settings:
+            for placement in placements:
+                name = (f"{n} worker{'s' if n > 1 else ''}{', 1 core each' if pinned else ''}"
+                        + (f", {placement}" if len(placements) > 1 else "")
+                        + (f", run {run + 1}" if args.runs > 1 else ""))
+                results[name] = run_setting(n, pinned, prepared, args.load, work / name.replace(
+                    " ", "_").replace(",", ""), placement)
     rows = []
     for name, phases in results.items():
         for phase, r in phases.items():
@@ -170,12 +174,21 @@ def main() -> None:
     print(format_table(["setting", "run", "robots", "frames", "dropped", "offered fps",
                         "sustained fps", "latency ms median", "latency ms p95",
                         "cores used per worker", "robots per worker"], rows))
+    summary: dict[str, list[tuple[float, int]]] = {}
     for name, phases in results.items():
         ok = [r["robots"] for p, r in phases.items() if p.startswith("10fps")
               and r["latency_ms_p95"] <= SUSTAINED_P95_MS]
         print(f"{name}: saturated {phases['saturation']['cloud_fps']:.1f} fps; sustains "
               f"{max(ok) if ok else 'no'} robot(s) at 10 fps each with latency p95 <= "
               f"{SUSTAINED_P95_MS:.0f} ms")
+        summary.setdefault(name.split(", run ")[0], []).append(
+            (phases["saturation"]["cloud_fps"], max(ok) if ok else 0))
+    if args.runs > 1:
+        for setting, runs in summary.items():
+            fps, fleet = [r[0] for r in runs], [r[1] for r in runs]
+            print(f"{setting}, {len(runs)} runs: saturated {min(fps):.1f}-{max(fps):.1f} fps; "
+                  f"robots at 10 fps with p95 <= {SUSTAINED_P95_MS:.0f} ms: "
+                  f"{min(fleet)}-{max(fleet)}")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"robots": args.robots, "frames_per_robot": args.frames,
                                "cores": os.cpu_count(), "results": results}, indent=2))
