@@ -42,10 +42,9 @@ from fleetslam.transport import keys
 log = logging.getLogger("fleetslam.placement")
 
 
-
 class FencedPlacement(Placement):
     def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
-                 load: Callable[[], int], won: Callable[[str], None],
+                 load: Callable[[], float], won: Callable[[str], None],
                  give_up: Callable[[str], None], wants: Callable[[str], bool],
                  ownership: Ownership) -> None:
         """As Placement's, and ``ownership``: this worker's lease and grants (not started:
