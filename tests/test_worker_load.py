@@ -20,6 +20,7 @@ def test_a_report_is_checked_before_it_is_used():
                          (b'{"busy": -1, "owned": 0}', "busy"),
                          (json.dumps({"busy": float("nan"), "owned": 0}).encode(), "busy"),
                          (b'{"busy": 0.5, "owned": true}', "owned"),
+                         (b'{"busy": true, "owned": 1}', "busy"),
                          (b'{"busy": 0.5}', "owned")]:
         with pytest.raises(ValueError, match=reason):
             parse_report(data)

@@ -112,7 +112,8 @@ def parse_report(data: bytes) -> LoadReport:
     if not isinstance(message, dict):
         raise ValueError("not a JSON object")
     busy, owned = message.get("busy"), message.get("owned")
-    if not isinstance(busy, (int, float)) or not math.isfinite(busy) or not 0 <= busy < 1e4:
+    if not isinstance(busy, (int, float)) or isinstance(busy, bool) or \
+            not math.isfinite(busy) or not 0 <= busy < 1e4:
         raise ValueError(f"busy is {busy!r}: cores, a number from 0")
     if not isinstance(owned, int) or isinstance(owned, bool) or not 0 <= owned < 10**6:
         raise ValueError(f"owned is {owned!r}: a robot count")
