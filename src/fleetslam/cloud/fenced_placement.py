@@ -209,8 +209,7 @@ class FencedPlacement(Placement):
             takeover = robot in self._takeovers
         if robot == MERGER or takeover:
             return True
-        workers = self.live_workers()
-        order = self.loads.ranking(robot, {w: self.load_score(w) for w in workers})
+        order = self.loads.ranking(robot, self.load_scores(self.live_workers()))
         return time.monotonic() - since >= self.cfg.settle_s * order.index(self.worker_id)
 
     def _done(self, robot: str) -> None:

@@ -26,6 +26,7 @@ import logging
 import queue
 import threading
 import time
+from collections import Counter
 from typing import Any, Callable
 
 import zenoh
@@ -119,13 +120,12 @@ class Placement:
         with self._lock:
             return len(self._mine)
 
-    def load_score(self, worker: str) -> float:
-        """Cores ``worker`` has busy as measured, plus the robots granted to it since
-        (as the owner table says; this worker's own as it holds them)."""
-        owned = sum(1 for w in self.table().values() if w == worker)
-        if worker == self.worker_id:
-            owned = max(owned, self.held())
-        return self.loads.score(worker, owned)
+    def load_scores(self, workers: list[str]) -> dict[str, float]:
+        """Cores each of ``workers`` has busy as measured, plus the robots granted to it
+        since (as the owner table says, read once; this worker's own as it holds them)."""
+        owned = Counter(self.table().values())
+        owned[self.worker_id] = max(owned[self.worker_id], self.held())
+        return {w: self.loads.score(w, owned[w]) for w in workers}
 
     def merges(self) -> bool:
         """Whether this worker runs the fleet's merger: the live worker whose id sorts first."""
@@ -207,7 +207,8 @@ class Placement:
             for attempt in range(self.cfg.max_rounds):
                 if self._closed.is_set() or self._listed(f"{keys.OWNERS}/{robot}/*"):
                     return
-                bid = rank(self.load_score(self.worker_id), robot, self.worker_id)
+                load = self.load_scores([self.worker_id])[self.worker_id]
+                bid = rank(load, robot, self.worker_id)
                 token = self.z.liveliness().declare_token(keys.claim(robot, bid))
                 try:
                     time.sleep(self.cfg.settle_s)
