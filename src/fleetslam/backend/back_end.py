@@ -101,6 +101,7 @@ class CloudBackEnd:
             "loop_correction": duration_stats(loops.correction_seconds),
             "local_ba": duration_stats(state.local_ba_seconds),
             "local_mapping": self.local_mapping_summary(),
+            "culled_keyframes": state.culled_keyframes,
             "relocalisations": state.relocalisations, "loss_events": state.loss_events,
             "events": loops.events,
         }

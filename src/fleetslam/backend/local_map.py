@@ -288,7 +288,50 @@ class LocalMap:
         self.n_visible += seen
         self.n_found[np.unique(found)] += 1
 
+    def redundant_keyframes(self, candidates: np.ndarray, max_depth: float, n_levels: int,
+                            min_observers: int, fraction: float) -> np.ndarray:
+        """ORB-SLAM's KeyFrameCulling test on keyframes ``candidates``: those for which more
+        than ``fraction`` of their live landmarks observed with depth in (0, ``max_depth``)
+        are each observed by at least ``min_observers`` other keyframes at the same or a
+        finer scale (octave at most one above this keyframe's)."""
+        if not len(candidates):
+            return candidates
+        is_candidate = np.zeros(len(self.keyframes), bool)
+        is_candidate[candidates] = True
+        own = np.flatnonzero(is_candidate[self.obs_keyframe] & self.alive[self.obs_landmark]
+                             & (self.obs_depth > 0) & (self.obs_depth < max_depth))
+        if not len(own):
+            return candidates[:0]
+        # Per landmark of theirs, how many observations are at octave <= o (o = 0..top).
+        landmarks, slot = np.unique(self.obs_landmark[own], return_inverse=True)
+        of_them = np.flatnonzero(np.isin(self.obs_landmark, landmarks))
+        at = np.searchsorted(landmarks, self.obs_landmark[of_them])
+        octave = np.clip(self.obs_octave[of_them], 0, n_levels - 1)
+        hist = np.zeros((len(landmarks), n_levels), np.int64)
+        np.add.at(hist, (at, octave), 1)
+        up_to = np.cumsum(hist, axis=1)
+        # Others at a scale no coarser than one octave above this observation's (minus the
+        # observation itself, which is among them).
+        level = np.minimum(self.obs_octave[own] + 1, n_levels - 1)
+        others = up_to[slot, level] - 1
+        kf = self.obs_keyframe[own]
+        total = np.bincount(kf, minlength=len(self.keyframes))
+        redundant = np.bincount(kf, weights=others >= min_observers, minlength=len(self.keyframes))
+        return candidates[redundant[candidates] > fraction * total[candidates]]
+
+    def drop_keyframe_observations(self, kf_ids: np.ndarray) -> int:
+        """Culled keyframes: their observation rows go (a landmark left without any
+        dies). The keyframes stay, with their poses and features. Returns the rows dropped."""
+        rows = np.isin(self.obs_keyframe, kf_ids)
+        self.remove_observations(rows)
+        return int(rows.sum())
+
     # ------------------------------------------------------------------ queries
+
+    def observing(self) -> np.ndarray:
+        """Per keyframe, whether it still observes a landmark (a culled keyframe does not:
+        it is no place to relocalise or close a loop on)."""
+        return np.bincount(self.obs_keyframe, minlength=len(self.keyframes)) > 0
 
     def covisible(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Other keyframes sharing live landmarks with ``kf_id``, most shared first (ties:

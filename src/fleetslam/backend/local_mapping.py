@@ -82,6 +82,8 @@ class LocalMapper:
             session.culled_landmarks += lmap.cull_recent(
                 kf.id, cfg.cull_min_found_ratio, cfg.cull_min_observation_weight,
                 cfg.cull_probation_keyframes)
+        if cfg.cull_keyframes:
+            session.culled_keyframes += len(cull_keyframes(session, kf.id))
         correction = np.eye(4)
         if cfg.local_ba and kf.id > 0:
             if self.workers is not None:
@@ -183,6 +185,22 @@ def apply_solution(session: BackEndState, problem: LocalBAProblem,
     session.local_ba_seconds.append(result.seconds)
     session.local_ba_outliers += result.n_outliers
     return result.correction
+
+
+def cull_keyframes(session: BackEndState, kf_id: int) -> np.ndarray:
+    """ORB-SLAM's KeyFrameCulling around new keyframe ``kf_id``: its covisible keyframes
+    (never the first, never itself) that are redundant lose their observations. Returns
+    their ids."""
+    cfg, lmap = session.config.tracking, session.map
+    neighbours, _ = lmap.covisible(kf_id)
+    neighbours = neighbours[neighbours > 0]
+    culled = lmap.redundant_keyframes(
+        neighbours, cfg.close_depth_baselines * cfg.virtual_baseline_m,
+        session.config.orb.n_levels, cfg.keyframe_redundant_observers,
+        cfg.keyframe_redundant_fraction)
+    if len(culled):
+        lmap.drop_keyframe_observations(culled)
+    return culled
 
 
 def update_reference(session: BackEndState) -> None:

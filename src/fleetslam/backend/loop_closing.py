@@ -186,11 +186,12 @@ class LoopCloser:
 
 
 def allowed_candidates(session: BackEndState, kf: Keyframe) -> np.ndarray:
-    """Keyframes a loop may close on: old enough, and not already tied to the query by
-    shared landmarks (tracking handles those)."""
+    """Keyframes a loop may close on: old enough, not culled, and not already tied to the
+    query by shared landmarks (tracking handles those)."""
     cfg = session.config.loop_closing
     allowed = np.zeros(len(session.places), bool)
     allowed[: max(kf.id - cfg.min_keyframe_gap + 1, 0)] = True
+    allowed[: len(allowed)] &= session.map.observing()[: len(allowed)]
     ids, shared = session.map.covisible(kf.id)
     near = ids[shared >= session.config.tracking.covisibility_min_shared]
     allowed[near[near < len(allowed)]] = False

@@ -26,7 +26,9 @@ def relocalise(session: BackEndState, f: FeatureFrame
         return None
     scale = orb.scale_factor ** f.keypoints[:, 5]
     depth = f.depth.astype(np.float64)
-    for candidate in session.places.query(f.descriptors, top_k=cfg.candidates):
+    # Culled keyframes observe nothing: no candidates.
+    allowed = lmap.observing()[: len(session.places)]
+    for candidate in session.places.query(f.descriptors, allowed, top_k=cfg.candidates):
         kf = lmap.keyframes[candidate.key]
         pool = lmap.place_landmarks(kf.id, session.config.loop_closing.candidate_neighbours)
         ids = descriptor_match(f.descriptors, lmap.descriptors[pool], pool, tcfg.max_hamming,

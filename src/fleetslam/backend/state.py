@@ -92,6 +92,8 @@ class BackEndState:
     local_ba_seconds: list[float] = field(default_factory=list)
     local_ba_outliers: int = 0
     culled_landmarks: int = 0
+    # Keyframes culled as redundant (their observations dropped; ORB-SLAM's KeyFrameCulling).
+    culled_keyframes: int = 0
     fused_observations: int = 0
     # Established landmarks (enough observations) of the newest keyframe: the reference of
     # ORB-SLAM's keyframe test.

@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 
+from fleetslam.backend.local_map import Keyframe
 from fleetslam.backend.matching import (
     descriptor_match,
     guided_match,
@@ -204,22 +205,49 @@ def needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
     if not session.map.keyframes:
         return state.tracked
     if state.tracked and not state.matched.repeated:
-        ref = session.map.keyframes[-1]
-        T_rel = invert(ref.T_world_camera) @ state.T_world_camera
         n_in = int(state.inliers.sum())
         # Inliers fall against the first frame tracked after the keyframe: the view has
         # moved on. (The keyframe's own landmark count is no reference: many of its
         # keypoints are never matched again.)
         reference = session.inliers_after_keyframe or n_in
         return (n_in < cfg.keyframe_inlier_ratio * reference
-                or np.linalg.norm(T_rel[:3, 3]) > cfg.keyframe_translation_m
-                or rotation_angle_deg(T_rel[:3, :3]) > cfg.keyframe_rotation_deg
+                or all(moved_from(kf, state, cfg.keyframe_translation_m,
+                                  cfg.keyframe_rotation_deg)
+                       for kf in motion_references(session, state))
                 or (cfg.orb_slam_keyframe_policy and orb_slam_needs_keyframe(session, state)))
     if not state.tracked and session.lost_frames + 1 >= cfg.lost_frames_before_reset:
         # Lost for too long: continue from the prediction with fresh landmarks.
         session.resets += 1
         return True
     return False
+
+
+def motion_references(session: BackEndState, state: PosedFrame) -> list[Keyframe]:
+    """The keyframes the keyframe test measures the camera's motion from: the newest, and
+    with ``tracking.keyframe_motion_from`` = "shared" also the one that last observed most
+    of the frame's inliers (ORB-SLAM's reference keyframe, the one sharing most landmarks
+    with the frame, read from each landmark's newest observer). A frame is far only when
+    far from all of them: back at a mapped place the camera is near that place's
+    keyframes, and a pass over it makes few new ones."""
+    lmap = session.map
+    newest = lmap.keyframes[-1]
+    if session.config.tracking.keyframe_motion_from == "shared":
+        ids = state.matched.landmark_ids[state.inliers]
+        ids = ids[ids >= 0]
+        if len(ids):
+            shared = lmap.keyframes[int(np.bincount(lmap.last_keyframe[ids]).argmax())]
+            if shared is not newest:
+                return [newest, shared]
+    return [newest]
+
+
+def moved_from(kf: Keyframe, state: PosedFrame, translation_m: float, rotation_deg: float
+               ) -> bool:
+    """Whether the camera moved more than ``translation_m`` or turned more than
+    ``rotation_deg`` from keyframe ``kf``."""
+    T_rel = invert(kf.T_world_camera) @ state.T_world_camera
+    return bool(np.linalg.norm(T_rel[:3, 3]) > translation_m
+                or rotation_angle_deg(T_rel[:3, :3]) > rotation_deg)
 
 
 def orb_slam_needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
