@@ -80,7 +80,7 @@ class TrackingConfig:
     # ... measured from the newest keyframe ("newest"), or "shared": a frame must be that far
     # from the newest and from the keyframe sharing most landmarks with it (ORB-SLAM's
     # reference keyframe). Back at a mapped place the camera is near that place's keyframes
-    # and makes few new ones: redkitchen played forth and back, 5000 frames, 210 keyframes
+    # and makes few new ones: redkitchen played forth and back, 5000 frames, 223 keyframes
     # instead of 595, and the cloud's cost per frame stays flat.
     keyframe_motion_from: Annotated[str, OneOf(("newest", "shared"))] = "shared"
     # Landmarks from this many recent keyframes form the local map matched against when
@@ -165,7 +165,7 @@ class TrackingConfig:
     # its place-recognition entry, which loop and relocalisation queries skip); only its
     # landmark observations go.
     cull_keyframes: bool = True
-    # ... redundant: at least this fraction of its close landmarks (ORB-SLAM: 0.9) ...
+    # ... redundant: more than this fraction of its close landmarks (ORB-SLAM: 0.9) ...
     keyframe_redundant_fraction: Annotated[float, FRACTION] = 0.9
     # ... are each observed by at least this many other keyframes (ORB-SLAM: 3).
     keyframe_redundant_observers: Annotated[int, at_least(1)] = 3

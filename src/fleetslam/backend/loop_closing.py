@@ -191,7 +191,7 @@ def allowed_candidates(session: BackEndState, kf: Keyframe) -> np.ndarray:
     cfg = session.config.loop_closing
     allowed = np.zeros(len(session.places), bool)
     allowed[: max(kf.id - cfg.min_keyframe_gap + 1, 0)] = True
-    allowed[: len(allowed)] &= session.map.observing()[: len(allowed)]
+    allowed &= session.map.observing()[: len(allowed)]
     ids, shared = session.map.covisible(kf.id)
     near = ids[shared >= session.config.tracking.covisibility_min_shared]
     allowed[near[near < len(allowed)]] = False
