@@ -71,6 +71,8 @@ class Fleet:
         self.sent: dict[tuple[str, int], float] = {}
         self.got: dict[tuple[str, int], float] = {}
         self.cloud_ms: list[float] = []
+        # Each robot's poses as the cloud answered them (online tracking): (timestamp, pose).
+        self.answered: dict[str, list[tuple[float, np.ndarray]]] = {rid: [] for rid in robots}
         self.done = threading.Event()
         self.total = sum(len(m) for m, _ in robots.values())
         self.replies: queue.Queue = queue.Queue()
@@ -86,6 +88,8 @@ class Fleet:
         header, fb = decode_feedback(sample.payload.to_bytes())
         self.got[(rid, header.seq)] = time.monotonic()
         self.cloud_ms.append(fb.cloud_ms)
+        if fb.tracked:
+            self.answered[rid].append((fb.timestamp, fb.T_world_camera))
         if len(self.got) == self.total:
             self.done.set()
 
@@ -142,6 +146,25 @@ class Fleet:
                 "latency_ms_p95": float(np.percentile(lat, 95)),
                 "cloud_ms_median": float(np.median(self.cloud_ms)),
                 "cloud_ms_p95": float(np.percentile(self.cloud_ms, 95))}
+
+    def online_ate_cm(self, sequences: dict[str, Path]) -> dict[str, float]:
+        """ATE (cm, SE(3) alignment) of each robot's answered poses against the ground truth
+        of its sequence (evaluation after the run: what tracking under this load gave)."""
+        from fleetslam.datasets.tum import RgbdSequence
+        from fleetslam.evaluation.fleet import ate_summary, ground_truth_at
+
+        out = {}
+        for rid, answered in self.answered.items():
+            if len(answered) < 3:
+                continue
+            answered = sorted(answered, key=lambda a: a[0])
+            times = np.array([t for t, _ in answered])
+            poses = np.array([T for _, T in answered])
+            ok, gt = ground_truth_at(times, RgbdSequence(sequences[rid]))
+            ate = ate_summary(poses[ok], gt)
+            if ate is not None:
+                out[rid] = 100 * ate["rmse_m"]
+        return out
 
     def close(self) -> None:
         for s in self.subs:

@@ -14,6 +14,8 @@ router and workers sharing one store folder:
   3. 10 fps: as many robots as the saturated rate allows at 10 fps each (at most --robots),
      then one robot fewer at a time until the latency p95 is under 300 ms: the fleet that
      setting really sustains at 10 fps per robot.
+Online ATE: each robot's poses as the cloud answered them, against its ground truth (after
+the run); median / max over the phase's robots.
 CPU per worker: user + system seconds of the worker and its local-mapping processes over
 the phase, divided by the phase's span (1.0 = one core busy).
 Writes bench/results/worker_scaling.json.
@@ -59,7 +61,7 @@ def prepare(n: int, frames: int) -> list[tuple[list[bytes], dict]]:
 
 
 def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work: Path,
-                placement: str = "etcd") -> dict:
+                placement: str = "etcd", config: str | None = None) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     endpoint = free_endpoint()
     # With etcd (as `demo --workers` runs them), every worker is placed and fenced by it.
@@ -68,7 +70,8 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
     router = start_router(endpoint, work / "router.log")
     cores = os.cpu_count() or 1
     workers = {f"w{i}": start_worker(endpoint, f"w{i}", work / "store", work / f"w{i}.log",
-                                     cpus=[i % cores] if pinned else None, extra=extra)
+                                     config_path=config, cpus=[i % cores] if pinned else None,
+                                     extra=extra)
                for i in range(n_workers)}
     client = CloudClient(endpoint)
     z = open_connecting(endpoint)
@@ -94,6 +97,8 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             tag = {"saturation": "s", "paced": "p"}.get(phase, f"t{len(chosen)}-")
             robots = {f"{tag}{i}": (robot_messages_for(f"{tag}{i}", msgs), cam)
                       for i, (msgs, cam) in enumerate(chosen)}
+            sequences = {f"{tag}{i}": SEVEN_SCENES if i % 2 == 0 else TUM_RPY
+                         for i in range(len(chosen))}
             fleet = Fleet(z, robots)
             fleet.hello()
             status = client.status(timeout=30)
@@ -108,8 +113,9 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             result = fleet.result(idle_s=20.0)
             cpu = {w: (tree_cpu_s(p.pid) - cpu0[w]) / result["span_s"]
                    for w, p in workers.items()}
+            ate = fleet.online_ate_cm(sequences)
             result.update(offered_fps_per_robot=fps, robots=len(robots), placement=per_worker,
-                          cpu_cores_per_worker=cpu)
+                          cpu_cores_per_worker=cpu, online_ate_cm=ate)
             results[phase] = result
             fleet.close()
             # 10 fps per robot: fewer robots until that fleet is really sustained.
@@ -125,6 +131,14 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
     return results
 
 
+def _ate_range(ate: dict[str, float]) -> str:
+    """The robots' online ATE (cm): median and max over the robots of a phase."""
+    if not ate:
+        return "-"
+    values = sorted(ate.values())
+    return f"{values[len(values) // 2]:.2f} / {values[-1]:.2f}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robots", type=int, default=8)
@@ -135,6 +149,9 @@ def main() -> None:
                         help="paced run: offered rate as a fraction of the sustained rate")
     parser.add_argument("--placement", default="etcd",
                         help="comma list of liveliness, etcd: how workers agree on robots")
+    parser.add_argument("--configs", default="",
+                        help="comma list of cloud config files (TOML) to compare side by "
+                        "side, each a setting of its own; empty: the defaults")
     parser.add_argument("--runs", type=int, default=1,
                         help="runs of every setting, alternating (min-max reported)")
     parser.add_argument("--out", default="bench/results/worker_scaling.json")
@@ -152,15 +169,24 @@ def main() -> None:
         sys.exit(f"--placement {args.placement}: give liveliness, etcd or both")
     settings = [(int(n), False) for n in args.workers.split(",") if n] + \
         [(int(n), True) for n in args.pinned.split(",") if n]
+    configs = [c or None for c in args.configs.split(",")]
+    for c in configs:
+        if c is not None and not Path(c).is_file():
+            sys.exit(f"--configs: {c} is not a file")
     results = {}
     for run in range(args.runs):
         for n, pinned in settings:
             for placement in placements:
-                name = (f"{n} worker{'s' if n > 1 else ''}{', 1 core each' if pinned else ''}"
-                        + (f", {placement}" if len(placements) > 1 else "")
-                        + (f", run {run + 1}" if args.runs > 1 else ""))
-                results[name] = run_setting(n, pinned, prepared, args.load, work / name.replace(
-                    " ", "_").replace(",", ""), placement)
+                for config in configs:
+                    name = (f"{n} worker{'s' if n > 1 else ''}"
+                            f"{', 1 core each' if pinned else ''}"
+                            + (f", {placement}" if len(placements) > 1 else "")
+                            + (f", {Path(config).stem if config else 'defaults'}"
+                               if len(configs) > 1 else "")
+                            + (f", run {run + 1}" if args.runs > 1 else ""))
+                    results[name] = run_setting(
+                        n, pinned, prepared, args.load,
+                        work / name.replace(" ", "_").replace(",", ""), placement, config)
     rows = []
     for name, phases in results.items():
         for phase, r in phases.items():
@@ -170,10 +196,11 @@ def main() -> None:
                          else f"{r['offered_fps_per_robot'] * r['robots']:.1f}",
                          r["cloud_fps"], r["latency_ms_median"], r["latency_ms_p95"],
                          " ".join(f"{v:.2f}" for v in cpu.values()),
+                         _ate_range(r["online_ate_cm"]),
                          " ".join(str(len(v)) for v in r["placement"].values())])
     print(format_table(["setting", "run", "robots", "frames", "dropped", "offered fps",
                         "sustained fps", "latency ms median", "latency ms p95",
-                        "cores used per worker", "robots per worker"], rows))
+                        "cores used per worker", "online ATE cm", "robots per worker"], rows))
     summary: dict[str, list[tuple[float, int]]] = {}
     for name, phases in results.items():
         ok = [r["robots"] for p, r in phases.items() if p.startswith("10fps")

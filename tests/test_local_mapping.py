@@ -38,6 +38,25 @@ def pool():
     pool.close()
 
 
+def test_the_workers_run_below_tracking():
+    """tracking.local_mapping_nice: the pool's processes yield the cores to tracking."""
+    import multiprocessing
+
+    before = {p.pid for p in multiprocessing.active_children()}
+    pool = LocalMappingPool(1, nice=7)
+    try:
+        problem = build_problem(scene_session(1), NEWEST)
+        assert pool.submit(problem).result(timeout=60) is not None
+        started = [p.pid for p in multiprocessing.active_children() if p.pid not in before]
+        assert started
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        assert {os.getpriority(os.PRIO_PROCESS, pid) - own for pid in started} == {7}
+    finally:
+        pool.close()
+    with pytest.raises(ValueError, match="local_mapping_nice is 20"):
+        LocalMappingPool(1, nice=20)
+
+
 def scene_session(seed: int) -> BackEndState:
     session = new_state(Config(), CAMERA)
     session.map, _, _ = build_scene(seed)

@@ -139,6 +139,11 @@ class TrackingConfig:
     local_mapping: Annotated[str, OneOf(("async", "inline"))] = "async"
     # Worker processes of a cloud for local BA, shared by its robots' sessions ...
     local_mapping_workers: Annotated[int, at_least(1)] = 1
+    # ... at this niceness (Linux nice, 0-19): when the cores are short, a robot's next
+    # frame goes before a keyframe's local BA, whose requests then supersede each other
+    # (ORB-SLAM's local mapper aborting its BA for new keyframes). Measured (2 cores, 2
+    # workers, 8 robots at once): saturated 55 -> 104 fps with 10 instead of 0.
+    local_mapping_nice: Annotated[int, between(0, 19)] = 10
     # ... and how long a solve may take before it is dropped (the map stays as it was).
     local_ba_timeout_s: Annotated[float, above(0.0)] = 30.0
     # Cull new landmarks as ORB-SLAM does (MapPointCulling) during their first keyframes.
@@ -322,6 +327,17 @@ class MergeConfig:
     # The graph index: neighbours per node, and the breadth of each search.
     place_index_links: Annotated[int, between(4, 64)] = 16
     place_index_breadth: Annotated[int, between(8, 1024)] = 64
+    # The cloud's merger searches places in a process of its own at this niceness (0-19):
+    # the search then takes neither the GIL nor a core from the robots tracking in the same
+    # worker (merging/place_search.py); off: on the merger's thread. A search not answered
+    # within search_timeout_s turns the search in-line for good.
+    search_process: bool = True
+    search_nice: Annotated[int, between(0, 19)] = 10
+    search_timeout_s: Annotated[float, above(0.0)] = 60.0
+    # A keyframe that waited longer than this for the cloud's merger is indexed without
+    # being searched (counted): an overloaded merger searches fewer keyframes rather than
+    # falling further behind the robots (local BA's latest-only rule, for the merger).
+    search_behind_s: Annotated[float, above(0.0)] = 5.0
     # A candidate is verified like a loop (loop_closing's RANSAC settings, keyframe to
     # keyframe); matches left after the reprojection refinement of the query pose:
     min_refined_inliers: Annotated[int, at_least(1)] = 50

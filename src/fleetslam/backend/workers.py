@@ -37,11 +37,14 @@ log = logging.getLogger(__name__)
 PARENT_POLL_S = 1.0
 
 
-def _start_worker(parent_pid: int) -> None:
+def _start_worker(parent_pid: int, nice: int) -> None:
     """In each worker: Ctrl-C is the cloud's to handle (a terminal sends SIGINT to the whole
     process group; a worker interrupted on its queue printed a traceback while the cloud
-    shut its pool down cleanly), and exit with the cloud."""
+    shut its pool down cleanly), a lower priority than tracking (``nice``), and exit with
+    the cloud."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if nice > 0 and hasattr(os, "nice"):
+        os.nice(nice)
     _exit_with_parent(parent_pid)
 
 
@@ -73,13 +76,15 @@ def _warm_up() -> bool:
 class LocalMappingPool:
     """The worker processes that solve local BA problems, shared by a cloud's sessions."""
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, nice: int = 0) -> None:
         if workers < 1:
             raise ValueError(f"tracking.local_mapping_workers is {workers}: at least 1")
+        if not 0 <= nice <= 19:
+            raise ValueError(f"tracking.local_mapping_nice is {nice}: 0 to 19")
         # spawn, not fork: the cloud process has Zenoh's and the sessions' threads.
         self._executor = ProcessPoolExecutor(
             max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_start_worker, initargs=(os.getpid(),))
+            initializer=_start_worker, initargs=(os.getpid(), nice))
         self._executor.submit(_warm_up)
 
     def submit(self, problem: LocalBAProblem) -> Future:

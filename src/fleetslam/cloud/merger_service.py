@@ -22,6 +22,7 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
+from fleetslam.merging.place_search import PlaceSearchProcess
 from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.merge")
@@ -37,9 +38,12 @@ FromStore = Callable[[str], "tuple[Camera, list[KeyframeSummary], np.ndarray] | 
 class MergerService:
     def __init__(self, config: Config, view: NullView | None = None,
                  from_store: FromStore | None = None) -> None:
-        self.merger = MapMerger(config)
+        cfg = config.merge
+        self.merger = MapMerger(config, PlaceSearchProcess(
+            config, cfg.search_nice, cfg.search_timeout_s) if cfg.search_process else None)
         self._from_store = from_store
         self.remote_gaps = 0  # keyframes that came after a gap, filled from the store
+        self._behind_s = config.merge.search_behind_s
         self.errors = 0
         # The live view gets the global transforms and constraints at most every
         # view.global_every_s, on this thread (never on a robot's session).
@@ -60,14 +64,14 @@ class MergerService:
         self._queue.put(("robot", (robot, camera, keyframes or [], poses)))
 
     def submit(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
-        self._queue.put(("keyframe", (summary, poses)))
+        self._queue.put(("keyframe", (summary, poses, time.monotonic())))
 
     def submit_remote(self, camera: Camera, summary: KeyframeSummary, poses: np.ndarray
                       ) -> None:
         """A keyframe of a robot another worker serves: taken in order; one already held is
         skipped, and a gap (keyframes missed while this worker was not the merger, or
         lost) is filled from the robot's checkpoint in the store first."""
-        self._queue.put(("remote", (camera, summary, poses)))
+        self._queue.put(("remote", (camera, summary, poses, time.monotonic())))
 
     def rebuild_from_store(self, robots: list[str]) -> None:
         """Take these robots' keyframes as their checkpoints in the store have them (a worker
@@ -88,15 +92,17 @@ class MergerService:
         if loaded is not None and self._take_robot(robot, *loaded) > 0:
             self.merger.update_poses(robot, loaded[2])
 
-    def _keyframe(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
+    def _keyframe(self, summary: KeyframeSummary, poses: np.ndarray, arrival: float) -> None:
         """Keyframes in order: one held already (a rebuild from the store took it) only
-        brings newer poses; a gap is filled from the store first."""
+        brings newer poses; a gap is filled from the store first. One that waited beyond
+        merge.search_behind_s is indexed without its search."""
         if summary.keyframe > len(self.merger.robots[summary.robot].keyframes):
             self.remote_gaps += 1
             self._fill(summary.robot)
         have = len(self.merger.robots[summary.robot].keyframes)
         if summary.keyframe == have:
-            self.merger.add_keyframe(summary, poses)
+            self.merger.add_keyframe(summary, poses,
+                                     search=time.monotonic() - arrival <= self._behind_s)
         elif summary.keyframe < have and len(poses) >= have:
             self.merger.update_poses(summary.robot, poses)
 
@@ -121,9 +127,9 @@ class MergerService:
                     elif kind == "keyframe":
                         self._keyframe(*payload)
                     elif kind == "remote":
-                        camera, summary, poses = payload
+                        camera, summary, poses, arrival = payload
                         self.merger.add_robot(summary.robot, camera)
-                        self._keyframe(summary, poses)
+                        self._keyframe(summary, poses, arrival)
                     elif kind == "rebuild":
                         for robot in payload:
                             self._fill(robot)
@@ -179,3 +185,5 @@ class MergerService:
     def close(self, timeout: float = 5.0) -> None:
         self._queue.put(None)
         self._thread.join(timeout)
+        if isinstance(self.merger.search, PlaceSearchProcess):
+            self.merger.search.close()

@@ -123,7 +123,8 @@ class CloudServer:
             raise ValueError(f"tracking.local_mapping is {tracking.local_mapping!r}: "
                              f"'async' or 'inline'")
         if tracking.local_mapping == "async" and tracking.local_ba:
-            self.local_mapping = LocalMappingPool(tracking.local_mapping_workers)
+            self.local_mapping = LocalMappingPool(tracking.local_mapping_workers,
+                                                  tracking.local_mapping_nice)
             self.sessions.local_mapping = self.local_mapping
         transport = self.config.transport
         if self.connect:

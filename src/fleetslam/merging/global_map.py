@@ -218,6 +218,7 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
                   "constraint, global pose graph (GNC), FS-HICP refinement",
         "components": status["components"], "joins": status["events"],
         "robots": status["robots"], "constraints": constraints,
+        "keyframes_not_searched": status["keyframes_not_searched"],
         "query_ms_median": ms(merger.query_seconds),
         "query_ms_p95": 1000.0 * float(np.percentile(merger.query_seconds, 95))
         if merger.query_seconds else None,

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -29,15 +29,11 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.dense_constraint import (DenseCloud, DenseRefinement, odometry_information,
                                                 prepare, refine)
-from fleetslam.merging.inter_robot import PlaceMatch, verify_places
+from fleetslam.merging.inter_robot import PlaceMatch
+from fleetslam.merging.place_search import PlaceSearch, Searcher
 from fleetslam.wire.merger_keyframes import KeyframeSummary
-from fleetslam.backend.place_recognition import ApproximateKeyframeDatabase, KeyframeDatabase
-from fleetslam.backend.places import make_database
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.transforms import invert, transforms_agree
-
-if TYPE_CHECKING:
-    from fleetslam.backend.vocabulary import BowDatabase
 
 log = logging.getLogger("fleetslam.merge")
 
@@ -56,7 +52,6 @@ class RobotRecord:
     camera: Camera
     keyframes: list[KeyframeSummary] = field(default_factory=list)
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_map_keyframe
-    places: "KeyframeDatabase | ApproximateKeyframeDatabase | BowDatabase | None" = None
     # The component (by its anchor robot) and this robot's map frame in the anchor's frame.
     anchor: str = ""
     T_anchor_map: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -89,14 +84,18 @@ def _node(record: RobotRecord, keyframe: int) -> int:
 
 
 class MapMerger:
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, search: Searcher | None = None) -> None:
         self.config = config
         self.robots: dict[str, RobotRecord] = {}
+        # The robots' place databases and the search in them (in-line unless given).
+        self.search = search if search is not None else PlaceSearch(config)
         # Verified matches not (yet) part of a join, per unordered robot pair.
         self.pending: dict[tuple[str, str], list[PlaceMatch]] = {}
         self.constraints: list[Constraint] = []
         self.events: list[dict[str, Any]] = []
         self.query_seconds: list[float] = []
+        # Keyframes indexed without a search (the cloud's merger was behind).
+        self.unsearched = 0
         self.graph_seconds: list[float] = []
         self.dense_seconds: list[float] = []
         self.dense_odometry: dict[tuple[str, int], DenseRefinement] = {}
@@ -108,15 +107,8 @@ class MapMerger:
     def add_robot(self, name: str, camera: Camera) -> None:
         if name in self.robots:
             return
-        self.robots[name] = RobotRecord(name, len(self.robots), camera,
-                                        places=self._place_database(), anchor=name)
-
-    def _place_database(self) -> "KeyframeDatabase | ApproximateKeyframeDatabase | BowDatabase":
-        pr, cfg = self.config.place_recognition, self.config.merge
-        if cfg.place_index == "approximate" and pr.method == "nearest_neighbour":
-            return ApproximateKeyframeDatabase(pr, cfg.place_index_exact_up_to,
-                                               cfg.place_index_links, cfg.place_index_breadth)
-        return make_database(pr)
+        self.robots[name] = RobotRecord(name, len(self.robots), camera, anchor=name)
+        self.search.add_robot(name, camera)
 
     def update_poses(self, robot: str, poses: np.ndarray) -> None:
         """The robot's latest keyframe poses (local BA and loop closing move them)."""
@@ -124,9 +116,10 @@ class MapMerger:
         record.poses = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
         self._global = None
 
-    def add_keyframe(self, summary: KeyframeSummary, poses: np.ndarray) -> list[dict[str, Any]]:
+    def add_keyframe(self, summary: KeyframeSummary, poses: np.ndarray, search: bool = True
+                     ) -> list[dict[str, Any]]:
         """Take a robot's new keyframe (and its latest keyframe poses); look for it in the
-        other robots' maps. Returns the join events it caused."""
+        other robots' maps unless ``search`` is False. Returns the join events it caused."""
         record = self.robots[summary.robot]
         if summary.keyframe != len(record.keyframes):
             raise ValueError(f"robot {summary.robot}: keyframe {summary.keyframe} arrived, "
@@ -134,31 +127,18 @@ class MapMerger:
         record.keyframes.append(summary)
         self.update_poses(summary.robot, poses)
         events: list[dict[str, Any]] = []
-        if self.config.merge.enabled:
-            start = time.perf_counter()
-            matches = [m for other in self.robots.values() if other.name != summary.robot
-                       if (m := self._find_place(summary, record, other)) is not None]
+        self.unsearched += not search
+        others = [name for name in self.robots if name != summary.robot] \
+            if self.config.merge.enabled and search else []
+        start = time.perf_counter()
+        matches = self.search.add_keyframe(summary, others)
+        if others:
             self.query_seconds.append(time.perf_counter() - start)
-            for match in matches:
-                event = self._consider(match)
-                if event is not None:
-                    events.append(event)
-        assert record.places is not None
-        record.places.add(summary.keyframe, summary.features.descriptors)
+        for match in matches:
+            event = self._consider(match)
+            if event is not None:
+                events.append(event)
         return events
-
-    def _find_place(self, query: KeyframeSummary, query_record: RobotRecord,
-                    other: RobotRecord) -> PlaceMatch | None:
-        assert other.places is not None
-        if not len(other.places):
-            return None
-        cfg = self.config.merge
-        for candidate in other.places.query(query.features.descriptors, top_k=cfg.candidates):
-            match = verify_places(query, query_record.camera, other.keyframes[candidate.key],
-                                  other.camera, candidate.score, self.config)
-            if match is not None:
-                return match
-        return None
 
     # -- joining ----------------------------------------------------------------------------
 
@@ -400,5 +380,6 @@ class MapMerger:
             "constraints": len(self.constraints),
             "constraints_rejected": sum(c.kept is False for c in self.constraints),
             "pending_matches": {f"{a}+{b}": len(v) for (a, b), v in self.pending.items()},
+            "keyframes_not_searched": self.unsearched,
             "events": self.events,
         }
