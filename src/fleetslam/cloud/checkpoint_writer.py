@@ -3,6 +3,10 @@ state where it stands (quick), this writes it durably to the store (slow), and t
 replies wait until the checkpoint they depend on is on disk. A new keyframe goes to the
 merger only after the checkpoint that holds it: a worker taking the session over from the
 store never finds the merger ahead of the store.
+
+A checkpoint asked within ``interval_s`` of the last capture waits: the session's thread
+calls ``capture_due`` after each message and when ``due_in`` runs out, and that capture
+covers every request since (transport.checkpoint_interval_s).
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from typing import Callable, Iterable
 
 import numpy as np
@@ -34,7 +39,8 @@ class CheckpointWriter:
     def __init__(self, robot_id: str, store: CloudStore, snapshot: Callable[[], Capture],
                  durable_index: int, keyframe_sink: KeyframeSink | None = None,
                  ended: Callable[[], bool] = lambda: False,
-                 written: Callable[[Iterable[str]], None] = lambda names: None) -> None:
+                 written: Callable[[Iterable[str]], None] = lambda names: None,
+                 interval_s: float = 0.0) -> None:
         """``snapshot``: the session's state as a checkpoint now; ``durable_index``: the
         newest frame index a checkpoint on disk covers already (a restored session: all);
         ``ended``: whether the robot has finished (taken with each snapshot); ``written``:
@@ -52,6 +58,10 @@ class CheckpointWriter:
         self._queued = 0
         self._written = 0
         self._durable = threading.Condition()
+        self._interval_s = interval_s
+        self._captured_at = -float("inf")
+        # Requests not captured yet: the newest frame index and the keyframes for the merger.
+        self._waiting: tuple[int, list[NewKeyframe]] | None = None
         self._thread = threading.Thread(target=self._write, name=f"cloud-{robot_id}-checkpoints",
                                         daemon=True)
 
@@ -64,15 +74,41 @@ class CheckpointWriter:
         if self._thread.is_alive():
             self._thread.join(timeout)
 
-    def checkpoint(self, frame_index: int, keyframe: NewKeyframe | None = None) -> int:
-        """Queue a checkpoint of the state now (covering frames up to ``frame_index``); its
-        number. ``keyframe``: what the merger gets of the new keyframe, handed on once this
-        checkpoint is on disk."""
+    def checkpoint(self, frame_index: int, keyframe: NewKeyframe | None = None,
+                   now: bool = True) -> int:
+        """Ask for a checkpoint covering frames up to ``frame_index``; its number. Captured
+        at once, or (``now`` False) within interval_s of the last capture, see the
+        module's docstring. ``keyframe``: what the merger gets of the new keyframe, handed on
+        once a checkpoint that holds it is on disk."""
         with self._durable:
             self._queued += 1
             number = self._queued
-        self._queue.put((frame_index, number, self._snapshot(), self._ended(), keyframe))
+        index, keyframes = self._waiting or (frame_index, [])
+        self._waiting = (max(index, frame_index), keyframes + ([keyframe] if keyframe else []))
+        if now or self.due_in() == 0.0:
+            self.capture()
         return number
+
+    def due_in(self) -> float | None:
+        """Seconds until the waiting request is to be captured; None if none waits."""
+        if self._waiting is None:
+            return None
+        return max(0.0, self._captured_at + self._interval_s - time.monotonic())
+
+    def capture_due(self) -> None:
+        """Capture the waiting request if its time has come (the session's thread)."""
+        if self.due_in() == 0.0:
+            self.capture()
+
+    def capture(self) -> None:
+        """Capture the state now for every waiting request (the session's thread)."""
+        if self._waiting is None:
+            return
+        (index, keyframes), self._waiting = self._waiting, None
+        with self._durable:
+            number = self._queued
+        self._captured_at = time.monotonic()
+        self._queue.put((index, number, self._snapshot(), self._ended(), keyframes))
 
     def wait_for_frame(self, frame_index: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
         """Until a checkpoint on disk covers ``frame_index``; whether one does."""
@@ -86,15 +122,14 @@ class CheckpointWriter:
 
     def _write(self) -> None:
         while (item := self._queue.get()) is not None:
-            index, number, blob, ended, keyframe = item
-            keyframes = [keyframe]
+            index, number, blob, ended, keyframes = item
             while not self._queue.empty():  # only the newest one matters
                 newer = self._queue.get()
                 if newer is None:
                     self._queue.put(None)
                     break
-                index, number, blob, ended, keyframe = newer
-                keyframes.append(keyframe)
+                index, number, blob, ended, more = newer
+                keyframes = keyframes + more
             try:
                 self.store.write_checkpoint(self.robot_id, blob, ended=ended)
             except NotOwner as exc:
@@ -114,7 +149,7 @@ class CheckpointWriter:
             # above): a worker taking the session over from the store goes on from the
             # keyframes the merger has, never from an older map beside them.
             for kf in keyframes:
-                if kf is not None and self.keyframe_sink is not None:
+                if self.keyframe_sink is not None:
                     try:
                         self.keyframe_sink(*kf)
                     except Exception:  # the merger's loss, never the checkpoints'

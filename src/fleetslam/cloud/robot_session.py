@@ -140,7 +140,8 @@ class RobotSession:
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
                                             state.last_index, keyframe_sink,
                                             ended=lambda: self.state.ended,
-                                            written=self.chunks.confirm)
+                                            written=self.chunks.confirm,
+                                            interval_s=config.transport.checkpoint_interval_s)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
@@ -182,6 +183,8 @@ class RobotSession:
                 t.join(timeout)
         if final_checkpoint:
             self.checkpoints.checkpoint(self.state.last_index)
+        elif not self._dropped.is_set():
+            self.checkpoints.capture()  # a keyframe's, waiting for its interval
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
         self.checkpoints.close(timeout)
 
@@ -299,16 +302,19 @@ class RobotSession:
 
     def _serve_tracking(self) -> None:
         """Frames and control in order; an end waiting for frames in flight is looked at
-        after each frame and every END_RECHECK_S (this thread's own timer: no thread per
-        end)."""
+        after each frame and every END_RECHECK_S, a keyframe's checkpoint waiting for its
+        interval when it is due (this thread's own timers: no thread per end)."""
         while True:
-            item = self._decoded.get(END_RECHECK_S if self._end_since is not None else None)
+            waits = [END_RECHECK_S if self._end_since is not None else None,
+                     self.checkpoints.due_in()]
+            item = self._decoded.get(min((w for w in waits if w is not None), default=None))
             if item is None:
                 return
             if item is not IDLE:
                 self._handle(self._on_work, item)
             if self._end_since is not None and (item is IDLE or item[0] == "frame"):
                 self._handle(self._on_work, ("end again", None, 0.0))
+            self._handle(lambda *_: self.checkpoints.capture_due(), ("checkpoint", None, 0.0))
 
     def _handle(self, handle: Callable[[str, Any, float], None], item: tuple) -> None:
         kind, payload, arrival = item
@@ -526,7 +532,8 @@ class RobotSession:
         if isinstance(state, CapturedFrame):
             # Total offloading: the cloud already has the keyframe's RGB-D.
             self._store_captured_keyframe(state, seq)
-        self.checkpoints.checkpoint(frame_index, self.newest_keyframe() if to_merger else None)
+        self.checkpoints.checkpoint(frame_index, self.newest_keyframe() if to_merger else None,
+                                    now=False)
         if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
             lmap = self.state.tracking.map
             self.view.keyframe_poses(self.robot_id, [kf.frame_index for kf in lmap.keyframes],
@@ -556,6 +563,14 @@ class RobotSession:
             return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
                                             f"this session", protocol.Code.NOT_A_KEYFRAME,
                                 frame_index=upload.frame_index)
+        # Stored only once a checkpoint that knows it as a keyframe is on disk (it may wait
+        # for transport.checkpoint_interval_s), so a keyframe file in the store is one of the
+        # map's after any restart; a crash between the two leaves a keyframe without its
+        # file, which the end asks the robot for again. Acknowledged once both are on disk
+        # (a resent one is acknowledged again).
+        if not self.checkpoints.wait_for_frame(upload.frame_index):
+            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
+                                            f"covers it yet (not acknowledged; resend)")
         if self.store.has_keyframe(self.robot_id, upload.frame_index):
             self.count("duplicate keyframe uploads")
         elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:
@@ -566,11 +581,6 @@ class RobotSession:
             self.store.put_keyframe(self.robot_id, upload.frame_index, data)
             self.count("keyframes stored")
             self._show_keyframe(upload)
-        # Acknowledged only once it and a checkpoint that knows it as a keyframe are on disk
-        # (a resent one is acknowledged again).
-        if not self.checkpoints.wait_for_frame(upload.frame_index):
-            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
-                                            f"covers it yet (not acknowledged; resend)")
         self._reply(protocol.ack(upload.frame_index))
 
     def _wrong_size(self, upload: KeyframeUpload) -> str | None:
