@@ -55,3 +55,26 @@ def test_the_meter_sees_a_busy_process_and_robots_gone_quiet_at_once():
     robots[0] = 1
     time.sleep(1.2)
     assert meter.busy() < 0.2  # idle for six windows
+
+
+def test_niced_background_work_is_not_a_robot_s_load():
+    """A worker's niced children (local BA, the place search) yield the cores to tracking:
+    placement's meter leaves them out; the process tree's total (the benchmarks') keeps
+    them."""
+    import subprocess
+    import sys
+
+    from fleetslam.cloud.worker_load import tree_cpu_seconds
+
+    spin = "import time\nend = time.monotonic() + 1.5\nwhile time.monotonic() < end: pass\n"
+    child = subprocess.Popen([sys.executable, "-c", f"import os; os.nice(5)\n{spin}"])
+    try:
+        start_all = tree_cpu_seconds(os.getpid())
+        start_ours = tree_cpu_seconds(os.getpid(), unniced_only=True)
+        time.sleep(1.0)
+        spent_all = tree_cpu_seconds(os.getpid()) - start_all
+        spent_ours = tree_cpu_seconds(os.getpid(), unniced_only=True) - start_ours
+    finally:
+        child.wait(10)
+    assert spent_all > 0.3  # the niced child spun (less what a loaded machine took)
+    assert spent_ours < 0.1  # this process slept

@@ -86,8 +86,8 @@ class CloudServer:
         else:
             self.store = CloudStore(self.out_dir, config.transport.max_checkpoint_bytes)
         self.stopped = threading.Event()
-        # This worker's load as placement weighs it: the cores it and its local-mapping
-        # processes keep busy for the robots at work.
+        # This worker's load as placement weighs it: the cores it keeps busy for the robots
+        # at work, at its own priority (its niced local BA and place search yield).
         self._cpu = CpuMeter(os.getpid(), config.placement.load_window_s, self._at_work,
                              config.placement.robot_cost_cores)
         self._zenoh: zenoh.Session | None = None

@@ -1,5 +1,5 @@
-"""How loaded each cloud worker is, measured: the cores its process and its local-mapping
-processes kept busy lately, and how many robots it held when it measured. Every worker
+"""How loaded each cloud worker is, measured: the cores its process and its child processes
+at its priority kept busy lately (niced ones, local BA and the place search, yield), and how many robots it held when it measured. Every worker
 publishes its own every ``placement.load_report_s`` (``fleet/cloud/load/<worker>``) and
 keeps the others'; placement ranks the workers for a new robot by it, so robots go by
 measured cost, not by count (the merging worker, a robot tracking itself at point 6, a robot
@@ -38,11 +38,14 @@ EQUAL_CORES = 0.05
 MAX_REPORT_BYTES = 256
 
 
-def tree_cpu_seconds(pid: int) -> float:
+def tree_cpu_seconds(pid: int, unniced_only: bool = False) -> float:
     """User + system CPU seconds of ``pid`` and every process below it (Linux /proc; 0.0
-    elsewhere)."""
+    elsewhere); ``unniced_only``: of those at ``pid``'s priority or above, leaving out
+    work niced below it (local BA, the merger's place search), which yields the cores to
+    tracking."""
     parent: dict[int, int] = {}
     cpu: dict[int, float] = {}
+    nice: dict[int, int] = {}
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -52,16 +55,20 @@ def tree_cpu_seconds(pid: int) -> float:
             continue
         parent[int(entry.name)] = int(fields[1])
         cpu[int(entry.name)] = (int(fields[11]) + int(fields[12])) / TICK
+        nice[int(entry.name)] = int(fields[16])
     total, todo = 0.0, [pid]
     while todo:
         p = todo.pop()
-        total += cpu.get(p, 0.0)
+        if not unniced_only or nice.get(p, 0) <= nice.get(pid, 0):
+            total += cpu.get(p, 0.0)
         todo += [c for c, pp in parent.items() if pp == p]
     return total
 
 
 class CpuMeter:
-    """Cores a process tree keeps busy for its robots now. It measures the cores used and
+    """Cores a process tree keeps busy for its robots now, at its own priority (its niced
+    background work yields to a new robot's tracking, so it does not count). It measures
+    the cores used and
     the robots at work (``active``), each smoothed over ``window_s`` (exponential averages
     updated at each call), and weighs the robots at work now at the measured cost per
     robot: a robot gone quiet stops counting at once, not a window later (measured: a fleet
@@ -75,14 +82,15 @@ class CpuMeter:
                  robot_cost: float) -> None:
         self.pid, self.window_s, self._active = pid, window_s, active
         self.robot_cost = robot_cost
-        self._last = (time.monotonic(), tree_cpu_seconds(pid))
+        self._last = (time.monotonic(), tree_cpu_seconds(pid, unniced_only=True))
         self._busy = 0.0
         self._active_avg = 0.0
         self._lock = threading.Lock()
 
     def busy(self) -> float:
         with self._lock:
-            now, cpu, active = time.monotonic(), tree_cpu_seconds(self.pid), self._active()
+            now, cpu, active = (time.monotonic(), tree_cpu_seconds(self.pid, unniced_only=True),
+                                self._active())
             dt = now - self._last[0]
             if dt > 0.05:
                 rate = max(cpu - self._last[1], 0.0) / dt
