@@ -37,8 +37,9 @@ log = logging.getLogger(__name__)
 PARENT_POLL_S = 1.0
 
 
-def _start_worker(parent_pid: int, nice: int) -> None:
-    """In each worker: Ctrl-C is the cloud's to handle (a terminal sends SIGINT to the whole
+def start_background(parent_pid: int, nice: int) -> None:
+    """In each of the cloud's background processes (these workers, the merger's place
+    search): Ctrl-C is the cloud's to handle (a terminal sends SIGINT to the whole
     process group; a worker interrupted on its queue printed a traceback while the cloud
     shut its pool down cleanly), a lower priority than tracking (``nice``), and exit with
     the cloud."""
@@ -84,7 +85,7 @@ class LocalMappingPool:
         # spawn, not fork: the cloud process has Zenoh's and the sessions' threads.
         self._executor = ProcessPoolExecutor(
             max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_start_worker, initargs=(os.getpid(), nice))
+            initializer=start_background, initargs=(os.getpid(), nice))
         self._executor.submit(_warm_up)
 
     def submit(self, problem: LocalBAProblem) -> Future:

@@ -18,9 +18,6 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-import signal
-import threading
-import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Sequence
@@ -29,6 +26,7 @@ import numpy as np
 
 from fleetslam.backend.place_recognition import ApproximateKeyframeDatabase, KeyframeDatabase
 from fleetslam.backend.places import make_database
+from fleetslam.backend.workers import start_background
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import PlaceMatch, verify_places
@@ -38,9 +36,6 @@ if TYPE_CHECKING:
     from fleetslam.backend.vocabulary import BowDatabase
 
 log = logging.getLogger("fleetslam.merge")
-
-# How often the search process checks that the cloud process that started it is there.
-PARENT_POLL_S = 1.0
 
 
 @dataclass
@@ -104,16 +99,7 @@ Found = tuple[str, int, np.ndarray, float, int, int]
 def _serve(conn: Connection, config: Config, nice: int, parent_pid: int) -> None:
     """The search process: requests from ``conn`` in order, until None or the cloud is
     gone."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the cloud's to handle
-    if nice > 0 and hasattr(os, "nice"):
-        os.nice(nice)
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(PARENT_POLL_S)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+    start_background(parent_pid, nice)
     search = PlaceSearch(config)
     while True:
         try:
