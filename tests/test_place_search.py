@@ -4,6 +4,8 @@ the in-line search with nothing lost."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -59,6 +61,8 @@ def test_the_search_process_finds_what_the_inline_search_finds(keyframes):
     try:
         assert _run(search, camera, kfs) == inline
         assert not search.inline
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, search._process.pid) - own == 5
     finally:
         search.close()
 

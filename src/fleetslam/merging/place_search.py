@@ -96,15 +96,15 @@ class PlaceSearch:
 Found = tuple[str, int, np.ndarray, float, int, int]
 
 
-def _serve(conn: Connection, config: Config, nice: int, parent_pid: int) -> None:
+def _serve(conn: Connection, config: Config, parent_pid: int) -> None:
     """The search process: requests from ``conn`` in order, until None or the cloud is
     gone."""
-    start_background(parent_pid, nice)
+    start_background(parent_pid, 0)  # niced by the cloud as it started (see _start)
     search = PlaceSearch(config)
     while True:
         try:
             request = conn.recv()
-        except EOFError:
+        except (EOFError, OSError):  # the cloud is gone (killed: the pipe is reset)
             return
         if request is None:
             return
@@ -145,9 +145,16 @@ class PlaceSearchProcess:
         if self._conn is None:
             parent, child = multiprocessing.get_context("spawn").Pipe()
             self._process = multiprocessing.get_context("spawn").Process(
-                target=_serve, args=(child, self.config, self.nice, os.getpid()),
+                target=_serve, args=(child, self.config, os.getpid()),
                 name="fleetslam-place-search", daemon=True)
             self._process.start()
+            # Niced from its first instruction, not once its imports are done: a second of
+            # start-up CPU at tracking's priority made this worker look busy to placement.
+            try:
+                os.setpriority(os.PRIO_PROCESS, self._process.pid,
+                               min(19, os.getpriority(os.PRIO_PROCESS, 0) + self.nice))
+            except (AttributeError, OSError):  # not Linux, or gone already
+                pass
             child.close()
             self._conn = parent
         return self._conn
