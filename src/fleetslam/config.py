@@ -142,8 +142,10 @@ class TrackingConfig:
     # ... at this niceness (Linux nice, 0-19): when the cores are short, a robot's next
     # frame goes before a keyframe's local BA, whose requests then supersede each other
     # (ORB-SLAM's local mapper aborting its BA for new keyframes). Measured (2 cores, 2
-    # workers, 8 robots at once): saturated 55 -> 104 fps with 10 instead of 0.
-    local_mapping_nice: Annotated[int, between(0, 19)] = 10
+    # workers, 8 robots at once): saturated 55 -> 104 fps with 10 instead of 0. Off (0) by
+    # default until a session's end no longer waits on niced work: on an oversubscribed
+    # machine the end's flush of the last local BA starved (restart tests timed out).
+    local_mapping_nice: Annotated[int, between(0, 19)] = 0
     # ... and how long a solve may take before it is dropped (the map stays as it was).
     local_ba_timeout_s: Annotated[float, above(0.0)] = 30.0
     # Cull new landmarks as ORB-SLAM does (MapPointCulling) during their first keyframes.
@@ -331,7 +333,9 @@ class MergeConfig:
     # the search then takes neither the GIL nor a core from the robots tracking in the same
     # worker (merging/place_search.py); off: on the merger's thread. A search not answered
     # within search_timeout_s turns the search in-line for good.
-    search_process: bool = True
+    # Off by default: the merger's thread holds its lock while it waits for the search, so
+    # a starved niced search blocked status and a session's end (restart tests timed out).
+    search_process: bool = False
     search_nice: Annotated[int, between(0, 19)] = 10
     search_timeout_s: Annotated[float, above(0.0)] = 60.0
     # A keyframe that waited longer than this for the cloud's merger is indexed without
