@@ -1,10 +1,13 @@
 """The merger's place search in its own process gives the matches the in-line search gives,
 on real keyframes of two robots; a process that dies or misses its deadline hands over to
-the in-line search with nothing lost."""
+the in-line search with nothing lost; a stopped search process holds up neither the
+merger's status nor its keyframes."""
 
 from __future__ import annotations
 
 import os
+import signal
+import time
 
 import numpy as np
 import pytest
@@ -13,7 +16,8 @@ from conftest import SEVEN_SCENES, require
 from fleetslam.backend.back_end import TrackingPipeline
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
+from fleetslam.cloud.merger_service import MergerService
+from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess, Searched
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.wire.merger_keyframes import KeyframeSummary
@@ -38,19 +42,38 @@ def keyframes():
     return seq.camera, out
 
 
+def _results(search, n: int, timeout: float = 60.0) -> list[Searched]:
+    """The next ``n`` searches' results (the process answers in its own time)."""
+    out: list[Searched] = []
+    deadline = time.monotonic() + timeout
+    while len(out) < n:
+        assert time.monotonic() < deadline, f"{len(out)} of {n} searches answered"
+        out += search.take_results()
+        time.sleep(0.01)
+    return out
+
+
+def _found(results: list[Searched], kfs) -> list[tuple]:
+    found = []
+    for s in results:
+        assert s.searched
+        for m in s.matches:
+            assert m.query is s.summary and m.place is kfs["a"][m.place.keyframe]
+            found.append((m.query.keyframe, m.place.robot, m.place.keyframe, m.score,
+                          m.ransac_inliers, m.inliers, m.T_place_query.round(9).tobytes()))
+    return found
+
+
 def _run(search, camera, keyframes) -> list[tuple]:
     """a's keyframes indexed, then each of b's searched in a; the matches found."""
     for name in keyframes:
         search.add_robot(name, camera)
     for kf in keyframes["a"]:
-        assert search.add_keyframe(kf, []) == []
-    found = []
+        search.submit(kf, [], time.monotonic())
+    assert all(not s.matches for s in _results(search, len(keyframes["a"])))
     for kf in keyframes["b"]:
-        for m in search.add_keyframe(kf, ["a"]):
-            assert m.query is kf and m.place is keyframes["a"][m.place.keyframe]
-            found.append((m.query.keyframe, m.place.robot, m.place.keyframe, m.score,
-                          m.ransac_inliers, m.inliers, m.T_place_query.round(9).tobytes()))
-    return found
+        search.submit(kf, ["a"], time.monotonic())
+    return _found(_results(search, len(keyframes["b"])), keyframes)
 
 
 def test_the_search_process_finds_what_the_inline_search_finds(keyframes):
@@ -60,7 +83,7 @@ def test_the_search_process_finds_what_the_inline_search_finds(keyframes):
     search = PlaceSearchProcess(Config(), nice=5, timeout_s=60.0)
     try:
         assert _run(search, camera, kfs) == inline
-        assert not search.inline
+        assert not search.inline and search.pending == 0
         own = os.getpriority(os.PRIO_PROCESS, 0)
         assert os.getpriority(os.PRIO_PROCESS, search._process.pid) - own == 5
     finally:
@@ -76,23 +99,44 @@ def test_a_failed_search_process_hands_over_to_the_inline_search(keyframes, fail
         for name in kfs:
             search.add_robot(name, camera)
         for kf in kfs["a"][:3]:
-            search.add_keyframe(kf, [])
+            search.submit(kf, [], time.monotonic())
+        _results(search, 3)
         assert not search.inline
         if failure == "killed":
             search._process.kill()
             search._process.join(5)
         else:
-            search.timeout_s = 1e-4  # no search answers this fast
+            os.kill(search._process.pid, signal.SIGSTOP)  # alive, and answers nothing
+            search.timeout_s = 0.5
+        # Asked of the process, and searched in-line once it is found to have failed.
         for kf in kfs["a"][3:]:
-            search.add_keyframe(kf, [])
-        found = [(m.query.keyframe, m.place.robot, m.place.keyframe, m.score,
-                  m.ransac_inliers, m.inliers, m.T_place_query.round(9).tobytes())
-                 for kf in kfs["b"] for m in search.add_keyframe(kf, ["a"])]
-        assert search.inline
-        assert found == inline
+            search.submit(kf, [], time.monotonic())
+        for kf in kfs["b"]:
+            search.submit(kf, ["a"], time.monotonic())
+        results = _results(search, len(kfs["a"]) - 3 + len(kfs["b"]))
+        assert search.inline and search.pending == 0
+        assert _found(results[len(kfs["a"]) - 3:], kfs) == inline
         assert "searching in-line from now on" in caplog.text
     finally:
         search.close()
+
+
+def test_a_search_asked_too_long_ago_only_indexes(keyframes):
+    """A starved search catches up: a keyframe that waited beyond merge.search_behind_s is
+    indexed without its search (and found by those after it)."""
+    camera, kfs = keyframes
+    search = PlaceSearch(Config())
+    for name in kfs:
+        search.add_robot(name, camera)
+    behind = Config().merge.search_behind_s
+    search.submit(kfs["a"][0], [], time.monotonic() - 2 * behind)
+    search.submit(kfs["b"][0], ["a"], time.monotonic() - 2 * behind)
+    late = search.take_results()
+    assert [s.searched for s in late] == [False, False] and not late[1].matches
+    assert late[1].seconds is None
+    search.submit(kfs["b"][1], ["a"], time.monotonic())
+    (now,) = search.take_results()
+    assert now.searched and [m.place for m in now.matches] == [kfs["a"][0]]
 
 
 def test_a_closed_search_answers_nothing_and_says_nothing(keyframes, caplog):
@@ -101,7 +145,42 @@ def test_a_closed_search_answers_nothing_and_says_nothing(keyframes, caplog):
     search = PlaceSearchProcess(Config(), nice=0, timeout_s=60.0)
     for name in kfs:
         search.add_robot(name, camera)
-    search.add_keyframe(kfs["a"][0], [])
+    search.submit(kfs["a"][0], [], time.monotonic())
     search.close()
-    assert search.add_keyframe(kfs["b"][0], ["a"]) == []
+    search.submit(kfs["b"][0], ["a"], time.monotonic())
+    assert search.take_results() == [] and search.pending <= 1
     assert not search.inline and "in-line" not in caplog.text
+
+
+def test_a_stopped_search_process_holds_up_neither_status_nor_keyframes(keyframes):
+    """The merger's search process starved (here: stopped): the merger still takes every
+    keyframe, and status answers at once; once the process runs again, the searches land
+    and a drain waits for them."""
+    camera, kfs = keyframes
+    config = Config()
+    config.merge.search_process = True
+    service = MergerService(config)
+    try:
+        for name in kfs:
+            service.add_robot(name, camera)
+        assert service.drain(60.0)
+        pid = service.merger.search._process.pid
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            for robot in ("a", "b"):
+                for kf in kfs[robot]:
+                    service.submit(kf, np.stack([np.eye(4)] * (kf.keyframe + 1)))
+            assert not service.drain(1.0)  # searches out: not merged yet
+            start = time.monotonic()
+            status = service.status()
+            assert time.monotonic() - start < 1.0
+            assert {r: v["keyframes"] for r, v in status["robots"].items()} == \
+                {r: len(v) for r, v in kfs.items()}
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert service.drain(60.0)
+        status = service.status()
+        assert status["constraints"] + sum(status["pending_matches"].values()) > 0 \
+            or any(v["joined"] for v in status["robots"].values())
+    finally:
+        service.close()

@@ -142,12 +142,14 @@ class TrackingConfig:
     # ... at this niceness (Linux nice, 0-19): when the cores are short, a robot's next
     # frame goes before a keyframe's local BA, whose requests then supersede each other
     # (ORB-SLAM's local mapper aborting its BA for new keyframes). Measured (2 cores, 2
-    # workers, 8 robots at once): saturated 55 -> 104 fps with 10 instead of 0. Off (0) by
-    # default until a session's end no longer waits on niced work: on an oversubscribed
-    # machine the end's flush of the last local BA starved (restart tests timed out).
-    local_mapping_nice: Annotated[int, between(0, 19)] = 0
+    # workers, 8 robots at once): saturated 55 -> 104 fps with 10 instead of 0.
+    local_mapping_nice: Annotated[int, between(0, 19)] = 10
     # ... and how long a solve may take before it is dropped (the map stays as it was).
     local_ba_timeout_s: Annotated[float, above(0.0)] = 30.0
+    # Where tracking needs a worker's answer now (local BA before a loop correction, the
+    # last local BA and loop query at a robot's end), it waits this long, then does the
+    # work itself: a niced worker is starved by the busy tracking that waits for it.
+    worker_wait_s: Annotated[float, at_least(0.0)] = 1.0
     # Cull new landmarks as ORB-SLAM does (MapPointCulling) during their first keyframes.
     cull_landmarks: bool = True
     # ... when matched in fewer than this fraction of the frames predicted to see them ...
@@ -332,10 +334,9 @@ class MergeConfig:
     # The cloud's merger searches places in a process of its own at this niceness (0-19):
     # the search then takes neither the GIL nor a core from the robots tracking in the same
     # worker (merging/place_search.py); off: on the merger's thread. A search not answered
-    # within search_timeout_s turns the search in-line for good.
-    # Off by default: the merger's thread holds its lock while it waits for the search, so
-    # a starved niced search blocked status and a session's end (restart tests timed out).
-    search_process: bool = False
+    # within search_timeout_s turns the search in-line for good. Nothing but the merger's
+    # own queue waits for it (status and merges do not: cloud/merger_service.py).
+    search_process: bool = True
     search_nice: Annotated[int, between(0, 19)] = 10
     search_timeout_s: Annotated[float, above(0.0)] = 60.0
     # A keyframe that waited longer than this for the cloud's merger is indexed without
@@ -597,10 +598,9 @@ class TransportConfig:
     # waits, and the capture at the end of the interval covers every keyframe since (each
     # still acknowledged and handed to the merger only once on disk). A checkpoint costs
     # the worker's GIL ~20 ms at 150 frames (measured: a third of a worker's GIL time with
-    # 4 robots at 10 fps, a keyframe every ~0.4 s each). 0 (default): one per keyframe; 1 s
-    # measured 5-8 robots at 10 fps on 2 workers, but a crash then loses up to a second of
-    # keyframes, and the restart and takeover tests, written for one per keyframe, failed.
-    checkpoint_interval_s: Annotated[float, at_least(0.0)] = 0.0
+    # 4 robots at 10 fps, a keyframe every ~0.4 s each); 0: one per keyframe. A crash loses
+    # no acknowledged keyframe either way (a robot sends a keyframe until acknowledged).
+    checkpoint_interval_s: Annotated[float, at_least(0.0)] = 1.0
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
     end_grace_s: Annotated[float, at_least(0.0)] = 2.0

@@ -4,7 +4,9 @@ When the cloud falls behind, the back-end does less rather than queueing, as ORB
 local mapper aborts its bundle adjustment for new keyframes: a request that arrives while
 one waits replaces it (counted "superseded"). A job that does not come back within its
 deadline is dropped; one that comes back after the map moved under it (its epoch is not the
-map's) is the caller's to drop as stale. Used twice by the back-end (backend/workers.py):
+map's) is the caller's to drop as stale. When the caller needs the answer now (a flush) and
+the worker is late, the caller does the job itself (``take_back``): the workers run below
+tracking's priority, so on a busy machine the thread that waits is the one starving them. Used twice by the back-end (backend/workers.py):
 local bundle adjustment and the loop closer's database query.
 """
 
@@ -15,7 +17,7 @@ import time
 from concurrent.futures import Future
 from concurrent.futures import wait as wait_for_futures
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -44,6 +46,8 @@ class LatestOnly:
         self.overdue = overdue
         self.in_flight: Job | None = None
         self.waiting: Any = None
+        # Set while ``settle`` is past its wait: the caller does what it submits itself.
+        self.late = False
         # Seconds from submission to the answer put to use (the caller says when).
         self.lag_seconds: list[float] = []
 
@@ -90,6 +94,30 @@ class LatestOnly:
             self.in_flight = None
         return None
 
+    def take_back(self, work: Callable[[Any], Any]) -> None:
+        """Do the job in flight here, ``work(payload)``, instead of waiting for its worker
+        (counted "taken_back"); it then lands as if the worker had answered."""
+        job = self.in_flight
+        if job is None or job.future.done():
+            return
+        job.future = done_future(work, job.payload)
+        self.counts["taken_back"] += 1
+
+    def settle(self, wait_s: float, work: Callable[[Any], Any], poll: Callable[[], None]
+               ) -> None:
+        """Until the slot is idle: ``poll`` (the caller's: land a done job, submit the waiting
+        request). A job not done within ``wait_s`` is taken back (done here with ``work``),
+        and ``late`` tells the caller to do what it submits from then on itself."""
+        deadline = time.monotonic() + wait_s
+        try:
+            while not self.idle:
+                if not self.wait_done(max(deadline - time.monotonic(), 0.0)):
+                    self.late = True
+                    self.take_back(work)
+                poll()
+        finally:
+            self.late = False
+
     def give_up(self) -> None:
         """Drop the job in flight and the waiting request (a deadline that ran out)."""
         if self.in_flight is not None:
@@ -100,6 +128,16 @@ class LatestOnly:
 
     def landed(self, job: Job) -> None:
         self.lag_seconds.append(time.monotonic() - job.submitted)
+
+
+def done_future(work: Callable[[Any], Any], payload: Any) -> Future:
+    """A future holding ``work(payload)``, done here and now (its exception, if it raised)."""
+    future: Future = Future()
+    try:
+        future.set_result(work(payload))
+    except Exception as exc:  # delivered where a worker's would be
+        future.set_exception(exc)
+    return future
 
 
 def duration_stats(seconds: list[float]) -> dict:

@@ -12,20 +12,20 @@ is copied out of the map (``local_ba_problem``) and solved in a worker process
 (``LocalMapper.poll``), on the tracking thread, so the map is only ever changed by one
 thread and between frames. At most one solve is in flight; the newest keyframe's waits
 (backend/jobs.py). A solution computed on a map that a loop correction has moved since
-(``LocalMap.epoch``) is dropped.
+(``LocalMap.epoch``) is dropped. A flush (before a loop correction, at the end of a run)
+waits for the worker at most ``tracking.worker_wait_s``, then solves here (backend/jobs.py).
 """
 
 from __future__ import annotations
 
 import logging
-import time
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from fleetslam.backend.jobs import Job, LatestOnly, duration_stats
+from fleetslam.backend.jobs import Job, LatestOnly, done_future, duration_stats
 from fleetslam.backend.local_ba import (
     LocalBAProblem,
     LocalBASolution,
@@ -59,12 +59,14 @@ class LocalMapper:
         self.session = session
         self.workers = workers
         # "empty": a keyframe whose window had nothing to adjust (no solve asked).
+        # "taken_back": solved here at a flush, the worker being late.
         self.counts: dict[str, int] = {"submitted": 0, "applied": 0, "superseded": 0,
                                        "stale": 0, "abandoned": 0, "failed": 0, "inline": 0,
-                                       "empty": 0}
+                                       "empty": 0, "taken_back": 0}
         # The solve in flight and the newest keyframe whose solve waits for it.
         self.jobs = LatestOnly("local BA", session.config.tracking.local_ba_timeout_s,
                                self.counts, overdue="abandoned")
+        self.wait_s = session.config.tracking.worker_wait_s
 
     def insert_keyframe(self, state: PosedFrame) -> InsertedKeyframe:
         """Add the frame as a keyframe: its inlier matches become observations (plus those
@@ -115,21 +117,24 @@ class LocalMapper:
             self._submit(self.jobs.take_waiting())
 
     def flush(self, timeout_s: float | None = None) -> None:
-        """Wait (at most ``timeout_s``, default the config's) for the solve in flight and the
-        waiting one, and apply them: before a loop correction and at the end of a run."""
-        deadline = time.monotonic() + (self.jobs.timeout_s if timeout_s is None else timeout_s)
-        while not self.jobs.idle:
-            if not self.jobs.wait_done(max(deadline - time.monotonic(), 0.0)):
-                self.jobs.give_up()
-                return
-            self.poll()
+        """Land the solve in flight and the waiting one now: before a loop correction and at
+        the end of a run. The worker gets ``timeout_s`` (default tracking.worker_wait_s);
+        past it, each is solved here: the same answer, without tracking waiting on a
+        worker that, niced below it, it starves."""
+        self.jobs.settle(self.wait_s if timeout_s is None else timeout_s, solve_local_ba,
+                         self.poll)
 
     def _submit(self, kf_id: int) -> None:
         problem = build_problem(self.session, kf_id)
         if problem is None:
             self.counts["empty"] += 1
             return
-        future = self.workers.submit_local_ba(problem) if self.workers is not None else None
+        if self.jobs.late:
+            future = done_future(solve_local_ba, problem)
+            self.counts["taken_back"] += 1
+        else:
+            future = self.workers.submit_local_ba(problem) if self.workers is not None \
+                else None
         if future is not None:
             self.jobs.started(future, kf_id, problem, problem.epoch)
             return

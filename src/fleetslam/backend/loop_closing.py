@@ -26,7 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fleetslam.backend.geometric_verification import ransac_rigid
-from fleetslam.backend.jobs import LatestOnly, duration_stats
+from fleetslam.backend.jobs import LatestOnly, done_future, duration_stats
 from fleetslam.backend.local_ba import local_bundle_adjustment
 from fleetslam.backend.local_map import Keyframe
 from fleetslam.backend.matching import descriptor_match, guided_match
@@ -34,7 +34,7 @@ from fleetslam.backend.place_recognition import snapshot
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.backend.pose_optimizer import optimize_pose
 from fleetslam.backend.state import BackEndState, LoopDetection
-from fleetslam.backend.workers import SessionWorkers
+from fleetslam.backend.workers import SessionWorkers, query_places
 from fleetslam.transforms import invert, rotation_angle_deg, transforms_agree
 
 log = logging.getLogger(__name__)
@@ -49,12 +49,14 @@ class LoopCloser:
         self.session = session
         self.settle_map = settle_map
         self.workers = workers
+        # "taken_back": queried here at a flush, the worker being late.
         self.counts: dict[str, int] = {"submitted": 0, "answered": 0, "superseded": 0,
-                                       "stale": 0, "failed": 0}
+                                       "stale": 0, "failed": 0, "taken_back": 0}
         # The database query in flight and the newest keyframe whose query waits for it
         # (with the database as it was then).
         self.jobs = LatestOnly("loop query", session.config.tracking.local_ba_timeout_s,
                                self.counts, overdue="failed")
+        self.wait_s = session.config.tracking.worker_wait_s
 
     def close_loops(self, kf: Keyframe) -> np.ndarray | None:
         """Loop closing for the newest keyframe. Returns the world-frame correction applied
@@ -164,25 +166,30 @@ class LoopCloser:
             self._submit(*self.jobs.take_waiting())
 
     def flush(self, timeout_s: float | None = None) -> None:
-        """Wait (at most ``timeout_s``, default the config's) for the queries in flight and
-        waiting, and verify them: at the end of a run."""
-        deadline = time.monotonic() + (self.jobs.timeout_s if timeout_s is None else timeout_s)
-        while not self.jobs.idle:
-            self.poll(wait_s=max(deadline - time.monotonic(), 0.0))
-            if time.monotonic() >= deadline and not self.jobs.idle:
-                self.jobs.give_up()
+        """Verify the queries in flight and waiting now: at the end of a run. The worker gets
+        ``timeout_s`` (default tracking.worker_wait_s); past it, each is queried here (as
+        ``LocalMapper.flush`` solves)."""
+        self.jobs.settle(self.wait_s if timeout_s is None else timeout_s, _query, self.poll)
 
     def _submit(self, kf_id: int, frozen: Any, allowed: np.ndarray) -> None:
-        future = None if self.workers is None else self.workers.submit_query(
-            frozen, self.session.map.keyframes[kf_id].features.descriptors, allowed)
+        query = (frozen, self.session.map.keyframes[kf_id].features.descriptors, allowed)
+        if self.jobs.late:
+            future = done_future(_query, query)
+            self.counts["taken_back"] += 1
+        else:
+            future = None if self.workers is None else self.workers.submit_query(*query)
         if future is None:
             self.counts["failed"] += 1
             return
-        self.jobs.started(future, kf_id, None, self.session.map.epoch)
+        self.jobs.started(future, kf_id, query, self.session.map.epoch)
 
     def summary(self) -> dict[str, Any]:
         return {**self.counts,
                 "request_to_answered": duration_stats(self.jobs.lag_seconds)}
+
+
+def _query(query: tuple[Any, np.ndarray, np.ndarray]) -> tuple[list, float]:
+    return query_places(*query)
 
 
 def allowed_candidates(session: BackEndState, kf: Keyframe) -> np.ndarray:

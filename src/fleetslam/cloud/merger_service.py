@@ -22,12 +22,14 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
-from fleetslam.merging.place_search import PlaceSearchProcess
+from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
 from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.merge")
 
 T = TypeVar("T")
+# How often a drain looks again while searches are still out.
+DRAIN_POLL_S = 0.05
 
 
 # A robot's keyframes as the merger has them in the store: (camera, summaries, poses), or
@@ -39,11 +41,15 @@ class MergerService:
     def __init__(self, config: Config, view: NullView | None = None,
                  from_store: FromStore | None = None) -> None:
         cfg = config.merge
-        self.merger = MapMerger(config, PlaceSearchProcess(
-            config, cfg.search_nice, cfg.search_timeout_s) if cfg.search_process else None)
+        self._queue: queue.Queue = queue.Queue()
+        search = PlaceSearchProcess(config, cfg.search_nice, cfg.search_timeout_s,
+                                    wake=lambda: self._queue.put(("searched", None))) \
+            if cfg.search_process else PlaceSearch(config)
+        # Started with the cloud: its imports, niced, are done before the first keyframe.
+        search.start()
+        self.merger = MapMerger(config, search)
         self._from_store = from_store
         self.remote_gaps = 0  # keyframes that came after a gap, filled from the store
-        self._behind_s = config.merge.search_behind_s
         self.errors = 0
         # The live view gets the global transforms and constraints at most every
         # view.global_every_s, on this thread (never on a robot's session).
@@ -52,7 +58,6 @@ class MergerService:
         self._view_due = False
         self._view_at = -float("inf")
         self._lock = threading.Lock()
-        self._queue: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="cloud-merger", daemon=True)
         self._thread.start()
 
@@ -61,7 +66,7 @@ class MergerService:
                   poses: np.ndarray | None = None) -> None:
         """Register a robot; a session restored from its checkpoint brings the keyframes it
         already has (the merger is rebuilt from them after a cloud restart)."""
-        self._queue.put(("robot", (robot, camera, keyframes or [], poses)))
+        self._queue.put(("robot", (robot, camera, keyframes or [], poses, time.monotonic())))
 
     def submit(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
         self._queue.put(("keyframe", (summary, poses, time.monotonic())))
@@ -76,37 +81,55 @@ class MergerService:
     def rebuild_from_store(self, robots: list[str]) -> None:
         """Take these robots' keyframes as their checkpoints in the store have them (a worker
         becoming the merger: the last one died or stopped)."""
-        self._queue.put(("rebuild", robots))
+        self._queue.put(("rebuild", (robots, time.monotonic())))
 
     def _take_robot(self, robot: str, camera: Camera, keyframes: list[KeyframeSummary],
-                    poses: np.ndarray | None) -> int:
+                    poses: np.ndarray | None, asked: float) -> int:
         """Register the robot and take those of its keyframes not held yet; how many."""
-        self.merger.add_robot(robot, camera)
+        with self._lock:
+            self.merger.add_robot(robot, camera)
         have = len(self.merger.robots[robot].keyframes)
         for kf in keyframes[have:]:
-            self.merger.add_keyframe(kf, poses[: kf.keyframe + 1])
+            self._add(kf, poses[: kf.keyframe + 1], asked)
         return len(keyframes) - have
 
-    def _fill(self, robot: str) -> None:
+    def _add(self, summary: KeyframeSummary, poses: np.ndarray, asked: float) -> None:
+        """A keyframe into the merger (under the lock), then its search asked for: its
+        results come back as they are ready (``_take_results``); nothing here waits for
+        one, nor holds the lock meanwhile (status and merges take it)."""
+        with self._lock:
+            self.merger.take_keyframe(summary, poses)
+        self.merger.ask_search(summary, asked)
+
+    def _take_results(self) -> None:
+        for searched in self.merger.search.take_results():
+            with self._lock:
+                self.merger.take_matches(searched)
+            self._view_due = True
+
+    def _update_poses(self, robot: str, poses: np.ndarray) -> None:
+        with self._lock:
+            self.merger.update_poses(robot, poses)
+
+    def _fill(self, robot: str, asked: float) -> None:
         loaded = self._from_store(robot) if self._from_store else None
-        if loaded is not None and self._take_robot(robot, *loaded) > 0:
-            self.merger.update_poses(robot, loaded[2])
+        if loaded is not None and self._take_robot(robot, *loaded, asked) > 0:
+            self._update_poses(robot, loaded[2])
 
     def _keyframe(self, summary: KeyframeSummary, poses: np.ndarray, arrival: float) -> None:
         """Keyframes in order: one held already (a rebuild from the store took it) only
-        brings newer poses; a gap is filled from the store first. One that waited beyond
-        merge.search_behind_s is indexed without its search."""
+        brings newer poses; a gap is filled from the store first."""
         if summary.keyframe > len(self.merger.robots[summary.robot].keyframes):
             self.remote_gaps += 1
-            self._fill(summary.robot)
+            self._fill(summary.robot, arrival)
         have = len(self.merger.robots[summary.robot].keyframes)
         if summary.keyframe == have:
-            self.merger.add_keyframe(summary, poses,
-                                     search=time.monotonic() - arrival <= self._behind_s)
+            self._add(summary, poses, arrival)
         elif summary.keyframe < have and len(poses) >= have:
-            self.merger.update_poses(summary.robot, poses)
+            self._update_poses(summary.robot, poses)
 
     def _run(self) -> None:
+        """This thread alone changes the merger; it holds the lock only while it does."""
         wait = self._view_every_s if self.view.enabled else None
         while True:
             try:
@@ -117,27 +140,28 @@ class MergerService:
                 return
             kind, payload = item
             try:
-                with self._lock:
-                    self._view_due |= kind in ("robot", "keyframe")
-                    if kind == "robot":
-                        robot, camera, keyframes, poses = payload
-                        self._take_robot(robot, camera, keyframes, poses)
-                        if poses is not None:
-                            self.merger.update_poses(robot, poses)
-                    elif kind == "keyframe":
-                        self._keyframe(*payload)
-                    elif kind == "remote":
-                        camera, summary, poses, arrival = payload
+                self._view_due |= kind in ("robot", "keyframe")
+                if kind == "robot":
+                    robot, camera, keyframes, poses, asked = payload
+                    self._take_robot(robot, camera, keyframes, poses, asked)
+                    if poses is not None:
+                        self._update_poses(robot, poses)
+                elif kind == "keyframe":
+                    self._keyframe(*payload)
+                elif kind == "remote":
+                    camera, summary, poses, arrival = payload
+                    with self._lock:
                         self.merger.add_robot(summary.robot, camera)
-                        self._keyframe(summary, poses, arrival)
-                    elif kind == "rebuild":
-                        for robot in payload:
-                            self._fill(robot)
-                    elif kind == "call":
-                        payload()
-                    if self._view_due and time.monotonic() - self._view_at >= \
-                            self._view_every_s:
-                        self._show()
+                    self._keyframe(summary, poses, arrival)
+                elif kind == "rebuild":
+                    robots, asked = payload
+                    for robot in robots:
+                        self._fill(robot, asked)
+                elif kind == "call":
+                    payload()
+                self._take_results()
+                if self._view_due and time.monotonic() - self._view_at >= self._view_every_s:
+                    self.show()
             except Exception:
                 self.errors += 1
                 log.exception("merger: %s failed", kind)
@@ -165,10 +189,19 @@ class MergerService:
         self.locked(lambda m: self._show())
 
     def drain(self, timeout: float) -> bool:
-        """Wait until everything submitted so far is merged; False on timeout."""
-        done = threading.Event()
-        self._queue.put(("call", done.set))
-        return done.wait(timeout)
+        """Wait until everything submitted so far is merged, its searches too; False on
+        timeout."""
+        deadline = time.monotonic() + timeout
+        while True:
+            done = threading.Event()
+            self._queue.put(("call", done.set))
+            if not done.wait(max(deadline - time.monotonic(), 0.0)):
+                return False
+            if not self.merger.search.pending:
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(DRAIN_POLL_S)
 
     def locked(self, work: Callable[[MapMerger], T]) -> T:
         """Run ``work`` on the merger while no keyframe is being added."""
@@ -185,5 +218,4 @@ class MergerService:
     def close(self, timeout: float = 5.0) -> None:
         self._queue.put(None)
         self._thread.join(timeout)
-        if isinstance(self.merger.search, PlaceSearchProcess):
-            self.merger.search.close()
+        self.merger.search.close()

@@ -30,7 +30,7 @@ from fleetslam.config import Config
 from fleetslam.merging.dense_constraint import (DenseCloud, DenseRefinement, odometry_information,
                                                 prepare, refine)
 from fleetslam.merging.inter_robot import PlaceMatch
-from fleetslam.merging.place_search import PlaceSearch, Searcher
+from fleetslam.merging.place_search import PlaceSearch, Searched, Searcher
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.transforms import invert, transforms_agree
@@ -116,25 +116,40 @@ class MapMerger:
         record.poses = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
         self._global = None
 
-    def add_keyframe(self, summary: KeyframeSummary, poses: np.ndarray, search: bool = True
+    def add_keyframe(self, summary: KeyframeSummary, poses: np.ndarray
                      ) -> list[dict[str, Any]]:
-        """Take a robot's new keyframe (and its latest keyframe poses); look for it in the
-        other robots' maps unless ``search`` is False. Returns the join events it caused."""
+        """Take a robot's new keyframe (and its latest keyframe poses) and look for it in
+        the other robots' maps. Returns the join events it caused (with an in-line search;
+        a search process's results come later, through ``take_matches``)."""
+        self.take_keyframe(summary, poses)
+        self.ask_search(summary, time.monotonic())
+        return [e for searched in self.search.take_results()
+                for e in self.take_matches(searched)]
+
+    def take_keyframe(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
+        """A robot's new keyframe and its latest keyframe poses, before its search."""
         record = self.robots[summary.robot]
         if summary.keyframe != len(record.keyframes):
             raise ValueError(f"robot {summary.robot}: keyframe {summary.keyframe} arrived, "
                              f"expected {len(record.keyframes)}")
         record.keyframes.append(summary)
         self.update_poses(summary.robot, poses)
-        events: list[dict[str, Any]] = []
-        self.unsearched += not search
+
+    def ask_search(self, summary: KeyframeSummary, asked: float) -> None:
+        """Ask for the keyframe's search in the other robots' maps (it arrived at ``asked``:
+        one that waited beyond merge.search_behind_s is indexed without one). Only the search
+        changes: the cloud asks without holding the merger."""
         others = [name for name in self.robots if name != summary.robot] \
-            if self.config.merge.enabled and search else []
-        start = time.perf_counter()
-        matches = self.search.add_keyframe(summary, others)
-        if others:
-            self.query_seconds.append(time.perf_counter() - start)
-        for match in matches:
+            if self.config.merge.enabled else []
+        self.search.submit(summary, others, asked)
+
+    def take_matches(self, searched: Searched) -> list[dict[str, Any]]:
+        """A keyframe's search results into the merger; the join events they caused."""
+        self.unsearched += not searched.searched
+        if searched.seconds is not None:
+            self.query_seconds.append(searched.seconds)
+        events: list[dict[str, Any]] = []
+        for match in searched.matches:
             event = self._consider(match)
             if event is not None:
                 events.append(event)

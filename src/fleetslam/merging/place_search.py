@@ -2,25 +2,35 @@
 other robot's keyframe database for candidates and verify them geometrically
 (inter_robot.py); then index the keyframe for the keyframes to come.
 
-``PlaceSearch`` does it in-line (one-process runs, the tests). ``PlaceSearchProcess`` (the
-cloud's) runs a ``PlaceSearch`` in a process of its own at a lower priority: the search
-holds Python's GIL for its numpy work and faiss's search, so on the merger's thread it
-took the GIL from the robots tracking in the same worker (measured: 21 % of that worker's
-GIL time with 8 robots at once, more than their tracking). Both give the same matches: a
-search is a function of the keyframes indexed before it, seeded per keyframe.
+A search is asked for with ``submit`` and its result taken with ``take_results``, so the
+merger never waits for one. ``PlaceSearch`` searches at once, in-line (one-process runs,
+the tests). ``PlaceSearchProcess`` (the cloud's) runs a ``PlaceSearch`` in a process of its
+own at a lower priority: the search holds Python's GIL for its numpy work and faiss's
+search, so on the merger's thread it took the GIL from the robots tracking in the same
+worker (measured: 21 % of that worker's GIL time with 8 robots at once, more than their
+tracking). Niced, it may be starved on a busy machine: nobody waits for it (the merger's
+thread only sends and takes what came back), and a keyframe that waited longer than
+``merge.search_behind_s`` for its search is indexed without one, so a starved search
+catches up rather than falling further behind. Both give the same matches: a search is a
+function of the keyframes indexed before it.
 
-If the process dies or misses its deadline, the search goes on in-line from the keyframes
-kept here, and the log says so: a failed helper must not end the merge.
+If the process dies or leaves a request unanswered beyond ``merge.search_timeout_s``, the
+search goes on in-line from the keyframes kept here, and the log says so: a failed helper
+must not end the merge.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import multiprocessing
 import os
+import queue
+import threading
+import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -39,6 +49,16 @@ log = logging.getLogger("fleetslam.merge")
 
 
 @dataclass
+class Searched:
+    """A keyframe's place search, done: what the merger takes (``MapMerger.take_matches``)."""
+
+    summary: KeyframeSummary
+    matches: list[PlaceMatch]
+    seconds: float | None  # the search's time (None: no other robot was asked)
+    searched: bool  # False: indexed without a search (it waited beyond search_behind_s)
+
+
+@dataclass
 class _Robot:
     camera: Camera
     places: "KeyframeDatabase | ApproximateKeyframeDatabase | BowDatabase"
@@ -46,12 +66,23 @@ class _Robot:
 
 
 class PlaceSearch:
-    """Each robot's keyframes and their place database; ``add_keyframe`` searches, then
-    indexes."""
+    """Each robot's keyframes and their place database, searched in-line: ``submit``
+    searches, then indexes; ``take_results`` hands the results over."""
 
     def __init__(self, config: Config) -> None:
         self.config = config
         self.robots: dict[str, _Robot] = {}
+        self._done: list[Searched] = []
+
+    def start(self) -> None:
+        """Nothing to start in-line (``PlaceSearchProcess`` starts its process)."""
+
+    def close(self) -> None:
+        """Nothing to end in-line."""
+
+    @property
+    def pending(self) -> int:
+        return 0
 
     def add_robot(self, name: str, camera: Camera) -> None:
         if name not in self.robots:
@@ -64,13 +95,26 @@ class PlaceSearch:
                                                cfg.place_index_links, cfg.place_index_breadth)
         return make_database(pr)
 
-    def add_keyframe(self, summary: KeyframeSummary, others: Sequence[str]
-                     ) -> list[PlaceMatch]:
+    def submit(self, summary: KeyframeSummary, others: Sequence[str], asked: float) -> None:
+        """Search ``summary`` in the robots ``others`` (asked at ``asked``, monotonic time)."""
+        self._done.append(self.search(summary, others, asked))
+
+    def take_results(self) -> list[Searched]:
+        done, self._done = self._done, []
+        return done
+
+    def search(self, summary: KeyframeSummary, others: Sequence[str], asked: float
+               ) -> Searched:
         """The verified matches of ``summary`` in the robots ``others`` (at most one per
-        robot, in that order); then ``summary`` is indexed."""
+        robot, in that order), none if it was asked more than search_behind_s ago; then
+        ``summary`` is indexed."""
+        behind = time.monotonic() - asked > self.config.merge.search_behind_s
+        others = [] if behind else list(others)
+        start = time.perf_counter()
         matches = [m for other in others if (m := self._find_place(summary, other)) is not None]
+        seconds = time.perf_counter() - start if others else None
         self.index(summary)
-        return matches
+        return Searched(summary, matches, seconds, not behind)
 
     def index(self, summary: KeyframeSummary) -> None:
         robot = self.robots[summary.robot]
@@ -98,7 +142,7 @@ Found = tuple[str, int, np.ndarray, float, int, int]
 
 def _serve(conn: Connection, config: Config, parent_pid: int) -> None:
     """The search process: requests from ``conn`` in order, until None or the cloud is
-    gone."""
+    gone; each keyframe's answer: (robot, keyframe, matches found, seconds, searched)."""
     start_background(parent_pid, 0)  # niced by the cloud as it started (see _start)
     search = PlaceSearch(config)
     while True:
@@ -112,26 +156,41 @@ def _serve(conn: Connection, config: Config, parent_pid: int) -> None:
         if kind == "robot":
             search.add_robot(*payload)
         elif kind == "keyframe":
-            summary, others = payload
-            conn.send([(m.place.robot, m.place.keyframe, m.T_place_query, m.score,
-                        m.ransac_inliers, m.inliers)
-                       for m in search.add_keyframe(summary, others)])
+            s = search.search(*payload)
+            found: list[Found] = [(m.place.robot, m.place.keyframe, m.T_place_query, m.score,
+                                   m.ransac_inliers, m.inliers) for m in s.matches]
+            conn.send((s.summary.robot, s.summary.keyframe, found, s.seconds, s.searched))
+
+
+@dataclass
+class _Request:
+    summary: KeyframeSummary
+    others: list[str]
+    asked: float
+    sent: float  # when it went to the process (its deadline runs from here)
 
 
 class PlaceSearchProcess:
-    """A ``PlaceSearch`` in its own process (started at the first robot) at niceness
-    ``nice``; a reply not back within ``timeout_s`` or a dead process turns the search
-    in-line for good. Used from one thread (the merger's); ``close`` from any."""
+    """A ``PlaceSearch`` in its own process at niceness ``nice`` (see the module's
+    docstring). Used from one thread (the merger's), which ``wake`` is called for when an
+    answer is in; a thread sends the requests and one takes the answers, so that thread
+    never waits on the process. ``close`` from any thread."""
 
-    def __init__(self, config: Config, nice: int, timeout_s: float) -> None:
+    def __init__(self, config: Config, nice: int, timeout_s: float,
+                 wake: Callable[[], None] = lambda: None) -> None:
         self.config = config
         self.nice = nice
         self.timeout_s = timeout_s
+        self._wake = wake
         self._conn: Connection | None = None
         self._process: multiprocessing.process.BaseProcess | None = None
+        self._outbox: queue.Queue = queue.Queue()
+        # The process's answers and failures, from the reader thread.
+        self._answers: collections.deque = collections.deque()
         # What the process was told, to rebuild the search in-line if it fails.
         self._robots: list[tuple[str, Camera]] = []
         self._keyframes: dict[str, list[KeyframeSummary]] = {}
+        self._requests: dict[tuple[str, int], _Request] = {}  # unanswered, in order
         self._inline: PlaceSearch | None = None
         self._closed = False
 
@@ -139,25 +198,62 @@ class PlaceSearchProcess:
     def inline(self) -> bool:
         return self._inline is not None
 
-    def _start(self) -> Connection:
-        if self._closed:
-            raise OSError("the place search is closed")
-        if self._conn is None:
-            parent, child = multiprocessing.get_context("spawn").Pipe()
-            self._process = multiprocessing.get_context("spawn").Process(
-                target=_serve, args=(child, self.config, os.getpid()),
-                name="fleetslam-place-search", daemon=True)
-            self._process.start()
-            # Niced from its first instruction, not once its imports are done: a second of
-            # start-up CPU at tracking's priority made this worker look busy to placement.
+    @property
+    def pending(self) -> int:
+        """Searches asked for and not taken yet (the merger's drain waits for them)."""
+        return 0 if self._inline is not None else len(self._requests)
+
+    def start(self) -> None:
+        """Start the process now (the cloud does, as it starts), not at the first robot."""
+        if self._conn is not None or self._closed or self._inline is not None:
+            return
+        parent, child = multiprocessing.get_context("spawn").Pipe()
+        process = multiprocessing.get_context("spawn").Process(
+            target=_serve, args=(child, self.config, os.getpid()),
+            name="fleetslam-place-search", daemon=True)
+        try:
+            process.start()
+        except OSError as exc:
+            return self._fail(f"it could not be started ({exc})")
+        # Niced from its first instruction, not once its imports are done: a second of
+        # start-up CPU at tracking's priority made this worker look busy to placement.
+        try:
+            os.setpriority(os.PRIO_PROCESS, process.pid,
+                           min(19, os.getpriority(os.PRIO_PROCESS, 0) + self.nice))
+        except (AttributeError, OSError):  # not Linux, or gone already
+            pass
+        child.close()
+        self._conn, self._process = parent, process
+        threading.Thread(target=self._send_all, args=(parent,), name="place-search-send",
+                         daemon=True).start()
+        threading.Thread(target=self._read_all, args=(parent,), name="place-search-read",
+                         daemon=True).start()
+
+    def _send_all(self, conn: Connection) -> None:
+        while (message := self._outbox.get()) is not None:
             try:
-                os.setpriority(os.PRIO_PROCESS, self._process.pid,
-                               min(19, os.getpriority(os.PRIO_PROCESS, 0) + self.nice))
-            except (AttributeError, OSError):  # not Linux, or gone already
-                pass
-            child.close()
-            self._conn = parent
-        return self._conn
+                conn.send(message)
+            except (OSError, ValueError) as exc:
+                self._answer(("failed", f"it could not be reached ({exc!r})"))
+                return
+        try:
+            conn.send(None)
+        except (OSError, ValueError):
+            pass
+
+    def _read_all(self, conn: Connection) -> None:
+        while True:
+            try:
+                answer = conn.recv()
+            except (EOFError, OSError) as exc:
+                self._answer(("failed", f"it ended ({exc!r})"))
+                return
+            self._answer(answer)
+
+    def _answer(self, answer: Any) -> None:
+        if not self._closed and self._inline is None:
+            self._answers.append(answer)
+            self._wake()
 
     def add_robot(self, name: str, camera: Camera) -> None:
         if name in self._keyframes:
@@ -166,70 +262,77 @@ class PlaceSearchProcess:
         self._keyframes[name] = []
         if self._inline is not None:
             self._inline.add_robot(name, camera)
-            return
+        else:
+            self.start()
+            self._outbox.put(("robot", (name, camera)))
+
+    def submit(self, summary: KeyframeSummary, others: Sequence[str], asked: float) -> None:
+        self._keyframes[summary.robot].append(summary)
+        if self._inline is not None:
+            return self._inline.submit(summary, others, asked)
         if self._closed:
             return
-        try:
-            self._start().send(("robot", (name, camera)))
-        except (OSError, ValueError) as exc:
-            self._fail(f"it could not be reached ({exc})")
+        self.start()
+        self._requests[(summary.robot, summary.keyframe)] = _Request(
+            summary, list(others), asked, time.monotonic())
+        self._outbox.put(("keyframe", (summary, list(others), asked)))
 
-    def add_keyframe(self, summary: KeyframeSummary, others: Sequence[str]
-                     ) -> list[PlaceMatch]:
-        self._keyframes[summary.robot].append(summary)
-        if self._inline is None:
-            found = self._ask(summary, others)
-            if found is not None:
-                return [PlaceMatch(summary, self._keyframes[robot][kf], T, score, ransac, n)
-                        for robot, kf, T, score, ransac, n in found]
-        if self._inline is None:  # closed: the cloud is stopping
-            return []
-        return self._inline.add_keyframe(summary, others)
+    def take_results(self) -> list[Searched]:
+        """The searches answered since the last call, in order; a failed process (dead, or
+        a request unanswered beyond timeout_s) turns the search in-line here."""
+        out: list[Searched] = []
+        while self._answers and self._inline is None:
+            answer = self._answers.popleft()
+            if answer[0] == "failed":
+                self._fail(answer[1])
+                break
+            robot, keyframe, found, seconds, searched = answer
+            request = self._requests.pop((robot, keyframe))
+            out.append(Searched(request.summary, [
+                PlaceMatch(request.summary, self._keyframes[place][kf], T, score, ransac, n)
+                for place, kf, T, score, ransac, n in found], seconds, searched))
+        if self._requests and self._inline is None and not self._closed:
+            oldest = next(iter(self._requests.values()))
+            if time.monotonic() - oldest.sent > self.timeout_s:
+                self._fail(f"no answer within {self.timeout_s:.0f} s (merge.search_timeout_s)")
+        if self._inline is not None:
+            out += self._inline.take_results()
+        return out
 
-    def _ask(self, summary: KeyframeSummary, others: Sequence[str]) -> list[Found] | None:
-        """The process's answer, or None once it failed (then the search is in-line, and
-        ``summary`` not yet indexed there)."""
-        try:
-            conn = self._start()
-            conn.send(("keyframe", (summary, list(others))))
-            if conn.poll(self.timeout_s):
-                return conn.recv()
-            reason = f"no answer within {self.timeout_s:.0f} s (merge.search_timeout_s)"
-        except (OSError, EOFError, ValueError) as exc:
-            reason = f"it failed ({exc!r})"
-        self._fail(reason, pending=summary)
-        return None
-
-    def _fail(self, reason: str, pending: KeyframeSummary | None = None) -> None:
-        if self._closed:  # the merger's thread was still at work when the cloud stopped
+    def _fail(self, reason: str) -> None:
+        """Search in-line from now on: rebuilt from the keyframes answered, then the
+        unanswered ones searched in turn (those asked too long ago only indexed)."""
+        if self._closed or self._inline is not None:
             return
         log.error("the merger's place search process: %s; searching in-line from now on",
                   reason)
         self._stop_process()
+        unanswered = {id(r.summary) for r in self._requests.values()}
         search = PlaceSearch(self.config)
         for name, camera in self._robots:
             search.add_robot(name, camera)
             for kf in self._keyframes[name]:
-                if kf is not pending:
+                if id(kf) not in unanswered:
                     search.index(kf)
+        self._answers.clear()
         self._inline = search
+        requests, self._requests = self._requests, {}
+        for r in requests.values():
+            search.submit(r.summary, r.others, r.asked)
 
     def _stop_process(self) -> None:
         conn, process, self._conn, self._process = self._conn, self._process, None, None
-        if conn is not None:
-            try:
-                conn.send(None)
-            except (OSError, ValueError):
-                pass
-            conn.close()
+        self._outbox.put(None)  # the sender's last message: the process's end
         if process is not None:
             process.join(2.0)
             if process.is_alive():
                 process.kill()
                 process.join(2.0)
+        if conn is not None:
+            conn.close()
 
     def close(self) -> None:
-        """End the process (from any thread: a search still waiting gets no matches)."""
+        """End the process (from any thread: searches not answered yet are dropped)."""
         self._closed = True
         self._stop_process()
 
