@@ -1,7 +1,9 @@
 """The cloud's map merger on its own thread: robot sessions hand it each new keyframe and go
 on tracking; it queries the other robots' places, joins robots and keeps the global pose
 graph. A slow query never holds up a robot's frames, and a failure on one keyframe is
-logged and counted, never raised into a session.
+logged and counted, never raised into a session. The query (merging/place_search.py) is
+asked for and its result taken when it comes: the merger's lock, which status and merges
+take, is held only while the merger changes, never while a search runs.
 
 With several cloud workers, one of them merges (merge_role.py: the holder of the merger's
 grant, or the live worker whose id sorts first); the others publish their robots' keyframes to it (wire/merger_keyframes.py),
