@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -109,6 +110,37 @@ def test_a_newer_keyframe_replaces_the_one_waiting(pool):
     mapping.flush(timeout_s=60)
     assert mapping.counts["submitted"] == 2 and mapping.counts["superseded"] == 1
     assert mapping.counts["applied"] == 2
+
+
+def test_a_flush_solves_here_what_a_starved_worker_holds():
+    """A niced worker starved by the tracking that waits for it (here: stopped): a flush
+    waits tracking.worker_wait_s, then solves the job in flight and the waiting one on
+    the tracking thread, with the answers the worker would have given."""
+    pool = LocalMappingPool(1)
+    try:
+        session, inline = scene_session(7), scene_session(7)
+        mapping = mapper(pool, session)
+        assert pool.submit(build_problem(session, NEWEST)).result(timeout=60) is not None
+        workers = list(pool._executor._processes)
+        for pid in workers:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            mapping.request(NEWEST - 1)
+            mapping.request(NEWEST)  # waits behind the one in flight
+            start = time.monotonic()
+            mapping.flush(timeout_s=0.5)
+            assert time.monotonic() - start < 30
+        finally:
+            for pid in workers:
+                os.kill(pid, signal.SIGCONT)
+        assert mapping.jobs.idle and mapping.counts["taken_back"] == 2
+        assert mapping.counts["applied"] == mapping.counts["submitted"] == 2
+        for kf in (NEWEST - 1, NEWEST):
+            problem = build_problem(inline, kf)
+            apply_solution(inline, problem, solve_local_ba(problem))
+        np.testing.assert_array_equal(session.map.keyframe_poses(), inline.map.keyframe_poses())
+    finally:
+        pool.close()
 
 
 def test_a_dead_worker_leaves_local_ba_in_line():

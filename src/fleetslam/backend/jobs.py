@@ -6,8 +6,9 @@ one waits replaces it (counted "superseded"). A job that does not come back with
 deadline is dropped; one that comes back after the map moved under it (its epoch is not the
 map's) is the caller's to drop as stale. When the caller needs the answer now (a flush) and
 the worker is late, the caller does the job itself (``take_back``): the workers run below
-tracking's priority, so on a busy machine the thread that waits is the one starving them. Used twice by the back-end (backend/workers.py):
-local bundle adjustment and the loop closer's database query.
+tracking's priority, so on a busy machine the thread that waits is the one starving them.
+Used twice by the back-end (backend/workers.py): local bundle adjustment and the loop
+closer's database query.
 """
 
 from __future__ import annotations
@@ -117,14 +118,6 @@ class LatestOnly:
                 poll()
         finally:
             self.late = False
-
-    def give_up(self) -> None:
-        """Drop the job in flight and the waiting request (a deadline that ran out)."""
-        if self.in_flight is not None:
-            log.warning("%s of keyframe %s not back in time: dropped", self.what,
-                        self.in_flight.request)
-            self.counts[self.overdue] += 1
-        self.in_flight, self.waiting = None, None
 
     def landed(self, job: Job) -> None:
         self.lag_seconds.append(time.monotonic() - job.submitted)
