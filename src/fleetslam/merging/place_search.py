@@ -184,6 +184,7 @@ class PlaceSearchProcess:
         self._wake = wake
         self._conn: Connection | None = None
         self._process: multiprocessing.process.BaseProcess | None = None
+        self._sender: threading.Thread | None = None
         self._outbox: queue.Queue = queue.Queue()
         # The process's answers and failures, from the reader thread.
         self._answers: collections.deque = collections.deque()
@@ -224,8 +225,9 @@ class PlaceSearchProcess:
             pass
         child.close()
         self._conn, self._process = parent, process
-        threading.Thread(target=self._send_all, args=(parent,), name="place-search-send",
-                         daemon=True).start()
+        self._sender = threading.Thread(target=self._send_all, args=(parent,),
+                                        name="place-search-send", daemon=True)
+        self._sender.start()
         threading.Thread(target=self._read_all, args=(parent,), name="place-search-read",
                          daemon=True).start()
 
@@ -322,12 +324,15 @@ class PlaceSearchProcess:
 
     def _stop_process(self) -> None:
         conn, process, self._conn, self._process = self._conn, self._process, None, None
+        sender, self._sender = self._sender, None
         self._outbox.put(None)  # the sender's last message: the process's end
         if process is not None:
             process.join(2.0)
             if process.is_alive():
                 process.kill()
                 process.join(2.0)
+        if sender is not None:  # a send blocked on a stopped process fails once it is gone
+            sender.join(2.0)
         if conn is not None:
             conn.close()
 
