@@ -40,15 +40,16 @@ class LatestOnly:
     counted under; callers add their own outcomes."""
 
     def __init__(self, what: str, timeout_s: float, counts: dict[str, int],
-                 overdue: str = "abandoned") -> None:
+                 overdue: str = "abandoned", wait_s: float = 0.0) -> None:
         self.what = what
         self.timeout_s = timeout_s
         self.counts = counts
         self.overdue = overdue
+        self.wait_s = wait_s  # how long ``settle`` waits for a worker by default
         self.in_flight: Job | None = None
         self.waiting: Any = None
-        # Set while ``settle`` is past its wait: the caller does what it submits itself.
-        self.late = False
+        # Set while ``settle`` is past its wait: what the caller submits is done here.
+        self._late = False
         # Seconds from submission to the answer put to use (the caller says when).
         self.lag_seconds: list[float] = []
 
@@ -104,20 +105,29 @@ class LatestOnly:
         job.future = done_future(work, job.payload)
         self.counts["taken_back"] += 1
 
-    def settle(self, wait_s: float, work: Callable[[Any], Any], poll: Callable[[], None]
-               ) -> None:
+    def here_if_late(self, work: Callable[[Any], Any], payload: Any) -> Future | None:
+        """While ``settle`` is past its wait: ``work(payload)`` done here, as a done future
+        (counted "taken_back"); otherwise None, and the caller submits to its worker."""
+        if not self._late:
+            return None
+        self.counts["taken_back"] += 1
+        return done_future(work, payload)
+
+    def settle(self, work: Callable[[Any], Any], poll: Callable[[], None],
+               wait_s: float | None = None) -> None:
         """Until the slot is idle: ``poll`` (the caller's: land a done job, submit the waiting
-        request). A job not done within ``wait_s`` is taken back (done here with ``work``),
-        and ``late`` tells the caller to do what it submits from then on itself."""
-        deadline = time.monotonic() + wait_s
+        request). A job not done within ``wait_s`` (default: the slot's) is taken back (done
+        here with ``work``), and so is what the caller submits from then on
+        (``here_if_late``)."""
+        deadline = time.monotonic() + (self.wait_s if wait_s is None else wait_s)
         try:
             while not self.idle:
                 if not self.wait_done(max(deadline - time.monotonic(), 0.0)):
-                    self.late = True
+                    self._late = True
                     self.take_back(work)
                 poll()
         finally:
-            self.late = False
+            self._late = False
 
     def landed(self, job: Job) -> None:
         self.lag_seconds.append(time.monotonic() - job.submitted)

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.backend.jobs import Job, LatestOnly, done_future, duration_stats
+from fleetslam.backend.jobs import Job, LatestOnly, duration_stats
 from fleetslam.backend.local_ba import (
     LocalBAProblem,
     LocalBASolution,
@@ -65,8 +65,8 @@ class LocalMapper:
                                        "empty": 0, "taken_back": 0}
         # The solve in flight and the newest keyframe whose solve waits for it.
         self.jobs = LatestOnly("local BA", session.config.tracking.local_ba_timeout_s,
-                               self.counts, overdue="abandoned")
-        self.wait_s = session.config.tracking.worker_wait_s
+                               self.counts, overdue="abandoned",
+                               wait_s=session.config.tracking.worker_wait_s)
 
     def insert_keyframe(self, state: PosedFrame) -> InsertedKeyframe:
         """Add the frame as a keyframe: its inlier matches become observations (plus those
@@ -121,20 +121,16 @@ class LocalMapper:
         the end of a run. The worker gets ``timeout_s`` (default tracking.worker_wait_s);
         past it, each is solved here: the same answer, without tracking waiting on a
         worker that, niced below it, it starves."""
-        self.jobs.settle(self.wait_s if timeout_s is None else timeout_s, solve_local_ba,
-                         self.poll)
+        self.jobs.settle(solve_local_ba, self.poll, timeout_s)
 
     def _submit(self, kf_id: int) -> None:
         problem = build_problem(self.session, kf_id)
         if problem is None:
             self.counts["empty"] += 1
             return
-        if self.jobs.late:
-            future = done_future(solve_local_ba, problem)
-            self.counts["taken_back"] += 1
-        else:
-            future = self.workers.submit_local_ba(problem) if self.workers is not None \
-                else None
+        future = self.jobs.here_if_late(solve_local_ba, problem)
+        if future is None and self.workers is not None:
+            future = self.workers.submit_local_ba(problem)
         if future is not None:
             self.jobs.started(future, kf_id, problem, problem.epoch)
             return

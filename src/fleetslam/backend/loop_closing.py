@@ -26,7 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fleetslam.backend.geometric_verification import ransac_rigid
-from fleetslam.backend.jobs import LatestOnly, done_future, duration_stats
+from fleetslam.backend.jobs import LatestOnly, duration_stats
 from fleetslam.backend.local_ba import local_bundle_adjustment
 from fleetslam.backend.local_map import Keyframe
 from fleetslam.backend.matching import descriptor_match, guided_match
@@ -55,8 +55,8 @@ class LoopCloser:
         # The database query in flight and the newest keyframe whose query waits for it
         # (with the database as it was then).
         self.jobs = LatestOnly("loop query", session.config.tracking.local_ba_timeout_s,
-                               self.counts, overdue="failed")
-        self.wait_s = session.config.tracking.worker_wait_s
+                               self.counts, overdue="failed",
+                               wait_s=session.config.tracking.worker_wait_s)
 
     def close_loops(self, kf: Keyframe) -> np.ndarray | None:
         """Loop closing for the newest keyframe. Returns the world-frame correction applied
@@ -169,15 +169,13 @@ class LoopCloser:
         """Verify the queries in flight and waiting now: at the end of a run. The worker gets
         ``timeout_s`` (default tracking.worker_wait_s); past it, each is queried here (as
         ``LocalMapper.flush`` solves)."""
-        self.jobs.settle(self.wait_s if timeout_s is None else timeout_s, _query, self.poll)
+        self.jobs.settle(_query, self.poll, timeout_s)
 
     def _submit(self, kf_id: int, frozen: Any, allowed: np.ndarray) -> None:
         query = (frozen, self.session.map.keyframes[kf_id].features.descriptors, allowed)
-        if self.jobs.late:
-            future = done_future(_query, query)
-            self.counts["taken_back"] += 1
-        else:
-            future = None if self.workers is None else self.workers.submit_query(*query)
+        future = self.jobs.here_if_late(_query, query)
+        if future is None and self.workers is not None:
+            future = self.workers.submit_query(*query)
         if future is None:
             self.counts["failed"] += 1
             return
