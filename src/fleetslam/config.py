@@ -337,7 +337,7 @@ class MergeConfig:
     # within search_timeout_s turns the search in-line for good. Nothing but the merger's
     # own queue waits for it (status and merges do not: cloud/merger_service.py). Off by
     # default: with it on, bench/merge_fleet.py --processes 3 rk-3 left r0 unjoined in 4 of
-    # 4 runs (joined in 3 of 3 off); the robots' sessions then started in another order
+    # 4 runs (joined in 3 of 4 off); the robots' sessions then started in another order
     # and the merger searches each keyframe once, in one direction (issue 24's note).
     search_process: bool = False
     search_nice: Annotated[int, between(0, 19)] = 10
