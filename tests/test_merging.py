@@ -10,15 +10,18 @@ import numpy as np
 import pytest
 
 from conftest import SEVEN_SCENES, TUM_RPY, require
+from fleetslam.backend.back_end import TrackingPipeline
 from fleetslam.camera import Camera
 from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.datasets.recording import open_source
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.mapping.octomap_export import read_octomap
 from fleetslam.merging.inter_robot import PlaceMatch
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
-from fleetslam.pipeline.states import FeatureFrame
+from fleetslam.pipeline.split import run_stages
+from fleetslam.pipeline.states import CapturedFrame, FeatureFrame
 from fleetslam.system import run_fleet
 from fleetslam.registration.metrics import random_perturbation
 from fleetslam.transforms import invert, make_T, rotation_angle_deg
@@ -137,6 +140,41 @@ def test_two_robots_on_one_real_sequence_join_and_ground_truth_changes_nothing(t
     assert tree.getResolution() == pytest.approx(Config().merge.octomap_resolution_m)
     assert merge["octomap"]["occupied"] > 1000 and merge["octomap"]["free"] > 1000
     assert json.loads((out / "summary.json").read_text())["merge"]["members"] == ["r0", "r1"]
+
+
+@pytest.mark.realdata
+def test_two_robots_join_whichever_starts_first():
+    """Redkitchen 0-199 and 250-349 (bench/merge_fleet.py's rk-3, robots r0 and r1): their
+    only shared place is near both starts, and before the catch-up and the two-way check they
+    joined only when r1's keyframes were searched first. Poses come from the ground truth so
+    that the test is about the search alone (tracking is tested elsewhere)."""
+    seq = RgbdSequence(require(SEVEN_SCENES), first=0, last=349)
+    pipeline = TrackingPipeline(Config(), seq.camera)
+    stages = pipeline.split(3)[0]
+    robots: dict[str, list[tuple[KeyframeSummary, np.ndarray]]] = {}
+    for name, frames in {"r0": range(0, 200, 6), "r1": range(250, 350, 6)}.items():
+        first = invert(seq.gt_poses[frames[0]])
+        robots[name] = []
+        for i in frames:
+            f = seq[i]
+            features = run_stages(stages, CapturedFrame(f.index, f.timestamp, f.rgb,
+                                                        f.depth_m), pipeline.sides)
+            robots[name].append((KeyframeSummary(name, len(robots[name]), f.index,
+                                                 f.timestamp, features, np.eye(4)),
+                                 first @ seq.gt_poses[i]))
+    joins = []
+    for order in (["r0", "r1"], ["r1", "r0"]):
+        merger = MapMerger(Config())
+        for name in order:
+            merger.add_robot(name, seq.camera)
+        for name in order:  # one robot's whole run, then the other's
+            poses = np.array([T for _, T in robots[name]])
+            for summary, _ in robots[name]:
+                merger.add_keyframe(summary, poses[: summary.keyframe + 1])
+        assert merger.components() == {"r0": ["r0", "r1"]}, order
+        joins.append([(e["query_robot"], e["query_frame"], e["place_robot"], e["place_frame"])
+                      for e in merger.events])
+    assert joins[0] == joins[1]  # the same pair of keyframes joins them
 
 
 @pytest.mark.realdata

@@ -58,21 +58,27 @@ def _found(results: list[Searched], kfs) -> list[tuple]:
     for s in results:
         assert s.searched
         for m in s.matches:
-            assert m.query is s.summary and m.place is kfs["a"][m.place.keyframe]
-            found.append((m.query.keyframe, m.place.robot, m.place.keyframe, m.score,
-                          m.ransac_inliers, m.inliers, m.T_place_query.round(9).tobytes()))
+            assert m.query is kfs[m.query.robot][m.query.keyframe]
+            assert m.place is kfs[m.place.robot][m.place.keyframe]
+            # Its own search's, or the catch-up's: another robot's keyframe searched again
+            # in the map it joined.
+            assert m.query is s.summary or m.place.robot == s.summary.robot
+            found.append((m.query.robot, m.query.keyframe, m.place.robot, m.place.keyframe,
+                          m.score, m.ransac_inliers, m.inliers,
+                          m.T_place_query.round(9).tobytes()))
     return found
 
 
 def _run(search, camera, keyframes) -> list[tuple]:
-    """a's keyframes indexed, then each of b's searched in a; the matches found."""
+    """a's keyframes indexed, then each of b's searched in a, and a's searched again in b
+    as b's map doubles (the catch-up); the matches found."""
     for name in keyframes:
         search.add_robot(name, camera)
     for kf in keyframes["a"]:
-        search.submit(kf, [], time.monotonic())
+        search.submit(kf, ["b"], time.monotonic(), ["b"])
     assert all(not s.matches for s in _results(search, len(keyframes["a"])))
     for kf in keyframes["b"]:
-        search.submit(kf, ["a"], time.monotonic())
+        search.submit(kf, ["a"], time.monotonic(), ["a"])
     return _found(_results(search, len(keyframes["b"])), keyframes)
 
 
@@ -80,6 +86,7 @@ def test_the_search_process_finds_what_the_inline_search_finds(keyframes):
     camera, kfs = keyframes
     inline = _run(PlaceSearch(Config()), camera, kfs)
     assert len(inline) >= len(kfs["b"]) // 2  # neighbouring views of one kitchen
+    assert {q for q, *_ in inline} == {"a", "b"}  # b's searches and a's catch-up found some
     search = PlaceSearchProcess(Config(), nice=5, timeout_s=60.0)
     try:
         assert _run(search, camera, kfs) == inline
@@ -99,7 +106,7 @@ def test_a_failed_search_process_hands_over_to_the_inline_search(keyframes, fail
         for name in kfs:
             search.add_robot(name, camera)
         for kf in kfs["a"][:3]:
-            search.submit(kf, [], time.monotonic())
+            search.submit(kf, ["b"], time.monotonic(), ["b"])
         _results(search, 3)
         assert not search.inline
         if failure == "killed":
@@ -110,9 +117,9 @@ def test_a_failed_search_process_hands_over_to_the_inline_search(keyframes, fail
             search.timeout_s = 0.5
         # Asked of the process, and searched in-line once it is found to have failed.
         for kf in kfs["a"][3:]:
-            search.submit(kf, [], time.monotonic())
+            search.submit(kf, ["b"], time.monotonic(), ["b"])
         for kf in kfs["b"]:
-            search.submit(kf, ["a"], time.monotonic())
+            search.submit(kf, ["a"], time.monotonic(), ["a"])
         results = _results(search, len(kfs["a"]) - 3 + len(kfs["b"]))
         assert search.inline and search.pending == 0
         assert _found(results[len(kfs["a"]) - 3:], kfs) == inline

@@ -2,7 +2,9 @@
 while they run, and keeps one robust pose graph over all their keyframes.
 
 Each robot starts alone, in its own map frame (its first camera). Every new keyframe is
-queried against the other robots' keyframe databases and verified (inter_robot.py). A
+queried against the other robots' keyframe databases and verified (inter_robot.py), and a
+robot's keyframes are searched again in another robot's map that has doubled since, until
+the two are joined (place_search.py), so a join does not depend on which robot came first. A
 verified match implies a transform between the two robots' map frames; two robots join
 only when ``merge.consistent_detections`` matches from different keyframes imply the same
 transform (pairwise consistency, as PCM checks it). Weak or lone matches never join
@@ -30,7 +32,7 @@ from fleetslam.config import Config
 from fleetslam.merging.dense_constraint import (DenseCloud, DenseRefinement, odometry_information,
                                                 prepare, refine)
 from fleetslam.merging.inter_robot import PlaceMatch
-from fleetslam.merging.place_search import PlaceSearch, Searched, Searcher
+from fleetslam.merging.place_search import PlaceSearch, Searched, Searcher, pair_key
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.transforms import invert, transforms_agree
@@ -92,6 +94,7 @@ class MapMerger:
         # Verified matches not (yet) part of a join, per unordered robot pair.
         self.pending: dict[tuple[str, str], list[PlaceMatch]] = {}
         self.constraints: list[Constraint] = []
+        self._pairs: set[tuple[tuple[str, int], ...]] = set()  # keyframe pairs matched
         self.events: list[dict[str, Any]] = []
         self.query_seconds: list[float] = []
         # Keyframes indexed without a search (the cloud's merger was behind).
@@ -141,7 +144,9 @@ class MapMerger:
         changes: the cloud asks without holding the merger."""
         others = [name for name in self.robots if name != summary.robot] \
             if self.config.merge.enabled else []
-        self.search.submit(summary, others, asked)
+        anchor = self.robots[summary.robot].anchor
+        apart = [name for name in others if self.robots[name].anchor != anchor]
+        self.search.submit(summary, others, asked, apart)
 
     def take_matches(self, searched: Searched) -> list[dict[str, Any]]:
         """A keyframe's search results into the merger; the join events they caused."""
@@ -150,6 +155,11 @@ class MapMerger:
             self.query_seconds.append(searched.seconds)
         events: list[dict[str, Any]] = []
         for match in searched.matches:
+            # A pair counts once: a search rebuilt in-line after its process failed may
+            # find again what the process had found.
+            if (key := pair_key(match.query, match.place)) in self._pairs:
+                continue
+            self._pairs.add(key)
             event = self._consider(match)
             if event is not None:
                 events.append(event)
@@ -190,9 +200,9 @@ class MapMerger:
 
     def _consistent_set(self, matches: list[PlaceMatch]) -> list[PlaceMatch]:
         """The largest group of matches that all imply the same transform between the two
-        maps, found greedily from the best-supported one. Each match comes from a different
-        query keyframe (a keyframe queries each other robot once), so every member is an
-        observation of its own."""
+        maps, found greedily from the best-supported one. Each match is a different pair of
+        keyframes (a pair is verified once), so every member is an observation of its
+        own."""
         cfg = self.config.loop_closing
         first = min(matches[0].query.robot, matches[0].place.robot)
         implied = [self._as_pair_transform(m, first) for m in matches]
