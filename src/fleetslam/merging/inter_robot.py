@@ -52,16 +52,23 @@ def _depth_backed(features: FeatureFrame) -> np.ndarray:
 def verify_places(query: KeyframeSummary, query_camera: Camera, place: KeyframeSummary,
                   place_camera: Camera, score: float, config: Config) -> PlaceMatch | None:
     """Geometric check of ``query`` against ``place``; None when too few matches agree."""
+    return verify_counting(query, query_camera, place, place_camera, score, config)[0]
+
+
+def verify_counting(query: KeyframeSummary, query_camera: Camera, place: KeyframeSummary,
+                    place_camera: Camera, score: float, config: Config
+                    ) -> tuple[PlaceMatch | None, int]:
+    """``verify_places``, and how many descriptor matches it started from."""
     cfg, lcfg, tcfg = config.merge, config.loop_closing, config.tracking
     qf, pf = query.features, place.features
     q_idx, p_idx = _depth_backed(qf), _depth_backed(pf)
     if min(len(q_idx), len(p_idx)) < lcfg.min_ransac_inliers:
-        return None
+        return None, 0
     ids = descriptor_match(qf.descriptors[q_idx], pf.descriptors[p_idx], p_idx,
                            tcfg.max_hamming, tcfg.match_ratio)
     kp, pp = q_idx[ids >= 0], ids[ids >= 0]
     if len(kp) < lcfg.min_ransac_inliers:
-        return None
+        return None, len(kp)
     q_depth = qf.depth[kp].astype(np.float64)
     src = query_camera.backproject(qf.uv[kp], q_depth)
     dst = place_camera.backproject(pf.uv[pp], pf.depth[pp].astype(np.float64))
@@ -70,12 +77,12 @@ def verify_places(query: KeyframeSummary, query_camera: Camera, place: KeyframeS
     rigid = ransac_rigid(src, dst, threshold, lcfg.ransac_iterations, lcfg.min_ransac_inliers,
                          rng)
     if rigid is None:
-        return None
+        return None, len(kp)
     # Reprojection refinement over every descriptor match (the RANSAC outliers get another
     # chance at the refined pose; the chi-square test decides).
     T, good = optimize_pose(query_camera, rigid.T_target_source, dst, qf.uv[kp], q_depth,
                             config.orb.scale_factor ** qf.keypoints[kp, 5],
                             tcfg.virtual_baseline_m)
     if good.sum() < cfg.min_refined_inliers:
-        return None
-    return PlaceMatch(query, place, T, score, rigid.n_inliers, int(good.sum()))
+        return None, len(kp)
+    return PlaceMatch(query, place, T, score, rigid.n_inliers, int(good.sum())), len(kp)
