@@ -48,6 +48,7 @@ def _results(search, n: int, timeout: float = 60.0) -> list[Searched]:
     deadline = time.monotonic() + timeout
     while len(out) < n:
         assert time.monotonic() < deadline, f"{len(out)} of {n} searches answered"
+        search.idle()  # in-line: a put-off search now (the process does them itself)
         out += search.take_results()
         time.sleep(0.01)
     return out
@@ -128,22 +129,31 @@ def test_a_failed_search_process_hands_over_to_the_inline_search(keyframes, fail
         search.close()
 
 
-def test_a_search_asked_too_long_ago_only_indexes(keyframes):
+@pytest.mark.parametrize("where", ["inline", "process"])
+def test_a_search_asked_too_long_ago_is_put_off(keyframes, where):
     """A starved search catches up: a keyframe that waited beyond merge.search_behind_s is
-    indexed without its search (and found by those after it)."""
+    indexed at once (and found by those after it), and searched once nothing newer waits."""
     camera, kfs = keyframes
-    search = PlaceSearch(Config())
-    for name in kfs:
-        search.add_robot(name, camera)
-    behind = Config().merge.search_behind_s
-    search.submit(kfs["a"][0], [], time.monotonic() - 2 * behind)
-    search.submit(kfs["b"][0], ["a"], time.monotonic() - 2 * behind)
-    late = search.take_results()
-    assert [s.searched for s in late] == [False, False] and not late[1].matches
-    assert late[1].seconds is None
-    search.submit(kfs["b"][1], ["a"], time.monotonic())
-    (now,) = search.take_results()
-    assert now.searched and [m.place for m in now.matches] == [kfs["a"][0]]
+    search = PlaceSearch(Config()) if where == "inline" else \
+        PlaceSearchProcess(Config(), nice=0, timeout_s=60.0)
+    try:
+        for name in kfs:
+            search.add_robot(name, camera)
+        behind = Config().merge.search_behind_s
+        search.submit(kfs["a"][0], [], time.monotonic() - 2 * behind)
+        search.submit(kfs["b"][0], ["a"], time.monotonic() - 2 * behind)
+        search.submit(kfs["b"][1], ["a"], time.monotonic())
+        results = _results(search, 4)
+        assert search.pending == 0
+        first, late = [s for s in results if not s.late], [s for s in results if s.late]
+        assert [s.searched for s in first] == [False, False, True]
+        assert not first[1].matches and first[1].seconds is None
+        assert [m.place for m in first[2].matches] == [kfs["a"][0]]  # b0 was not yet
+        # b0's own search, put off: in a's map as it is now.
+        assert [s.summary for s in late] == [kfs["b"][0]]
+        assert [m.place for m in late[0].matches] == [kfs["a"][0]]
+    finally:
+        search.close()
 
 
 def test_a_closed_search_answers_nothing_and_says_nothing(keyframes, caplog):

@@ -335,16 +335,16 @@ class MergeConfig:
     # the search then takes neither the GIL nor a core from the robots tracking in the same
     # worker (merging/place_search.py); off: on the merger's thread. A search not answered
     # within search_timeout_s turns the search in-line for good. Nothing but the merger's
-    # own queue waits for it (status and merges do not: cloud/merger_service.py). Off by
-    # default: with it on, bench/merge_fleet.py --processes 3 rk-3 left r0 unjoined in 4 of
-    # 4 runs (joined in 3 of 4 off); the robots' sessions then started in another order
-    # and the merger searches each keyframe once, in one direction (issue 24's note).
-    search_process: bool = False
+    # own queue waits for it (status and merges do not: cloud/merger_service.py). On since
+    # the search no longer depends on which robot came first (place_search.py: two-way
+    # check, catch-up, put-off searches): worth about 30 % of a 2-core cloud's saturated
+    # fps (issue 24).
+    search_process: bool = True
     search_nice: Annotated[int, between(0, 19)] = 10
     search_timeout_s: Annotated[float, above(0.0)] = 60.0
-    # A keyframe that waited longer than this for the cloud's merger is indexed without
-    # being searched (counted): an overloaded merger searches fewer keyframes rather than
-    # falling further behind the robots (local BA's latest-only rule, for the merger).
+    # A keyframe that waited longer than this for the cloud's merger is indexed at once and
+    # its search put off until nothing newer waits (counted): an overloaded merger keeps up
+    # with the robots first (local BA's latest-only rule, for the merger).
     search_behind_s: Annotated[float, above(0.0)] = 5.0
     # A candidate is verified like a loop (loop_closing's RANSAC settings, keyframe to
     # keyframe); matches left after the reprojection refinement of the query pose:

@@ -135,9 +135,16 @@ class MergerService:
         wait = self._view_every_s if self.view.enabled else None
         while True:
             try:
-                item = self._queue.get(timeout=wait)
+                item = self._queue.get_nowait()
             except queue.Empty:
-                item = ("tick", None)  # the view's last changes, when keyframes stop
+                # Nothing new: a put-off place search (an in-line one) is done now.
+                if self.merger.search.idle():
+                    item = ("tick", None)
+                else:
+                    try:
+                        item = self._queue.get(timeout=wait)
+                    except queue.Empty:
+                        item = ("tick", None)  # the view's last changes, when keyframes stop
             if item is None:
                 return
             kind, payload = item

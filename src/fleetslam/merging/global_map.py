@@ -219,6 +219,7 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
         "components": status["components"], "joins": status["events"],
         "robots": status["robots"], "constraints": constraints,
         "keyframes_not_searched": status["keyframes_not_searched"],
+        "keyframes_searched_late": status["keyframes_searched_late"],
         "query_ms_median": ms(merger.query_seconds),
         "query_ms_p95": 1000.0 * float(np.percentile(merger.query_seconds, 95))
         if merger.query_seconds else None,

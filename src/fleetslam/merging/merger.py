@@ -97,8 +97,10 @@ class MapMerger:
         self._pairs: set[tuple[tuple[str, int], ...]] = set()  # keyframe pairs matched
         self.events: list[dict[str, Any]] = []
         self.query_seconds: list[float] = []
-        # Keyframes indexed without a search (the cloud's merger was behind).
+        # Keyframes indexed with their search put off (the cloud's merger was behind), and
+        # put-off searches done since.
         self.unsearched = 0
+        self.searched_late = 0
         self.graph_seconds: list[float] = []
         self.dense_seconds: list[float] = []
         self.dense_odometry: dict[tuple[str, int], DenseRefinement] = {}
@@ -150,7 +152,9 @@ class MapMerger:
 
     def take_matches(self, searched: Searched) -> list[dict[str, Any]]:
         """A keyframe's search results into the merger; the join events they caused."""
-        self.unsearched += not searched.searched
+        # Put off, then done: counted while it waits.
+        self.unsearched += -1 if searched.late else not searched.searched
+        self.searched_late += searched.late
         if searched.seconds is not None:
             self.query_seconds.append(searched.seconds)
         events: list[dict[str, Any]] = []
@@ -406,5 +410,6 @@ class MapMerger:
             "constraints_rejected": sum(c.kept is False for c in self.constraints),
             "pending_matches": {f"{a}+{b}": len(v) for (a, b), v in self.pending.items()},
             "keyframes_not_searched": self.unsearched,
+            "keyframes_searched_late": self.searched_late,
             "events": self.events,
         }

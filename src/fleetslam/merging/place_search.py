@@ -10,8 +10,10 @@ search, so on the merger's thread it took the GIL from the robots tracking in th
 worker (measured: 21 % of that worker's GIL time with 8 robots at once, more than their
 tracking). Niced, it may be starved on a busy machine: nobody waits for it (the merger's
 thread only sends and takes what came back), and a keyframe that waited longer than
-``merge.search_behind_s`` for its search is indexed without one, so a starved search
-catches up rather than falling further behind. Both give the same matches: a search is a
+``merge.search_behind_s`` for its search is indexed at once and searched later, when the
+search has nothing newer to do (``search_late``): a starved search catches up with the
+robots first, and with its backlog once they give it time (measured: 13-22 of rk-3's 49
+keyframes waited that long with three robots and the cloud on two cores). Both give the same matches: a search is a
 function of the keyframes indexed before it.
 
 If the process dies or leaves a request unanswered beyond ``merge.search_timeout_s``, the
@@ -68,7 +70,8 @@ class Searched:
     summary: KeyframeSummary
     matches: list[PlaceMatch]
     seconds: float | None  # the search's time (None: no other robot was asked)
-    searched: bool  # False: indexed without a search (it waited beyond search_behind_s)
+    searched: bool  # False: indexed, its search put off (it waited beyond search_behind_s)
+    late: bool = False  # the put-off search of a keyframe indexed before
 
 
 @dataclass
@@ -110,6 +113,8 @@ class PlaceSearch:
         self.config = config
         self.robots: dict[str, _Robot] = {}
         self._done: list[Searched] = []
+        # Keyframes indexed with their search put off: (summary, others, apart), in order.
+        self._late: collections.deque = collections.deque()
         self._tried: set[tuple[tuple[str, int], ...]] = set()  # pairs verified already
 
     def start(self) -> None:
@@ -120,7 +125,15 @@ class PlaceSearch:
 
     @property
     def pending(self) -> int:
-        return 0
+        """Searches put off and not done yet (``idle`` does them)."""
+        return len(self._late)
+
+    def idle(self) -> bool:
+        """One put-off search, done now (the caller has nothing newer); False if none."""
+        if not self._late:
+            return False
+        self._done.append(self.search_late())
+        return True
 
     def add_robot(self, name: str, camera: Camera) -> None:
         if name not in self.robots:
@@ -147,17 +160,33 @@ class PlaceSearch:
                apart: Sequence[str] = ()) -> Searched:
         """The verified matches of ``summary`` in the robots ``others`` (at most one per
         robot, in that order), then, once ``summary`` is indexed, those of the catch-up in
-        its robot's map by the robots ``apart``; none if it was asked more than
-        search_behind_s ago (it is only indexed)."""
-        behind = time.monotonic() - asked > self.config.merge.search_behind_s
-        others = [] if behind else list(others)
+        its robot's map by the robots ``apart``. If it was asked more than search_behind_s
+        ago, it is only indexed, and its search put off (``search_late``)."""
+        if time.monotonic() - asked > self.config.merge.search_behind_s:
+            self.index(summary)
+            if others:
+                self.put_off(summary, others, apart)
+            return Searched(summary, [], None, False)
         start = time.perf_counter()
         matches = [m for other in others if (m := self._find_place(summary, other)) is not None]
         self.index(summary)
-        if not behind:
-            matches += self._catch_up(summary.robot, apart)
+        matches += self._catch_up(summary.robot, apart)
         seconds = time.perf_counter() - start if others else None
-        return Searched(summary, matches, seconds, not behind)
+        return Searched(summary, matches, seconds, True)
+
+    def put_off(self, summary: KeyframeSummary, others: Sequence[str],
+                apart: Sequence[str]) -> None:
+        """``summary`` (indexed already) to be searched later."""
+        self._late.append((summary, list(others), list(apart)))
+
+    def search_late(self) -> Searched:
+        """The oldest put-off search, done now, in the maps as they are now (indexed
+        already; pairs verified since from the other side are not verified again)."""
+        summary, others, apart = self._late.popleft()
+        start = time.perf_counter()
+        matches = [m for other in others if (m := self._find_place(summary, other)) is not None]
+        matches += self._catch_up(summary.robot, apart)
+        return Searched(summary, matches, time.perf_counter() - start, True, late=True)
 
     def index(self, summary: KeyframeSummary) -> None:
         robot = self.robots[summary.robot]
@@ -206,11 +235,15 @@ Found = tuple[str, int, str, int, np.ndarray, float, int, int]
 
 def _serve(conn: Connection, config: Config, parent_pid: int) -> None:
     """The search process: requests from ``conn`` in order, until None or the cloud is
-    gone; each keyframe's answer: (robot, keyframe, matches found, seconds, searched)."""
+    gone, and the put-off searches while none waits; each keyframe's answer: (robot,
+    keyframe, matches found, seconds, searched, late)."""
     start_background(parent_pid, 0)  # niced by the cloud as it started (see _start)
     search = PlaceSearch(config)
     while True:
         try:
+            if search.pending and not conn.poll(0):
+                _send(conn, search.search_late())
+                continue
             request = conn.recv()
         except (EOFError, OSError):  # the cloud is gone (killed: the pipe is reset)
             return
@@ -220,11 +253,14 @@ def _serve(conn: Connection, config: Config, parent_pid: int) -> None:
         if kind == "robot":
             search.add_robot(*payload)
         elif kind == "keyframe":
-            s = search.search(*payload)
-            found: list[Found] = [(m.query.robot, m.query.keyframe, m.place.robot,
-                                   m.place.keyframe, m.T_place_query, m.score,
-                                   m.ransac_inliers, m.inliers) for m in s.matches]
-            conn.send((s.summary.robot, s.summary.keyframe, found, s.seconds, s.searched))
+            _send(conn, search.search(*payload))
+
+
+def _send(conn: Connection, s: Searched) -> None:
+    found: list[Found] = [(m.query.robot, m.query.keyframe, m.place.robot, m.place.keyframe,
+                           m.T_place_query, m.score, m.ransac_inliers, m.inliers)
+                          for m in s.matches]
+    conn.send((s.summary.robot, s.summary.keyframe, found, s.seconds, s.searched, s.late))
 
 
 @dataclass
@@ -258,6 +294,7 @@ class PlaceSearchProcess:
         self._robots: list[tuple[str, Camera]] = []
         self._keyframes: dict[str, list[KeyframeSummary]] = {}
         self._requests: dict[tuple[str, int], _Request] = {}  # unanswered, in order
+        self._late: dict[tuple[str, int], _Request] = {}  # answered, their search put off
         self._inline: PlaceSearch | None = None
         self._closed = False
 
@@ -267,8 +304,15 @@ class PlaceSearchProcess:
 
     @property
     def pending(self) -> int:
-        """Searches asked for and not taken yet (the merger's drain waits for them)."""
-        return 0 if self._inline is not None else len(self._requests)
+        """Searches asked for and not taken yet, put-off ones too (the merger's drain waits
+        for them)."""
+        if self._inline is not None:
+            return self._inline.pending
+        return len(self._requests) + len(self._late)
+
+    def idle(self) -> bool:
+        """The process does its put-off searches itself; in-line, one of them."""
+        return self._inline.idle() if self._inline is not None else False
 
     def start(self) -> None:
         """Start the process now (the cloud does, as it starts), not at the first robot."""
@@ -355,12 +399,18 @@ class PlaceSearchProcess:
             if answer[0] == "failed":
                 self._fail(answer[1])
                 break
-            robot, keyframe, found, seconds, searched = answer
-            request = self._requests.pop((robot, keyframe))
+            robot, keyframe, found, seconds, searched, late = answer
+            if late:
+                request = self._late.pop((robot, keyframe))
+            else:
+                request = self._requests.pop((robot, keyframe))
+                if not searched and request.others:
+                    self._late[(robot, keyframe)] = request
             out.append(Searched(request.summary, [
                 PlaceMatch(self._keyframes[query][qk], self._keyframes[place][pk], T, score,
                            ransac, n)
-                for query, qk, place, pk, T, score, ransac, n in found], seconds, searched))
+                for query, qk, place, pk, T, score, ransac, n in found], seconds, searched,
+                late))
         if self._requests and self._inline is None and not self._closed:
             oldest = next(iter(self._requests.values()))
             if time.monotonic() - oldest.sent > self.timeout_s:
@@ -370,8 +420,9 @@ class PlaceSearchProcess:
         return out
 
     def _fail(self, reason: str) -> None:
-        """Search in-line from now on: rebuilt from the keyframes answered, then the
-        unanswered ones searched in turn (those asked too long ago only indexed)."""
+        """Search in-line from now on: rebuilt from the keyframes answered (the put-off
+        searches still to do), then the unanswered ones searched in turn (those asked too
+        long ago only indexed, and put off)."""
         if self._closed or self._inline is not None:
             return
         log.error("the merger's place search process: %s; searching in-line from now on",
@@ -384,6 +435,9 @@ class PlaceSearchProcess:
             for kf in self._keyframes[name]:
                 if id(kf) not in unanswered:
                     search.index(kf)
+        for r in self._late.values():
+            search.put_off(r.summary, r.others, r.apart)
+        self._late = {}
         self._answers.clear()
         self._inline = search
         requests, self._requests = self._requests, {}
