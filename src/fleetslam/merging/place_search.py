@@ -12,9 +12,9 @@ tracking). Niced, it may be starved on a busy machine: nobody waits for it (the 
 thread only sends and takes what came back), and a keyframe that waited longer than
 ``merge.search_behind_s`` for its search is indexed at once and searched later, when the
 search has nothing newer to do (``search_late``): a starved search catches up with the
-robots first, and with its backlog once they give it time (measured: 13-22 of rk-3's 49
-keyframes waited that long with three robots and the cloud on two cores). Both give the same matches: a search is a
-function of the keyframes indexed before it.
+robots first, and with its backlog once they give it time (measured: 13-30 of rk-3's 49
+keyframes waited that long with three robots and the cloud on two cores). Both give the
+same matches: a search is a function of the keyframes indexed before it.
 
 If the process dies or leaves a request unanswered beyond ``merge.search_timeout_s``, the
 search goes on in-line from the keyframes kept here, and the log says so: a failed helper
@@ -162,17 +162,12 @@ class PlaceSearch:
         robot, in that order), then, once ``summary`` is indexed, those of the catch-up in
         its robot's map by the robots ``apart``. If it was asked more than search_behind_s
         ago, it is only indexed, and its search put off (``search_late``)."""
+        self.index(summary)  # its own robot's map: its search looks in the others'
         if time.monotonic() - asked > self.config.merge.search_behind_s:
-            self.index(summary)
             if others:
                 self.put_off(summary, others, apart)
             return Searched(summary, [], None, False)
-        start = time.perf_counter()
-        matches = [m for other in others if (m := self._find_place(summary, other)) is not None]
-        self.index(summary)
-        matches += self._catch_up(summary.robot, apart)
-        seconds = time.perf_counter() - start if others else None
-        return Searched(summary, matches, seconds, True)
+        return self._search(summary, others, apart, late=False)
 
     def put_off(self, summary: KeyframeSummary, others: Sequence[str],
                 apart: Sequence[str]) -> None:
@@ -180,13 +175,17 @@ class PlaceSearch:
         self._late.append((summary, list(others), list(apart)))
 
     def search_late(self) -> Searched:
-        """The oldest put-off search, done now, in the maps as they are now (indexed
-        already; pairs verified since from the other side are not verified again)."""
-        summary, others, apart = self._late.popleft()
+        """The oldest put-off search, done now, in the maps as they are now (pairs verified
+        since from the other side are not verified again)."""
+        return self._search(*self._late.popleft(), late=True)
+
+    def _search(self, summary: KeyframeSummary, others: Sequence[str], apart: Sequence[str],
+                late: bool) -> Searched:
         start = time.perf_counter()
         matches = [m for other in others if (m := self._find_place(summary, other)) is not None]
         matches += self._catch_up(summary.robot, apart)
-        return Searched(summary, matches, time.perf_counter() - start, True, late=True)
+        seconds = time.perf_counter() - start if others else None
+        return Searched(summary, matches, seconds, True, late)
 
     def index(self, summary: KeyframeSummary) -> None:
         robot = self.robots[summary.robot]
