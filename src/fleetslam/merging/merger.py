@@ -99,7 +99,7 @@ class MapMerger:
         self.query_seconds: list[float] = []
         # Keyframes indexed with their search put off (the cloud's merger was behind), and
         # put-off searches done since.
-        self.unsearched = 0
+        self.put_off = 0
         self.searched_late = 0
         self.graph_seconds: list[float] = []
         self.dense_seconds: list[float] = []
@@ -141,8 +141,9 @@ class MapMerger:
         self.update_poses(summary.robot, poses)
 
     def ask_search(self, summary: KeyframeSummary, asked: float) -> None:
-        """Ask for the keyframe's search in the other robots' maps (it arrived at ``asked``:
-        one that waited beyond merge.search_behind_s is indexed without one). Only the search
+        """Ask for the keyframe's search in the other robots' maps, and the catch-up of those
+        not joined with its robot (it arrived at ``asked``: one that waited beyond
+        merge.search_behind_s is indexed at once, its search put off). Only the search
         changes: the cloud asks without holding the merger."""
         others = [name for name in self.robots if name != summary.robot] \
             if self.config.merge.enabled else []
@@ -152,8 +153,7 @@ class MapMerger:
 
     def take_matches(self, searched: Searched) -> list[dict[str, Any]]:
         """A keyframe's search results into the merger; the join events they caused."""
-        # Put off, then done: counted while it waits.
-        self.unsearched += -1 if searched.late else not searched.searched
+        self.put_off += not searched.searched
         self.searched_late += searched.late
         if searched.seconds is not None:
             self.query_seconds.append(searched.seconds)
@@ -409,7 +409,7 @@ class MapMerger:
             "constraints": len(self.constraints),
             "constraints_rejected": sum(c.kept is False for c in self.constraints),
             "pending_matches": {f"{a}+{b}": len(v) for (a, b), v in self.pending.items()},
-            "keyframes_not_searched": self.unsearched,
+            "keyframes_not_searched": self.put_off - self.searched_late,  # not yet
             "keyframes_searched_late": self.searched_late,
             "events": self.events,
         }

@@ -107,7 +107,8 @@ def pair_key(a: KeyframeSummary, b: KeyframeSummary) -> tuple[tuple[str, int], .
 
 class PlaceSearch:
     """Each robot's keyframes and their place database, searched in-line: ``submit``
-    searches, then indexes; ``take_results`` hands the results over."""
+    indexes, then searches (or puts the search off); ``idle`` does a put-off search;
+    ``take_results`` hands the results over."""
 
     def __init__(self, config: Config) -> None:
         self.config = config
