@@ -490,8 +490,17 @@ def cmd_status(args: argparse.Namespace, config: Config) -> int:
     groups = " | ".join("+".join(m) for m in (merge.get("components") or {}).values())
     print(f"map groups (merger of worker {status.get('worker')}): {groups or 'none'}; "
           f"inter-robot constraints: {merge.get('constraints', 0)} "
-          f"({merge.get('constraints_rejected', 0)} rejected)")
+          f"({merge.get('constraints_rejected', 0)} rejected){_still_merging(merge)}")
     return 0
+
+
+def _still_merging(merge: dict[str, Any]) -> str:
+    """What the merger has yet to do, as the groups printed may still change; empty if
+    nothing."""
+    queued, waiting = merge.get("queued", 0), merge.get("searches_waiting", 0)
+    if not queued and not waiting:
+        return ""
+    return f"; still merging: {queued} keyframes queued, {waiting} place searches waiting"
 
 
 def cmd_run(args: argparse.Namespace, config: Config) -> int:

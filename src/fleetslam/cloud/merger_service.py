@@ -104,10 +104,12 @@ class MergerService:
         self.merger.ask_search(summary, asked)
 
     def _take_results(self) -> None:
-        for searched in self.merger.search.take_results():
-            with self._lock:
+        # Under one hold of the lock: a status between a search's answer and its matches
+        # would show the search done and its join not yet made.
+        with self._lock:
+            for searched in self.merger.search.take_results():
                 self.merger.take_matches(searched)
-            self._view_due = True
+                self._view_due = True
 
     def _update_poses(self, robot: str, poses: np.ndarray) -> None:
         with self._lock:
@@ -221,6 +223,8 @@ class MergerService:
         status = self.locked(lambda m: m.status())
         status["errors"] = self.errors
         status["queued"] = self._queue.qsize()
+        # Groups may still change while searches wait: the operator is told so.
+        status["searches_waiting"] = self.merger.search.pending
         status["remote_gaps"] = self.remote_gaps
         return status
 
