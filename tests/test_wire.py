@@ -49,11 +49,14 @@ from fleetslam.wire.frames import (
     encode_frame_message,
     encode_state,
 )
+from fleetslam.wire import inter as wire_inter
 from fleetslam.wire.inter import (
     InterEncoder,
     InterStats,
     MissingReference,
     ReferenceRing,
+    nearest,
+    nearest_by_octave,
     reference_of,
 )
 from fleetslam.wire.messages import (
@@ -651,6 +654,37 @@ def test_intra_frames_come_every_n_and_when_no_reference_is_acknowledged():
     old_cloud.sent(0, refs, 0)
     old_cloud.acked(0)
     assert old_cloud.choose(1) == []
+
+
+def test_the_octave_search_looks_only_near_a_keypoint_s_level_and_decodes_exactly(monkeypatch):
+    """The robot's reference search by pyramid level: rows within the window only, the
+    lowest among equals with faiss and with OpenCV alike, the whole search once the window
+    spans every level; the cloud decodes what it chose bit for bit."""
+    f = orb_features()
+    rng = np.random.default_rng(5)
+    noisy = f.descriptors ^ (rng.random(f.descriptors.shape) < 0.08).astype(np.uint8) * \
+        rng.integers(1, 256, f.descriptors.shape, dtype=np.uint8)
+    ref = replace(f, descriptors=np.ascontiguousarray(noisy))
+    octaves = f.keypoints[:, 5].astype(np.int64)
+    assert len(np.unique(octaves)) > 2
+    # Every other reference row said to be 3 levels up: its own query may not reach it.
+    ref_octaves = octaves + 3 * (np.arange(len(octaves)) % 2)
+    rows, dist = nearest_by_octave(f.descriptors, octaves, noisy, ref_octaves, 1)
+    assert (np.abs(ref_octaves[rows] - octaves)[dist < 256] <= 1).all()
+    full_rows, full_dist = nearest(f.descriptors, noisy)
+    assert (dist >= full_dist).all()
+    assert (dist[::2] == full_dist[::2]).all() and (dist[1::2] > full_dist[1::2]).all()
+    wide = nearest_by_octave(f.descriptors, octaves, noisy, ref_octaves, 100)
+    assert wide[0].tolist() == full_rows.tolist() and wide[1].tolist() == full_dist.tolist()
+    monkeypatch.setattr(wire_inter, "_faiss", lambda: None)  # a robot without faiss
+    opencv = nearest_by_octave(f.descriptors, octaves, noisy, ref_octaves, 1)
+    assert opencv[0].tolist() == rows.tolist() and opencv[1].tolist() == dist.tolist()
+    monkeypatch.undo()
+    for window in (0, 1, 7):
+        config = WireConfig(inter_octaves=window)
+        data = encode_frame_message(f, 3, ROBOT, 2, DISTORTED, config, [(1, reference_of(ref))])
+        _, decoded = decode_frame_message(data, DISTORTED, {1: reference_of(ref)})
+        assert decoded.descriptors.tobytes() == f.descriptors.tobytes(), window
 
 
 def test_inter_frames_refuse_a_missing_reference_and_old_builds_refuse_them(monkeypatch):

@@ -726,7 +726,9 @@ class RobotSession:
                 + (f" ({rejected} frames rejected)" if rejected else "")
                 + "; no trajectory or map is written", answer_to="end"))
         self.state.robot_keyframe_poses.update(poses)
+        t0 = time.perf_counter()
         self.back_end.finish()
+        t1 = time.perf_counter()
         # A keyframe the robot cannot upload (a live camera's, gone) is mapped without its
         # images rather than asked for again.
         missing = [i for i in self.outputs.keyframe_poses()
@@ -734,9 +736,13 @@ class RobotSession:
         if missing:
             return self._reply(protocol.need(missing))
         self.finished = self.outputs.finish(camera)
+        t2 = time.perf_counter()
         # Durable before the robot hears "ended": another worker restores it finished.
         self.state.ended = True
         number = self.checkpoints.checkpoint(self.state.last_index)
         if not self.checkpoints.wait_for_number(number):
             log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
+        log.info("robot %s ended in %.2f s: last loop queries and local BA %.2f s, outputs "
+                 "%.2f s, final checkpoint %.2f s", self.robot_id, time.perf_counter() - t0,
+                 t1 - t0, t2 - t1, time.perf_counter() - t2)
         self._reply(protocol.ended(self.finished.summary))

@@ -111,10 +111,14 @@ class _Coding:
     frames (wire/inter.py), which then also carry the keypoint angles."""
 
     def __init__(self, refs: list[Reference] | None = None,
-                 stats: InterStats | None = None) -> None:
+                 stats: InterStats | None = None, octave_window: int | None = None) -> None:
         self.refs = refs
         self.stats = stats
         self.angles: np.ndarray | None = None  # quantised angles left to the descriptors
+        # The keypoints' levels (compact table) and how far from its own level a descriptor's
+        # reference is searched (the robot's choice; nothing of it is sent).
+        self.octaves: np.ndarray | None = None
+        self.octave_window = octave_window
 
 
 INTRA = _Coding()
@@ -310,6 +314,7 @@ def _put_keypoints(w: Writer, kp: np.ndarray, ctx: _Coding = INTRA) -> None:
         w.shuffled(kp[:, CLASS_ID], "f4")
     if ctx.refs is not None:
         ctx.angles = quantised_angles(kp)
+        ctx.octaves = octave
     else:
         w.array(quantised_angles(kp), "u1")
 
@@ -384,7 +389,8 @@ def _put_descriptors(w: Writer, descriptors: np.ndarray, n: int, ctx: _Coding = 
     _require(descriptors.shape == (n, 32) and descriptors.dtype == np.uint8,
              f"descriptors must be {n} x 32 uint8, got {descriptors.shape} {descriptors.dtype}")
     if ctx.refs is not None:
-        return put_inter_descriptors(w, descriptors, ctx.angles, ctx.refs, ctx.stats)
+        return put_inter_descriptors(w, descriptors, ctx.angles, ctx.refs, ctx.stats,
+                                     ctx.octaves, ctx.octave_window)
     # Column by column, each its own zstd block: every byte position has its own bit biases,
     # which zstd exploits only with a table per position (TUM fr1_rpy 4 % smaller, 7-Scenes
     # 1 %; row by row zstd level 3 gains nothing).
@@ -691,7 +697,7 @@ def _write_state(state: State, split_point: int, camera: Camera, config: WireCon
         _require(len(set(seqs)) == len(seqs), f"references {seqs} repeat a frame")
         w.pack("B", len(seqs))
         w.array(np.array(seqs, np.uint64), "u8")
-        ctx = _Coding([ref for _, ref in references], stats)
+        ctx = _Coding([ref for _, ref in references], stats, config.inter_octaves)
     elif stats is not None and (features := features_of(state)) is not None:
         stats.descriptors += len(features[1])
     _ENCODERS[split_point](w, state, camera, config, ctx)

@@ -50,6 +50,8 @@ MAX_REFERENCES = 8
 INTER_MAX_HAMMING = 96
 DESCRIPTOR_BYTES = 32
 ANGLE_STEPS = 256
+# The keypoint table's pyramid level column (as pipeline/front_end.py lays keypoints out).
+OCTAVE_COLUMN = 5
 
 
 
@@ -71,6 +73,9 @@ class Reference:
 
     descriptors: np.ndarray  # n x 32 uint8
     angles: np.ndarray  # n uint8
+    # The keypoints' pyramid levels (n int64), or None when they are not whole levels: the
+    # robot's search looks for a descriptor's reference near its own level.
+    octaves: np.ndarray | None = None
 
 
 def quantised_angles(kp: np.ndarray) -> np.ndarray:
@@ -99,7 +104,17 @@ def reference_of(state: object) -> Reference | None:
     if features is None:
         return None
     kp, descriptors = features
-    return Reference(np.ascontiguousarray(descriptors, np.uint8), quantised_angles(kp))
+    return Reference(np.ascontiguousarray(descriptors, np.uint8), quantised_angles(kp),
+                     whole_octaves(kp))
+
+
+def whole_octaves(kp: np.ndarray) -> np.ndarray | None:
+    """The keypoints' pyramid levels as integers, or None if any is not a whole level."""
+    octave = kp[:, OCTAVE_COLUMN]
+    if len(kp) and not (np.isfinite(octave).all() and np.all(octave == np.round(octave))
+                        and octave.min() >= 0):
+        return None
+    return octave.astype(np.int64)
 
 
 @dataclass
@@ -120,6 +135,12 @@ def _stack(refs: list[Reference]) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.uint8)
     return (np.concatenate([r.descriptors for r in refs]),
             np.concatenate([r.angles for r in refs]))
+
+
+def _stacked_octaves(refs: list[Reference]) -> np.ndarray | None:
+    if any(r.octaves is None for r in refs):
+        return None
+    return np.concatenate([r.octaves for r in refs]) if refs else np.zeros(0, np.int64)
 
 
 @functools.cache
@@ -155,12 +176,39 @@ def nearest(descriptors: np.ndarray, stacked: np.ndarray) -> tuple[np.ndarray, n
     return row[:, 0].astype(np.int64), distance[:, 0].astype(np.int64)
 
 
+def nearest_by_octave(descriptors: np.ndarray, octaves: np.ndarray, stacked: np.ndarray,
+                      stacked_octaves: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`nearest`, each descriptor looking only at rows at most ``window`` pyramid
+    levels from its own (distance 256 where none is): the lowest such row among equals,
+    whichever matcher, so robots with and without faiss send the same bytes."""
+    n = len(descriptors)
+    row, distance = np.zeros(n, np.int64), np.full(n, 256, np.int64)
+    for level in np.unique(octaves):
+        query = np.flatnonzero(octaves == level)
+        allowed = np.flatnonzero(np.abs(stacked_octaves - level) <= window)
+        if len(allowed):
+            found, distance[query] = nearest(descriptors[query], stacked[allowed])
+            row[query] = allowed[found]
+    return row, distance
+
+
 def put_inter_descriptors(w: Writer, descriptors: np.ndarray, angles: np.ndarray | None,
-                          refs: list[Reference], stats: InterStats | None = None) -> None:
+                          refs: list[Reference], stats: InterStats | None = None,
+                          octaves: np.ndarray | None = None,
+                          octave_window: int | None = None) -> None:
     """The descriptor block of an inter-coded frame (module docstring); ``angles``: the
-    keypoints' quantised angles when the keypoint table left them to this block."""
+    keypoints' quantised angles when the keypoint table left them to this block. With
+    ``octaves`` (the keypoints' levels) and ``octave_window``, each descriptor's reference
+    is searched only that many levels from its own: the same corner seen at another scale
+    is found at a neighbouring level, so the search costs a fraction (``wire.inter_octaves``);
+    the decoder reads the rows, however they were chosen."""
     stacked, ref_angles = _stack(refs)
-    row, distance = nearest(descriptors, stacked)
+    stacked_octaves = _stacked_octaves(refs)
+    if octaves is not None and stacked_octaves is not None and octave_window is not None:
+        row, distance = nearest_by_octave(descriptors, octaves, stacked, stacked_octaves,
+                                          octave_window)
+    else:
+        row, distance = nearest(descriptors, stacked)
     coded = distance < INTER_MAX_HAMMING
     rows = row[coded]
     n_bytes = max(1, (max(len(stacked) - 1, 0).bit_length() + 7) // 8)
