@@ -29,7 +29,7 @@ from fleetslam.pipeline.states import (
     PosedFrame,
     TrackedFrame,
 )
-from fleetslam.wire.binary import Reader, get_image
+from fleetslam.wire.binary import DEPTH_CODEC, Reader, Writer, get_image, put_image
 from fleetslam.wire.envelope import (
     FLAG_ZSTD,
     FORMAT_VERSION,
@@ -217,6 +217,36 @@ def test_keyframe_round_trip(codec):
         np.testing.assert_array_equal(out.rgb, kf.rgb)
     else:
         assert np.abs(out.rgb.astype(int) - kf.rgb).mean() < 8
+
+
+def test_depth_goes_lossless_and_smaller_than_png_and_old_png_uploads_still_read():
+    """The depth codec: every 16-bit value back (jumps across the whole range, invalid
+    zeros), fewer bytes than the PNG it replaced, a size that lies refused by name, and a
+    store's older upload with PNG depth still read."""
+    rgb, depth = textured_rgbd()
+    depth[5, :] = 65535
+    depth[6, ::2] = 0
+    w = Writer()
+    put_image(w, depth, DEPTH_CODEC)
+    image, codec = get_image(Reader(w.getvalue(), "test"), "depth")
+    assert codec == DEPTH_CODEC and image.dtype == np.uint16
+    assert image.tobytes() == depth.tobytes()
+    with pytest.raises(ValueError, match="16-bit depth only"):
+        put_image(Writer(), rgb, DEPTH_CODEC)
+    lying = bytearray(w.getvalue())
+    lying[1:3] = struct.pack("<H", depth.shape[0] + 1)  # one row more than the planes hold
+    with pytest.raises(WireError, match="truncated: depth needs 24832 bytes, 24576 left"):
+        get_image(Reader(bytes(lying), "test"), "depth")
+    kf = KeyframeUpload.from_frame(17, 3.25, rgb, depth, stride=1)
+    new = encode_keyframe(ROBOT, 5, kf, WireConfig())
+    old = Writer()
+    old.pack("qdH", kf.frame_index, kf.timestamp, kf.stride)
+    put_image(old, kf.rgb, "jpeg")
+    put_image(old, kf.depth_raw, "png")
+    old_upload = seal(Kind.KEYFRAME, ROBOT, 5, kf.timestamp, 0, old.getvalue(), compress=True)
+    assert len(new) < len(old_upload)
+    for data in (new, old_upload):
+        assert decode_keyframe(data)[1].depth_raw.tobytes() == depth.tobytes()
 
 
 # ---------------------------------------------------------------------------------------

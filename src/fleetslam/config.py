@@ -501,8 +501,10 @@ class WireConfig:
     # one of frames the cloud acknowledged (points 2-5), lossless; 7-Scenes at point 3: 34
     # -> ~19 kB a frame (bench/inter_coding.py). Off: every frame is coded alone.
     inter_frame: bool = True
-    # An intra frame (coded alone) at least every this many frames.
-    intra_every: Annotated[int, at_least(1)] = 30
+    # An intra frame (coded alone) at least every this many frames. Recovery does not need
+    # them (a frame whose reference the cloud lacks is refused, and intra frames follow),
+    # so they are rare: every 30 cost 2 % of a 1000-frame run's bytes (7-Scenes, point 3).
+    intra_every: Annotated[int, at_least(1)] = 300
     # Acknowledged frames a message is coded against (the newest ones), at most 8.
     inter_references: Annotated[int, between(1, 8)] = 8
     # A descriptor's reference is searched among keypoints at most this many pyramid levels

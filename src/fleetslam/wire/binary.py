@@ -161,7 +161,12 @@ class Reader:
 # Images
 # ---------------------------------------------------------------------------------------
 
-_CODEC_IDS = {"png": 0, "jpeg": 1}
+_CODEC_IDS = {"png": 0, "jpeg": 1, "delta": 2}
+# 16-bit depth, lossless: each pixel minus its left neighbour (mod 2^16, zigzagged so small
+# steps either way are small numbers), as a high and a low byte plane that the envelope's
+# zstd compresses. Keyframe depth at the map's stride: 7-Scenes 34.6 -> 29.7 kB, TUM fr1_rpy
+# 37.7 -> 33.4 kB against PNG (level 1, RLE), in ~1 ms; decoding is one cumulative sum.
+DEPTH_CODEC = "delta"
 _CODEC_NAMES = {v: k for k, v in _CODEC_IDS.items()}
 # JPEG start-of-frame markers (baseline, progressive, ...): they carry the image size.
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
@@ -181,8 +186,18 @@ _PNG_CHUNKS_PER_KB = 1
 
 
 def check_codec(codec: str) -> None:
-    if codec not in _CODEC_IDS:
+    if codec not in IMAGE_CODECS:
         raise ValueError(f"image codec {codec!r} is not one of {', '.join(IMAGE_CODECS)}")
+
+
+def _delta_code(depth: np.ndarray) -> np.ndarray:
+    step = np.diff(depth, axis=1, prepend=np.zeros((len(depth), 1), np.uint16)).view(np.int16)
+    return ((step.astype(np.int32) << 1) ^ (step.astype(np.int32) >> 15)).astype(np.uint16)
+
+
+def _delta_decode(code: np.ndarray) -> np.ndarray:
+    step = (code >> 1).astype(np.uint16) ^ (-(code & 1).astype(np.int32)).astype(np.uint16)
+    return np.cumsum(step, axis=1, dtype=np.uint16)
 
 
 def _encode(image: np.ndarray, codec: str, jpeg_quality: int) -> bytes:
@@ -235,19 +250,26 @@ def _png_chunks_bounded(data: bytes) -> bool:
 def put_image(w: Writer, image: np.ndarray, codec: str, jpeg_quality: int = 90) -> None:
     """An H x W x 3 RGB or H x W grey uint8 image (PNG also takes uint16 grey), with its
     size and channel count so the reader can check the image before decoding it."""
-    check_codec(codec)
+    if codec != DEPTH_CODEC:
+        check_codec(codec)
     image = np.ascontiguousarray(image)
     channels = 1 if image.ndim == 2 else image.shape[2]
     if image.ndim not in (2, 3) or channels not in (1, 3):
         raise ValueError(f"image of shape {image.shape}: expected H x W or H x W x 3")
-    if image.dtype != np.uint8 and not (image.dtype == np.uint16 and codec == "png"
+    if codec == DEPTH_CODEC and (image.dtype != np.uint16 or channels != 1):
+        raise ValueError(f"{image.dtype} image of {channels} channels cannot be sent as "
+                         f"{codec} (16-bit depth only)")
+    if image.dtype != np.uint8 and not (image.dtype == np.uint16 and codec != "jpeg"
                                         and channels == 1):
         raise ValueError(f"{image.dtype} image cannot be sent as {codec}")
     h, width = image.shape[:2]
     if h > 0xFFFF or width > 0xFFFF:
         raise ValueError(f"image of {width}x{h} pixels is too large for the wire")
     w.pack("BHHBB", _CODEC_IDS[codec], h, width, channels, image.dtype.itemsize)
-    w.blob(_encode(image, codec, jpeg_quality))
+    if codec == DEPTH_CODEC:
+        w.shuffled(_delta_code(image), "u2")
+    else:
+        w.blob(_encode(image, codec, jpeg_quality))
 
 
 def get_image(r: Reader, what: str, size: tuple[int, int] | None = None
@@ -256,17 +278,20 @@ def get_image(r: Reader, what: str, size: tuple[int, int] | None = None
     With ``size`` (height, width), an image of another size is refused before decoding:
     decoding is the expensive part, and a small message can claim a huge image."""
     codec_id, h, width, channels, itemsize = r.unpack("BHHBB", f"{what} header")
-    data = r.blob(what)
     if codec_id not in _CODEC_NAMES:
         raise WireError(f"{what}: unknown image codec {codec_id}")
     codec = _CODEC_NAMES[codec_id]
     if channels not in (1, 3) or itemsize not in (1, 2) or (itemsize == 2 and (
-            codec != "png" or channels != 1)):
-        raise WireError(f"{what}: {channels} channels of {itemsize} bytes not supported")
+            codec == "jpeg" or channels != 1)) or (codec == DEPTH_CODEC and itemsize != 2):
+        raise WireError(f"{what}: {channels} channels of {itemsize} bytes not supported "
+                        f"as {codec}")
     if h * width > MAX_IMAGE_PIXELS:
         raise WireError(f"{what}: {width}x{h} pixels exceed the limit of {MAX_IMAGE_PIXELS}")
     if size is not None and (h, width) != tuple(size):
         raise WireError(f"{what} is {width} x {h}, expected {size[1]} x {size[0]}")
+    if codec == DEPTH_CODEC:  # the planes' length is checked before anything is allocated
+        return _delta_decode(r.shuffled("u2", h * width, what).reshape(h, width)), codec
+    data = r.blob(what)
     if _coded_size(data, codec) != (width, h):
         raise WireError(f"{what}: not a {width}x{h} {codec} image")
     if codec == "jpeg" and data.count(b"\xff\xda") > MAX_JPEG_SCANS:

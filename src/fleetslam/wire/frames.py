@@ -4,8 +4,8 @@ Exactness: the cloud's stages (stages[k:]) give bit-identical poses and keyframe
 whether the state came in memory or through encode -> decode. Everything a later stage reads
 is reproduced bit for bit:
 
-- images: PNG (lossless) by default; depth as a 16-bit PNG of the sensor values
-  (``camera.depth_scale``), turned back into the very float32 metres of
+- images: PNG (lossless) by default; depth as the 16-bit sensor values, lossless
+  (``camera.depth_scale``; ``binary.DEPTH_CODEC``), turned back into the very float32 metres of
   ``Camera.depth_to_metres``. With ``frame_image_codec = "jpeg"`` colour (k=0) and grey (k=1)
   images are lossy, and the cloud's results differ.
 - keypoints at k=1 (Describe reads pt, size, angle, octave): the N x 7 float32 table as is.
@@ -66,6 +66,7 @@ from fleetslam.pipeline.states import (
     TrackedPose,
 )
 from fleetslam.wire.binary import (
+    DEPTH_CODEC,
     Reader,
     Writer,
     check_codec,
@@ -100,7 +101,7 @@ _SCALE_SEARCH_ULPS = 4
 _KP_RAW, _KP_COMPACT = 0, 1
 _KP_XY_RAW, _KP_SIZE_RAW, _KP_CLASS_RAW = 1, 2, 4
 _VALUES_PALETTE, _VALUES_F32 = 0, 1
-_DEPTH_PNG, _DEPTH_F32 = 0, 1
+_DEPTH_IMAGE, _DEPTH_F32 = 0, 1  # 16-bit (an image codec's: PNG, or DEPTH_CODEC), or floats
 _UV_RECOMPUTE, _UV_F64 = 0, 1
 _IDS_I32, _IDS_I64 = 0, 1
 _XYZ_MATCHED, _XYZ_ALL = 0, 1
@@ -153,8 +154,8 @@ def _put_depth_image(w: Writer, depth_m: np.ndarray, camera: Camera) -> None:
              f"depth image must be H x W float32, got {depth_m.shape} {depth_m.dtype}")
     raw = camera.metres_to_depth(depth_m)
     if raw is not None:
-        w.pack("B", _DEPTH_PNG)
-        put_image(w, raw, "png")
+        w.pack("B", _DEPTH_IMAGE)
+        put_image(w, raw, DEPTH_CODEC)
     else:
         w.pack("BHH", _DEPTH_F32, *depth_m.shape)
         w.shuffled(depth_m, "f4")
@@ -162,7 +163,7 @@ def _put_depth_image(w: Writer, depth_m: np.ndarray, camera: Camera) -> None:
 
 def _get_depth_image(r: Reader, camera: Camera) -> np.ndarray:
     (mode,) = r.unpack("B", "depth image mode")
-    if mode == _DEPTH_PNG:
+    if mode == _DEPTH_IMAGE:
         raw, _ = get_image(r, "depth image", (camera.height, camera.width))
         if raw.dtype != np.uint16 or raw.ndim != 2:
             raise WireError(f"depth image is {raw.shape} {raw.dtype}, expected 16-bit grey")

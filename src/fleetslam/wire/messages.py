@@ -6,7 +6,8 @@ compressed (it would not shrink). Its envelope's split point is 0.
 
 Keyframe upload (Kind.KEYFRAME, robot -> cloud): the RGB-D of one keyframe, decimated by
 ``stride``; colour as ``WireConfig.keyframe_rgb_codec`` ("jpeg": lossy, it only colours map
-points; "png": lossless), depth as a lossless 16-bit PNG of the sensor values.
+points; "png": lossless), depth as the sensor values, lossless (``binary.DEPTH_CODEC``:
+left-neighbour differences in byte planes; stores from before it hold 16-bit PNGs).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import WireConfig
-from fleetslam.wire.binary import Reader, Writer, get_image, put_image
+from fleetslam.wire.binary import DEPTH_CODEC, Reader, Writer, get_image, put_image
 from fleetslam.wire.envelope import Header, Kind, WireError, open_message, seal
 
 
@@ -101,7 +102,7 @@ def encode_keyframe(robot_id: str, seq: int, kf: KeyframeUpload, config: WireCon
     w = Writer()
     w.pack("qdH", kf.frame_index, kf.timestamp, kf.stride)
     put_image(w, kf.rgb, config.keyframe_rgb_codec, config.jpeg_quality)
-    put_image(w, kf.depth_raw, "png")
+    put_image(w, kf.depth_raw, DEPTH_CODEC)
     return seal(Kind.KEYFRAME, robot_id, seq, kf.timestamp, 0, w.getvalue(),
                 compress=config.compress, level=config.zstd_level)
 
@@ -118,9 +119,11 @@ def decode_keyframe(data: bytes, camera: Camera | None = None) -> tuple[Header, 
     rgb, _ = get_image(r, "keyframe colour", size)
     depth, codec = get_image(r, "keyframe depth", size)
     r.finish()
-    if rgb.ndim != 3 or depth.ndim != 2 or depth.dtype != np.uint16 or codec != "png":
+    # (Stores written before the depth codec hold 16-bit PNGs: both are read.)
+    if rgb.ndim != 3 or depth.ndim != 2 or depth.dtype != np.uint16 \
+            or codec not in ("png", DEPTH_CODEC):
         raise WireError(f"keyframe colour {rgb.shape} / depth {depth.shape} {depth.dtype} "
-                        f"({codec}) are not h x w x 3 and a 16-bit PNG")
+                        f"({codec}) are not h x w x 3 and a 16-bit depth image")
     if rgb.shape[:2] != depth.shape:
         raise WireError(f"keyframe colour {rgb.shape[:2]} and depth {depth.shape} differ in size")
     _check_timestamp(header, timestamp)
