@@ -16,6 +16,10 @@ from fleetslam.transport import keys, protocol
 from fleetslam.transport.link import EmulatedLink
 
 
+# Frames coded and waiting for the link (FrameOutbox).
+FRAMES_WAITING = 1
+
+
 class Sender:
     """Sends on the link and records each frame and upload in the report (``sends``); an
     adaptive robot's planner learns its link from how long the sends take."""
@@ -52,19 +56,22 @@ class Sender:
 
 class FrameOutbox:
     """The send thread: the link sends frame i while the stages work on frame i+1 (a robot's
-    NIC and CPU run side by side); a queue of two keeps the robot from running ahead of its
-    link. A frame the link loses leaves the flow-control window."""
+    NIC and CPU run side by side). At most one frame waits for the link: the robot does not
+    run ahead of it, and the frame being coded names references acknowledged as late as
+    possible (a queue of two: round trip median 66-71 ms, 21.0-21.3 kB a frame; of one:
+    46-49 ms, 20.6 kB; bench/offload.py at point 3). A frame the link loses leaves the
+    flow-control window."""
 
     def __init__(self, sender: Sender, window: FlowWindow) -> None:
         self.sender = sender
         self.window = window
-        self._queue: queue.Queue = queue.Queue(maxsize=2)
+        self._queue: queue.Queue = queue.Queue(maxsize=FRAMES_WAITING)
         self._thread = threading.Thread(target=self._run, name=f"robot-{sender.robot_id}-send",
                                         daemon=True)
         self._thread.start()
 
     def put(self, seq: int, data: bytes) -> None:
-        """Blocks while two frames wait for the link."""
+        """Blocks while a frame waits for the link."""
         self._queue.put((seq, data))
 
     def drain(self) -> None:
