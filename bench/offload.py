@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/offload.py [--points 0,3,6] [--frames 1000] [--mbps 10]
         [--coding inter,intra]
-        [--rate max|recorded|FPS]
+        [--rate max|recorded|FPS] [--configs a.toml,b.toml] [--runs N]
 
 For each offloading point: a fresh cloud process, one robot process streaming the 7-Scenes
 frames as fast as its stages and its link allow (1000 frames = 0-599 then back 598-199),
@@ -17,6 +17,8 @@ Point 0 is total offloading (eta = 0), 3 the paper's point, 6 everything on the 
 ``--coding``: each point with inter-frame coding of the frame message (the default,
 wire.inter_frame = true) and/or without it (intra: every frame coded alone); only points
 2-5 carry descriptors, so only there does it change anything.
+``--configs``: each point under each settings file (robot and cloud both read it), the
+files alternating within each of ``--runs`` rounds, so an A/B sees the same machine.
 Writes bench/results/offload.json.
 """
 
@@ -52,14 +54,16 @@ def source_spec(frames: int) -> str:
 
 
 def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter",
-              rate: str = "max") -> dict:
-    name = f"point{k}-{coding}"
+              rate: str = "max", settings: Path | None = None, tag: str = "") -> dict:
+    name = f"point{k}-{coding}{tag}"
     endpoint, out = free_endpoint(), work / name
-    config_path = None
+    config_path = settings
     if coding == "intra":
-        config_path = work / "intra.toml"
-        config_path.write_text("[wire]\ninter_frame = false\n")
-    cloud = start_cloud(endpoint, out, work / f"{name}-cloud.log")
+        config_path = work / f"intra{tag}.toml"
+        config_path.write_text((settings.read_text() if settings else "")
+                               + "\n[wire]\ninter_frame = false\n")
+    cloud = start_cloud(endpoint, out, work / f"{name}-cloud.log",
+                        None if settings is None else str(settings))
     report_path = work / f"{name}-robot.json"
     try:
         robot = start_robot(endpoint, "r0", spec, k, work / f"{name}-robot.log", report_path,
@@ -76,7 +80,8 @@ def run_point(k: int, spec: str, mbps: float, work: Path, coding: str = "inter",
     ate = trajectory_ate(out / "r0" / "trajectory.tum", open_source(spec))
     robot_s, trans_s, cloud_s = r["robot_compute_s"], r["link_busy_s"], cloud_summary["cloud_s_total"]
     return {
-        "point": k, "coding": coding, "rate": rate, "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,
+        "point": k, "coding": coding, "rate": rate,
+        "settings": None if settings is None else str(settings), "frames": r["frames"], "robot_s": robot_s, "trans_s": trans_s,
         "cloud_s": cloud_s, "sum_s": robot_s + trans_s + cloud_s, "total_s": r["total_s"],
         "last_feedback_s": r["last_feedback_s"], "streaming_s": r["streaming_s"],
         "frame_kB": r["frame_bytes"] / r["frames"] / 1000,
@@ -107,8 +112,18 @@ def main() -> None:
     parser.add_argument("--rate", default="max",
                         help="the robot's frame rate: 'max' (as fast as it can), 'recorded' "
                              "(the camera's timestamps) or frames per second")
+    parser.add_argument("--configs", default="",
+                        help="settings files (comma-separated), alternated within each run")
+    parser.add_argument("--runs", type=int, default=1, help="rounds over the settings")
     parser.add_argument("--out", default="bench/results/offload.json")
     args = parser.parse_args()
+    settings: list[Path | None] = [Path(c) for c in args.configs.split(",") if c] or [None]
+    for path in settings:
+        if path is not None and not path.is_file():
+            sys.exit(f"--configs: {path} is not a file")
+    if "[wire]" in "".join(p.read_text() for p in settings if p) and "intra" in args.coding:
+        sys.exit("--coding intra adds its own [wire] table: give the settings' wire keys "
+                 "without it, or use --coding inter")
     if not SEQ.exists():
         sys.exit(f"{SEQ} missing: this benchmark needs ../shared/data")
     out = Path(args.out)
@@ -116,14 +131,25 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     spec = source_spec(args.frames)
     results = []
-    for k in (int(p) for p in args.points.split(",")):
-        for coding in args.coding.split(","):
-            print(f"point {k} ({coding}): {args.frames} frames over {args.mbps:g} Mbit/s ...",
-                  flush=True)
-            results.append(run_point(k, spec, args.mbps, work, coding, args.rate))
-            r = results[-1]
-            print(f"  total {r['total_s']:.1f} s, {r['frame_kB']:.1f} kB/frame", flush=True)
-    rows = [[f"point {r['point']} {r['coding']}", r["robot_s"], r["trans_s"], r["cloud_s"], r["sum_s"],
+    for run in range(args.runs):
+        for k in (int(p) for p in args.points.split(",")):
+            for coding in args.coding.split(","):
+                for path in settings:
+                    label = "" if path is None else f" {path.stem}"
+                    print(f"point {k} ({coding}{label}, run {run + 1}): {args.frames} frames "
+                          f"over {args.mbps:g} Mbit/s ...", flush=True)
+                    tag = f"-run{run + 1}" + ("" if path is None else f"-{path.stem}")
+                    results.append(run_point(k, spec, args.mbps, work, coding, args.rate,
+                                             path, tag))
+                    r = results[-1]
+                    print(f"  total {r['total_s']:.1f} s, {r['frame_kB']:.1f} kB/frame",
+                          flush=True)
+
+    def label(r: dict) -> str:
+        settings_name = "" if r["settings"] is None else f" {Path(r['settings']).stem}"
+        return f"point {r['point']} {r['coding']}{settings_name}"
+
+    rows = [[label(r), r["robot_s"], r["trans_s"], r["cloud_s"], r["sum_s"],
              r["total_s"], r["frame_kB"], r["keyframes"], r["keyframe_MB"],
              None if r["ate_m"] is None else r["ate_m"] * 100,
              r["cloud_ms_median"], r["cloud_ms_p95"],
@@ -135,6 +161,13 @@ def main() -> None:
                         "kB/frame", "KF", "KF MB", "ATE cm", "cloud ms med", "cloud ms p95",
                         "RT ms med", "RT ms p95",
                         "intra share"], rows))
+    if args.runs > 1:
+        for name in dict.fromkeys(label(r) for r in results):
+            mine = [r for r in results if label(r) == name]
+            spans = {c: (min(r[c] for r in mine), max(r[c] for r in mine))
+                     for c in ("total_s", "robot_s", "trans_s", "frame_kB")}
+            print(f"{name}, {len(mine)} runs: " + ", ".join(
+                f"{c} {lo:.2f}-{hi:.2f}" for c, (lo, hi) in spans.items()))
     print(f"{args.frames} frames of {SEQ.name} ({spec.split(':')[-1]}), link "
           f"{args.mbps:g} Mbit/s, rate {args.rate}, cores: {os.cpu_count()} (robot and cloud share them)")
     out.parent.mkdir(parents=True, exist_ok=True)

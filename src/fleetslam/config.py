@@ -508,10 +508,12 @@ class WireConfig:
     # Acknowledged frames a message is coded against (the newest ones), at most 8.
     inter_references: Annotated[int, between(1, 8)] = 8
     # A descriptor's reference is searched among keypoints at most this many pyramid levels
-    # from its own (a corner seen at another scale lands on a neighbouring level): with 8
-    # references, 3 % fewer bytes than all levels of 4 at the same robot ms (7-Scenes at
-    # point 3; 0: 2x faster, 1 % more bytes). The robot's choice: nothing of it is sent.
-    inter_octaves: Annotated[int, at_least(0)] = 1
+    # from its own (the same corner mostly lands on its own level). Against all levels of 4
+    # references, 8 at level 0 cost 2.4 ms of the robot's instead of 4.6 for 1 % fewer
+    # bytes on 7-Scenes, 1 % more on TUM fr1_rpy (1: 4.3 ms, 3 % / 1.5 % fewer). With a CPU
+    # hog beside robot and cloud, 0 gave 26.8-26.9 s for bench/offload's 1000 frames, 1
+    # gave 28.0-28.3; the robot's choice, nothing of it is sent.
+    inter_octaves: Annotated[int, at_least(0)] = 0
     # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames):
     # a reference must still be there when a frame coded against it arrives, and a busy
     # cloud's feedback comes tens of frames late (bench/offload.py: ~1.3 s median round
