@@ -3,7 +3,9 @@
 Consecutive frames share most of their features, and a descriptor coded alone is at its
 bit-entropy bound (~31 of the 34 kB of a frame at point 3). An inter-coded frame names up
 to ``MAX_REFERENCES`` earlier frames of the same robot (by seq) that the cloud holds, and
-codes each descriptor against the nearest descriptor (Hamming) of those frames:
+codes each descriptor against the nearest descriptor (Hamming) of those frames, searched
+among the keypoints within ``wire.inter_octaves`` pyramid levels of its own (the robot's
+choice: the message names rows, however they were found):
 
     flags     one bit per keypoint: coded against a reference (Hamming < INTER_MAX_HAMMING)
     index     per coded descriptor, its row in the references' descriptors stacked in the
