@@ -245,7 +245,10 @@ def test_depth_goes_lossless_and_smaller_than_png_and_old_png_uploads_still_read
     put_image(old, kf.depth_raw, "png")
     old_upload = seal(Kind.KEYFRAME, ROBOT, 5, kf.timestamp, 0, old.getvalue(), compress=True)
     assert len(new) < len(old_upload)
-    for data in (new, old_upload):
+    # Without zstd the planes would go raw: an uncompressed message keeps the PNG.
+    plain = encode_keyframe(ROBOT, 5, kf, WireConfig(compress=False))
+    assert len(plain) < depth.nbytes
+    for data in (new, old_upload, plain):
         assert decode_keyframe(data)[1].depth_raw.tobytes() == depth.tobytes()
 
 

@@ -191,6 +191,12 @@ def check_codec(codec: str) -> None:
         raise ValueError(f"image codec {codec!r} is not one of {', '.join(IMAGE_CODECS)}")
 
 
+def depth_codec(compress: bool) -> str:
+    """How 16-bit depth goes: DEPTH_CODEC's planes shrink only under the envelope's zstd,
+    so an uncompressed message (wire.compress false) keeps the PNG, compressed itself."""
+    return DEPTH_CODEC if compress else "png"
+
+
 def _delta_code(depth: np.ndarray) -> np.ndarray:
     step = np.diff(depth, axis=1, prepend=np.zeros((len(depth), 1), np.uint16)).view(np.int16)
     return ((step.astype(np.int32) << 1) ^ (step.astype(np.int32) >> 15)).astype(np.uint16)

@@ -66,10 +66,10 @@ from fleetslam.pipeline.states import (
     TrackedPose,
 )
 from fleetslam.wire.binary import (
-    DEPTH_CODEC,
     Reader,
     Writer,
     check_codec,
+    depth_codec,
     get_image,
     put_image,
 )
@@ -149,13 +149,14 @@ def _require(ok: bool, message: str) -> None:
 # ---------------------------------------------------------------------------------------
 
 
-def _put_depth_image(w: Writer, depth_m: np.ndarray, camera: Camera) -> None:
+def _put_depth_image(w: Writer, depth_m: np.ndarray, camera: Camera,
+                     config: WireConfig) -> None:
     _require(depth_m.ndim == 2 and depth_m.dtype == np.float32,
              f"depth image must be H x W float32, got {depth_m.shape} {depth_m.dtype}")
     raw = camera.metres_to_depth(depth_m)
     if raw is not None:
         w.pack("B", _DEPTH_IMAGE)
-        put_image(w, raw, DEPTH_CODEC)
+        put_image(w, raw, depth_codec(config.compress))
     else:
         w.pack("BHH", _DEPTH_F32, *depth_m.shape)
         w.shuffled(depth_m, "f4")
@@ -417,7 +418,7 @@ def _put_captured(w: Writer, s: CapturedFrame, camera: Camera, config: WireConfi
     _require(s.rgb.ndim == 3 and s.rgb.shape[2] == 3 and s.rgb.dtype == np.uint8,
              f"rgb must be H x W x 3 uint8, got {s.rgb.shape} {s.rgb.dtype}")
     put_image(w, s.rgb, config.frame_image_codec, config.jpeg_quality)
-    _put_depth_image(w, s.depth_m, camera)
+    _put_depth_image(w, s.depth_m, camera, config)
 
 
 def _get_captured(r: Reader, index: int, timestamp: float, camera: Camera,
@@ -433,7 +434,7 @@ def _put_detected(w: Writer, s: DetectedFrame, camera: Camera, config: WireConfi
     _require(s.gray.ndim == 2 and s.gray.dtype == np.uint8,
              f"grey image must be H x W uint8, got {s.gray.shape} {s.gray.dtype}")
     put_image(w, s.gray, config.frame_image_codec, config.jpeg_quality)
-    _put_depth_image(w, s.depth_m, camera)
+    _put_depth_image(w, s.depth_m, camera, config)
     _put_raw_keypoints(w, s.keypoints)
 
 
@@ -448,7 +449,7 @@ def _get_detected(r: Reader, index: int, timestamp: float, camera: Camera,
 
 def _put_described(w: Writer, s: DescribedFrame, camera: Camera, config: WireConfig,
                     ctx: _Coding = INTRA) -> None:
-    _put_depth_image(w, s.depth_m, camera)
+    _put_depth_image(w, s.depth_m, camera, config)
     _put_keypoints(w, s.keypoints, ctx)
     _put_descriptors(w, s.descriptors, len(s.keypoints), ctx)
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import WireConfig
-from fleetslam.wire.binary import DEPTH_CODEC, Reader, Writer, get_image, put_image
+from fleetslam.wire.binary import DEPTH_CODEC, Reader, Writer, depth_codec, get_image, put_image
 from fleetslam.wire.envelope import Header, Kind, WireError, open_message, seal
 
 
@@ -102,7 +102,7 @@ def encode_keyframe(robot_id: str, seq: int, kf: KeyframeUpload, config: WireCon
     w = Writer()
     w.pack("qdH", kf.frame_index, kf.timestamp, kf.stride)
     put_image(w, kf.rgb, config.keyframe_rgb_codec, config.jpeg_quality)
-    put_image(w, kf.depth_raw, DEPTH_CODEC)
+    put_image(w, kf.depth_raw, depth_codec(config.compress))
     return seal(Kind.KEYFRAME, robot_id, seq, kf.timestamp, 0, w.getvalue(),
                 compress=config.compress, level=config.zstd_level)
 
