@@ -136,17 +136,19 @@ class MergerService:
         """This thread alone changes the merger; it holds the lock only while it does."""
         wait = self._view_every_s if self.view.enabled else None
         while True:
+            taken = True  # off the queue: task_done once merged (status counts it till then)
             try:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 # Nothing new: a put-off place search (an in-line one) is done now.
                 if self.merger.search.idle():
-                    item = ("tick", None)
+                    item, taken = ("tick", None), False
                 else:
                     try:
                         item = self._queue.get(timeout=wait)
                     except queue.Empty:
-                        item = ("tick", None)  # the view's last changes, when keyframes stop
+                        # The view's last changes, when keyframes stop.
+                        item, taken = ("tick", None), False
             if item is None:
                 return
             kind, payload = item
@@ -176,6 +178,9 @@ class MergerService:
             except Exception:
                 self.errors += 1
                 log.exception("merger: %s failed", kind)
+            finally:
+                if taken:
+                    self._queue.task_done()
 
     def _show(self) -> None:
         """Hand the view every robot's global transform and the inter-robot constraints
@@ -220,11 +225,12 @@ class MergerService:
             return work(self.merger)
 
     def status(self) -> dict[str, Any]:
-        status = self.locked(lambda m: m.status())
+        # Groups, keyframes not yet merged (queued or in hand) and searches not yet landed,
+        # read under one hold of the lock: what is still to merge shows until its matches
+        # have landed, so groups without it are final (the operator is told so).
+        status = self.locked(lambda m: {**m.status(), "queued": self._queue.unfinished_tasks,
+                                        "searches_waiting": m.search.pending})
         status["errors"] = self.errors
-        status["queued"] = self._queue.qsize()
-        # Groups may still change while searches wait: the operator is told so.
-        status["searches_waiting"] = self.merger.search.pending
         status["remote_gaps"] = self.remote_gaps
         return status
 
