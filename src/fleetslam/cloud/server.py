@@ -157,7 +157,7 @@ class CloudServer:
         threading.Thread(target=self._claim_orphans, name="cloud-orphans", daemon=True).start()
         # What start-up made (modules, classes, the libraries' objects: ~60k) lives as long
         # as the worker: frozen, a full collection no longer walks it, while every robot's
-        # thread waits (a worker's full collections took 33-58 ms in bench/worker_scaling).
+        # thread waits (bench/worker_scaling: a worker's full collections 10-58 ms, then 4-6).
         gc.freeze()
         log.info("cloud worker %s %s %s, store %s%s", self.worker_id,
                  "connected to" if self.connect else "listening on", self.endpoint,

@@ -83,6 +83,7 @@ from fleetslam.wire.inter import (
     get_inter_descriptors,
     put_inter_descriptors,
     quantised_angles,
+    whole_octaves,
 )
 
 State = Any
@@ -267,13 +268,11 @@ def _put_keypoints(w: Writer, kp: np.ndarray, ctx: _Coding = INTRA) -> None:
     inter-coded frame sends the angles with its descriptors (``ctx.angles``)."""
     _check_keypoints(kp)
     n = len(kp)
-    oct_f = kp[:, OCTAVE]
-    if n and not (np.all(oct_f == np.round(oct_f)) and oct_f.min() >= 0
-                  and oct_f.max() < MAX_OCTAVES):
+    octave = whole_octaves(kp)
+    if octave is None or (n and octave.max() >= MAX_OCTAVES):
         w.pack("IB", n, _KP_RAW)
         w.shuffled(kp, "f4")
         return
-    octave = oct_f.astype(np.int64)
     n_levels = int(octave.max()) + 1 if n else 0
     level_size: np.ndarray | None = np.zeros(n_levels, np.float32)
     level_size[octave] = kp[:, SIZE]
