@@ -3,13 +3,16 @@ grows? One robot plays 7-Scenes redkitchen forwards and back (0-599, 598-1, 0-59
 for ``--frames`` frames at offloading point 3 to one cloud process over Zenoh on loopback.
 
     .venv/bin/python bench/long_run.py [--frames 5000] [--block 1000] [--rate max]
+        [--configs a.toml,b.toml] [--runs N]
 
 Sampled every ``--every`` seconds from outside (``status`` and /proc): per block of
 ``--block`` frames the cloud tracked, the wall time per frame, the cloud's CPU time per
 frame (its process and its local-mapping processes), its resident memory at the block's
 end, and its keyframes. The last block against the first is the number that matters: the
 issue's target is "the last 1000 frames no slower than the first 1000". After the run,
-the robot's ATE against ground truth (read only then). Writes bench/results/long_run.json.
+the robot's ATE against ground truth (read only then). ``--configs``: settings files (the
+robot and the cloud read them), alternated within each of ``--runs`` rounds, so an A/B sees
+the same machine. Writes bench/results/long_run.json.
 """
 
 from __future__ import annotations
@@ -67,18 +70,20 @@ def tree_rss_mb(pid: int) -> float:
     return total
 
 
-def run(frames: int, block: int, rate: str, every_s: float, work: Path) -> dict[str, Any]:
+def run(frames: int, block: int, rate: str, every_s: float, work: Path,
+        config_path: Path | None = None) -> dict[str, Any]:
     spec = f"{SEVEN_SCENES}:{forth_and_back(frames)}"
     endpoint = free_endpoint()
     out = work / "cloud"
-    cloud = start_cloud(endpoint, out, work / "cloud.log")
+    config = None if config_path is None else str(config_path)
+    cloud = start_cloud(endpoint, out, work / "cloud.log", config)
     client = CloudClient(endpoint, reach_deadline_s=60.0)
     robot = None
     samples: list[dict[str, float]] = []
     try:
         client.status(timeout=60.0, gather_s=0.2)
         robot = start_robot(endpoint, "r0", spec, 3, work / "r0.log", work / "r0_report.json",
-                            extra=["--rate", rate])
+                            config_path=config, extra=["--rate", rate])
         start = time.monotonic()
         next_block = block
         samples.append({"frames": 0, "t": 0.0, "cpu_s": tree_cpu_s(cloud.pid),
@@ -123,6 +128,7 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path) -> dict[
     robot_summary = summary["robots"][0]
     report = json.loads((work / "r0_report.json").read_text())
     return {"frames": frames, "rate": rate, "blocks": blocks,
+            "settings": None if config_path is None else str(config_path),
             "ate_cm": 100 * robot_summary["ate"]["rmse_m"] if robot_summary.get("ate") else None,
             "cloud_ms_median": robot_summary.get("cloud_ms_median"),
             "cloud_ms_p95": robot_summary.get("cloud_ms_p95"),
@@ -137,22 +143,55 @@ def main() -> None:
     parser.add_argument("--rate", default="max", help="the robot's --rate")
     parser.add_argument("--every", type=float, default=1.0, help="seconds between samples")
     parser.add_argument("--out", default="bench/results/long_run.json")
+    parser.add_argument("--configs", default="",
+                        help="settings files (comma-separated), alternated within each run")
+    parser.add_argument("--runs", type=int, default=1, help="rounds over the settings")
     args = parser.parse_args()
     if not SEVEN_SCENES.exists():
         sys.exit(f"{SEVEN_SCENES} missing: this benchmark needs ../shared/data")
-    work = Path(args.out).parent / "long-runs" / time.strftime("%Y%m%d-%H%M%S")
-    result = run(args.frames, args.block, args.rate, args.every, work)
+    settings: list[Path | None] = [Path(c) for c in args.configs.split(",") if c] or [None]
+    for path in settings:
+        if path is not None and not path.is_file():
+            sys.exit(f"--configs: {path} is not a file")
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    results = []
+    for round_ in range(args.runs):
+        for path in settings:
+            name = "defaults" if path is None else path.stem
+            print(f"{name}, run {round_ + 1}: {args.frames} frames ...", flush=True)
+            work = Path(args.out).parent / "long-runs" / stamp / f"run{round_ + 1}-{name}"
+            results.append(run(args.frames, args.block, args.rate, args.every, work, path))
+            report(results[-1])
+    if len(results) > 1:
+        for name in dict.fromkeys(r["settings"] for r in results):
+            mine = [last_over_first(r) for r in results if r["settings"] == name]
+            ates = [r["ate_cm"] for r in results if r["settings"] == name]
+            print(f"{name or 'defaults'}, {len(mine)} runs: last / first block cloud CPU "
+                  f"{min(c for c, _ in mine):.2f}-{max(c for c, _ in mine):.2f}x, wall "
+                  f"{min(w for _, w in mine):.2f}-{max(w for _, w in mine):.2f}x; ATE "
+                  f"{min(ates):.2f}-{max(ates):.2f} cm")
+    Path(args.out).write_text(json.dumps(results[0] if len(results) == 1 else results,
+                                         indent=1))
+    print(f"wrote {args.out}")
+
+
+def last_over_first(result: dict[str, Any]) -> tuple[float, float]:
+    """(cloud CPU, wall) per frame of the last block over the first."""
+    first, last = result["blocks"][0], result["blocks"][-1]
+    return (last["cloud_cpu_ms_per_frame"] / first["cloud_cpu_ms_per_frame"],
+            last["wall_ms_per_frame"] / first["wall_ms_per_frame"])
+
+
+def report(result: dict[str, Any]) -> None:
     rows = [[b["frames"], b["wall_ms_per_frame"], b["cloud_cpu_ms_per_frame"], b["rss_mb"],
              b["keyframes"]] for b in result["blocks"]]
     print(format_table(["frames", "wall ms/frame", "cloud CPU ms/frame", "cloud RSS MB",
                         "keyframes (merger)"], rows))
-    first, last = result["blocks"][0], result["blocks"][-1]
-    print(f"last block / first block: cloud CPU {last['cloud_cpu_ms_per_frame'] / first['cloud_cpu_ms_per_frame']:.2f}x, "
-          f"wall {last['wall_ms_per_frame'] / first['wall_ms_per_frame']:.2f}x; ATE "
+    cpu, wall = last_over_first(result)
+    print(f"last block / first block: cloud CPU {cpu:.2f}x, wall {wall:.2f}x; ATE "
           f"{result['ate_cm']:.2f} cm; cloud ms median {result['cloud_ms_median']}, p95 "
-          f"{result['cloud_ms_p95']}; round trip p95 {result['round_trip_ms_p95']} ms")
-    Path(args.out).write_text(json.dumps(result, indent=1))
-    print(f"wrote {args.out}")
+          f"{result['cloud_ms_p95']}; round trip p95 {result['round_trip_ms_p95']} ms",
+          flush=True)
 
 
 if __name__ == "__main__":

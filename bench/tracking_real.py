@@ -1,6 +1,6 @@
 """Tracking on the real sequences of ../shared/data: frames, losses, ATE, time per stage.
 
-    .venv/bin/python bench/tracking_real.py [--out bench/results/tracking_real.json]
+    .venv/bin/python bench/tracking_real.py [--out bench/results/tracking_real.json] [--config F]
 
 Prints one table row per sequence and writes JSON. ATE is RMSE after an SE(3) alignment,
 as `evo_ape tum GT EST -a`; the trajectory of each run is written beside the JSON so evo
@@ -15,7 +15,7 @@ import os
 import time
 from pathlib import Path
 
-from fleetslam.config import Config
+from fleetslam.config import load_config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import run_ate
 from fleetslam.io.trajectory import write_tum_trajectory
@@ -29,13 +29,15 @@ STAGES = ["extract", "describe", "associate_depth", "match", "estimate_pose", "d
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="bench/results/tracking_real.json")
+    parser.add_argument("--config", help="a TOML file over the defaults (an A/B of a setting)")
     args = parser.parse_args()
+    config = load_config(args.config)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     results = []
     for name, folder in present_sequences():
         seq = RgbdSequence(folder)
-        run = track_robot(name, str(folder), seq, Config(), show_progress=False)
+        run = track_robot(name, str(folder), seq, config, show_progress=False)
         write_tum_trajectory(out.parent / f"{name}.tum", run.timestamps, run.poses)
         ate = run_ate(run)
         results.append({

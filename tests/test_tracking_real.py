@@ -4,6 +4,8 @@ bench/tracking_real.py's output."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -44,3 +46,70 @@ def test_seven_scenes_repeated_frames_are_detected():
     run = track_robot("r", str(SEVEN_SCENES), seq, Config(), show_progress=False)
     # The data README counts 58 colour repeats from about frame 222 on.
     assert run.repeated_frames >= 5
+
+
+@pytest.mark.parametrize("min_matches, radii", [(0, [10.0]), (100_000, [10.0, 25.0])])
+def test_guided_matching_searches_narrow_then_wide(monkeypatch, min_matches, radii):
+    """The narrow search comes first; the wide one only when it finds too few matches."""
+    from fleetslam.backend import tracking
+
+    calls: list[list[float]] = []
+    original = tracking.guided_match
+
+    def recording(*args, **kwargs):
+        radius = args[5]
+        if radius == 10.0:
+            calls.append([])
+        calls[-1].append(radius)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tracking, "guided_match", recording)
+    config = Config()
+    config.tracking.guided_narrow_radius_px = 10.0
+    config.tracking.guided_radius_px = 25.0
+    config.tracking.min_guided_matches = min_matches
+    seq = RgbdSequence(require(TUM_RPY), last=20)
+    run = track_robot("r", str(TUM_RPY), seq, config, show_progress=False)
+    assert run.tracked.all()
+    assert len(calls) >= 15 and all(c == radii for c in calls)
+
+
+def test_every_keyframe_has_its_reason():
+    seq = RgbdSequence(require(TUM_RPY), last=60)
+    run = track_robot("r", str(TUM_RPY), seq, Config(), show_progress=False)
+    reasons = run.loop_closing["keyframe_reasons"]
+    assert reasons["first"] == 1
+    assert set(reasons) <= {"first", "inliers", "motion", "reference", "close", "reset"}
+    assert sum(reasons.values()) == len(run.keyframe_indices) > 5
+
+
+def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
+    from fleetslam.backend.tracking import orb_slam_keyframe_reason
+    from fleetslam.pipeline.states import MatchedFrame, PosedFrame
+    from fleetslam.system import RobotTracker
+
+    seq = RgbdSequence(require(TUM_RPY), last=10)
+    tracker = RobotTracker("r", str(TUM_RPY), seq, Config())
+    for i in range(len(seq)):
+        tracker.step(i)
+    session = tracker.session
+    features = session._last_features
+    n = len(features.keypoints)
+    assert n >= 400
+    # No depth: the close-point test stays out of it.
+    features = replace(features, depth=np.zeros(n, np.float32))
+    session.reference_tracked = 400
+
+    def reason(n_inliers: int, busy: bool) -> str | None:
+        inliers = np.zeros(n, bool)
+        inliers[:n_inliers] = True
+        matched = MatchedFrame(features, np.arange(n), np.zeros((n, 3)), np.eye(4), False)
+        return orb_slam_keyframe_reason(session, PosedFrame(matched, np.eye(4), inliers, True),
+                                        busy)
+
+    assert reason(200, busy=False) == "reference"  # below 0.75 x 400
+    assert reason(200, busy=True) is None           # not below 0.25 x 400
+    assert reason(50, busy=True) == "reference"
+    assert reason(350, busy=False) is None
+    session.config.tracking.keyframe_wait_for_mapper = False
+    assert reason(200, busy=True) == "reference"

@@ -94,8 +94,15 @@ class TrackingConfig:
     local_map_scope: Annotated[str, OneOf(("all", "covisible"))] = "all"
     # Covisible keyframes of the newest keyframe in the local map (most shared first).
     local_map_covisible: Annotated[int, at_least(0)] = 20
-    # Search radius (pixels, at octave 0) around a landmark's predicted position.
+    # Search radius (pixels, at octave 0) around a landmark's predicted position ...
     guided_radius_px: Annotated[float, above(0.0)] = 25.0
+    # ... searched first within this smaller radius (0: off), the wide one only when it
+    # finds fewer than min_guided_matches (ORB-SLAM's motion-model search, widened when it
+    # fails). The candidates a keypoint meets grow with the radius squared and with the
+    # map's density: a room mapped over and over has several landmarks per keypoint
+    # (redkitchen forth and back, in-process: match 6.3 -> 2.6 ms a frame after 4000
+    # frames; ATE 7-Scenes 3.45 -> 3.21 cm, TUM fr1_rpy 2.75 -> 2.61 cm).
+    guided_narrow_radius_px: Annotated[float, at_least(0.0)] = 10.0
     # Fewer guided matches than this: match against the whole local map instead.
     min_guided_matches: Annotated[int, at_least(0)] = 60
     # Virtual stereo baseline for the depth residual (ORB-SLAM's RGB-D "bf" / fx).
@@ -117,6 +124,14 @@ class TrackingConfig:
     orb_slam_keyframe_policy: bool = True
     # ORB-SLAM thRefRatio for stereo / RGB-D.
     keyframe_reference_ratio: Annotated[float, FRACTION] = 0.75
+    # While the local mapper is busy (a local BA still in a worker), ORB-SLAM's reference
+    # test makes a keyframe only when tracking is weak: inliers below this fraction of the
+    # reference (ORB-SLAM's c1c, 0.25). Without it a keyframe in a densely mapped place,
+    # whose reference counts what fusion added, was followed by a keyframe at nearly every
+    # frame: 5000 frames through a cloud made 159-309 keyframes, 94-221 by this test.
+    # In-line (one process) the mapper is never busy.
+    keyframe_wait_for_mapper: bool = True
+    keyframe_weak_ratio: Annotated[float, FRACTION] = 0.25
     # "Close" points: depth below this many virtual baselines (ORB-SLAM ThDepth, TUM: 40).
     close_depth_baselines: Annotated[float, above(0.0)] = 40.0
     # Keyframe when fewer close points than this are tracked (ORB-SLAM: 100) ...

@@ -49,7 +49,8 @@ class CloudBackEnd:
         self.local_mapper = LocalMapper(self.state, self.workers)
         # A loop correction moves the whole map: local BA in flight lands first.
         self.loop_closer = LoopCloser(self.state, self.local_mapper.flush, self.workers)
-        self.stages: list[Stage] = [Match(), EstimatePose(), DecideKeyframe(self._new_keyframe)]
+        self.stages: list[Stage] = [Match(), EstimatePose(),
+                                    DecideKeyframe(self._new_keyframe, self.local_mapper.busy)]
 
     def _new_keyframe(self, posed: PosedFrame) -> np.ndarray:
         """Local mapping, then loop closing, for a new keyframe; its pose after them."""
@@ -102,6 +103,7 @@ class CloudBackEnd:
             "local_ba": duration_stats(state.local_ba_seconds),
             "local_mapping": self.local_mapping_summary(),
             "culled_keyframes": state.culled_keyframes,
+            "keyframe_reasons": dict(state.keyframe_reasons),
             "relocalisations": state.relocalisations, "loss_events": state.loss_events,
             "events": loops.events,
         }

@@ -97,6 +97,10 @@ class LocalMapper:
         update_reference(session)
         return InsertedKeyframe(kf, correction)
 
+    def busy(self) -> bool:
+        """A local BA is still in a worker (never in-line: it is done by then)."""
+        return not self.jobs.idle
+
     # -- in the workers ------------------------------------------------------------------
 
     def request(self, kf_id: int) -> None:

@@ -94,6 +94,8 @@ class BackEndState:
     culled_landmarks: int = 0
     # Keyframes culled as redundant (their observations dropped; ORB-SLAM's KeyFrameCulling).
     culled_keyframes: int = 0
+    # Keyframes made, by the test that made them (tracking.keyframe_reason).
+    keyframe_reasons: dict[str, int] = field(default_factory=dict)
     fused_observations: int = 0
     # Established landmarks (enough observations) of the newest keyframe: the reference of
     # ORB-SLAM's keyframe test.

@@ -60,9 +60,13 @@ class Match:
             level = session.map.predicted_octave(visible, np.linalg.norm(P, axis=1),
                                                  session.config.orb.scale_factor,
                                                  session.config.orb.n_levels)
-            ids = guided_match(state, session.map.descriptors, visible, proj, level,
-                               cfg.guided_radius_px, session.config.orb.scale_factor,
-                               cfg.max_hamming, cfg.match_ratio)
+            radii = [r for r in (cfg.guided_narrow_radius_px, cfg.guided_radius_px) if r > 0]
+            for radius in sorted(set(radii)):
+                ids = guided_match(state, session.map.descriptors, visible, proj, level,
+                                   radius, session.config.orb.scale_factor,
+                                   cfg.max_hamming, cfg.match_ratio)
+                if (ids >= 0).sum() >= cfg.min_guided_matches:
+                    break
         if (ids >= 0).sum() < cfg.min_guided_matches:
             # Prediction too far off (fast rotation, after a loss): search the landmarks of
             # the newest keyframes by descriptor alone.
@@ -178,12 +182,17 @@ class DecideKeyframe:
     name = "decide_keyframe"
     side = "cloud"
 
-    def __init__(self, new_keyframe: NewKeyframe) -> None:
+    def __init__(self, new_keyframe: NewKeyframe,
+                 mapper_busy: Callable[[], bool] = lambda: False) -> None:
         self.new_keyframe = new_keyframe
+        self.mapper_busy = mapper_busy
 
     def __call__(self, state: PosedFrame, session: BackEndState) -> TrackedFrame:
         f = state.matched.features
-        is_kf = needs_keyframe(session, state)
+        reason = keyframe_reason(session, state, self.mapper_busy())
+        is_kf = reason is not None
+        if is_kf:
+            session.keyframe_reasons[reason] = session.keyframe_reasons.get(reason, 0) + 1
         if state.tracked and not state.matched.repeated and session.map.keyframes:
             count_views(session, state)
         if is_kf:
@@ -198,28 +207,33 @@ class DecideKeyframe:
                             session.map.keyframe_poses() if is_kf else None)
 
 
-def needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
-    """Whether this frame becomes a keyframe (and counts a map reset when a long loss
-    forces one)."""
+def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool = False
+                    ) -> str | None:
+    """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
+    of the first frame after the newest keyframe), "motion" (far from the motion
+    references), "reference" / "close" (ORB-SLAM's tests), "reset" (lost too long; counted
+    as a map reset)."""
     cfg = session.config.tracking
     if not session.map.keyframes:
-        return state.tracked
+        return "first" if state.tracked else None
     if state.tracked and not state.matched.repeated:
         n_in = int(state.inliers.sum())
         # Inliers fall against the first frame tracked after the keyframe: the view has
         # moved on. (The keyframe's own landmark count is no reference: many of its
         # keypoints are never matched again.)
         reference = session.inliers_after_keyframe or n_in
-        return (n_in < cfg.keyframe_inlier_ratio * reference
-                or all(moved_from(kf, state, cfg.keyframe_translation_m,
-                                  cfg.keyframe_rotation_deg)
-                       for kf in motion_references(session, state))
-                or (cfg.orb_slam_keyframe_policy and orb_slam_needs_keyframe(session, state)))
+        if n_in < cfg.keyframe_inlier_ratio * reference:
+            return "inliers"
+        if all(moved_from(kf, state, cfg.keyframe_translation_m, cfg.keyframe_rotation_deg)
+               for kf in motion_references(session, state)):
+            return "motion"
+        return orb_slam_keyframe_reason(session, state, mapper_busy) \
+            if cfg.orb_slam_keyframe_policy else None
     if not state.tracked and session.lost_frames + 1 >= cfg.lost_frames_before_reset:
         # Lost for too long: continue from the prediction with fresh landmarks.
         session.resets += 1
-        return True
-    return False
+        return "reset"
+    return None
 
 
 def motion_references(session: BackEndState, state: PosedFrame) -> list[Keyframe]:
@@ -250,19 +264,28 @@ def moved_from(kf: Keyframe, state: PosedFrame, translation_m: float, rotation_d
                 or rotation_angle_deg(T_rel[:3, :3]) > rotation_deg)
 
 
-def orb_slam_needs_keyframe(session: BackEndState, state: PosedFrame) -> bool:
-    """ORB-SLAM's keyframe test for RGB-D, as if local mapping were always idle (ORB-SLAM
-    also waits for a busy mapper; here it never refuses a keyframe): the frame tracks fewer than a fraction of the landmarks the reference keyframe
-    tracks (those with enough observations to be established), or it tracks few close points
-    while many close points could be created."""
+def orb_slam_keyframe_reason(session: BackEndState, state: PosedFrame,
+                             mapper_busy: bool = False) -> str | None:
+    """ORB-SLAM's keyframe test for RGB-D: "reference" when the frame tracks fewer than a
+    fraction of the landmarks the reference keyframe tracks (those with enough observations
+    to be established), "close" when it tracks few close points while many close points
+    could be created. While the local mapper is busy (``mapper_busy``: a local BA still in
+    a worker), "reference" needs weak tracking (``tracking.keyframe_weak_ratio``), as
+    ORB-SLAM's tracking asks a busy mapper for a keyframe only then."""
     cfg = session.config.tracking
     inliers = state.inliers
     n_in = int(inliers.sum())
     depth = state.matched.features.depth
     close = (depth > 0) & (depth < cfg.close_depth_baselines * cfg.virtual_baseline_m)
-    need_close = (int((close & inliers).sum()) < cfg.keyframe_close_tracked
-                  and int((close & ~inliers).sum()) > cfg.keyframe_close_untracked)
-    return n_in < cfg.keyframe_reference_ratio * session.reference_tracked or need_close
+    ratio = cfg.keyframe_reference_ratio
+    if mapper_busy and cfg.keyframe_wait_for_mapper:
+        ratio = min(ratio, cfg.keyframe_weak_ratio)
+    if n_in < ratio * session.reference_tracked:
+        return "reference"
+    if (int((close & inliers).sum()) < cfg.keyframe_close_tracked
+            and int((close & ~inliers).sum()) > cfg.keyframe_close_untracked):
+        return "close"
+    return None
 
 
 def count_views(session: BackEndState, state: PosedFrame) -> None:
