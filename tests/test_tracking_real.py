@@ -18,7 +18,7 @@ from fleetslam.system import track_robot
 
 
 @pytest.mark.parametrize("folder, last, bound_m", [
-    # fast rotation, blur, lens distortion; 2.69 cm measured (3.31 cm with depth read at
+    # fast rotation, blur, lens distortion; 2.61 cm measured (3.31 cm with depth read at
     # the colour pixel instead of through the factory pinhole the depth is registered to)
     (TUM_RPY, None, 0.030),
     (SEVEN_SCENES, 299, 0.045),    # mm depth, 65535 holes, repeated frames
