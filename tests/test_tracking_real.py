@@ -113,3 +113,44 @@ def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
     assert reason(350, busy=False) is None
     session.config.tracking.keyframe_wait_for_mapper = False
     assert reason(200, busy=True) == "reference"
+
+
+def test_motion_is_measured_from_every_keyframe_that_still_observes():
+    from fleetslam.backend.tracking import far_from_live_keyframes
+    from fleetslam.pipeline.states import MatchedFrame, PosedFrame
+    from fleetslam.system import RobotTracker
+
+    seq = RgbdSequence(require(TUM_RPY), last=40)
+    tracker = RobotTracker("r", str(TUM_RPY), seq, Config())
+    for i in range(len(seq)):
+        tracker.step(i)
+    session = tracker.session
+    lmap = session.map
+    assert len(lmap.keyframes) >= 3 and lmap.observing()[0]
+    for kf in lmap.keyframes[1:]:  # every other keyframe 10 m away
+        kf.T_world_camera = kf.T_world_camera.copy()
+        kf.T_world_camera[2, 3] += 10.0
+    features = session._last_features
+    n = len(features.keypoints)
+    matched = MatchedFrame(features, np.full(n, -1), np.zeros((n, 3)), np.eye(4), False)
+
+    def far(T: np.ndarray) -> bool:
+        return far_from_live_keyframes(session, PosedFrame(matched, T, np.zeros(n, bool), True))
+
+    first = lmap.keyframes[0].T_world_camera
+    step = np.eye(4)
+    step[0, 3] = 0.05
+    turn = np.eye(4)
+    turn[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # 90 degrees about the optical axis
+    small_turn = np.eye(4)
+    a = np.radians(8.0)
+    small_turn[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    assert not far(first @ step)        # 5 cm from the first keyframe
+    assert not far(first @ small_turn)  # 8 degrees
+    assert far(first @ turn)            # 90 degrees
+    step[0, 3] = 0.5
+    assert far(first @ step)            # 50 cm
+    # Culled (observing nothing), the first keyframe is no reference any more.
+    lmap.drop_keyframe_observations(np.array([0]))
+    step[0, 3] = 0.05
+    assert far(first @ step)

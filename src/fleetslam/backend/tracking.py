@@ -210,9 +210,9 @@ class DecideKeyframe:
 def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool = False
                     ) -> str | None:
     """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
-    of the first frame after the newest keyframe), "motion" (far from the motion
-    references), "reference" / "close" (ORB-SLAM's tests), "reset" (lost too long; counted
-    as a map reset)."""
+    of the first frame after the newest keyframe), "motion" (far from the keyframes
+    ``tracking.keyframe_motion_from`` names), "reference" / "close" (ORB-SLAM's tests),
+    "reset" (lost too long; counted as a map reset)."""
     cfg = session.config.tracking
     if not session.map.keyframes:
         return "first" if state.tracked else None
@@ -224,8 +224,11 @@ def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool 
         reference = session.inliers_after_keyframe or n_in
         if n_in < cfg.keyframe_inlier_ratio * reference:
             return "inliers"
-        if all(moved_from(kf, state, cfg.keyframe_translation_m, cfg.keyframe_rotation_deg)
-               for kf in motion_references(session, state)):
+        if cfg.keyframe_motion_from == "live":
+            if far_from_live_keyframes(session, state):
+                return "motion"
+        elif all(moved_from(kf, state, cfg.keyframe_translation_m, cfg.keyframe_rotation_deg)
+                 for kf in motion_references(session, state)):
             return "motion"
         return orb_slam_keyframe_reason(session, state, mapper_busy) \
             if cfg.orb_slam_keyframe_policy else None
@@ -234,6 +237,24 @@ def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool 
         session.resets += 1
         return "reset"
     return None
+
+
+def far_from_live_keyframes(session: BackEndState, state: PosedFrame) -> bool:
+    """Whether the camera moved more than ``keyframe_translation_m`` or turned more than
+    ``keyframe_rotation_deg`` from every keyframe that still observes landmarks."""
+    cfg, lmap = session.config.tracking, session.map
+    live = np.flatnonzero(lmap.observing())
+    if not len(live):
+        return True
+    poses = lmap.keyframe_poses(live)
+    T = state.T_world_camera
+    near = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1) <= cfg.keyframe_translation_m
+    if not near.any():
+        return True
+    # Angle of R_kf^T R: trace of the product, without forming it.
+    trace = np.einsum("kij,ij->k", poses[near, :3, :3], T[:3, :3])
+    cos = np.clip((trace - 1.0) / 2.0, -1.0, 1.0)
+    return not bool((np.degrees(np.arccos(cos)) <= cfg.keyframe_rotation_deg).any())
 
 
 def motion_references(session: BackEndState, state: PosedFrame) -> list[Keyframe]:
