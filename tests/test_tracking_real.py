@@ -83,16 +83,22 @@ def test_every_keyframe_has_its_reason():
     assert sum(reasons.values()) == len(run.keyframe_indices) > 5
 
 
-def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
-    from fleetslam.backend.tracking import orb_slam_keyframe_reason
-    from fleetslam.pipeline.states import MatchedFrame, PosedFrame
+def _tracked(last: int):
+    """The back-end state after TUM fr1_rpy's frames 0..last, tracked in-line."""
     from fleetslam.system import RobotTracker
 
-    seq = RgbdSequence(require(TUM_RPY), last=10)
+    seq = RgbdSequence(require(TUM_RPY), last=last)
     tracker = RobotTracker("r", str(TUM_RPY), seq, Config())
     for i in range(len(seq)):
         tracker.step(i)
-    session = tracker.session
+    return tracker.session
+
+
+def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
+    from fleetslam.backend.tracking import orb_slam_keyframe_reason
+    from fleetslam.pipeline.states import MatchedFrame, PosedFrame
+
+    session = _tracked(10)
     features = session._last_features
     n = len(features.keypoints)
     assert n >= 400
@@ -118,13 +124,8 @@ def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
 def test_motion_is_measured_from_every_keyframe_that_still_observes():
     from fleetslam.backend.tracking import far_from_live_keyframes
     from fleetslam.pipeline.states import MatchedFrame, PosedFrame
-    from fleetslam.system import RobotTracker
 
-    seq = RgbdSequence(require(TUM_RPY), last=40)
-    tracker = RobotTracker("r", str(TUM_RPY), seq, Config())
-    for i in range(len(seq)):
-        tracker.step(i)
-    session = tracker.session
+    session = _tracked(40)
     lmap = session.map
     assert len(lmap.keyframes) >= 3 and lmap.observing()[0]
     for kf in lmap.keyframes[1:]:  # every other keyframe 10 m away
