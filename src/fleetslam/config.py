@@ -105,8 +105,8 @@ class TrackingConfig:
     # map's density: a room mapped over and over has several landmarks per keypoint
     # (redkitchen forth and back, in-process, 10 px: match 6.3 -> 2.6 ms a frame after
     # 4000 frames). ATE moves by chance with the radius (TUM's 150 frames: 2.4-3.2 cm over
-    # 7.5-25 px); 12 px: 7-Scenes 3.45 -> 3.20 cm, TUM fr1_rpy 2.75 -> 2.61, its JPEG bag
-    # 2.52 -> 2.33 (10 px: 3.26 there).
+    # 7.5-25 px); 12 px, measured with keyframe_motion_from "shared": 7-Scenes 3.45 -> 3.20
+    # cm, TUM fr1_rpy 2.75 -> 2.61, its JPEG bag 2.52 -> 2.33 (10 px: 3.26 there).
     guided_narrow_radius_px: Annotated[float, at_least(0.0)] = 12.0
     # Fewer guided matches than this: match against the whole local map instead.
     min_guided_matches: Annotated[int, at_least(0)] = 60

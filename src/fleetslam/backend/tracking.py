@@ -26,7 +26,7 @@ from fleetslam.backend.pose_optimizer import optimize_pose, pnp_pose
 from fleetslam.backend.relocaliser import relocalise
 from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import FeatureFrame, MatchedFrame, PosedFrame, TrackedFrame
-from fleetslam.transforms import invert, rotation_angle_deg
+from fleetslam.transforms import invert, rotation_angle_deg, rotation_angles_deg
 
 
 class Match:
@@ -251,10 +251,8 @@ def far_from_live_keyframes(session: BackEndState, state: PosedFrame) -> bool:
     near = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1) <= cfg.keyframe_translation_m
     if not near.any():
         return True
-    # Angle of R_kf^T R: trace of the product, without forming it.
-    trace = np.einsum("kij,ij->k", poses[near, :3, :3], T[:3, :3])
-    cos = np.clip((trace - 1.0) / 2.0, -1.0, 1.0)
-    return not bool((np.degrees(np.arccos(cos)) <= cfg.keyframe_rotation_deg).any())
+    turned = rotation_angles_deg(np.transpose(poses[near, :3, :3], (0, 2, 1)) @ T[:3, :3])
+    return not bool((turned <= cfg.keyframe_rotation_deg).any())
 
 
 def motion_references(session: BackEndState, state: PosedFrame) -> list[Keyframe]:
