@@ -121,6 +121,35 @@ def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
     assert reason(200, busy=True) == "reference"
 
 
+def test_the_inlier_test_waits_for_the_newest_keyframes_local_ba():
+    """Until local mapping is done with the newest keyframe the next frames take no
+    reference for the inlier test (they still match the keyframe's unjudged new landmarks);
+    the first frame after it does."""
+    from fleetslam.backend.tracking import keyframe_reason
+    from fleetslam.pipeline.states import MatchedFrame, PosedFrame
+
+    session = _tracked(10)
+    features = session._last_features
+    n = len(features.keypoints)
+    assert n >= 400
+
+    def frame(n_inliers: int) -> PosedFrame:
+        inliers = np.zeros(n, bool)
+        inliers[:n_inliers] = True
+        matched = MatchedFrame(features, np.arange(n), np.zeros((n, 3)), np.eye(4), False)
+        return PosedFrame(matched, session.map.keyframes[-1].T_world_camera, inliers, True)
+
+    session.record(frame(300), features, is_keyframe=True)
+    session.record(frame(400), features, is_keyframe=False, settled=False)
+    assert session.inliers_after_keyframe == 0
+    assert keyframe_reason(session, frame(100)) != "inliers"
+    session.record(frame(300), features, is_keyframe=False, settled=True)
+    assert session.inliers_after_keyframe == 300
+    assert keyframe_reason(session, frame(100)) == "inliers"
+    session.record(frame(380), features, is_keyframe=False, settled=True)
+    assert session.inliers_after_keyframe == 300  # the first settled frame's, kept
+
+
 def test_motion_is_measured_from_every_keyframe_that_still_observes():
     from fleetslam.backend.tracking import far_from_live_keyframes
     from fleetslam.pipeline.states import MatchedFrame, PosedFrame

@@ -50,7 +50,7 @@ class CloudBackEnd:
         # A loop correction moves the whole map: local BA in flight lands first.
         self.loop_closer = LoopCloser(self.state, self.local_mapper.flush, self.workers)
         self.stages: list[Stage] = [Match(), EstimatePose(),
-                                    DecideKeyframe(self._new_keyframe, self.local_mapper.busy)]
+                                    DecideKeyframe(self._new_keyframe, self.local_mapper)]
 
     def _new_keyframe(self, posed: PosedFrame) -> np.ndarray:
         """Local mapping, then loop closing, for a new keyframe; its pose after them."""

@@ -101,6 +101,14 @@ class LocalMapper:
         """A local BA is still in a worker (never in-line: it is done by then)."""
         return not self.jobs.idle
 
+    def settling(self) -> bool:
+        """The newest keyframe's local BA is in a worker or waits for one (never in-line)."""
+        if not self.session.map.keyframes:
+            return False
+        newest = self.session.map.keyframes[-1].id
+        job = self.jobs.in_flight
+        return self.jobs.waiting == newest or (job is not None and job.request == newest)
+
     # -- in the workers ------------------------------------------------------------------
 
     def request(self, kf_id: int) -> None:

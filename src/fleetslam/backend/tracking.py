@@ -11,7 +11,7 @@ peers, local mapping and loop closing, through the hook ``DecideKeyframe`` is bu
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Callable
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -173,6 +173,26 @@ def track_local_map(session: BackEndState, state: MatchedFrame, T_world_camera: 
 NewKeyframe = Callable[[PosedFrame], np.ndarray]
 
 
+class MapperStatus(Protocol):
+    """What the keyframe decision asks the local mapper (local_mapping.py)."""
+
+    def busy(self) -> bool:
+        """A local BA is still in a worker."""
+
+    def settling(self) -> bool:
+        """The newest keyframe's local BA has not landed yet."""
+
+
+class InlineMapper:
+    """A mapper that is done with each keyframe before the next frame (in-line)."""
+
+    def busy(self) -> bool:
+        return False
+
+    def settling(self) -> bool:
+        return False
+
+
 class DecideKeyframe:
     """The keyframe decision; a keyframe then goes to the back-end's local mapper and loop
     closer (``new_keyframe``, on this thread; with the cloud's workers their local BA and
@@ -182,14 +202,13 @@ class DecideKeyframe:
     name = "decide_keyframe"
     side = "cloud"
 
-    def __init__(self, new_keyframe: NewKeyframe,
-                 mapper_busy: Callable[[], bool] = lambda: False) -> None:
+    def __init__(self, new_keyframe: NewKeyframe, mapper: MapperStatus | None = None) -> None:
         self.new_keyframe = new_keyframe
-        self.mapper_busy = mapper_busy
+        self.mapper = mapper if mapper is not None else InlineMapper()
 
     def __call__(self, state: PosedFrame, session: BackEndState) -> TrackedFrame:
         f = state.matched.features
-        reason = keyframe_reason(session, state, self.mapper_busy())
+        reason = keyframe_reason(session, state, self.mapper.busy())
         is_kf = reason is not None
         if is_kf:
             session.keyframe_reasons[reason] = session.keyframe_reasons.get(reason, 0) + 1
@@ -200,7 +219,8 @@ class DecideKeyframe:
             # left it.
             state = replace(state, T_world_camera=self.new_keyframe(state))
         reference, T_reference_camera = session.reference_pose(state.T_world_camera)
-        session.record(state, f, is_kf)
+        session.record(state, f, is_kf, settled=not self.mapper.settling()
+                       or session.config.tracking.keyframe_inlier_reference == "next")
         # A keyframe carries the map's keyframe poses as they are now: a robot that tracks
         # itself sends them to the cloud's merger with the keyframe's features.
         return TrackedFrame(state, is_kf, reference, T_reference_camera,
@@ -210,7 +230,8 @@ class DecideKeyframe:
 def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool = False
                     ) -> str | None:
     """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
-    of the first frame after the newest keyframe), "motion" (far from the keyframes
+    of the first frame after the newest keyframe, once its local BA landed: none before),
+    "motion" (far from the keyframes
     ``tracking.keyframe_motion_from`` names), "reference" / "close" (ORB-SLAM's tests),
     "reset" (lost too long; counted as a map reset)."""
     cfg = session.config.tracking
