@@ -103,11 +103,8 @@ class LocalMapper:
 
     def settling(self) -> bool:
         """The newest keyframe's local BA is in a worker or waits for one (never in-line)."""
-        if not self.session.map.keyframes:
-            return False
-        newest = self.session.map.keyframes[-1].id
-        job = self.jobs.in_flight
-        return self.jobs.waiting == newest or (job is not None and job.request == newest)
+        keyframes = self.session.map.keyframes
+        return bool(keyframes) and self.jobs.pending(keyframes[-1].id)
 
     # -- in the workers ------------------------------------------------------------------
 

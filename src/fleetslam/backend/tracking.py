@@ -219,8 +219,10 @@ class DecideKeyframe:
             # left it.
             state = replace(state, T_world_camera=self.new_keyframe(state))
         reference, T_reference_camera = session.reference_pose(state.T_world_camera)
-        session.record(state, f, is_kf, settled=not self.mapper.settling()
-                       or session.config.tracking.keyframe_inlier_reference == "next")
+        # The inlier test's reference waits for local mapping's (keyframe_inlier_reference).
+        settled = (session.config.tracking.keyframe_inlier_reference == "next"
+                   or not self.mapper.settling())
+        session.record(state, f, is_kf, settled)
         # A keyframe carries the map's keyframe poses as they are now: a robot that tracks
         # itself sends them to the cloud's merger with the keyframe's features.
         return TrackedFrame(state, is_kf, reference, T_reference_camera,
@@ -231,9 +233,8 @@ def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool 
                     ) -> str | None:
     """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
     of the first frame after the newest keyframe, once its local BA landed: none before),
-    "motion" (far from the keyframes
-    ``tracking.keyframe_motion_from`` names), "reference" / "close" (ORB-SLAM's tests),
-    "reset" (lost too long; counted as a map reset)."""
+    "motion" (far from the keyframes ``tracking.keyframe_motion_from`` names), "reference" /
+    "close" (ORB-SLAM's tests), "reset" (lost too long; counted as a map reset)."""
     cfg = session.config.tracking
     if not session.map.keyframes:
         return "first" if state.tracked else None
