@@ -336,7 +336,7 @@ def test_the_sdk_and_rosbags_agree_on_the_type_hashes():
 def test_what_the_sdk_puts_on_the_wire_is_what_the_design_doc_describes(sdk_session):
     """Raw Zenoh, no fleetslam parsing in the way: the SDK's data key, liveliness token,
     attachment and CDR header, as rmw_zenoh's design.md writes them."""
-    from fleetslam.datasets.ros2_topics import open_ros_session
+    from fleetslam.datasets.ros2_session import open_ros_session
 
     node = CameraNode(sdk_session, topics=("colour",))
     session = open_ros_session(sdk_session, 5.0)

@@ -393,6 +393,8 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     _apply_link(args, config)
     if args.link_seed is not None:
         set_from_flag(config.link, "seed", args.link_seed, "--link-seed")
+    if args.ros2_out:
+        set_from_flag(config.ros2_out, "endpoint", args.ros2_out, "--ros2-out")
     sequence, recording = _robot_source(args, config)
     live = sequence is not recording
     if live:  # its camera model (the device's, or the recording's image size) builds stages
@@ -785,6 +787,9 @@ def build_parser() -> argparse.ArgumentParser:
     robot.add_argument("--report", help="write the robot's measurements here (JSON)")
     robot.add_argument("--paper-yaml", metavar="DIR", help="also write every frame's message "
                        "as the paper's OpenCV YAML file (point 3 only)")
+    robot.add_argument("--ros2-out", metavar="ENDPOINT", help="publish the robot's pose, /tf, "
+                       "path and status live to the ROS 2 graph whose Zenoh router "
+                       "(rmw_zenohd) is there, e.g. tcp/localhost:7447 ([ros2_out])")
     robot.set_defaults(func=cmd_robot)
 
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")

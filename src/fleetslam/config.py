@@ -411,6 +411,13 @@ class MergeConfig:
     octomap_resolution_m: Annotated[float, above(0.0)] = 0.05
     octomap_max_range_m: Annotated[float, above(0.0)] = 4.0
     seed: Annotated[int, at_least(0)] = 7
+    # Each joined robot is told where its map lies in its group's frame (cloud/
+    # fleet_frames.py): at most every placement_every_s, when it moved by more than these,
+    # and every robot's latest again every placement_resend_s.
+    placement_every_s: Annotated[float, above(0.0)] = 1.0
+    placement_move_m: Annotated[float, at_least(0.0)] = 0.005
+    placement_move_deg: Annotated[float, at_least(0.0)] = 0.2
+    placement_resend_s: Annotated[float, above(0.0)] = 10.0
 
 
 @dataclass
@@ -751,6 +758,43 @@ class OutputsConfig:
     mcap: bool = True
 
 
+# A Zenoh endpoint, or empty (off).
+OPTIONAL_ENDPOINT = Text(lambda s: endpoint_problem(s) if s else None,
+                         "empty, or a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
+
+
+@dataclass
+class Ros2OutConfig:
+    """Results as live ROS 2 topics, published as an rmw_zenoh node publishes (ros2_out/):
+    a robot's pose, TF, path and status (``fleetslam robot --ros2-out``)."""
+
+    # The ROS 2 graph's Zenoh router (rmw_zenohd) to publish through; empty: no ROS 2
+    # output. An unreachable router is said once; the robot tracks on and tries again.
+    endpoint: Annotated[str, OPTIONAL_ENDPOINT] = ""
+    # ROS_DOMAIN_ID of the graph; -1: the ROS_DOMAIN_ID environment variable (0 without).
+    domain_id: Annotated[int, between(-1, 232)] = -1
+    # A Zenoh config file (JSON5) for the session to that router (TLS, ...); empty: a
+    # client of the endpoint, no multicast, timestamps on (transient local needs them).
+    zenoh_config: Annotated[str, ANY_TEXT] = ""
+    # The frame every robot's map is placed in once the cloud joins it to a group (REP 105's
+    # map); each robot's own map frame is <robot>/map.
+    fleet_frame: Annotated[str, Text(lambda s: None if s.strip("/") else "must not be empty",
+                                     "a TF frame name")] = "map"
+    # The camera's TF frame; empty: <robot>/camera.
+    camera_frame: Annotated[str, ANY_TEXT] = ""
+    # nav_msgs/Path of the tracked poses this often, at most this many (the newest).
+    path_every_s: Annotated[float, above(0.0)] = 1.0
+    path_max_poses: Annotated[int, at_least(1)] = 10000
+    # diagnostic_msgs status (tracking / lost / relocalised, round trip, skipped) this often.
+    diagnostics_every_s: Annotated[float, above(0.0)] = 1.0
+    # Waiting for the router at start (then again every retry_s, in the background).
+    connect_timeout_s: Annotated[float, above(0.0)] = 3.0
+    retry_s: Annotated[float, above(0.0)] = 10.0
+    # After its session ended, a robot keeps its ROS 2 node up this long: its last TF, and
+    # the fleet frame a merge of its map sends (``placed``, final).
+    hold_s: Annotated[float, at_least(0.0)] = 0.0
+
+
 @dataclass
 class Config:
     orb: OrbConfig = field(default_factory=OrbConfig)
@@ -770,6 +814,7 @@ class Config:
     placement: PlacementConfig = field(default_factory=PlacementConfig)
     view: ViewConfig = field(default_factory=ViewConfig)
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
+    ros2_out: Ros2OutConfig = field(default_factory=Ros2OutConfig)
 
 
 def _update(obj: Any, values: dict[str, Any], path: str, prefix: str = "") -> None:

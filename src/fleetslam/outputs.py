@@ -38,11 +38,21 @@ def robot_files(name: str) -> dict[str, str]:
 
 def write_robot_files(robot_dir: Path, name: str, source: str, timestamps: np.ndarray,
                       poses: np.ndarray, keyframe_times: np.ndarray, keyframe_poses: np.ndarray,
-                      points: np.ndarray, colors: np.ndarray) -> None:
-    """A robot's trajectory, keyframes and dense map, in its own map frame."""
+                      points: np.ndarray, colors: np.ndarray,
+                      online_poses: np.ndarray | None = None,
+                      tracked: np.ndarray | None = None) -> None:
+    """A robot's trajectory, keyframes and dense map, in its own map frame; with
+    ``online_poses``, the tracked frames' poses as tracking reported them frame by frame
+    (what the robot heard, and published to ROS 2), before later corrections."""
     write_tum_trajectory(robot_dir / "trajectory.tum", timestamps, poses,
                          comment=f"fleetslam robot {name} from {source}\n"
                                  "T_map_camera; map frame = first camera pose")
+    if online_poses is not None:
+        ok = np.ones(len(timestamps), bool) if tracked is None else np.asarray(tracked, bool)
+        write_tum_trajectory(robot_dir / "online.tum", timestamps[ok], online_poses[ok],
+                             comment=f"fleetslam robot {name}: each tracked frame's pose as "
+                                     "tracking reported it (the feedback's), before later "
+                                     "corrections\nT_map_camera")
     write_tum_trajectory(robot_dir / "keyframes.tum", keyframe_times, keyframe_poses,
                          comment=f"fleetslam robot {name} keyframes")
     write_ply(robot_dir / "map.ply", points, colors)

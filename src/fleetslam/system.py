@@ -224,7 +224,8 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
                 build_robot_map(run, config, show_progress)
             write_robot_files(out_dir / run.name, run.name, run.source, run.timestamps,
                               run.poses, run.timestamps[run.keyframe_indices],
-                              run.keyframe_poses, run.map_points, run.map_colors)
+                              run.keyframe_poses, run.map_points, run.map_colors,
+                              run.online_poses, run.tracked)
         merged = len(runs) > 1 and not interrupt.requested
         if len(runs) > 1 and not merged:
             skipped.append("the merge and the global map")

@@ -113,6 +113,10 @@ class FleetMerge:
         if len(finished) > 1:
             global_map = self.merger.locked(lambda m: build_global_map(
                 m, [f.track for f in finished], self.config, self.out_dir))
+        if global_map is not None and self.merger.frames is not None:
+            # Each member robot still connected hears summary.json's transform.
+            self.merger.frames.update({m: (global_map.anchor, T) for m, T in
+                                       global_map.T_global_map.items()}, final=True)
         merge = self.merger.locked(lambda m: merge_summary(m, global_map))
         merge["robots"] = {k: v for k, v in merge["robots"].items()
                            if k in {f.robot_id for f in finished}}

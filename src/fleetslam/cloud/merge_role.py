@@ -14,6 +14,7 @@ from typing import Callable
 import numpy as np
 
 from fleetslam.camera import Camera
+from fleetslam.cloud.fleet_frames import FleetFrames
 from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.placement import Placement
 from fleetslam.cloud.robot_session import Publish, RobotSession
@@ -32,15 +33,17 @@ log = logging.getLogger("fleetslam.cloud")
 
 class MergeRole:
     def __init__(self, config: Config, view: NullView, worker_id: str, sessions: SessionTable,
-                 publish: Publish, placement: Callable[[], Placement | None]) -> None:
+                 publish: Publish, placement: Callable[[], Placement | None],
+                 frames: FleetFrames | None = None) -> None:
         """``publish``: to the merging worker (droppable: a gap is filled from the store);
-        ``placement``: the worker's placement once it has one (None: a lone cloud)."""
+        ``placement``: the worker's placement once it has one (None: a lone cloud);
+        ``frames``: tells robots where the merger placed their maps."""
         self.worker_id = worker_id
         self.sessions = sessions
         self.store = sessions.store
         self.publish = publish
         self._placement = placement
-        self.merger = MergerService(config, view, self.keyframes_in_store)
+        self.merger = MergerService(config, view, self.keyframes_in_store, frames)
         self._merging = False  # this worker runs the fleet's merger (see is_merger)
 
     def is_merger(self) -> bool:

@@ -21,6 +21,7 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from fleetslam.camera import Camera
+from fleetslam.cloud.fleet_frames import FleetFrames
 from fleetslam.config import Config
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
@@ -41,7 +42,9 @@ FromStore = Callable[[str], "tuple[Camera, list[KeyframeSummary], np.ndarray] | 
 
 class MergerService:
     def __init__(self, config: Config, view: NullView | None = None,
-                 from_store: FromStore | None = None) -> None:
+                 from_store: FromStore | None = None, frames: FleetFrames | None = None
+                 ) -> None:
+        """``frames``: tells each joined robot where its map lies (None: nobody is told)."""
         cfg = config.merge
         self._queue: queue.Queue = queue.Queue()
         search = PlaceSearchProcess(config, cfg.search_nice, cfg.search_timeout_s,
@@ -59,6 +62,10 @@ class MergerService:
         self._view_every_s = config.view.global_every_s
         self._view_due = False
         self._view_at = -float("inf")
+        self.frames = frames
+        self._placing_every_s = config.merge.placement_every_s
+        self._placing_due = False
+        self._placed_at = -float("inf")
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="cloud-merger", daemon=True)
         self._thread.start()
@@ -109,7 +116,7 @@ class MergerService:
         with self._lock:
             for searched in self.merger.search.take_results():
                 self.merger.take_matches(searched)
-                self._view_due = True
+                self._view_due = self._placing_due = True
 
     def _update_poses(self, robot: str, poses: np.ndarray) -> None:
         with self._lock:
@@ -134,7 +141,9 @@ class MergerService:
 
     def _run(self) -> None:
         """This thread alone changes the merger; it holds the lock only while it does."""
-        wait = self._view_every_s if self.view.enabled else None
+        waits = ([self._view_every_s] if self.view.enabled else []) + \
+            ([self._placing_every_s] if self.frames is not None else [])
+        wait = min(waits) if waits else None
         while True:
             taken = True  # off the queue: task_done once merged (status counts it till then)
             try:
@@ -154,6 +163,7 @@ class MergerService:
             kind, payload = item
             try:
                 self._view_due |= kind in ("robot", "keyframe")
+                self._placing_due |= kind in ("robot", "keyframe", "remote", "rebuild")
                 if kind == "robot":
                     robot, camera, keyframes, poses, asked = payload
                     self._take_robot(robot, camera, keyframes, poses, asked)
@@ -175,6 +185,7 @@ class MergerService:
                 self._take_results()
                 if self._view_due and time.monotonic() - self._view_at >= self._view_every_s:
                     self.show()
+                self._place()
             except Exception:
                 self.errors += 1
                 log.exception("merger: %s failed", kind)
@@ -199,6 +210,24 @@ class MergerService:
         self.view.merged(transforms, lines)
         self._view_due = False
         self._view_at = time.monotonic()
+
+    def _place(self) -> None:
+        """Tell the joined robots where their maps lie, when something changed and at most
+        every merge.placement_every_s; every placement again now and then."""
+        if self.frames is None:
+            return
+        if self._placing_due and time.monotonic() - self._placed_at >= self._placing_every_s:
+            self._placing_due = False
+            self._placed_at = time.monotonic()
+
+            def placements(m: MapMerger) -> dict[str, tuple[str, np.ndarray]]:
+                # A lone robot's map is its group's frame: nothing to tell, no graph to solve.
+                joined = {r: anchor for anchor, members in m.components().items()
+                          if len(members) > 1 for r in members}
+                return {r: (anchor, m.T_global_map(r)) for r, anchor in joined.items()}
+
+            self.frames.update(self.locked(placements))
+        self.frames.resend_due()
 
     def show(self) -> None:
         """Hand the view the merger's state now (after a merge)."""

@@ -38,6 +38,7 @@ from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud.etcd_gateway import EtcdClient
 from fleetslam.cloud.fenced_placement import FencedPlacement, wait_for_etcd
 from fleetslam.cloud.fenced_store import FencedStore
+from fleetslam.cloud.fleet_frames import FleetFrames
 from fleetslam.cloud.fleet_merge import FleetMerge, MergeRequests
 from fleetslam.cloud.idle_reaper import IdleReaper
 from fleetslam.cloud.merge_role import MergeRole
@@ -99,7 +100,8 @@ class CloudServer:
             keyframe_sink=lambda summary, poses: self.merging.keyframe_sink(summary, poses),
             joined=lambda robot, camera, restored: self.merging.joined(robot, camera, restored))
         self.merging = MergeRole(config, self.view, self.worker_id, self.sessions,
-                                 self.publish_droppable, lambda: self.placement)
+                                 self.publish_droppable, lambda: self.placement,
+                                 FleetFrames(config.merge, self.publish))
         self.merger = self.merging.merger
         self.fleet_merge = FleetMerge(config, self.out_dir, self.sessions, self.merger,
                                       lambda: self.placement is None

@@ -92,7 +92,9 @@ class SessionOutputs:
         write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
                           np.array([time_of.get(i, np.nan) for i in kf_index]),
                           np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
-                          points, colors)
+                          points, colors,
+                          np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4),
+                          np.array([r.tracked for r in rows], bool))
         summary = self.summary(len(points), camera)
         write_robot_summary(out_dir, summary)
         log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,

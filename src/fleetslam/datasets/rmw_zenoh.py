@@ -79,6 +79,40 @@ def _demangle(name: str) -> str:
     return name.replace("%", "/")
 
 
+def mangle(name: str) -> str:
+    """A name as one key chunk ('/' -> '%'); an empty one (the root namespace) is '%'."""
+    return name.replace("/", "%") if name else "%"
+
+
+# rmw's QoS enums as rmw_zenoh writes them into a token (an empty field: the default).
+RELIABLE, BEST_EFFORT = 1, 2
+TRANSIENT_LOCAL, VOLATILE = 1, 2
+
+
+def qos_chunk(depth: int, transient_local: bool = False, best_effort: bool = False) -> str:
+    """rmw_zenoh's QoS chunk, ``<reliability>:<durability>:<history>,<depth>:<deadline>:
+    <lifespan>:<liveliness>``, keep-last ``depth`` and the rest default (reliable,
+    volatile, infinite durations, automatic liveliness), e.g. ``::,7:,:,:,,``."""
+    return (f"{BEST_EFFORT if best_effort else ''}:"
+            f"{TRANSIENT_LOCAL if transient_local else ''}:,{depth}:,:,:,,")
+
+
+def node_token(domain_id: int, session_id: str, node_id: int, namespace: str,
+               node: str) -> str:
+    """The liveliness token that announces a node (kind NN, no enclave)."""
+    return (f"{ADMIN_SPACE}/{domain_id}/{session_id}/{node_id}/{node_id}/NN/%/"
+            f"{mangle(namespace)}/{mangle(node)}")
+
+
+def endpoint_token(domain_id: int, session_id: str, node_id: int, entity_id: int,
+                   kind: str, namespace: str, node: str, topic: str, dds_type: str,
+                   type_hash: str, qos: str) -> str:
+    """The liveliness token of a node's publisher (MP) or subscription (MS) on ``topic``."""
+    return (f"{ADMIN_SPACE}/{domain_id}/{session_id}/{node_id}/{entity_id}/{kind}/%/"
+            f"{mangle(namespace)}/{mangle(node)}/{mangle(normalise_topic(topic))}/"
+            f"{dds_type}/{type_hash}/{qos}")
+
+
 @dataclass(frozen=True)
 class Endpoint:
     """A publisher, subscription, service server or client, from its liveliness token."""
@@ -111,6 +145,16 @@ class Attachment:
     sequence_number: int
     source_timestamp_ns: int
     gid: bytes
+
+
+GID_SIZE = 16
+
+
+def make_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> bytes:
+    """What rmw_zenoh attaches to a message it publishes (``parse_attachment``'s layout)."""
+    if len(gid) != GID_SIZE:
+        raise ValueError(f"a publisher GID is {GID_SIZE} bytes, got {len(gid)}")
+    return _ATTACHMENT.pack(sequence_number, source_timestamp_ns, GID_SIZE) + gid
 
 
 def parse_attachment(data: bytes) -> Attachment:

@@ -14,7 +14,6 @@ pair, and it becomes a Frame, when the robot takes it: a pair the robot skips co
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import threading
@@ -39,6 +38,7 @@ from fleetslam.datasets.rmw_zenoh import (
     parse_liveliness,
     topic_key,
 )
+from fleetslam.datasets.ros2_session import open_ros_session
 from fleetslam.datasets.ros2_discovery import (
     CameraTopics,
     TopicChoiceError,
@@ -92,31 +92,6 @@ def _typestore() -> Any:
                            "pip install 'fleetslam[ros]'") from None
     return get_typestore(getattr(Stores, _TYPESTORE))
 
-
-def open_ros_session(endpoint: str, timeout: float, zenoh_config: str = "") -> zenoh.Session:
-    """A Zenoh client of the ROS 2 router at ``endpoint`` (a file's own settings when
-    given), waiting up to ``timeout`` s for it to answer; TimeoutError saying what to
-    check. Not the cloud's session helpers: this router belongs to ROS 2, not the lab."""
-    if zenoh_config:
-        try:
-            config = zenoh.Config.from_file(zenoh_config)
-        except zenoh.ZError as exc:
-            raise ValueError(f"{zenoh_config}: not a Zenoh config file: {exc}") from None
-    else:
-        config = zenoh.Config()
-        config.insert_json5("mode", json.dumps("client"))
-        config.insert_json5("scouting/multicast/enabled", "false")
-        config.insert_json5("listen/endpoints", "[]")
-    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    config.insert_json5("connect/timeout_ms", str(max(1, int(timeout * 1000))))
-    config.insert_json5("connect/exit_on_failure", "true")
-    try:
-        return zenoh.open(config)
-    except zenoh.ZError as exc:
-        raise TimeoutError(
-            f"no ROS 2 Zenoh router answers at {endpoint} after {timeout:.1f} s ({exc}): is "
-            f"the robot's router running there (ros2 run rmw_zenoh_cpp rmw_zenohd)? Set it "
-            f"with [source] ros_endpoint or the source spec ros2:ENDPOINT") from None
 
 
 # A message as received: CDR payload, ROS type, Zenoh key.
@@ -185,7 +160,9 @@ class Ros2TopicSource(SlotCounts):
     def _start(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         self._store = _typestore()
-        self._session = open_ros_session(self.endpoint, timeout, self.config.ros_zenoh_config)
+        self._session = open_ros_session(
+            self.endpoint, timeout, self.config.ros_zenoh_config,
+            hint="Set it with [source] ros_endpoint or the source spec ros2:ENDPOINT")
         with self._cond:
             self._alive_changed = time.monotonic()
         self._subscribers.append(self._session.liveliness().declare_subscriber(

@@ -73,6 +73,14 @@ class RobotReport:
     sends: list[tuple[float, float, int, str, bool]] = field(default_factory=list)
     # Message encoding per frame (inter-frame coding matches descriptors: robot CPU), and
     # the inter-frame coding's counts (wire/inter.py: intra share, descriptors coded inter).
+    # Where the cloud placed this robot's map (``placed``): the group, T_global_map (4 x 4
+    # rows) and whether a merge's outputs gave it (final); None: never joined.
+    placed: dict[str, Any] | None = None
+    placed_messages: int = 0
+    placed_rejected: int = 0
+    # Live ROS 2 out (``--ros2-out``): poses published, messages that found no router.
+    ros2_poses: int = 0
+    ros2_unpublished: int = 0
     encode_ms_mean: float | None = None
     encode_ms_p95: float | None = None
     inter_coding: dict[str, Any] = field(default_factory=dict)

@@ -15,8 +15,11 @@ the conversation with the cloud (hello / welcome, replies, end). Its threads:
 - uploader thread (``uploader.KeyframeUploader``): each keyframe's decimated RGB-D, resent
   until the cloud acknowledges it;
 - Zenoh callbacks: feedback (pose, keyframe yes/no: the window, the encoder's references,
-  the uploader) and replies by type (welcome, held, ack, need, ending, ended) and, for
-  errors, by ``protocol.Code`` (not_a_keyframe, reference_missing, no_session: hello again).
+  the uploader, ROS 2 out) and replies by type (welcome, held, ack, need, ending, ended,
+  placed) and, for errors, by ``protocol.Code`` (not_a_keyframe, reference_missing,
+  no_session: hello again);
+- with ``[ros2_out] endpoint`` (``--ros2-out``), ``ros2_out.RobotRosOut``'s threads: the
+  connection to the robot's ROS 2 router, the path and the status at a low rate.
 Frames, uploads and control messages share the one link (``sender.Sender``), so a robot
 never sends faster than its link; each part counts what it did in the ``RobotReport``.
 """
@@ -43,6 +46,7 @@ from fleetslam.edge.encoder import FrameEncoder
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
+from fleetslam.edge.ros2_out import RobotRosOut
 from fleetslam.edge.sender import FrameOutbox, Sender
 from fleetslam.edge.uploader import KeyframeUploader
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
@@ -146,6 +150,11 @@ class Robot:
         # A live camera keeps no recording to read an old keyframe from again.
         self.uploader = KeyframeUploader(self.robot_id, None if self.live else sequence,
                                          offload_at, config, self.report)
+        # The robot's own ROS 2 graph: its pose, TF, path and status as they come.
+        self.ros_out = RobotRosOut(self.robot_id, config.ros2_out, self.report, self.live) \
+            if config.ros2_out.endpoint else None
+        # Ends the hold after the session (ros2_out.hold_s): a merge's placement, or a stop.
+        self._hold_over = threading.Event()
         self.sender: Sender | None = None  # the link, once run() has connected
         self._replies: queue.Queue = queue.Queue()
         # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
@@ -169,6 +178,8 @@ class Robot:
         round_trip = self.window.answered(header.seq, now)
         if round_trip is not None and self.planner is not None:
             self.planner.meter.round_trip(round_trip)
+        if self.ros_out is not None:
+            self.ros_out.feedback(fb, round_trip)
         if fb.is_keyframe:
             self.report.keyframes += 1
             self.uploader.keyframe(fb.frame_index)
@@ -193,8 +204,27 @@ class Robot:
             self.uploader.acknowledged(int(message["frame_index"]))
         elif kind == "error":
             self._on_error(message)
+        elif kind == "placed":
+            self._on_placed(message)
         else:
             self._replies.put(message)
+
+    def _on_placed(self, message: dict[str, Any]) -> None:
+        """Where the cloud placed this robot's map in its group's frame: to the report and
+        to ROS 2 (map -> <robot>/map); a malformed one is said and dropped."""
+        self.report.placed_messages += 1
+        try:
+            placed = protocol.parse_placed(message)
+        except ValueError as exc:
+            self.report.placed_rejected += 1
+            log.warning("robot %s: placement from the cloud rejected: %s", self.robot_id, exc)
+            return
+        self.report.placed = {"group": placed.group, "final": placed.final,
+                              "T_global_map": placed.T_global_map.tolist()}
+        if self.ros_out is not None:
+            self.ros_out.placed(placed)
+        if placed.final:
+            self._hold_over.set()
 
     def _on_error(self, message: dict[str, Any]) -> None:
         log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
@@ -239,12 +269,19 @@ class Robot:
         subs = [zs.declare_subscriber(keys.feedback(self.robot_id), self._on_feedback),
                 zs.declare_subscriber(keys.reply(self.robot_id), self._on_reply)]
         self.uploader.start(self.sender.send)
+        if self.ros_out is not None:
+            self.ros_out.start()
         try:
             self._stream()
             self._finish()
+            self._hold()
         finally:
             if self.live is not None:
                 self.live.close()
+            if self.ros_out is not None:
+                self.ros_out.close()
+                self.report.ros2_poses = self.ros_out.tracked_frames
+                self.report.ros2_unpublished = self.ros_out.unpublished
             self.uploader.stop()
             self.sender.close()
             for sub in subs:
@@ -252,11 +289,23 @@ class Robot:
             zs.close()
         return self.report
 
+    def _hold(self) -> None:
+        """With ROS 2 out, keep the node up after the session ended, ``ros2_out.hold_s`` at
+        most: its TF stays, and a merge's final placement of its map reaches ROS 2."""
+        hold = self.config.ros2_out.hold_s
+        if self.ros_out is None or hold <= 0 or self._hold_over.is_set():
+            return
+        log.info("robot %s: holding its ROS 2 node up to %.0f s for a merge's placement "
+                 "(Ctrl-C ends it)", self.robot_id, hold)
+        if not self._hold_over.wait(hold):
+            log.info("robot %s: no merge placed its map within %.0f s", self.robot_id, hold)
+
     def stop(self) -> None:
         """End the stream before the next frame; the run then ends as at the end of a
         recording (the end message, the uploads the cloud still needs, its 'ended'): how a
         live camera's run is ended."""
         self._stopping.set()
+        self._hold_over.set()
 
     def _stream(self) -> None:
         """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send."""
@@ -284,6 +333,8 @@ class Robot:
                 # Nobody may be serving this robot any more (a cloud that lost it, a worker
                 # gone): a hello is heard by every worker and gets it served again.
                 self._need_hello.set()
+            if self.ros_out is not None:
+                self.ros_out.taken(frame.index)
             data = self.encoder.encode(frame, k, seq)
             self.uploader.keep(frame, k)
             self.report.frames_per_point[str(k)] = self.report.frames_per_point.get(str(k), 0) + 1

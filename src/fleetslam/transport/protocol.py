@@ -6,7 +6,8 @@ Robot <-> cloud, on ``fleet/<robot>/control`` and ``fleet/<robot>/reply``:
     hello -> welcome | error;  end -> ending, then need (resend these keyframes) | ended;
     a worker taking the session over (its worker died) -> welcome (taken_over, unasked);
     each keyframe upload -> ack;  each frame decoded -> held (a reference for inter-frame
-    coding);  a rejected message -> error (with a code and a reason).
+    coding);  a rejected message -> error (with a code and a reason);  unasked, whenever
+    the merger places the robot's map in a group's frame or moves it -> placed.
 Client <-> cloud, on ``fleet/cloud/control`` and ``fleet/cloud/reply``:
     status -> status;  merge -> merged | error.  A client request carries an ``id`` that its
     reply repeats; the client resends the same request until the reply comes (a lost request
@@ -26,6 +27,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.pipeline.split import CLOUD_TRACKS, SUPPORTED_POINTS
+from fleetslam.validation.names import name_problem
 
 PROTOCOL = 1
 # Control messages are small JSON; anything bigger is not one.
@@ -218,6 +220,56 @@ def held(seq: int) -> dict[str, Any]:
 
 def error(code: Code, reason: str, **extra: Any) -> dict[str, Any]:
     return {"type": "error", "code": code.value, "reason": reason, **extra}
+
+
+# A placement's rotation may be this far from orthonormal (JSON carries float64 exactly;
+# a graph's rotations are orthonormal to ~1e-15).
+PLACED_ORTHONORMAL_TOLERANCE = 1e-6
+
+
+def placed(group: str, T_global_map: np.ndarray, final: bool) -> dict[str, Any]:
+    """Where the robot's map frame lies in its group's frame (``group``: the robot whose
+    first camera that frame is); ``final``: from a merge's written outputs (summary.json's
+    T_global_map), not the live graph's."""
+    return {"type": "placed", "group": group,
+            "T_global_map": np.asarray(T_global_map, np.float64).tolist(), "final": final}
+
+
+@dataclass(frozen=True)
+class Placed:
+    group: str
+    T_global_map: np.ndarray  # 4 x 4, rigid
+    final: bool
+
+
+def parse_placed(message: dict[str, Any]) -> Placed:
+    """A ``placed`` message; ValueError saying what is wrong (before anything is used)."""
+    group = message.get("group")
+    if not isinstance(group, str) or (problem := name_problem(group)):
+        raise ValueError(f"placed: group {group!r} is not a robot id"
+                         + (f" ({problem})" if isinstance(group, str) else ""))
+    final = message.get("final")
+    if not isinstance(final, bool):
+        raise ValueError(f"placed: final must be true or false, got {final!r}")
+    rows = message.get("T_global_map")
+    if not isinstance(rows, list) or len(rows) != 4 or not all(
+            isinstance(r, list) and len(r) == 4 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in r)
+            for r in rows):
+        raise ValueError("placed: T_global_map is not 4 rows of 4 numbers")
+    try:
+        T = np.array(rows, np.float64)
+    except OverflowError:  # an integer of 400 digits
+        raise ValueError("placed: T_global_map is not finite") from None
+    if not np.isfinite(T).all():
+        raise ValueError("placed: T_global_map is not finite")
+    R = T[:3, :3]
+    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]) or \
+            np.abs(R @ R.T - np.eye(3)).max() > PLACED_ORTHONORMAL_TOLERANCE or \
+            np.linalg.det(R) < 0:
+        raise ValueError("placed: T_global_map is not a rigid transform (a rotation and a "
+                         "translation, last row 0 0 0 1)")
+    return Placed(group, T, final)
 
 
 # -- client <-> cloud -----------------------------------------------------------------------

@@ -1,0 +1,269 @@
+"""What a robot publishes on its own ROS 2 graph while it runs (``fleetslam robot
+--ros2-out ENDPOINT``), as a node named ``fleetslam_<robot>``:
+
+    /<robot>/pose   geometry_msgs/PoseStamped  every tracked frame, stamped with its capture
+                                               time, in <robot>/map; sent the moment the
+                                               cloud's feedback arrives
+    /tf             tf2_msgs/TFMessage         <robot>/map -> the camera, with each pose
+    /tf_static      tf2_msgs/TFMessage         map -> <robot>/map once the cloud placed the
+                                               robot's map in a group (transient local,
+                                               re-sent whenever the cloud moves it)
+    /<robot>/path   nav_msgs/Path              the tracked poses, every path_every_s
+    /diagnostics    diagnostic_msgs/DiagnosticArray  tracking / lost / relocalised, the
+                                               link's round trip, frames skipped
+
+The router may be down or start later: the node connects in the background (said once,
+then tried again every ``retry_s``) and tracking never waits for it; what could not be
+published is counted. Every call is cheap and thread-safe (Zenoh's callback threads).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from fleetslam.config import Ros2OutConfig
+from fleetslam.datasets.live import LiveSource
+from fleetslam.datasets.ros2_session import open_ros_session
+from fleetslam.datasets.ros2_topics import resolve_domain_id
+from fleetslam.edge.report import RobotReport
+from fleetslam.ros2_out import cdr
+from fleetslam.ros2_out.node import RosNode, RosPublisher
+from fleetslam.transport.protocol import Placed
+from fleetslam.wire.messages import Feedback
+
+log = logging.getLogger("fleetslam.ros2_out")
+
+# Keep-last depths, as ROS 2's own publishers of these topics use them (tf2's broadcaster
+# 100, its static broadcaster 1 transient local).
+POSE_DEPTH = 10
+TF_DEPTH = 100
+PATH_DEPTH = 1
+DIAGNOSTICS_DEPTH = 10
+# Round trips the status's median is taken over.
+ROUND_TRIPS_KEPT = 100
+# Per-frame timings kept for benches (bench/ros2_out.py).
+TIMINGS_KEPT = 100_000
+
+
+def ros_token(name: str) -> str:
+    """A robot id as a ROS name token: ROS names allow no '-' and no leading digit."""
+    token = name.replace("-", "_")
+    return "_" + token if token[:1].isdigit() else token
+
+
+@dataclass
+class PoseTiming:
+    """One published pose: when the frame was taken, its feedback heard, its pose put
+    (time.time_ns(), so a subscriber in another process compares them)."""
+
+    frame_index: int
+    taken_ns: int | None
+    feedback_ns: int
+    published_ns: int
+
+
+class RobotRosOut:
+    def __init__(self, robot_id: str, cfg: Ros2OutConfig, report: RobotReport,
+                 live: LiveSource | None = None) -> None:
+        self.robot_id = robot_id
+        self.cfg = cfg
+        self.report = report
+        self.live = live
+        name = ros_token(robot_id)
+        self.topics = {"pose": f"/{name}/pose", "path": f"/{name}/path"}
+        self.map_frame = f"{robot_id}/map"
+        self.camera_frame = cfg.camera_frame or f"{robot_id}/camera"
+        self.fleet_frame = cfg.fleet_frame.strip("/")
+        self.node_name = f"fleetslam_{name}"
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._connected = threading.Event()
+        self._session: zenoh.Session | None = None
+        self._node: RosNode | None = None
+        self._pubs: dict[str, RosPublisher] = {}
+        # The tracked poses (online, as the feedback gave them), for the path.
+        self._stamps: deque[int] = deque(maxlen=cfg.path_max_poses)
+        self._poses: deque[np.ndarray] = deque(maxlen=cfg.path_max_poses)
+        self._path_sent = 0  # poses the last path held, so an unchanged one is not re-sent
+        self._placed: Placed | None = None
+        self.state = "waiting"  # waiting, tracking, lost, relocalised
+        self.tracked_frames = 0
+        self.lost_frames = 0
+        self.unpublished = 0  # messages dropped while no router was reachable
+        self._round_trips: deque[float] = deque(maxlen=ROUND_TRIPS_KEPT)
+        self._taken: dict[int, int] = {}
+        self.timings: deque[PoseTiming] = deque(maxlen=TIMINGS_KEPT)
+        self._threads = [threading.Thread(target=self._connect, daemon=True,
+                                          name=f"ros2-out-{robot_id}-connect"),
+                         threading.Thread(target=self._periodic, daemon=True,
+                                          name=f"ros2-out-{robot_id}-periodic")]
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def start(self) -> RobotRosOut:
+        for thread in self._threads:
+            thread.start()
+        return self
+
+    def wait_connected(self, timeout: float) -> bool:
+        return self._connected.wait(timeout)
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(self.cfg.connect_timeout_s + 1.0)
+        with self._lock:
+            if self._node is not None:
+                self._node.close()
+            if self._session is not None:
+                self._session.close()
+            self._node = self._session = None
+            self._pubs = {}
+
+    def _connect(self) -> None:
+        """Open the session (in the background: tracking never waits for ROS 2); said once
+        when the router does not answer, then tried again every retry_s."""
+        cfg = self.cfg
+        said = False
+        while not self._stop.is_set():
+            try:
+                session = open_ros_session(cfg.endpoint, cfg.connect_timeout_s, cfg.zenoh_config,
+                                           hint="Set it with --ros2-out or [ros2_out] endpoint")
+            except TimeoutError as exc:
+                if not said:
+                    log.warning("robot %s: ROS 2 out: %s; tracking goes on without it, trying "
+                                "again every %.0f s", self.robot_id, exc, cfg.retry_s)
+                    said = True
+                self._stop.wait(cfg.retry_s)
+                continue
+            except ValueError as exc:  # a bad Zenoh config file: it will not mend itself
+                log.error("robot %s: ROS 2 out is off: %s", self.robot_id, exc)
+                return
+            self._declare(session)
+            log.info("robot %s: publishing %s, /tf and %s to ROS 2 at %s (domain %d)",
+                     self.robot_id, self.topics["pose"], self.topics["path"], cfg.endpoint,
+                     self._node.domain_id if self._node else 0)
+            return
+
+    def _declare(self, session: zenoh.Session) -> None:
+        node = RosNode(session, self.node_name, domain_id=resolve_domain_id(self.cfg.domain_id))
+        pubs = {"pose": node.publisher(self.topics["pose"], cdr.POSE_STAMPED, POSE_DEPTH),
+                "tf": node.publisher("/tf", cdr.TF_MESSAGE, TF_DEPTH),
+                "tf_static": node.publisher("/tf_static", cdr.TF_MESSAGE, 1,
+                                            transient_local=True),
+                "path": node.publisher(self.topics["path"], cdr.PATH, PATH_DEPTH),
+                "diagnostics": node.publisher("/diagnostics", cdr.DIAGNOSTIC_ARRAY,
+                                              DIAGNOSTICS_DEPTH)}
+        with self._lock:
+            if self._stop.is_set():
+                node.close()
+                session.close()
+                return
+            self._session, self._node, self._pubs = session, node, pubs
+            placed = self._placed
+        if placed is not None:
+            self._publish_placed(placed)
+        self._connected.set()
+
+    def _publish(self, name: str, data: bytes) -> None:
+        pub = self._pubs.get(name)
+        if pub is None:
+            self.unpublished += 1
+            return
+        try:
+            pub.publish(data)
+        except zenoh.ZError as exc:  # the session closed under us (shutdown)
+            self.unpublished += 1
+            log.debug("robot %s: ROS 2 out: %s not published: %s", self.robot_id, name, exc)
+
+    # -- what the robot hears ------------------------------------------------------------
+
+    def taken(self, frame_index: int) -> None:
+        """The robot took frame ``frame_index`` from its source (for the timings)."""
+        with self._lock:
+            self._taken[frame_index] = time.time_ns()
+
+    def feedback(self, fb: Feedback, round_trip_s: float | None) -> None:
+        """The cloud's feedback on a frame: its pose and TF out at once if it was tracked."""
+        heard = time.time_ns()
+        with self._lock:
+            taken = self._taken.pop(fb.frame_index, None)
+            for old in [i for i in self._taken if i < fb.frame_index]:
+                del self._taken[old]  # frames the link lost
+            if round_trip_s is not None:
+                self._round_trips.append(1000.0 * round_trip_s)
+            if not fb.tracked:
+                self.lost_frames += 1
+                self.state = "lost"
+                return
+            self.state = "relocalised" if self.state == "lost" else "tracking"
+            self.tracked_frames += 1
+            stamp = cdr.stamp_ns(fb.timestamp)
+            T = np.asarray(fb.T_world_camera, np.float64)
+            self._stamps.append(stamp)
+            self._poses.append(T)
+        self._publish("pose", cdr.pose_stamped(stamp, self.map_frame, T))
+        self._publish("tf", cdr.tf_message([(stamp, self.map_frame, self.camera_frame, T)]))
+        with self._lock:
+            self.timings.append(PoseTiming(fb.frame_index, taken, heard, time.time_ns()))
+
+    def placed(self, placed: Placed) -> None:
+        """The cloud placed this robot's map in its group's frame (or moved it)."""
+        with self._lock:
+            self._placed = placed
+        self._publish_placed(placed)
+
+    def _publish_placed(self, placed: Placed) -> None:
+        self._publish("tf_static", cdr.tf_message(
+            [(time.time_ns(), self.fleet_frame, self.map_frame, placed.T_global_map)]))
+
+    # -- at a low rate ---------------------------------------------------------------------
+
+    def _periodic(self) -> None:
+        cfg = self.cfg
+        next_path = next_status = time.monotonic()
+        while not self._stop.wait(max(0.0, min(next_path, next_status) - time.monotonic())):
+            now = time.monotonic()
+            if now >= next_path:
+                self.publish_path()
+                next_path = now + cfg.path_every_s
+            if now >= next_status:
+                self.publish_status()
+                next_status = now + cfg.diagnostics_every_s
+
+    def publish_path(self) -> None:
+        with self._lock:
+            if len(self._stamps) == self._path_sent and self.tracked_frames <= len(self._stamps):
+                return
+            stamps, poses = list(self._stamps), np.array(self._poses).reshape(-1, 4, 4)
+            self._path_sent = len(stamps)
+        if stamps:
+            self._publish("path", cdr.path(stamps[-1], self.map_frame, stamps, poses))
+
+    def publish_status(self) -> None:
+        with self._lock:
+            state, placed = self.state, self._placed
+            trips = list(self._round_trips)
+        r = self.report
+        skipped = r.frames_skipped + (self.live.skipped if self.live is not None else 0)
+        level = {"tracking": cdr.OK, "relocalised": cdr.OK}.get(state, cdr.WARN)
+        message = {"waiting": "waiting for the cloud's first pose",
+                   "tracking": "tracking", "lost": "lost: relocalising",
+                   "relocalised": "relocalised after being lost"}[state]
+        values = [("state", state), ("frames_tracked", str(self.tracked_frames)),
+                  ("frames_lost", str(self.lost_frames)), ("keyframes", str(r.keyframes)),
+                  ("round_trip_ms_last", f"{trips[-1]:.1f}" if trips else ""),
+                  ("round_trip_ms_median", f"{float(np.median(trips)):.1f}" if trips else ""),
+                  ("frames_skipped", str(skipped)),
+                  ("fleet_group", placed.group if placed is not None else ""),
+                  ("unpublished", str(self.unpublished))]
+        self._publish("diagnostics", cdr.diagnostic_array(
+            time.time_ns(), [(level, f"fleetslam {self.robot_id}: tracking", message,
+                              self.robot_id, values)]))
