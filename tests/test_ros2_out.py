@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import struct
 import threading
 import time
 from collections.abc import Iterator
@@ -29,6 +30,7 @@ from fleetslam.datasets.rmw_zenoh import (
 )
 from fleetslam.ros2_out import cdr
 from fleetslam.transforms import T_from_tum, make_T, rotation_exp, tum_from_T
+from fleetslam.transforms import invert as invert_T
 from fleetslam.transport import protocol
 
 
@@ -319,8 +321,7 @@ def test_an_unreachable_ros2_router_is_said_once_and_tracking_goes_on(caplog):
         for i in range(5):
             out.feedback(Feedback(i, 1.0 + i, True, False, 100, _pose(i), 5.0), 0.03)
         out.publish_status()
-        # 5 poses, 5 TF, a status or more (the periodic thread's too)
-        assert out.tracked_frames == 5 and out.unpublished >= 11
+        assert out.tracked_frames == 5 and out.unpublished == 11  # 5 poses, 5 TF, a status
     finally:
         out.close()
     messages = [r.getMessage() for r in caplog.records]
@@ -338,36 +339,14 @@ def _tum_rows(path) -> dict[int, np.ndarray]:
     return {int(round(r[0] * 1e6)): r[1:] for r in rows}
 
 
-@pytest.mark.realdata
-def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk, tmp_path):
-    """Two robots on real frames (TUM fr1_rpy 0-89 and 50-149) through a cloud; r1
-    publishes to a ROS 2 graph (a router standing in for rmw_zenohd). Subscribers we did
-    not write get /r1/pose for >= 95 % of r1's tracked frames, each the pose the cloud
-    tracked (online.tum) to 1e-9, /tf the same, and after the merge /tf_static's map ->
-    r1/map is summary.json's T_global_map."""
+def run_through_cloud(tmp_path, robots: list, merge: bool = False) -> dict | None:
+    """Run ``robots`` (edge.robot.Robot, their config's endpoint a cloud to start here) to
+    their end in threads; with ``merge``, merge once every robot's session ended (a robot
+    holding its ROS 2 node then hears the final placement); the summary, else None."""
     from fleetslam.cloud.server import CloudServer
-    from fleetslam.datasets.recording import open_source
-    from fleetslam.edge.robot import Robot
-    from fleetslam.launch import free_endpoint
 
-    require(TUM_RPY)
-    poses: list = []
-    tfs: list = []
-    static: list = []
-    subs = [sdk_subscriber(sdk, "/r1/pose", cdr.POSE_STAMPED, poses),
-            sdk_subscriber(sdk, "/tf", cdr.TF_MESSAGE, tfs),
-            sdk_subscriber(sdk, "/tf_static", cdr.TF_MESSAGE, static, transient_local=True)]
-    config = Config()
-    config.transport.endpoint = free_endpoint()
-    server = CloudServer(config, tmp_path / "cloud", config.transport.endpoint).start()
-    robot_config = Config()
-    robot_config.transport.endpoint = config.transport.endpoint
-    robot_config.ros2_out.endpoint = sdk
-    robot_config.ros2_out.hold_s = 120.0
-    r1 = Robot("r1", open_source(f"{TUM_RPY}:0-89"), "r1", 3, robot_config,
-               show_progress=False)
-    r2 = Robot("r2", open_source(f"{TUM_RPY}:50-149"), "r2", 3, Config(),
-               config.transport.endpoint, show_progress=False)
+    endpoint = robots[0].endpoint
+    server = CloudServer(Config(), tmp_path / "cloud", endpoint).start()
     errors: list = []
 
     def run(robot) -> None:
@@ -376,20 +355,65 @@ def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk, tmp_path):
         except BaseException as exc:  # noqa: BLE001 - reported by the test
             errors.append(exc)
 
-    threads = [threading.Thread(target=run, args=(r,), daemon=True) for r in (r1, r2)]
+    threads = [threading.Thread(target=run, args=(r,), daemon=True) for r in robots]
+    summary = None
     try:
         for t in threads:
             t.start()
-        threads[1].join(300)
-        wait_for(lambda: server.sessions.get("r1") is not None
-                 and server.sessions["r1"].finished is not None, 300, "r1's session to end")
-        summary = server.merge()
-        threads[0].join(60)
-        assert not errors and not any(t.is_alive() for t in threads)
+        wait_for(lambda: all(server.sessions.get(r.robot_id) is not None
+                             and server.sessions[r.robot_id].finished is not None
+                             for r in robots) or errors, 300, "the robots' sessions to end")
+        if merge:
+            summary = server.merge()
+        for t in threads:
+            t.join(60)
+        assert not errors and not any(t.is_alive() for t in threads), errors
     finally:
-        for s in subs:
-            s.close()
         server.close()
+    return summary
+
+
+def ros_robot(robot_id: str, spec: str, cloud: str, ros_graph: str | None = None, **ros2_out):
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.edge.robot import Robot
+
+    config = Config()
+    config.transport.endpoint = cloud
+    if ros_graph is not None:
+        config.ros2_out.endpoint = ros_graph
+    for key, value in ros2_out.items():
+        setattr(config.ros2_out, key, value)
+    return Robot(robot_id, open_source(spec), robot_id, 3, config, show_progress=False)
+
+
+@pytest.mark.realdata
+def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk, tmp_path):
+    """Two robots on real frames (TUM fr1_rpy 0-89 and 50-149) through a cloud; r1
+    publishes to a ROS 2 graph (a router standing in for rmw_zenohd). Subscribers we did
+    not write get /r1/pose for >= 95 % of r1's tracked frames, each the pose the cloud
+    tracked (online.tum) to 1e-9, /tf the same, and after the merge /tf_static's map ->
+    r1/map is summary.json's T_global_map."""
+    from fleetslam.launch import free_endpoint
+
+    require(TUM_RPY)
+    poses: list = []
+    tfs: list = []
+    static: list = []
+    paths: list = []
+    status: list = []
+    subs = [sdk_subscriber(sdk, "/r1/path", cdr.PATH, paths),
+            sdk_subscriber(sdk, "/diagnostics", cdr.DIAGNOSTIC_ARRAY, status),
+            sdk_subscriber(sdk, "/r1/pose", cdr.POSE_STAMPED, poses),
+            sdk_subscriber(sdk, "/tf", cdr.TF_MESSAGE, tfs),
+            sdk_subscriber(sdk, "/tf_static", cdr.TF_MESSAGE, static, transient_local=True)]
+    cloud = free_endpoint()
+    r1 = ros_robot("r1", f"{TUM_RPY}:0-89", cloud, sdk, hold_s=120.0)
+    try:
+        summary = run_through_cloud(tmp_path, [r1, ros_robot("r2", f"{TUM_RPY}:50-149", cloud)],
+                                    merge=True)
+    finally:
+        for sub in subs:
+            sub.close()
     online = _tum_rows(tmp_path / "cloud" / "r1" / "online.tum")
     assert len(online) >= 80  # r1 tracked nearly all of its 90 frames
     by_stamp = {int(round(_stamp_ns(p.header) / 1000)): p for p in poses}
@@ -412,3 +436,137 @@ def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk, tmp_path):
     np.testing.assert_allclose(_message_T(fleet[-1].transform),
                                np.array(merge["T_global_map"]["r1"]), atol=1e-9)
     assert r1.report.placed["final"] and r1.report.ros2_poses >= 0.95 * len(online)
+    # The path: the tracked poses so far, in r1/map; the status: tracking, in the group.
+    assert paths and paths[-1].header.frame_id == "r1/map"
+    for p in paths[-1].poses:
+        np.testing.assert_allclose(tum_from_T(_message_T(p.pose)[None])[0],
+                                   online[int(round(_stamp_ns(p.header) / 1000))], atol=1e-9)
+    last = {v.key: v.value for v in status[-1].status[0].values}
+    assert status[-1].status[0].hardware_id == "r1" and last["state"] in ("tracking",
+                                                                         "relocalised")
+    assert last["fleet_group"] in ("r1", "r2") and float(last["round_trip_ms_median"]) > 0
+
+
+def _transform_message(store, stamp_ns: int, parent: str, child: str, T: np.ndarray):
+    t = store.types
+    v = tum_from_T(T[None])[0]
+    return t["geometry_msgs/msg/TransformStamped"](
+        header=t["std_msgs/msg/Header"](
+            stamp=t["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000,
+                                                   nanosec=stamp_ns % 1_000_000_000),
+            frame_id=parent),
+        child_frame_id=child,
+        transform=t["geometry_msgs/msg/Transform"](
+            translation=t["geometry_msgs/msg/Vector3"](x=v[0], y=v[1], z=v[2]),
+            rotation=t["geometry_msgs/msg/Quaternion"](x=v[3], y=v[4], z=v[5], w=v[6])))
+
+
+@pytest.mark.realdata
+def test_with_odometry_the_robot_publishes_map_to_odom(sdk, tmp_path):
+    """REP 105: the robot's graph has odometry (odom -> base_link on /tf, from zenoh-ros2-
+    sdk) and the camera's mounting (static base_link -> camera): the robot publishes
+    r1/map -> odom, never a second parent for the camera, and map -> odom composed with the
+    robot's own odom -> camera at the frame's stamp is the pose the cloud tracked."""
+    from zenoh_ros2_sdk.publisher import ROS2Publisher
+
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.launch import free_endpoint
+
+    require(TUM_RPY)
+    store = _typestore()
+    stamps = [cdr.stamp_ns(t) for t in open_source(f"{TUM_RPY}:0-59").timestamps]
+    odom = {t: make_T(rotation_exp([0.0, 0.0, 0.002 * i]), [0.01 * i, 0.003 * i, 0.0])
+            for i, t in enumerate(stamps)}
+    mount = make_T(rotation_exp([-np.pi / 2, 0.0, -np.pi / 2]), [0.1, 0.0, 0.3])
+    camera = "camera_rgb_optical_frame"
+    port = int(sdk.rsplit(":", 1)[1])
+    pubs = {name: ROS2Publisher(name, cdr.TF_MESSAGE,
+                                msg_definition=store.generate_msgdef(cdr.TF_MESSAGE, 2)[0],
+                                type_hash=store.hash_rihs01(cdr.TF_MESSAGE),
+                                node_name="robot_base", router_ip="127.0.0.1", router_port=port)
+            for name in ("/tf", "/tf_static")}
+    stop = threading.Event()
+
+    def base_node() -> None:
+        # zenoh-ros2-sdk keeps no transient-local cache: the static mounting is sent again,
+        # as is the odometry, so a robot that starts later hears both.
+        while not stop.wait(0.1):
+            pubs["/tf_static"].publish(transforms=[_transform_message(
+                store, stamps[0], "base_link", camera, mount)])
+            pubs["/tf"].publish(transforms=[_transform_message(store, t, "odom", "base_link",
+                                                               T) for t, T in odom.items()])
+
+    tfs: list = []
+    sub = sdk_subscriber(sdk, "/tf", cdr.TF_MESSAGE, tfs)
+    node = threading.Thread(target=base_node, daemon=True)
+    node.start()
+    r1 = ros_robot("r1", f"{TUM_RPY}:0-59", free_endpoint(), sdk, camera_frame=camera)
+    try:
+        run_through_cloud(tmp_path, [r1])
+    finally:
+        stop.set()
+        node.join(5)
+        sub.close()
+    online = _tum_rows(tmp_path / "cloud" / "r1" / "online.tum")
+    ours = [t for m in tfs for t in m.transforms if t.header.frame_id == "r1/map"]
+    to_odom = [t for t in ours if t.child_frame_id == "odom"]
+    assert len(to_odom) >= 0.8 * len(online), (len(to_odom), len(online))
+    assert {t.child_frame_id for t in ours} <= {"odom", camera}  # before odometry was heard
+    for t in to_odom:
+        stamp = _stamp_ns(t.header)
+        T_map_camera = _message_T(t.transform) @ odom[stamp] @ mount
+        np.testing.assert_allclose(tum_from_T(T_map_camera[None])[0],
+                                   online[int(round(stamp / 1000))], atol=1e-9)
+    assert r1.report.ros2_unpublished == 0
+
+
+def test_the_tf_tree_interpolates_and_says_what_is_missing():
+    from fleetslam.ros2_out.tf_buffer import TfBuffer, TfError
+    from fleetslam.transforms import rotation_angle_deg
+
+    tree = TfBuffer(keep_s=10.0)
+    A = make_T(rotation_exp([0, 0, 0.2]), [1.0, 0, 0])
+    B = make_T(rotation_exp([0, 0, 0.6]), [3.0, 0, 0])
+    mount = _pose(7)
+    tree.add([(1_000, "odom", "base_link", A), (3_000, "odom", "base_link", B)], static=False)
+    tree.add([(0, "base_link", "cam", mount)], static=True)
+    assert tree.root("cam") == "odom" and tree.parent("odom") is None
+    half = tree.lookup("odom", "cam", 2_000) @ invert_T(mount)
+    np.testing.assert_allclose(half[:3, 3], [2.0, 0, 0], atol=1e-12)
+    assert abs(rotation_angle_deg(half[:3, :3]) - np.degrees(0.4)) < 1e-9
+    np.testing.assert_allclose(tree.lookup("cam", "odom", 1_000), invert_T(A @ mount),
+                               atol=1e-12)
+    with pytest.raises(TfError, match=r"odom -> base_link at 0.000 s: the buffer holds "
+                                      r"0.000-0.000 s"):
+        tree.lookup("odom", "cam", 5_000)
+    tree.add([(0, "other", "thing", A)], static=True)
+    with pytest.raises(TfError, match="no TF path from thing to cam: cam's tree ends at odom, "
+                                      "thing's at other"):
+        tree.lookup("thing", "cam", 2_000)
+    tree.add([(0, "cam", "odom", A)], static=True)
+    with pytest.raises(TfError, match="the TF tree has a loop: cam -> odom -> base_link -> cam"):
+        tree.lookup("odom", "cam", 2_000)
+    # Old dynamic transforms leave the buffer.
+    tree = TfBuffer(keep_s=1.0)
+    tree.add([(i * 500_000_000, "odom", "base", A) for i in range(10)], static=False)
+    with pytest.raises(TfError, match="the buffer holds 3.500-4.500 s"):
+        tree.lookup("odom", "base", 0)
+
+
+def test_a_tf_message_that_is_not_one_is_refused_with_the_reason():
+    good = cdr.tf_message([(5, "odom", "base_link", _pose(8))])
+    assert cdr.read_tf_message(good, "/tf")[0][1:3] == ("odom", "base_link")
+    np.testing.assert_allclose(cdr.read_tf_message(good, "/tf")[0][3], _pose(8), atol=1e-12)
+    cases = {
+        "truncated": (good[:-3], "ends at byte"),
+        "not cdr": (b"\x07" + good[1:], "not classic CDR"),
+        "many": (good[:4] + (10**6).to_bytes(4, "little") + good[8:], "1000000 transforms"),
+        "same frame": (cdr.tf_message([(5, "odom", "odom", np.eye(4))]), "does not name two"),
+        "empty": (bytes(cdr.CdrWriter().buf), "ends at byte"),
+    }
+    bad_q = bytearray(good)
+    bad_q[-8:] = struct.pack("<d", 3.0)  # w of the quaternion
+    cases["quaternion"] = (bytes(bad_q), "not finite with a unit quaternion")
+    for name, (data, reason) in cases.items():
+        with pytest.raises(cdr.CdrError, match=reason):
+            cdr.read_tf_message(data, "/tf")

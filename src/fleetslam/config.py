@@ -780,8 +780,13 @@ class Ros2OutConfig:
     # map); each robot's own map frame is <robot>/map.
     fleet_frame: Annotated[str, Text(lambda s: None if s.strip("/") else "must not be empty",
                                      "a TF frame name")] = "map"
-    # The camera's TF frame; empty: <robot>/camera.
+    # The camera's TF frame; empty: the frame_id of its images when they came from ROS (a
+    # bag, ROS 2 topics), else <robot>/camera.
     camera_frame: Annotated[str, ANY_TEXT] = ""
+    # The robot's own TF (/tf, /tf_static on its graph) is kept this long behind its newest
+    # stamp: where the camera's frame already has a parent there (odometry, its mounting),
+    # fleetslam publishes <robot>/map -> the top of that tree (REP 105's map -> odom).
+    tf_buffer_s: Annotated[float, above(0.0)] = 10.0
     # nav_msgs/Path of the tracked poses this often, at most this many (the newest).
     path_every_s: Annotated[float, above(0.0)] = 1.0
     path_max_poses: Annotated[int, at_least(1)] = 10000

@@ -161,6 +161,7 @@ class BagSequence:
                  segments: list[tuple[int, int]] | None = None,
                  config: SourceConfig | None = None) -> None:
         self.folder = Path(path)
+        self.camera_frame_id = ""  # the colour images' header frame_id, once one is read
         config = config or SourceConfig()
         if not self.folder.exists():
             raise BagError(f"{self.folder}: no such bag")
@@ -362,6 +363,8 @@ class BagSequence:
                                f"{keys[0][1]} / {keys[1][1]} ns are not in the bag any more")
             rgb_msg, depth_msg = (self._reader.deserialize(raw, self._topics[k[0]].msgtype)
                                   for raw, k in zip(raws, keys))
+        # The camera's TF frame, for what the robot publishes back (edge/ros2_out.py).
+        self.camera_frame_id = str(rgb_msg.header.frame_id).lstrip("/")
         rgb = colour_image(rgb_msg, self._where(self.rgb_topic))
         raw = depth_image(depth_msg, self._where(self.depth_topic), self._depth_scale)
         if raw.shape != rgb.shape[:2]:

@@ -135,6 +135,7 @@ class Ros2TopicSource(SlotCounts):
         self.received: Counter[str] = Counter()  # messages per topic
         self.lost = 0  # messages missing in a publisher's sequence numbers
         self.bad_attachments = 0  # messages whose attachment is not rmw_zenoh's
+        self.camera_frame_id = ""  # the colour images' header frame_id, once one is read
 
     @classmethod
     def from_spec(cls, spec: str, config: Config, camera: Camera | None = None
@@ -390,7 +391,10 @@ class Ros2TopicSource(SlotCounts):
 
     def _frame(self, colour: Message, depth: Message, stamp: float) -> Frame:
         camera = self.camera
-        rgb = colour_image(self._decode(*colour), colour[2])
+        message = self._decode(*colour)
+        # The camera's TF frame, for what the robot publishes back (edge/ros2_out.py).
+        self.camera_frame_id = str(message.header.frame_id).lstrip("/")
+        rgb = colour_image(message, colour[2])
         raw = depth_image(self._decode(*depth), depth[2], camera.depth_scale)
         for image, where in ((rgb, colour[2]), (raw, depth[2])):
             if image.shape[:2] != (camera.height, camera.width):

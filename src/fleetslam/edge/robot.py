@@ -151,7 +151,7 @@ class Robot:
         self.uploader = KeyframeUploader(self.robot_id, None if self.live else sequence,
                                          offload_at, config, self.report)
         # The robot's own ROS 2 graph: its pose, TF, path and status as they come.
-        self.ros_out = RobotRosOut(self.robot_id, config.ros2_out, self.report, self.live) \
+        self.ros_out = RobotRosOut(self.robot_id, config.ros2_out, self.report, sequence) \
             if config.ros2_out.endpoint else None
         # Ends the hold after the session (ros2_out.hold_s): a merge's placement, or a stop.
         self._hold_over = threading.Event()

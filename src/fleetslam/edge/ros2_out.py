@@ -4,7 +4,12 @@
     /<robot>/pose   geometry_msgs/PoseStamped  every tracked frame, stamped with its capture
                                                time, in <robot>/map; sent the moment the
                                                cloud's feedback arrives
-    /tf             tf2_msgs/TFMessage         <robot>/map -> the camera, with each pose
+    /tf             tf2_msgs/TFMessage         <robot>/map -> the camera, with each pose;
+                                               where the robot's own TF already gives the
+                                               camera a parent (odom -> base_link -> camera),
+                                               <robot>/map -> the top of that tree instead
+                                               (REP 105's map -> odom), from the TF heard at
+                                               the frame's stamp
     /tf_static      tf2_msgs/TFMessage         map -> <robot>/map once the cloud placed the
                                                robot's map in a group (transient local,
                                                re-sent whenever the cloud moves it)
@@ -27,14 +32,19 @@ from dataclasses import dataclass
 
 import numpy as np
 import zenoh
+import zenoh.ext
 
 from fleetslam.config import Ros2OutConfig
 from fleetslam.datasets.live import LiveSource
+from fleetslam.datasets.rmw_zenoh import dds_type_name, parse_attachment, topic_key
 from fleetslam.datasets.ros2_session import open_ros_session
 from fleetslam.datasets.ros2_topics import resolve_domain_id
+from fleetslam.datasets.source import RecordedSource
 from fleetslam.edge.report import RobotReport
 from fleetslam.ros2_out import cdr
 from fleetslam.ros2_out.node import RosNode, RosPublisher
+from fleetslam.ros2_out.tf_buffer import TfBuffer, TfError
+from fleetslam.transforms import invert
 from fleetslam.transport.protocol import Placed
 from fleetslam.wire.messages import Feedback
 
@@ -71,15 +81,17 @@ class PoseTiming:
 
 class RobotRosOut:
     def __init__(self, robot_id: str, cfg: Ros2OutConfig, report: RobotReport,
-                 live: LiveSource | None = None) -> None:
+                 source: RecordedSource | LiveSource | None = None) -> None:
+        """``source``: the robot's frames (its skipped frames; a ROS source's image
+        frame_id names the camera's TF frame)."""
         self.robot_id = robot_id
         self.cfg = cfg
         self.report = report
-        self.live = live
+        self.source = source
+        self.live = source if isinstance(source, LiveSource) else None
         name = ros_token(robot_id)
         self.topics = {"pose": f"/{name}/pose", "path": f"/{name}/path"}
         self.map_frame = f"{robot_id}/map"
-        self.camera_frame = cfg.camera_frame or f"{robot_id}/camera"
         self.fleet_frame = cfg.fleet_frame.strip("/")
         self.node_name = f"fleetslam_{name}"
         self._lock = threading.Lock()
@@ -88,6 +100,13 @@ class RobotRosOut:
         self._session: zenoh.Session | None = None
         self._node: RosNode | None = None
         self._pubs: dict[str, RosPublisher] = {}
+        self._subs: list = []
+        # The robot's own TF tree, as its graph publishes it (not ours: by publisher GID).
+        self.tf = TfBuffer(cfg.tf_buffer_s)
+        self.tf_messages = 0
+        self.tf_rejected = 0  # /tf messages that were not TFMessages (said once)
+        self.tf_skipped = 0  # frames whose TF could not be placed in the robot's tree
+        self._tf_problem: str | None = None  # the one said last, until it mends
         # The tracked poses (online, as the feedback gave them), for the path.
         self._stamps: deque[int] = deque(maxlen=cfg.path_max_poses)
         self._poses: deque[np.ndarray] = deque(maxlen=cfg.path_max_poses)
@@ -105,6 +124,12 @@ class RobotRosOut:
                          threading.Thread(target=self._periodic, daemon=True,
                                           name=f"ros2-out-{robot_id}-periodic")]
 
+    @property
+    def camera_frame(self) -> str:
+        """The configured frame, else the ROS images' own, else <robot>/camera."""
+        return self.cfg.camera_frame or getattr(self.source, "camera_frame_id", "") or \
+            f"{self.robot_id}/camera"
+
     # -- lifecycle ------------------------------------------------------------------------
 
     def start(self) -> RobotRosOut:
@@ -120,6 +145,12 @@ class RobotRosOut:
         for thread in self._threads:
             thread.join(self.cfg.connect_timeout_s + 1.0)
         with self._lock:
+            for sub in self._subs:
+                try:
+                    sub.undeclare()
+                except zenoh.ZError:
+                    pass
+            self._subs = []
             if self._node is not None:
                 self._node.close()
             if self._session is not None:
@@ -161,12 +192,25 @@ class RobotRosOut:
                 "path": node.publisher(self.topics["path"], cdr.PATH, PATH_DEPTH),
                 "diagnostics": node.publisher("/diagnostics", cdr.DIAGNOSTIC_ARRAY,
                                               DIAGNOSTICS_DEPTH)}
+        ours = {pub.gid for pub in pubs.values()}
+        tf_type = dds_type_name(cdr.TF_MESSAGE)
+        subs = [session.declare_subscriber(
+                    topic_key(node.domain_id, "/tf", tf_type),
+                    lambda sample: self._on_tf(sample, False, ours)),
+                # Static transforms were published before we came: rmw_zenoh's publishers
+                # cache them for late subscribers that look for late publishers.
+                zenoh.ext.declare_advanced_subscriber(
+                    session, topic_key(node.domain_id, "/tf_static", tf_type),
+                    lambda sample: self._on_tf(sample, True, ours),
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True))]
         with self._lock:
             if self._stop.is_set():
+                for sub in subs:
+                    sub.undeclare()
                 node.close()
                 session.close()
                 return
-            self._session, self._node, self._pubs = session, node, pubs
+            self._session, self._node, self._pubs, self._subs = session, node, pubs, subs
             placed = self._placed
         if placed is not None:
             self._publish_placed(placed)
@@ -182,6 +226,50 @@ class RobotRosOut:
         except zenoh.ZError as exc:  # the session closed under us (shutdown)
             self.unpublished += 1
             log.debug("robot %s: ROS 2 out: %s not published: %s", self.robot_id, name, exc)
+
+    # -- the robot's own TF ------------------------------------------------------------------
+
+    def _on_tf(self, sample: zenoh.Sample, static: bool, ours: set[bytes]) -> None:
+        where = f"{'/tf_static' if static else '/tf'} ({sample.key_expr})"
+        try:
+            attachment = sample.attachment
+            if attachment is not None and parse_attachment(attachment.to_bytes()).gid in ours:
+                return  # what this node published
+            transforms = cdr.read_tf_message(sample.payload.to_bytes(), where)
+        except ValueError as exc:
+            self.tf_rejected += 1
+            if self.tf_rejected == 1:
+                log.warning("robot %s: ROS 2 out: a TF message rejected (said once): %s",
+                            self.robot_id, exc)
+            return
+        self.tf_messages += 1
+        self.tf.add(transforms, static)
+
+    def _placed_in_tree(self, stamp: int, T_map_camera: np.ndarray
+                        ) -> tuple[str, np.ndarray] | None:
+        """(frame, T_map_frame) for /tf: the camera itself, or where the robot's own TF
+        gives the camera a parent, the top of its tree; None (counted, said once till it
+        mends) when that tree cannot place this frame."""
+        camera = self.camera_frame
+        try:
+            if self.tf.parent(camera) is None:
+                placed = camera, T_map_camera
+            else:
+                root = self.tf.root(camera)
+                placed = root, T_map_camera @ invert(self.tf.lookup(root, camera, stamp))
+        except TfError as exc:
+            self.tf_skipped += 1
+            problem = str(exc)
+            if self._tf_problem is None:
+                log.warning("robot %s: ROS 2 out: no /tf for this frame (the pose goes on): "
+                            "%s", self.robot_id, problem)
+            self._tf_problem = problem
+            return None
+        if self._tf_problem is not None:
+            log.info("robot %s: ROS 2 out: /tf placed again (%s -> %s)", self.robot_id,
+                     self.map_frame, placed[0])
+            self._tf_problem = None
+        return placed
 
     # -- what the robot hears ------------------------------------------------------------
 
@@ -210,7 +298,9 @@ class RobotRosOut:
             self._stamps.append(stamp)
             self._poses.append(T)
         self._publish("pose", cdr.pose_stamped(stamp, self.map_frame, T))
-        self._publish("tf", cdr.tf_message([(stamp, self.map_frame, self.camera_frame, T)]))
+        placed = self._placed_in_tree(stamp, T)
+        if placed is not None:
+            self._publish("tf", cdr.tf_message([(stamp, self.map_frame, *placed)]))
         with self._lock:
             self.timings.append(PoseTiming(fb.frame_index, taken, heard, time.time_ns()))
 
@@ -231,6 +321,9 @@ class RobotRosOut:
         next_path = next_status = time.monotonic()
         while not self._stop.wait(max(0.0, min(next_path, next_status) - time.monotonic())):
             now = time.monotonic()
+            if not self._connected.is_set():  # the newest path and status once it is
+                next_path = next_status = now + min(cfg.path_every_s, cfg.diagnostics_every_s)
+                continue
             if now >= next_path:
                 self.publish_path()
                 next_path = now + cfg.path_every_s
@@ -246,6 +339,13 @@ class RobotRosOut:
             self._path_sent = len(stamps)
         if stamps:
             self._publish("path", cdr.path(stamps[-1], self.map_frame, stamps, poses))
+
+    def _tf_child(self) -> str:
+        """The frame our /tf places under <robot>/map ('' while it cannot)."""
+        try:
+            return self.tf.root(self.camera_frame)
+        except TfError:
+            return ""
 
     def publish_status(self) -> None:
         with self._lock:
@@ -263,6 +363,7 @@ class RobotRosOut:
                   ("round_trip_ms_median", f"{float(np.median(trips)):.1f}" if trips else ""),
                   ("frames_skipped", str(skipped)),
                   ("fleet_group", placed.group if placed is not None else ""),
+                  ("tf_child", self._tf_child()), ("tf_problem", self._tf_problem or ""),
                   ("unpublished", str(self.unpublished))]
         self._publish("diagnostics", cdr.diagnostic_array(
             time.time_ns(), [(level, f"fleetslam {self.robot_id}: tracking", message,

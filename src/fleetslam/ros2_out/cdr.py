@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from fleetslam.transforms import tum_from_T
+from fleetslam.transforms import T_from_tum, tum_from_T
 
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR little endian, no options
 
@@ -144,3 +144,79 @@ def diagnostic_array(stamp: int, statuses: Sequence[tuple[int, str, str, str,
             w.string(key)
             w.string(value)
     return w.bytes()
+
+
+# -- reading (the robot's own /tf and /tf_static) --------------------------------------------
+
+# A TFMessage holds a few transforms; one claiming more than this is not one a robot sends.
+MAX_TRANSFORMS = 10_000
+# A frame id longer than this is not one.
+MAX_NAME_BYTES = 1024
+
+
+class CdrError(ValueError):
+    """A message that is not the CDR it should be; the text says where and why."""
+
+
+class CdrReader:
+    """Reads CDR values with bounds checked before anything is taken (little or big
+    endian, as the encapsulation header says)."""
+
+    def __init__(self, data: bytes, where: str) -> None:
+        self.where = where
+        if len(data) < len(ENCAPSULATION) or data[0] != 0 or data[1] not in (0, 1):
+            raise CdrError(f"{where}: not classic CDR (encapsulation "
+                           f"{bytes(data[:4]).hex(' ') or 'missing'})")
+        self.order = "<" if data[1] == 1 else ">"
+        self.data = memoryview(data)[len(ENCAPSULATION):]
+        self.pos = 0
+
+    def _take(self, n: int, align: int) -> memoryview:
+        self.pos += -self.pos % align
+        if self.pos + n > len(self.data):
+            raise CdrError(f"{self.where}: ends at byte {len(self.data)}, a value needs "
+                           f"{self.pos + n}")
+        out = self.data[self.pos:self.pos + n]
+        self.pos += n
+        return out
+
+    def unpack(self, fmt: str) -> tuple:
+        s = struct.Struct(self.order + fmt)
+        return s.unpack(self._take(s.size, s.size // len(fmt)))
+
+    def count(self, limit: int, what: str) -> int:
+        (n,) = self.unpack("I")
+        if n > limit:
+            raise CdrError(f"{self.where}: {n} {what} (at most {limit})")
+        return n
+
+    def string(self) -> str:
+        n = self.count(MAX_NAME_BYTES, "bytes of a string")
+        raw = bytes(self._take(n, 1))
+        if n == 0 or raw[-1] != 0:
+            raise CdrError(f"{self.where}: a string without its terminating NUL")
+        try:
+            return raw[:-1].decode()
+        except UnicodeDecodeError:
+            raise CdrError(f"{self.where}: a string that is not UTF-8") from None
+
+
+def read_tf_message(data: bytes, where: str) -> list[tuple[int, str, str, np.ndarray]]:
+    """A tf2_msgs/TFMessage's (stamp ns, parent, child, T_parent_child); CdrError naming
+    ``where`` if it is not one, or holds a transform that is not rigid and finite."""
+    r = CdrReader(data, where)
+    out = []
+    for _ in range(r.count(MAX_TRANSFORMS, "transforms")):
+        sec, nanosec = r.unpack("iI")
+        parent, child = r.string(), r.string()
+        values = np.array(r.unpack("ddddddd"))
+        q = values[3:]
+        if not np.isfinite(values).all() or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise CdrError(f"{where}: transform {parent} -> {child} is not finite with a unit "
+                           f"quaternion ({values.tolist()})")
+        if not parent.strip("/") or not child.strip("/") or parent == child:
+            raise CdrError(f"{where}: transform {parent!r} -> {child!r} does not name two "
+                           f"frames")
+        out.append((sec * _NS + nanosec, parent.lstrip("/"), child.lstrip("/"),
+                    T_from_tum(values[None])[0]))
+    return out
