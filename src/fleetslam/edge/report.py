@@ -81,6 +81,10 @@ class RobotReport:
     # Live ROS 2 out (``--ros2-out``): poses published, messages that found no router.
     ros2_poses: int = 0
     ros2_unpublished: int = 0
+    # Per published pose: [frame index, taken, sent, feedback heard, put] in time.time_ns()
+    # (a subscriber on this machine has the same clock; bench/ros2_out.py), the newest 20000.
+    ros2_timings: list[tuple[int, int | None, int | None, int, int]] = \
+        field(default_factory=list)
     encode_ms_mean: float | None = None
     encode_ms_p95: float | None = None
     inter_coding: dict[str, Any] = field(default_factory=dict)

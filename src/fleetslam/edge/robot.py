@@ -282,6 +282,9 @@ class Robot:
                 self.ros_out.close()
                 self.report.ros2_poses = self.ros_out.tracked_frames
                 self.report.ros2_unpublished = self.ros_out.unpublished
+                self.report.ros2_timings = [
+                    (t.frame_index, t.taken_ns, t.sent_ns, t.feedback_ns, t.published_ns)
+                    for t in self.ros_out.timings]
             self.uploader.stop()
             self.sender.close()
             for sub in subs:
@@ -339,6 +342,8 @@ class Robot:
             self.uploader.keep(frame, k)
             self.report.frames_per_point[str(k)] = self.report.frames_per_point.get(str(k), 0) + 1
             self.window.sent(seq)
+            if self.ros_out is not None:
+                self.ros_out.sent(frame.index)
             outbox.put(seq, data)
             self.report.frames += 1
             self.report.frame_bytes += len(data)

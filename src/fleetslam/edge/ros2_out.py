@@ -58,8 +58,8 @@ PATH_DEPTH = 1
 DIAGNOSTICS_DEPTH = 10
 # Round trips the status's median is taken over.
 ROUND_TRIPS_KEPT = 100
-# Per-frame timings kept for benches (bench/ros2_out.py).
-TIMINGS_KEPT = 100_000
+# Per-frame timings kept for the report (bench/ros2_out.py): the newest.
+TIMINGS_KEPT = 20_000
 
 
 def ros_token(name: str) -> str:
@@ -70,11 +70,13 @@ def ros_token(name: str) -> str:
 
 @dataclass
 class PoseTiming:
-    """One published pose: when the frame was taken, its feedback heard, its pose put
-    (time.time_ns(), so a subscriber in another process compares them)."""
+    """One published pose: when the robot took its frame, handed it to the link (coded), heard
+    its feedback and put its pose (time.time_ns(): a subscriber in another process on this
+    machine compares them)."""
 
     frame_index: int
     taken_ns: int | None
+    sent_ns: int | None
     feedback_ns: int
     published_ns: int
 
@@ -117,7 +119,7 @@ class RobotRosOut:
         self.lost_frames = 0
         self.unpublished = 0  # messages dropped while no router was reachable
         self._round_trips: deque[float] = deque(maxlen=ROUND_TRIPS_KEPT)
-        self._taken: dict[int, int] = {}
+        self._taken: dict[int, list[int | None]] = {}  # frame -> [taken, sent] ns
         self.timings: deque[PoseTiming] = deque(maxlen=TIMINGS_KEPT)
         self._threads = [threading.Thread(target=self._connect, daemon=True,
                                           name=f"ros2-out-{robot_id}-connect"),
@@ -276,13 +278,20 @@ class RobotRosOut:
     def taken(self, frame_index: int) -> None:
         """The robot took frame ``frame_index`` from its source (for the timings)."""
         with self._lock:
-            self._taken[frame_index] = time.time_ns()
+            self._taken[frame_index] = [time.time_ns(), None]
+
+    def sent(self, frame_index: int) -> None:
+        """Frame ``frame_index`` is coded and handed to the link (for the timings)."""
+        with self._lock:
+            times = self._taken.get(frame_index)
+            if times is not None:
+                times[1] = time.time_ns()
 
     def feedback(self, fb: Feedback, round_trip_s: float | None) -> None:
         """The cloud's feedback on a frame: its pose and TF out at once if it was tracked."""
         heard = time.time_ns()
         with self._lock:
-            taken = self._taken.pop(fb.frame_index, None)
+            taken, sent = self._taken.pop(fb.frame_index, None) or (None, None)
             for old in [i for i in self._taken if i < fb.frame_index]:
                 del self._taken[old]  # frames the link lost
             if round_trip_s is not None:
@@ -302,7 +311,7 @@ class RobotRosOut:
         if placed is not None:
             self._publish("tf", cdr.tf_message([(stamp, self.map_frame, *placed)]))
         with self._lock:
-            self.timings.append(PoseTiming(fb.frame_index, taken, heard, time.time_ns()))
+            self.timings.append(PoseTiming(fb.frame_index, taken, sent, heard, time.time_ns()))
 
     def placed(self, placed: Placed) -> None:
         """The cloud placed this robot's map in its group's frame (or moved it)."""
