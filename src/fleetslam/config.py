@@ -758,6 +758,31 @@ class OutputsConfig:
     mcap: bool = True
 
 
+@dataclass
+class GridConfig:
+    """The 2D occupancy grid every map also writes for nav2's map_server
+    (mapping/occupancy_grid.py): ``global_map.pgm`` / ``.yaml`` and each robot's."""
+
+    resolution_m: Annotated[float, above(0.0)] = 0.05
+    # Obstacles: map points this high above the floor (the robot's height band).
+    min_height_m: Annotated[float, at_least(0.0)] = 0.1
+    max_height_m: Annotated[float, above(0.0)] = 1.5
+    # Up in the map frame (the robot's first camera: x right, y down, z forward) where the
+    # map shows no floor; a level camera's up is 0 -1 0 (not all zero).
+    up: Annotated[tuple[float, float, float], FINITE] = (0.0, -1.0, 0.0)
+    # The floor: a plane among the lowest points, its normal within this of the cameras'
+    # up, at least this many points within floor_inlier_m of it.
+    floor_max_tilt_deg: Annotated[float, between(0.0, 90.0)] = 30.0
+    floor_inlier_m: Annotated[float, above(0.0)] = 0.03
+    floor_min_points: Annotated[int, at_least(3)] = 200
+    # A cell is occupied with this many map points in the band (one can be noise).
+    occupied_min_points: Annotated[int, at_least(1)] = 2
+    # Depth rays count as free space this far from their camera (the depth sensor's range).
+    max_range_m: Annotated[float, above(0.0)] = 4.0
+    # Unknown cells around what was seen.
+    margin_cells: Annotated[int, at_least(0)] = 5
+
+
 # A Zenoh endpoint, or empty (off).
 OPTIONAL_ENDPOINT = Text(lambda s: endpoint_problem(s) if s else None,
                          "empty, or a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
@@ -820,6 +845,7 @@ class Config:
     view: ViewConfig = field(default_factory=ViewConfig)
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     ros2_out: Ros2OutConfig = field(default_factory=Ros2OutConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
 
 
 def _update(obj: Any, values: dict[str, Any], path: str, prefix: str = "") -> None:

@@ -24,6 +24,7 @@ import numpy as np
 from fleetslam.config import Config, config_to_dict
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
+from fleetslam.mapping.occupancy_grid import OccupancyGrid, write_nav2_map
 from fleetslam.tables import _cell, format_table
 
 SUMMARY_VERSION = 3
@@ -40,10 +41,12 @@ def write_robot_files(robot_dir: Path, name: str, source: str, timestamps: np.nd
                       poses: np.ndarray, keyframe_times: np.ndarray, keyframe_poses: np.ndarray,
                       points: np.ndarray, colors: np.ndarray,
                       online_poses: np.ndarray | None = None,
-                      tracked: np.ndarray | None = None) -> None:
+                      tracked: np.ndarray | None = None,
+                      grid: OccupancyGrid | None = None) -> None:
     """A robot's trajectory, keyframes and dense map, in its own map frame; with
     ``online_poses``, the tracked frames' poses as tracking reported them frame by frame
-    (what the robot heard, and published to ROS 2), before later corrections."""
+    (what the robot heard, and published to ROS 2), before later corrections; with ``grid``,
+    its nav2 map (map.pgm, map.yaml)."""
     write_tum_trajectory(robot_dir / "trajectory.tum", timestamps, poses,
                          comment=f"fleetslam robot {name} from {source}\n"
                                  "T_map_camera; map frame = first camera pose")
@@ -56,6 +59,8 @@ def write_robot_files(robot_dir: Path, name: str, source: str, timestamps: np.nd
     write_tum_trajectory(robot_dir / "keyframes.tum", keyframe_times, keyframe_poses,
                          comment=f"fleetslam robot {name} keyframes")
     write_ply(robot_dir / "map.ply", points, colors)
+    if grid is not None:
+        write_nav2_map(robot_dir / "map", grid, f"robot {name}'s map")
 
 
 def cloud_robot_summary(name: str, source: str, offload_at: int, *, frames: int,

@@ -22,6 +22,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid
 from fleetslam.merging.global_map import (
     GlobalMap,
     RobotTrack,
@@ -66,6 +67,7 @@ class RobotRun:
     loop_closing: dict[str, Any] | None = None
     map_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     map_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    grid: OccupancyGrid | None = None  # its nav2 map, once its dense map is built
 
     def track(self) -> RobotTrack:
         """What the global map needs of this robot."""
@@ -203,7 +205,11 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
             progress.update(k + 1)
             yield frame.rgb, frame.depth_m, T
 
-    run.map_points, run.map_colors = build_dense_map(run.sequence.camera, keyframes(), config.map)
+    scans: list = []
+    run.map_points, run.map_colors = build_dense_map(run.sequence.camera, keyframes(), config.map,
+                                                     scans)
+    run.grid = occupancy_grid(scans, np.asarray(run.keyframe_poses).reshape(-1, 4, 4),
+                              config.grid)
 
 
 def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,
@@ -225,7 +231,7 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
             write_robot_files(out_dir / run.name, run.name, run.source, run.timestamps,
                               run.poses, run.timestamps[run.keyframe_indices],
                               run.keyframe_poses, run.map_points, run.map_colors,
-                              run.online_poses, run.tracked)
+                              run.online_poses, run.tracked, run.grid)
         merged = len(runs) > 1 and not interrupt.requested
         if len(runs) > 1 and not merged:
             skipped.append("the merge and the global map")

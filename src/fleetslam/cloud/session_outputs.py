@@ -17,6 +17,7 @@ from fleetslam.cloud.session_state import SessionState
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.mapping.occupancy_grid import occupancy_grid
 from fleetslam.merging.global_map import RobotTrack
 from fleetslam.outputs import (
     cloud_robot_summary,
@@ -88,13 +89,17 @@ class SessionOutputs:
                 yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
                        kf_poses[i], upload.stride)
 
-        points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map)
+        scans: list = []
+        points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map, scans)
+        grid = occupancy_grid(scans, np.array([kf_poses[i] for i in kf_index
+                                               if self.store.has_keyframe(self.robot_id, i)]
+                                              ).reshape(-1, 4, 4), self.config.grid)
         write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
                           np.array([time_of.get(i, np.nan) for i in kf_index]),
                           np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
                           points, colors,
                           np.array([r.T_world_camera for r in rows]).reshape(-1, 4, 4),
-                          np.array([r.tracked for r in rows], bool))
+                          np.array([r.tracked for r in rows], bool), grid)
         summary = self.summary(len(points), camera)
         write_robot_summary(out_dir, summary)
         log.info("robot %s finished: %d frames, %d keyframes, %d map points", self.robot_id,

@@ -69,17 +69,24 @@ def keyframe_local_cloud(camera: Camera, rgb: np.ndarray, depth_m: np.ndarray,
     return points.astype(np.float32), colors
 
 
+Scan = tuple[np.ndarray, np.ndarray]  # a keyframe's points in the world, its camera centre
+
+
 def build_dense_map(camera: Camera,
                     keyframes: Iterable[tuple[np.ndarray, ...]],
-                    config: MapConfig) -> tuple[np.ndarray, np.ndarray]:
+                    config: MapConfig, scans: list[Scan] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Fuse keyframes given as (rgb, depth_m, T_world_camera[, decimated_by]) into one
-    voxel-filtered cloud."""
+    voxel-filtered cloud; ``scans``, when given, gets each keyframe's points (float32) and
+    camera centre (the depth rays of an occupancy grid)."""
     parts_p: list[np.ndarray] = []
     parts_c: list[np.ndarray] = []
     for rgb, depth_m, T, *decimated in keyframes:
         p, c = keyframe_cloud(camera, rgb, depth_m, T, config, *decimated)
         parts_p.append(p)
         parts_c.append(c)
+        if scans is not None:
+            scans.append((p.astype(np.float32), np.asarray(T)[:3, 3].copy()))
     if not parts_p:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     points, colors = voxel_downsample(np.vstack(parts_p), np.vstack(parts_c), config.voxel_m)

@@ -23,6 +23,7 @@ from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import keyframe_local_cloud, voxel_downsample
+from fleetslam.mapping.occupancy_grid import occupancy_grid, write_nav2_map
 from fleetslam.mapping.octomap_export import write_octomap
 from fleetslam.merging.merger import MapMerger
 from fleetslam.transforms import poses_from_references, transform_points
@@ -61,6 +62,7 @@ class GlobalMap:
     not_merged: dict[str, str] = field(default_factory=dict)
     points: int = 0
     octomap: dict[str, Any] | None = None
+    grid: dict[str, Any] | None = None  # the nav2 map (global_map.pgm / .yaml)
     seconds: float = 0.0  # building it: dense refinement, graph, FS-HICP, outputs
 
 
@@ -179,6 +181,12 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     stats["seconds"] = time.perf_counter() - start
     stats["scans"] = len(origins)
     result.octomap = stats
+    # The anchor's first keyframe first: the grid is level under it, facing its view.
+    poses = np.vstack([kf_poses[m] for m in sorted(members, key=lambda m: m != anchor)])
+    grid = occupancy_grid(list(zip(placed_points, origins)), poses.reshape(-1, 4, 4),
+                          config.grid)
+    write_nav2_map(out_dir / "global_map", grid, f"the global frame ({anchor}'s map)")
+    result.grid = grid.summary("global_map.pgm")
     result.seconds = time.perf_counter() - started
     log.info("global map: %s in %s's frame, %d points, octomap %d occupied / %d free leaves",
              ", ".join(members), anchor, len(points), stats["occupied"], stats["free"])
@@ -239,5 +247,6 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
             "global_trajectories": {m: f"global/{m}.tum" for m in global_map.members},
             "global_map": "global_map.ply", "global_map_points": global_map.points,
             "octomap": global_map.octomap, "global_map_seconds": global_map.seconds,
+            "grid": global_map.grid,
         })
     return out
