@@ -68,13 +68,14 @@ def test_the_run_writes_run_mcap_with_each_topic_and_ros2_schemas(run):
     assert counts == {
         "/r0/path": 1, "/r1/path": 1, "/r0/global_path": 1, "/r1/global_path": 1,
         "/r0/map": 1, "/r1/map": 1, "/tf": sum(frames.values()), "/tf_static": 1,
-        "/map/global": 1, "/map/octomap": 1, "/map/constraints": 1}
+        "/map/global": 1, "/map/octomap": 1, "/map/constraints": 1, "/map/grid": 1}
     schemas = {topic: schema for topic, schema, _, _ in messages}
     assert schemas["/tf"] == schemas["/tf_static"] == "tf2_msgs/msg/TFMessage"
     assert schemas["/r0/path"] == "nav_msgs/msg/Path"
     assert schemas["/map/global"] == "sensor_msgs/msg/PointCloud2"
     assert schemas["/map/octomap"] == "octomap_msgs/msg/Octomap"
     assert schemas["/map/constraints"] == "visualization_msgs/msg/MarkerArray"
+    assert schemas["/map/grid"] == "nav_msgs/msg/OccupancyGrid"
     # rosbag2's offered QoS on every channel (the ros2 profile's): the results known at the
     # end are latched (transient local), so rviz2's /tf_static subscriber matches them.
     with open(out / "run.mcap", "rb") as f:
@@ -194,6 +195,32 @@ def test_constraints_are_lines_between_keyframes_in_the_global_frame(run):
                 tum = _tum(out / "global" / f"{robot}.tum")
                 np.testing.assert_allclose(end, tum[frame, 1:4], atol=1e-6)
     assert len(kept.points) >= 2
+
+
+def test_the_grid_message_is_the_nav2_map(run):
+    """/map/grid (decoded by mcap-ros2-support) holds global_map.pgm: its cells, bottom row
+    first, as -1 / 0 / 100, its origin the lower-left corner placed in the map frame."""
+    import cv2
+
+    from fleetslam.transforms import T_from_tum, transform_points
+
+    out, summary, topics = run
+    (grid,) = topics["/map/grid"]
+    entry = summary["merge"]["grid"]
+    image = cv2.imread(str(out / "global_map.pgm"), cv2.IMREAD_UNCHANGED)
+    assert grid.header.frame_id == "map" and (grid.info.width, grid.info.height) == \
+        (image.shape[1], image.shape[0])
+    cells = np.asarray(grid.data, np.int8).reshape(image.shape)[::-1]
+    assert ((cells == 100) == (image == 0)).all() and ((cells == 0) == (image == 254)).all()
+    assert ((cells == -1) == (image == 205)).all()
+    o = grid.info.origin
+    T_origin = T_from_tum(np.array([[o.position.x, o.position.y, o.position.z,
+                                     o.orientation.x, o.orientation.y, o.orientation.z,
+                                     o.orientation.w]]))[0]
+    T_map_grid = np.array(entry["T_map_grid"])
+    expected = transform_points(T_map_grid, np.array([[*entry["origin"][:2], 0.0]]))[0]
+    np.testing.assert_allclose(T_origin[:3, 3], expected, atol=1e-9)
+    np.testing.assert_allclose(T_origin[:3, :3], T_map_grid[:3, :3], atol=1e-9)
 
 
 def test_export_of_the_run_folder_writes_the_same_messages(run, tmp_path, capsys):

@@ -189,6 +189,10 @@ def test_a_node_announces_itself_and_its_publishers_as_rmw_zenoh_does(ros_graph)
         qos = {t.split("/")[9]: t.split("/")[12] for t in tokens if "/MP/" in t}
         assert qos == {"%r1%pose": "::,10:,:,:,,", "%tf_static": ":1:,1:,:,:,,"}
         node.close()
+        humble = RosNode(session, "fleetslam_r2", humble=True)
+        assert humble.publisher("/r2/pose", cdr.POSE_STAMPED, 10).key == \
+            "0/r2/pose/geometry_msgs::msg::dds_::PoseStamped_/TypeHashNotSupported"
+        humble.close()
     finally:
         session.close()
 
@@ -339,14 +343,16 @@ def _tum_rows(path) -> dict[int, np.ndarray]:
     return {int(round(r[0] * 1e6)): r[1:] for r in rows}
 
 
-def run_through_cloud(tmp_path, robots: list, merge: bool = False) -> dict | None:
+def run_through_cloud(tmp_path, robots: list, merge: bool = False,
+                      cloud_config: Config | None = None, while_up=None) -> dict | None:
     """Run ``robots`` (edge.robot.Robot, their config's endpoint a cloud to start here) to
     their end in threads; with ``merge``, merge once every robot's session ended (a robot
-    holding its ROS 2 node then hears the final placement); the summary, else None."""
+    holding its ROS 2 node then hears the final placement); the summary, else None.
+    ``while_up(summary)`` runs before the cloud closes."""
     from fleetslam.cloud.server import CloudServer
 
     endpoint = robots[0].endpoint
-    server = CloudServer(Config(), tmp_path / "cloud", endpoint).start()
+    server = CloudServer(cloud_config or Config(), tmp_path / "cloud", endpoint).start()
     errors: list = []
 
     def run(robot) -> None:
@@ -368,6 +374,8 @@ def run_through_cloud(tmp_path, robots: list, merge: bool = False) -> dict | Non
         for t in threads:
             t.join(60)
         assert not errors and not any(t.is_alive() for t in threads), errors
+        if while_up is not None:
+            while_up(summary)
     finally:
         server.close()
     return summary
@@ -570,3 +578,58 @@ def test_a_tf_message_that_is_not_one_is_refused_with_the_reason():
     for name, (data, reason) in cases.items():
         with pytest.raises(cdr.CdrError, match=reason):
             cdr.read_tf_message(data, "/tf")
+
+
+def test_the_cloud_publishes_each_merges_maps_for_late_subscribers(sdk, tmp_path,
+                                                                   synthetic_scene):
+    """``cloud --ros2-out``: after the merge, a subscriber that starts only then (zenoh-ext's
+    AdvancedSubscriber looking for late publishers, as rmw_zenoh's TRANSIENT_LOCAL
+    subscriptions do) gets /map/global and /map/grid: the merge's PLY and nav2 map."""
+    import zenoh.ext
+
+    from fleetslam.datasets.ros2_session import open_ros_session
+    from fleetslam.datasets.rmw_zenoh import topic_key
+    from fleetslam.io.ply import read_ply
+    from fleetslam.launch import free_endpoint
+
+    _, folders = synthetic_scene
+    cloud = free_endpoint()
+    config = Config()
+    config.ros2_out.endpoint = sdk
+    robots = [ros_robot(f"r{i}", str(f), cloud) for i, f in enumerate(folders)]
+    got: dict[str, list] = {"/map/global": [], "/map/grid": [], "/r1/global_path": []}
+
+    def subscribe_late(_) -> None:
+        session = open_ros_session(sdk, 5.0)
+        try:
+            subs = [zenoh.ext.declare_advanced_subscriber(
+                session, topic_key(0, topic), lambda s, t=topic: got[t].append(s),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+                for topic in got]
+            wait_for(lambda: all(got.values()), 10.0, "the merge's latched maps")
+            for sub in subs:
+                sub.undeclare()
+        finally:
+            session.close()
+
+    summary = run_through_cloud(tmp_path, robots, merge=True, cloud_config=config,
+                                while_up=subscribe_late)
+    merge = summary["merge"]
+    assert sorted(merge["members"]) == ["r0", "r1"]
+    store = _typestore()
+    cloud_msg = store.deserialize_cdr(got["/map/global"][-1].payload.to_bytes(),
+                                      "sensor_msgs/msg/PointCloud2")
+    points, _ = read_ply(tmp_path / "cloud" / merge["global_map"])
+    assert cloud_msg.header.frame_id == "map" and cloud_msg.width == len(points) > 1000
+    xyz = np.frombuffer(cloud_msg.data.tobytes(), np.float32).reshape(-1, 4)[:, :3]
+    np.testing.assert_allclose(xyz, points, atol=1e-5)
+    grid = store.deserialize_cdr(got["/map/grid"][-1].payload.to_bytes(),
+                                 "nav_msgs/msg/OccupancyGrid")
+    assert [grid.info.width, grid.info.height] == merge["grid"]["size"]
+    cells = np.asarray(grid.data).reshape(grid.info.height, grid.info.width)
+    assert (cells == 100).sum() == merge["grid"]["occupied_cells"]
+    assert (cells == 0).sum() == merge["grid"]["free_cells"]
+    assert abs(grid.info.resolution - merge["grid"]["resolution_m"]) < 1e-9
+    path = store.deserialize_cdr(got["/r1/global_path"][-1].payload.to_bytes(),
+                                 "nav_msgs/msg/Path")
+    assert path.header.frame_id == "map" and len(path.poses) == 30

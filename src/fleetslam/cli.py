@@ -240,6 +240,8 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
         set_from_flag(config.placement, "worker_id", args.worker_id, "--worker-id")
     if args.coordination:
         set_from_flag(config.placement, "coordination", args.coordination, "--coordination")
+    if args.ros2_out:
+        set_from_flag(config.ros2_out, "endpoint", args.ros2_out, "--ros2-out")
     server = CloudServer(config, Path(args.out), args.listen, view=view,
                          connect=args.connect).start()
     stop = threading.Event()
@@ -744,6 +746,9 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("--out", required=True, help="the store: maps, trajectories, "
                        "keyframes and checkpoints (reused after a restart; every worker of "
                        "a fleet is given the same folder, a shared volume across machines)")
+    cloud.add_argument("--ros2-out", metavar="ENDPOINT", help="after each merge, publish the "
+                       "global map, grid, OctoMap, constraints and global paths (transient "
+                       "local) to the ROS 2 graph whose Zenoh router is there ([ros2_out])")
     _add_view_options(cloud)
     cloud.set_defaults(func=cmd_cloud)
 

@@ -798,6 +798,9 @@ class Ros2OutConfig:
     endpoint: Annotated[str, OPTIONAL_ENDPOINT] = ""
     # ROS_DOMAIN_ID of the graph; -1: the ROS_DOMAIN_ID environment variable (0 without).
     domain_id: Annotated[int, between(-1, 232)] = -1
+    # The graph's ROS 2: keys carry REP-2016 type hashes from Iron on (jazzy), Humble's
+    # rmw_zenoh a placeholder its subscribers match exactly (humble).
+    distro: Annotated[str, OneOf(("jazzy", "humble"))] = "jazzy"
     # A Zenoh config file (JSON5) for the session to that router (TLS, ...); empty: a
     # client of the endpoint, no multicast, timestamps on (transient local needs them).
     zenoh_config: Annotated[str, ANY_TEXT] = ""

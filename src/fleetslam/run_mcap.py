@@ -12,6 +12,7 @@ export`` on its folder write the same file.
     /map/global           sensor_msgs/PointCloud2         map          global_map.ply
     /map/octomap          octomap_msgs/Octomap            map          global_map.bt
     /map/constraints      visualization_msgs/MarkerArray  map          merge.constraints
+    /map/grid             nav_msgs/OccupancyGrid          map          global_map.yaml / .pgm
 
 ``map`` is the global frame (the first camera of the group's anchor robot); ``<robot>/map``
 is a robot's own map frame (its first camera), placed in ``map`` by the merge's
@@ -29,9 +30,10 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.io.mcap_out import McapOut, seconds_to_ns
+from fleetslam.io.mcap_out import McapOut, RosMessages, seconds_to_ns
 from fleetslam.io.ply import read_ply
 from fleetslam.io.trajectory import read_tum_trajectory
+from fleetslam.mapping.occupancy_grid import read_nav2_map
 from fleetslam.mapping.octomap_export import octomap_binary_data
 
 MCAP_FILE = "run.mcap"
@@ -60,7 +62,7 @@ def read_run_summary(run_dir: Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not JSON: {exc}") from None
 
 
-def _cloud(out: McapOut, topic: str, frame: str, stamp: int, path: Path) -> None:
+def _cloud(out: RosMessages, topic: str, frame: str, stamp: int, path: Path) -> None:
     points, colors = read_ply(path)
     if colors is None:
         raise ValueError(f"{path}: the PLY has no red, green, blue: no colours to publish")
@@ -98,7 +100,7 @@ def write_run_mcap(run_dir: Path, summary: dict[str, Any] | None = None,
     return path
 
 
-def _add_run(out: McapOut, run_dir: Path, summary: dict[str, Any]) -> None:
+def _add_run(out: RosMessages, run_dir: Path, summary: dict[str, Any]) -> None:
     merge = summary.get("merge") or {}
     # The robots in the global frame (a run of robots that never joined still has one: the
     # largest group, a single robot).
@@ -117,14 +119,31 @@ def _add_run(out: McapOut, run_dir: Path, summary: dict[str, Any]) -> None:
         if name in merged:  # its camera as the global trajectory has it
             parent = GLOBAL_FRAME
             times, poses = read_tum_trajectory(run_dir / merge["global_trajectories"][name])
-            out.path(f"/{name}/global_path", GLOBAL_FRAME, start, seconds_to_ns(times), poses)
         out.transforms("/tf", parent, camera_frame(name), seconds_to_ns(times), poses)
     if merged:
         out.static_transforms("/tf_static", start, [
             (GLOBAL_FRAME, map_frame(name), np.array(merge["T_global_map"][name]))
             for name in merged])
-        _cloud(out, "/map/global", GLOBAL_FRAME, start, run_dir / merge["global_map"])
-        tree_id, resolution, data = octomap_binary_data(run_dir / merge["octomap"]["file"])
-        out.octomap("/map/octomap", GLOBAL_FRAME, start, resolution, tree_id, data)
-        out.lines("/map/constraints", GLOBAL_FRAME, start, "constraints",
-                  _constraint_lines(merge), LINE_WIDTH_M)
+        add_fleet_map(out, run_dir, summary, start)
+
+
+def add_fleet_map(out: RosMessages, run_dir: Path, summary: dict[str, Any],
+                  stamp_ns: int) -> None:
+    """The merge's results in the global frame, each one latched message at ``stamp_ns``:
+    every member's global path, the global cloud, OctoMap, constraints and grid (what
+    the cloud publishes live after a merge, cloud/ros2_fleet.py)."""
+    merge = summary["merge"]
+    for name in merge["members"]:
+        times, poses = read_tum_trajectory(run_dir / merge["global_trajectories"][name])
+        out.path(f"/{name}/global_path", GLOBAL_FRAME, stamp_ns, seconds_to_ns(times), poses)
+    _cloud(out, "/map/global", GLOBAL_FRAME, stamp_ns, run_dir / merge["global_map"])
+    tree_id, resolution, data = octomap_binary_data(run_dir / merge["octomap"]["file"])
+    out.octomap("/map/octomap", GLOBAL_FRAME, stamp_ns, resolution, tree_id, data)
+    out.lines("/map/constraints", GLOBAL_FRAME, stamp_ns, "constraints",
+              _constraint_lines(merge), LINE_WIDTH_M)
+    grid_entry = merge.get("grid")
+    if grid_entry is not None:  # runs from before the nav2 map have none
+        grid = read_nav2_map((run_dir / grid_entry["image"]).with_suffix(".yaml"),
+                             np.array(grid_entry["T_map_grid"]))
+        out.grid("/map/grid", GLOBAL_FRAME, stamp_ns, grid.ros_cells(), grid.resolution,
+                 grid.T_map_origin)

@@ -14,6 +14,7 @@ from typing import Any, Callable
 
 from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.robot_session import Publish
+from fleetslam.cloud.ros2_fleet import FleetRosOut
 from fleetslam.cloud.session_outputs import FinishedMap
 from fleetslam.cloud.sessions import SessionTable
 from fleetslam.config import Config
@@ -77,9 +78,12 @@ class MergeRequests:
 
 class FleetMerge:
     def __init__(self, config: Config, out_dir: Path, sessions: SessionTable,
-                 merger: MergerService, merges: Callable[[], bool] = lambda: True) -> None:
+                 merger: MergerService, merges: Callable[[], bool] = lambda: True,
+                 ros_out: FleetRosOut | None = None) -> None:
         """``merges``: whether this worker still holds the merger's role (with a
-        coordination service, its fenced grant): asked before each output is written."""
+        coordination service, its fenced grant): asked before each output is written;
+        ``ros_out``: publishes each merge's maps to a ROS 2 graph."""
+        self.ros_out = ros_out
         self.config = config
         self.out_dir = out_dir
         self.sessions = sessions
@@ -128,12 +132,22 @@ class FleetMerge:
             summary["mcap"] = self._write_mcap(summary)
         write_summary(self.out_dir, summary)
         self.merger.show()
+        self._publish(summary)
         log.info("merged %d maps in %.1f s", len(finished), time.perf_counter() - start)
         page = self._write_report()
         # For the client (not in summary.json): where the files are on this machine.
         summary["outputs"] = {"folder": str(self.out_dir.resolve()),
                               "report": str(page.relative_to(self.out_dir)) if page else None}
         return summary
+
+    def _publish(self, summary: dict[str, Any]) -> None:
+        """The merge's maps to ROS 2; like the report, a failure costs them, not the merge."""
+        if self.ros_out is None:
+            return
+        try:
+            self.ros_out.merged(self.out_dir, summary)
+        except Exception:
+            log.exception("the merge's maps could not be published to ROS 2")
 
     def _finished_elsewhere(self) -> list[FinishedMap]:
         """The finished robots other workers serve (or served), read from the store; the

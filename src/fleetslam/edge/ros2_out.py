@@ -186,7 +186,8 @@ class RobotRosOut:
             return
 
     def _declare(self, session: zenoh.Session) -> None:
-        node = RosNode(session, self.node_name, domain_id=resolve_domain_id(self.cfg.domain_id))
+        node = RosNode(session, self.node_name, domain_id=resolve_domain_id(self.cfg.domain_id),
+                       humble=self.cfg.distro == "humble")
         pubs = {"pose": node.publisher(self.topics["pose"], cdr.POSE_STAMPED, POSE_DEPTH),
                 "tf": node.publisher("/tf", cdr.TF_MESSAGE, TF_DEPTH),
                 "tf_static": node.publisher("/tf_static", cdr.TF_MESSAGE, 1,

@@ -1,7 +1,9 @@
-"""ROS 2 messages in an MCAP file that Foxglove, ``ros2 bag play`` and the ``mcap`` tools open:
-serialised by rosbags' typestore (CDR, ROS 2 Humble), written by the mcap library with each
-schema's ``ros2msg`` definition. Takes plain arrays (poses N x 4 x 4, times in ns, points);
-what a run's file holds is decided above (run_mcap.py)."""
+"""A run's results as ROS 2 messages (``RosMessages``: serialised by rosbags' typestore, CDR),
+and those messages in an MCAP file that Foxglove, ``ros2 bag play`` and the ``mcap`` tools
+open (``McapOut``: written by the mcap library with each schema's ``ros2msg`` definition,
+ROS 2 Humble's), or published live (cloud/ros2_fleet.py, with the ROS 2 graph's own
+definitions). Takes plain arrays (poses N x 4 x 4, times in ns, points); what a run's
+messages are is decided above (run_mcap.py)."""
 
 from __future__ import annotations
 
@@ -52,8 +54,8 @@ _LATCHED_QOS = _QOS.format(depth=1, durability=1)  # RMW_QOS_POLICY_DURABILITY_T
 _STREAM_QOS = _QOS.format(depth=100, durability=2)  # RMW_QOS_POLICY_DURABILITY_VOLATILE
 
 
-def _typestore() -> Any:
-    store = get_typestore(Stores.ROS2_HUMBLE)
+def _typestore(store_name: str = "ROS2_HUMBLE") -> Any:
+    store = get_typestore(getattr(Stores, store_name))
     if OCTOMAP_TYPE not in store.types:
         store.register(get_types_from_msg(OCTOMAP_MSG, OCTOMAP_TYPE))
     return store
@@ -64,24 +66,20 @@ def seconds_to_ns(times: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(times, np.float64) * 1e9).astype(np.int64)
 
 
-class McapOut:
-    """Collects messages, then writes them in log-time order on ``close`` (a reader that
-    streams the file sees time move forward); the file appears whole or not at all."""
+class RosMessages:
+    """Messages collected in the order they are made: ``messages`` (log time, order, topic,
+    CDR), ``topics`` (topic: (type, latched)); ``store``: rosbags' typestore of the ROS 2
+    distribution whose definitions they follow."""
 
-    def __init__(self, path: Path) -> None:
-        self.file = Path(path)
-        self._ts = _typestore()
+    def __init__(self, store: str = "ROS2_HUMBLE") -> None:
+        self._ts = _typestore(store)
         self._t = self._ts.types
-        self._messages: list[tuple[int, int, str, bytes]] = []  # log time, order, topic, cdr
-        self._topics: dict[str, tuple[str, bool]] = {}  # topic: (type, latched)
+        self.messages: list[tuple[int, int, str, bytes]] = []
+        self.topics: dict[str, tuple[str, bool]] = {}
 
-    def __enter__(self) -> McapOut:
-        return self
-
-    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        if kind is None:
-            self.close()
+    def type_hash(self, typename: str) -> str:
+        """REP-2016's hash of a type as this distribution defines it."""
+        return str(self._ts.hash_rihs01(typename))
 
     # Message pieces -----------------------------------------------------------------
     def _header(self, stamp_ns: int, frame_id: str) -> Any:
@@ -98,11 +96,11 @@ class McapOut:
 
     def _add(self, topic: str, typename: str, log_ns: int, message: Any,
              latched: bool = False) -> None:
-        known = self._topics.setdefault(topic, (typename, latched))
+        known = self.topics.setdefault(topic, (typename, latched))
         if known[0] != typename:
-            raise ValueError(f"{self.file}: topic {topic} has type {known[0]}, not {typename}")
+            raise ValueError(f"topic {topic} has type {known[0]}, not {typename}")
         data = bytes(self._ts.serialize_cdr(message, typename))
-        self._messages.append((int(log_ns), len(self._messages), topic, data))
+        self.messages.append((int(log_ns), len(self.messages), topic, data))
 
     # Messages -------------------------------------------------------------------------
     def path(self, topic: str, frame_id: str, stamp_ns: int, times_ns: np.ndarray,
@@ -206,7 +204,44 @@ class McapOut:
         self._add(topic, "visualization_msgs/msg/MarkerArray", stamp_ns,
                   t["visualization_msgs/msg/MarkerArray"](markers=markers), latched=True)
 
-    # Writing --------------------------------------------------------------------------
+
+    def grid(self, topic: str, frame_id: str, stamp_ns: int, cells: np.ndarray,
+             resolution: float, T_frame_origin: np.ndarray) -> None:
+        """A nav_msgs/OccupancyGrid: ``cells`` (H x W int8, -1 unknown, 0 free, 100
+        occupied; row 0 the one at the origin), the lower-left cell's corner at
+        ``T_frame_origin`` in ``frame_id``."""
+        t = self._t
+        height, width = cells.shape
+        (position, orientation), = self._poses(np.asarray(T_frame_origin)[None])
+        info = t["nav_msgs/msg/MapMetaData"](
+            map_load_time=self._header(stamp_ns, "").stamp, resolution=float(resolution),
+            width=width, height=height,
+            origin=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=position[0], y=position[1],
+                                                      z=position[2]),
+                orientation=orientation))
+        self._add(topic, "nav_msgs/msg/OccupancyGrid", stamp_ns,
+                  t["nav_msgs/msg/OccupancyGrid"](
+                      header=self._header(stamp_ns, frame_id), info=info,
+                      data=np.ascontiguousarray(cells, np.int8).ravel()), latched=True)
+
+
+class McapOut(RosMessages):
+    """Collects messages, then writes them in log-time order on ``close`` (a reader that
+    streams the file sees time move forward); the file appears whole or not at all."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__()
+        self.file = Path(path)
+
+    def __enter__(self) -> McapOut:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if kind is None:
+            self.close()
+
     def close(self) -> None:
         self.file.parent.mkdir(parents=True, exist_ok=True)
         partial = self.file.with_name(self.file.name + ".part")
@@ -214,7 +249,7 @@ class McapOut:
             writer = Writer(f)
             writer.start(profile="ros2", library="fleetslam")
             channels = {}
-            for topic, (typename, latched) in self._topics.items():
+            for topic, (typename, latched) in self.topics.items():
                 schema = writer.register_schema(
                     name=typename, encoding="ros2msg",
                     data=self._ts.generate_msgdef(typename, ros_version=2)[0].encode())
@@ -222,7 +257,7 @@ class McapOut:
                     topic=topic, message_encoding="cdr", schema_id=schema,
                     metadata={"offered_qos_profiles": _LATCHED_QOS if latched
                               else _STREAM_QOS})
-            for log_ns, _, topic, data in sorted(self._messages):
+            for log_ns, _, topic, data in sorted(self.messages):
                 writer.add_message(channels[topic], log_time=log_ns, data=data,
                                    publish_time=log_ns)
             writer.finish()

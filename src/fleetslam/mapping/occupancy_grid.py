@@ -59,6 +59,22 @@ class OccupancyGrid:
             (points_grid[:, 1] - self.origin_xy[1]) / self.resolution)
         return row.astype(np.int64), col.astype(np.int64)
 
+    def ros_cells(self) -> np.ndarray:
+        """nav_msgs/OccupancyGrid's data: -1 unknown, 0 free, 100 occupied, row 0 at the
+        origin (the image's bottom row)."""
+        cells = np.full(self.image.shape, -1, np.int8)
+        cells[self.image == FREE] = 0
+        cells[self.image == OCCUPIED] = 100
+        return cells[::-1].copy()
+
+    @property
+    def T_map_origin(self) -> np.ndarray:
+        """The lower-left cell's corner (OccupancyGrid's origin) in the map frame."""
+        T = self.T_map_grid.copy()
+        T[:3, 3] = transform_points(self.T_map_grid,
+                                    np.array([[*self.origin_xy, 0.0]]))[0]
+        return T
+
     def summary(self, image: str) -> dict:
         return {"image": image, "resolution_m": self.resolution,
                 "size": [int(self.image.shape[1]), int(self.image.shape[0])],
@@ -230,6 +246,30 @@ def occupancy_grid(scans: Sequence[tuple[np.ndarray, np.ndarray]], camera_poses:
         image[counts >= cfg.occupied_min_points] = OCCUPIED
     return OccupancyGrid(image, res, (float(lo[0] * res), float(lo[1] * res)), T_map_grid,
                          source)
+
+
+def read_nav2_map(yaml_path: Path, T_map_grid: np.ndarray, up_source: str = ""
+                  ) -> OccupancyGrid:
+    """A grid ``write_nav2_map`` wrote (its image, resolution, origin); ValueError naming
+    the file and what is wrong."""
+    fields = {}
+    for line in Path(yaml_path).read_text().splitlines():
+        key, _, value = line.partition(":")
+        if value and not line.startswith("#"):
+            fields[key.strip()] = value.strip()
+    try:
+        resolution = float(fields["resolution"])
+        origin = [float(v) for v in fields["origin"].strip("[]").split(",")]
+        raw = (Path(yaml_path).parent / fields["image"]).read_bytes()
+        magic, width, height, depth, *_ = raw.split(maxsplit=4)
+        width, height = int(width), int(height)
+        if magic != b"P5" or int(depth) != 255 or len(raw) < width * height:
+            raise ValueError("not an 8-bit binary PGM")
+        image = np.frombuffer(raw[-width * height:], np.uint8).reshape(height, width)
+    except (KeyError, ValueError, OSError) as exc:
+        raise ValueError(f"{yaml_path}: not a nav2 map fleetslam wrote: {exc}") from None
+    return OccupancyGrid(image.copy(), resolution, (origin[0], origin[1]),
+                         np.asarray(T_map_grid, np.float64), up_source)
 
 
 def write_nav2_map(base: Path, grid: OccupancyGrid, frame: str) -> Path:

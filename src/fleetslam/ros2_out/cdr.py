@@ -31,6 +31,8 @@ TYPE_HASHES = {
     "diagnostic_msgs/msg/DiagnosticArray":
         "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e",
 }
+# What Humble's rmw_zenoh puts where the hash goes (it has no type hashes).
+HUMBLE_TYPE_HASH = "TypeHashNotSupported"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 PATH = "nav_msgs/msg/Path"

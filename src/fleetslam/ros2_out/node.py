@@ -37,7 +37,7 @@ from fleetslam.datasets.rmw_zenoh import (
     qos_chunk,
     topic_key,
 )
-from fleetslam.ros2_out.cdr import TYPE_HASHES
+from fleetslam.ros2_out.cdr import HUMBLE_TYPE_HASH, TYPE_HASHES
 
 log = logging.getLogger("fleetslam.ros2_out")
 
@@ -89,8 +89,10 @@ class RosNode:
     _NODE_ID = 0
 
     def __init__(self, session: zenoh.Session, name: str, namespace: str = "",
-                 domain_id: int = 0) -> None:
+                 domain_id: int = 0, humble: bool = False) -> None:
+        """``humble``: keys and tokens carry Humble's placeholder for the type hash."""
         self.session = session
+        self.humble = humble
         self.name = name
         self.namespace = namespace
         self.domain_id = domain_id
@@ -101,9 +103,11 @@ class RosNode:
         self.publishers: dict[str, RosPublisher] = {}
 
     def publisher(self, topic: str, ros_type: str, depth: int,
-                  transient_local: bool = False) -> RosPublisher:
-        """A publisher of ``ros_type`` (one of ``cdr.TYPE_HASHES``) on ``topic``."""
-        type_hash = TYPE_HASHES[ros_type]
+                  transient_local: bool = False, type_hash: str | None = None
+                  ) -> RosPublisher:
+        """A publisher of ``ros_type`` on ``topic``; its hash is ``cdr.TYPE_HASHES``' unless
+        given (the cloud's messages: rosbags computes it)."""
+        type_hash = HUMBLE_TYPE_HASH if self.humble else type_hash or TYPE_HASHES[ros_type]
         dds_type = dds_type_name(ros_type)
         token = endpoint_token(self.domain_id, self.session_id, self._NODE_ID,
                                next(self._entities), PUBLISHER, self.namespace, self.name,
