@@ -633,3 +633,36 @@ def test_the_cloud_publishes_each_merges_maps_for_late_subscribers(sdk, tmp_path
     path = store.deserialize_cdr(got["/r1/global_path"][-1].payload.to_bytes(),
                                  "nav_msgs/msg/Path")
     assert path.header.frame_id == "map" and len(path.poses) == 30
+
+
+def test_a_tf_tree_with_a_loop_or_a_gap_costs_the_tf_not_the_pose(caplog):
+    """The robot's own TF with a loop, then one whose camera chain stops short of the
+    stamp: each said once in one line, the pose goes on being published (counted), and a
+    tree that mends is said too."""
+    from fleetslam.edge.report import RobotReport
+    from fleetslam.edge.ros2_out import RobotRosOut
+    from fleetslam.launch import free_endpoint
+    from fleetslam.wire.messages import Feedback
+
+    config = Config()
+    config.ros2_out.endpoint = free_endpoint()  # nobody there: nothing is sent anyway
+    out = RobotRosOut("r1", config.ros2_out, RobotReport("r1", 3))
+    caplog.set_level(logging.INFO, logger="fleetslam.ros2_out")
+    out.tf.add([(0, "base_link", "r1/camera", _pose(1)), (0, "r1/camera", "odom", _pose(2))],
+               static=True)
+    out.tf.add([(0, "odom", "base_link", _pose(3))], static=False)
+    for i in range(3):
+        out.feedback(Feedback(i, 1.0 + i, True, False, 100, _pose(i), 5.0), None)
+    assert out.tracked_frames == 3 and out.tf_skipped == 3
+    out.tf.add([(0, "base_link", "r1/camera", _pose(1))], static=True)
+    out.tf.add([(cdr.stamp_ns(1.0), "odom", "r1_base", _pose(3))], static=False)  # unrelated
+    out.tf.add([(0, "world", "odom", np.eye(4))], static=True)  # odom's parent: the loop is gone
+    out.feedback(Feedback(3, 4.0, True, False, 100, _pose(3), 5.0), None)
+    out.tf.add([(cdr.stamp_ns(5.0), "odom", "base_link", _pose(4))], static=False)
+    out.feedback(Feedback(4, 5.0, True, False, 100, _pose(4), 5.0), None)
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines[0] == ("robot r1: ROS 2 out: no /tf for this frame (the pose goes on): the "
+                        "TF tree has a loop: r1/camera -> odom -> base_link -> r1/camera")
+    assert lines[-1] == "robot r1: ROS 2 out: /tf placed again (r1/map -> world)"
+    assert len(lines) == 2 and all("\n" not in line for line in lines)
+    assert out.tracked_frames == 5 and out.tf_skipped == 4
