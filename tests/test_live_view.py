@@ -38,7 +38,7 @@ def viewed_run(scene, tmp_path_factory):
     from fleetslam.datasets.tum import RgbdSequence
     from fleetslam.edge.robot import Robot
     from fleetslam.launch import free_endpoint
-    from fleetslam.visualisation.live_view import open_view
+    from fleetslam.visualisation.views import open_view
 
     tmp = tmp_path_factory.mktemp("viewed")
     config, endpoint = exact_config(), free_endpoint()
@@ -121,7 +121,8 @@ def test_without_rerun_the_view_says_how_to_install_it(monkeypatch, tmp_path, ca
     assert "pip install 'fleetslam[view]'" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
     # The view off needs no rerun.
-    from fleetslam.visualisation.live_view import NullView, open_view
+    from fleetslam.visualisation.live_view import NullView
+    from fleetslam.visualisation.views import open_view
 
     assert isinstance(open_view(exact_config(), None, False), NullView)
 
@@ -192,7 +193,7 @@ def test_without_a_display_the_live_view_is_served_for_a_viewer_to_connect(monke
     from fleetslam.camera import Camera
     from fleetslam.launch import free_endpoint
     from fleetslam.visualisation import recording
-    from fleetslam.visualisation.live_view import open_view
+    from fleetslam.visualisation.views import open_view
 
     viewer_cli = recording._viewer_executable()
     if viewer_cli is None:

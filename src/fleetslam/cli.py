@@ -229,11 +229,11 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     import threading
 
     from fleetslam.cloud.server import CloudServer
-    from fleetslam.visualisation.live_view import open_view
+    from fleetslam.visualisation.views import open_view
     from fleetslam.visualisation.recording import live_plan
 
     _setup_logging(args.quiet)
-    view = open_view(config, args.save, args.view)
+    view = open_view(config, args.save, args.view, args.foxglove)
     for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
     if args.worker_id:
@@ -746,6 +746,10 @@ def build_parser() -> argparse.ArgumentParser:
     cloud.add_argument("--out", required=True, help="the store: maps, trajectories, "
                        "keyframes and checkpoints (reused after a restart; every worker of "
                        "a fleet is given the same folder, a shared volume across machines)")
+    cloud.add_argument("--foxglove", metavar="PORT", type=int, help="serve the live topics "
+                       "(poses, TF, each merge's maps) to the Foxglove app over its WebSocket "
+                       "protocol on this port, no ROS 2 needed (pip install "
+                       "'fleetslam[foxglove]'; host: [view] foxglove_host)")
     cloud.add_argument("--ros2-out", metavar="ENDPOINT", help="after each merge, publish the "
                        "global map, grid, OctoMap, constraints and global paths (transient "
                        "local) to the ROS 2 graph whose Zenoh router is there ([ros2_out])")

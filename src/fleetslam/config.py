@@ -739,6 +739,8 @@ class ViewConfig:
     # 9876: a viewer started on the same machine opens its own server there.
     grpc_bind: Annotated[str, HOST] = "127.0.0.1"
     grpc_port: Annotated[int, between(1, 65535)] = 9877
+    # Where --foxglove PORT serves the Foxglove app (loopback only unless changed).
+    foxglove_host: Annotated[str, HOST] = "127.0.0.1"
     # What that server keeps for viewers that connect late (rerun's size syntax).
     server_memory_limit: Annotated[str, MEMORY_SIZE] = "1GiB"
     # A finished run's maps (fleetslam view): at most this many points each.

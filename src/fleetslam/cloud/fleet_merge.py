@@ -141,13 +141,14 @@ class FleetMerge:
         return summary
 
     def _publish(self, summary: dict[str, Any]) -> None:
-        """The merge's maps to ROS 2; like the report, a failure costs them, not the merge."""
-        if self.ros_out is None:
-            return
+        """The merge's maps to ROS 2 and the live view (Foxglove); like the report, a
+        failure costs them, not the merge."""
         try:
-            self.ros_out.merged(self.out_dir, summary)
+            self.merger.view.fleet_map(self.out_dir, summary)
+            if self.ros_out is not None:
+                self.ros_out.merged(self.out_dir, summary)
         except Exception:
-            log.exception("the merge's maps could not be published to ROS 2")
+            log.exception("the merge's maps could not be published")
 
     def _finished_elsewhere(self) -> list[FinishedMap]:
         """The finished robots other workers serve (or served), read from the store; the

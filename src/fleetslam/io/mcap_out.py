@@ -81,6 +81,10 @@ class RosMessages:
         """REP-2016's hash of a type as this distribution defines it."""
         return str(self._ts.hash_rihs01(typename))
 
+    def definition(self, typename: str) -> str:
+        """The type's ``ros2msg`` definition, with those it uses (an MCAP schema's)."""
+        return str(self._ts.generate_msgdef(typename, ros_version=2)[0])
+
     # Message pieces -----------------------------------------------------------------
     def _header(self, stamp_ns: int, frame_id: str) -> Any:
         stamp = self._t["builtin_interfaces/msg/Time"](sec=int(stamp_ns // 1_000_000_000),
@@ -252,7 +256,7 @@ class McapOut(RosMessages):
             for topic, (typename, latched) in self.topics.items():
                 schema = writer.register_schema(
                     name=typename, encoding="ros2msg",
-                    data=self._ts.generate_msgdef(typename, ros_version=2)[0].encode())
+                    data=self.definition(typename).encode())
                 channels[topic] = writer.register_channel(
                     topic=topic, message_encoding="cdr", schema_id=schema,
                     metadata={"offered_qos_profiles": _LATCHED_QOS if latched

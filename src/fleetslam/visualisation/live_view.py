@@ -97,6 +97,9 @@ class NullView:
                constraints: list[tuple[np.ndarray, np.ndarray, bool | None]]) -> None:
         pass
 
+    def fleet_map(self, run_dir: Path, summary: dict[str, Any]) -> None:
+        """A merge wrote its outputs in ``run_dir`` (``summary``: its summary.json)."""
+
     def close(self) -> None:
         pass
 
@@ -380,10 +383,3 @@ class LiveView(NullView):
             r.bytes_sampled = total
             self._at(t, r)
             self.recording.log(f"robots/{name}/link_kB_per_s", self.rr.Scalars(rate))
-
-
-def open_view(config: Config, save: str | Path | None, live: bool) -> NullView:
-    """The cloud's view for these options: off (a NullView) unless ``save`` or ``live``."""
-    if save is None and not live:
-        return NullView()
-    return LiveView.open(config, Path(save) if save is not None else None, live)
