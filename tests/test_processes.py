@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import time
 from pathlib import Path
 
@@ -52,10 +53,12 @@ def _keyframe_files(out: Path, robot: str) -> set[int]:
 
 def _finish(robot, log: Path, timeout: float = 120.0) -> None:
     try:
-        assert robot.wait(timeout) == 0, _log(log)
-    except Exception:
+        code = robot.wait(timeout)
+    except subprocess.TimeoutExpired:
         stop(robot, 2.0)
-        raise
+        raise AssertionError(f"the robot did not finish in {timeout:.0f} s; its log:\n"
+                             f"{_log(log)}") from None
+    assert code == 0, _log(log)
 
 
 def test_killed_robot_resumes_its_session(scene, lab, tmp_path, capsys):

@@ -62,8 +62,10 @@ def cmd_config(args: argparse.Namespace, config: Config) -> int:
 def _output_files(summary: dict) -> str:
     """The files a run's folder holds, by the summary."""
     merged = (summary.get("merge") or {}).get("members")
-    return ("summary.json, <robot>/trajectory.tum, <robot>/map.ply"
-            + (", global/<robot>.tum, global_map.ply, global_map.bt" if merged else ""))
+    return ("summary.json, <robot>/trajectory.tum, <robot>/online.tum, <robot>/map.ply, "
+            "<robot>/map.pgm + .yaml (nav2)"
+            + (", global/<robot>.tum, global_map.ply, global_map.bt, global_map.pgm + .yaml "
+               "(nav2)" if merged else ""))
 
 
 def cmd_report(args: argparse.Namespace, config: Config) -> int:

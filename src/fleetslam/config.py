@@ -412,8 +412,9 @@ class MergeConfig:
     octomap_max_range_m: Annotated[float, above(0.0)] = 4.0
     seed: Annotated[int, at_least(0)] = 7
     # Each joined robot is told where its map lies in its group's frame (cloud/
-    # fleet_frames.py): at most every placement_every_s, when it moved by more than these,
-    # and every robot's latest again every placement_resend_s.
+    # fleet_frames.py) after a join or a new inter-robot constraint, at most every
+    # placement_every_s, when it moved by more than these; every robot's latest again
+    # every placement_resend_s.
     placement_every_s: Annotated[float, above(0.0)] = 1.0
     placement_move_m: Annotated[float, at_least(0.0)] = 0.005
     placement_move_deg: Annotated[float, at_least(0.0)] = 0.2

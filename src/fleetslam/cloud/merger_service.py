@@ -114,9 +114,14 @@ class MergerService:
         # Under one hold of the lock: a status between a search's answer and its matches
         # would show the search done and its join not yet made.
         with self._lock:
+            before = self._structure()
             for searched in self.merger.search.take_results():
                 self.merger.take_matches(searched)
-                self._view_due = self._placing_due = True
+                self._view_due = True
+            # Robots are told again only when a join or an inter-robot constraint changed
+            # the graph: solving it for every new keyframe would cost the merger's thread
+            # (20 ms a solve at 70 keyframes, growing with the map).
+            self._placing_due |= self._structure() != before
 
     def _update_poses(self, robot: str, poses: np.ndarray) -> None:
         with self._lock:
@@ -163,7 +168,6 @@ class MergerService:
             kind, payload = item
             try:
                 self._view_due |= kind in ("robot", "keyframe")
-                self._placing_due |= kind in ("robot", "keyframe", "remote", "rebuild")
                 if kind == "robot":
                     robot, camera, keyframes, poses, asked = payload
                     self._take_robot(robot, camera, keyframes, poses, asked)
@@ -210,6 +214,11 @@ class MergerService:
         self.view.merged(transforms, lines)
         self._view_due = False
         self._view_at = time.monotonic()
+
+    def _structure(self) -> tuple[int, tuple[tuple[str, ...], ...]]:
+        """What placements depend on: the inter-robot constraints and the groups."""
+        m = self.merger
+        return len(m.constraints), tuple(sorted(tuple(v) for v in m.components().values()))
 
     def _place(self) -> None:
         """Tell the joined robots where their maps lie, when something changed and at most

@@ -225,7 +225,8 @@ class RobotRosOut:
             self.unpublished += 1
             return
         try:
-            pub.publish(data)
+            if not pub.publish(data):  # closed under us (shutdown)
+                self.unpublished += 1
         except zenoh.ZError as exc:  # the session closed under us (shutdown)
             self.unpublished += 1
             log.debug("robot %s: ROS 2 out: %s not published: %s", self.robot_id, name, exc)

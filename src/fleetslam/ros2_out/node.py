@@ -61,23 +61,32 @@ class RosPublisher:
                 key, congestion_control=zenoh.CongestionControl.DROP, express=True)
         self._token = session.liveliness().declare_token(token_key)
         self._sequence = itertools.count(1)
+        # Zenoh's publisher may not be put to while it is undeclared (PyO3: "Already
+        # borrowed"): both under this lock, and nothing is put once closed.
         self._lock = threading.Lock()
+        self._closed = False
         self.published = 0
         self.bytes = 0
 
-    def publish(self, cdr: bytes) -> None:
+    def publish(self, cdr: bytes) -> bool:
+        """Put one message; False once closed."""
         with self._lock:
+            if self._closed:
+                return False
             attachment = make_attachment(next(self._sequence), time.time_ns(), self.gid)
             self._pub.put(cdr, attachment=attachment)
             self.published += 1
             self.bytes += len(cdr)
+            return True
 
     def close(self) -> None:
-        for part in (self._token, self._pub):
-            try:
-                part.undeclare()
-            except zenoh.ZError:
-                pass  # the session is gone already
+        with self._lock:
+            self._closed = True
+            for part in (self._token, self._pub):
+                try:
+                    part.undeclare()
+                except zenoh.ZError:
+                    pass  # the session is gone already
 
 
 class RosNode:
