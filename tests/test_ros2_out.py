@@ -344,7 +344,8 @@ def _tum_rows(path) -> dict[int, np.ndarray]:
 
 
 def run_through_cloud(tmp_path, robots: list, merge: bool = False,
-                      cloud_config: Config | None = None, while_up=None) -> dict | None:
+                      cloud_config: Config | None = None, while_up=None,
+                      view=None) -> dict | None:
     """Run ``robots`` (edge.robot.Robot, their config's endpoint a cloud to start here) to
     their end in threads; with ``merge``, merge once every robot's session ended (a robot
     holding its ROS 2 node then hears the final placement); the summary, else None.
@@ -352,7 +353,8 @@ def run_through_cloud(tmp_path, robots: list, merge: bool = False,
     from fleetslam.cloud.server import CloudServer
 
     endpoint = robots[0].endpoint
-    server = CloudServer(cloud_config or Config(), tmp_path / "cloud", endpoint).start()
+    server = CloudServer(cloud_config or Config(), tmp_path / "cloud", endpoint,
+                         view=view).start()
     errors: list = []
 
     def run(robot) -> None:
@@ -580,24 +582,31 @@ def test_a_tf_message_that_is_not_one_is_refused_with_the_reason():
             cdr.read_tf_message(data, "/tf")
 
 
-def test_the_cloud_publishes_each_merges_maps_for_late_subscribers(sdk, tmp_path,
-                                                                   synthetic_scene):
-    """``cloud --ros2-out``: after the merge, a subscriber that starts only then (zenoh-ext's
-    AdvancedSubscriber looking for late publishers, as rmw_zenoh's TRANSIENT_LOCAL
-    subscriptions do) gets /map/global and /map/grid: the merge's PLY and nav2 map."""
+def test_the_cloud_publishes_poses_and_each_merges_maps_for_late_subscribers(
+        sdk, tmp_path, synthetic_scene):
+    """``cloud --ros2-out``: each robot's pose as the cloud tracks it (zenoh-ros2-sdk's
+    subscriber: every tracked frame, at its capture time, the pose of online.tum), and after
+    the merge, for a subscriber that starts only then (zenoh-ext's AdvancedSubscriber
+    looking for late publishers, as rmw_zenoh's TRANSIENT_LOCAL subscriptions do),
+    /map/global and /map/grid: the merge's PLY and nav2 map."""
     import zenoh.ext
 
-    from fleetslam.datasets.ros2_session import open_ros_session
     from fleetslam.datasets.rmw_zenoh import topic_key
+    from fleetslam.datasets.ros2_session import open_ros_session
     from fleetslam.io.ply import read_ply
     from fleetslam.launch import free_endpoint
+    from fleetslam.visualisation.views import open_view
 
     _, folders = synthetic_scene
     cloud = free_endpoint()
     config = Config()
     config.ros2_out.endpoint = sdk
+    view = open_view(config, None, False)
+    assert view.sink.wait_connected(10.0)
     robots = [ros_robot(f"r{i}", str(f), cloud) for i, f in enumerate(folders)]
     got: dict[str, list] = {"/map/global": [], "/map/grid": [], "/r1/global_path": []}
+    poses: list = []
+    live = sdk_subscriber(sdk, "/r0/pose", cdr.POSE_STAMPED, poses)
 
     def subscribe_late(_) -> None:
         session = open_ros_session(sdk, 5.0)
@@ -612,10 +621,19 @@ def test_the_cloud_publishes_each_merges_maps_for_late_subscribers(sdk, tmp_path
         finally:
             session.close()
 
-    summary = run_through_cloud(tmp_path, robots, merge=True, cloud_config=config,
-                                while_up=subscribe_late)
+    try:
+        summary = run_through_cloud(tmp_path, robots, merge=True, cloud_config=config,
+                                    while_up=subscribe_late, view=view)
+    finally:
+        live.close()
     merge = summary["merge"]
     assert sorted(merge["members"]) == ["r0", "r1"]
+    online = _tum_rows(tmp_path / "cloud" / "r0" / "online.tum")
+    by_stamp = {int(round(_stamp_ns(p.header) / 1000)): p for p in poses}
+    assert set(by_stamp) == set(online)  # every tracked frame, at its capture time
+    for stamp, p in by_stamp.items():
+        np.testing.assert_allclose(tum_from_T(_message_T(p.pose)[None])[0], online[stamp],
+                                   atol=1e-9)
     store = _typestore()
     cloud_msg = store.deserialize_cdr(got["/map/global"][-1].payload.to_bytes(),
                                       "sensor_msgs/msg/PointCloud2")

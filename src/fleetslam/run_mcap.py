@@ -131,7 +131,7 @@ def add_fleet_map(out: RosMessages, run_dir: Path, summary: dict[str, Any],
                   stamp_ns: int) -> None:
     """The merge's results in the global frame, each one latched message at ``stamp_ns``:
     every member's global path, the global cloud, OctoMap, constraints and grid (what
-    the cloud publishes live after a merge, cloud/ros2_fleet.py)."""
+    the cloud publishes live after a merge, visualisation/topic_view.py)."""
     merge = summary["merge"]
     for name in merge["members"]:
         times, poses = read_tum_trajectory(run_dir / merge["global_trajectories"][name])

@@ -14,7 +14,6 @@ from typing import Any, Callable
 
 from fleetslam.cloud.merger_service import MergerService
 from fleetslam.cloud.robot_session import Publish
-from fleetslam.cloud.ros2_fleet import FleetRosOut
 from fleetslam.cloud.session_outputs import FinishedMap
 from fleetslam.cloud.sessions import SessionTable
 from fleetslam.config import Config
@@ -78,12 +77,9 @@ class MergeRequests:
 
 class FleetMerge:
     def __init__(self, config: Config, out_dir: Path, sessions: SessionTable,
-                 merger: MergerService, merges: Callable[[], bool] = lambda: True,
-                 ros_out: FleetRosOut | None = None) -> None:
+                 merger: MergerService, merges: Callable[[], bool] = lambda: True) -> None:
         """``merges``: whether this worker still holds the merger's role (with a
-        coordination service, its fenced grant): asked before each output is written;
-        ``ros_out``: publishes each merge's maps to a ROS 2 graph."""
-        self.ros_out = ros_out
+        coordination service, its fenced grant): asked before each output is written."""
         self.config = config
         self.out_dir = out_dir
         self.sessions = sessions
@@ -141,12 +137,10 @@ class FleetMerge:
         return summary
 
     def _publish(self, summary: dict[str, Any]) -> None:
-        """The merge's maps to ROS 2 and the live view (Foxglove); like the report, a
+        """The merge's maps to the live views (a ROS 2 graph, Foxglove); like the report, a
         failure costs them, not the merge."""
         try:
             self.merger.view.fleet_map(self.out_dir, summary)
-            if self.ros_out is not None:
-                self.ros_out.merged(self.out_dir, summary)
         except Exception:
             log.exception("the merge's maps could not be published")
 

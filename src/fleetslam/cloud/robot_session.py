@@ -519,7 +519,7 @@ class RobotSession:
         st.first_frame_time = st.first_frame_time or now
         st.last_frame_time = now
         self.view.frame(self.robot_id, out.index, st.rows[-1].T_world_camera, out.tracked,
-                        out.is_keyframe, header.split_point, cloud_ms)
+                        out.is_keyframe, header.split_point, cloud_ms, out.timestamp)
 
     def _on_new_keyframe(self, state: Any, seq: int, frame_index: int,
                          to_merger: bool) -> None:

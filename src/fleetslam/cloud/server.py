@@ -46,7 +46,6 @@ from fleetslam.cloud.memory_budget import MB
 from fleetslam.cloud.ownership import Ownership
 from fleetslam.cloud.placement import Placement
 from fleetslam.cloud.robot_session import OVER_BUDGET
-from fleetslam.cloud.ros2_fleet import FleetRosOut
 from fleetslam.cloud.routing import Router
 from fleetslam.cloud.sessions import SessionTable
 from fleetslam.cloud.store import CloudStore
@@ -104,11 +103,9 @@ class CloudServer:
                                  self.publish_droppable, lambda: self.placement,
                                  FleetFrames(config.merge, self.publish))
         self.merger = self.merging.merger
-        # The merge's maps to the lab's ROS 2 graph (--ros2-out), from the merging worker.
-        self.ros_out = FleetRosOut(config.ros2_out) if config.ros2_out.endpoint else None
         self.fleet_merge = FleetMerge(config, self.out_dir, self.sessions, self.merger,
                                       lambda: self.placement is None
-                                      or self.placement.merges(), self.ros_out)
+                                      or self.placement.merges())
         # Through self.merge, whatever it is when a request comes (a test slows it down).
         self.merge_requests = MergeRequests(lambda: self.merge(), self.publish)
         self.router = Router(config, self.sessions, self.merging, self.publish,
@@ -184,8 +181,6 @@ class CloudServer:
         if self.local_mapping is not None:
             self.local_mapping.close()
         self.view.close()
-        if self.ros_out is not None:
-            self.ros_out.close()
         self.router.close()
         if self._zenoh is not None:
             self._zenoh.close()

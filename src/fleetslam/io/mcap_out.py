@@ -1,7 +1,7 @@
 """A run's results as ROS 2 messages (``RosMessages``: serialised by rosbags' typestore, CDR),
 and those messages in an MCAP file that Foxglove, ``ros2 bag play`` and the ``mcap`` tools
 open (``McapOut``: written by the mcap library with each schema's ``ros2msg`` definition,
-ROS 2 Humble's), or published live (cloud/ros2_fleet.py, with the ROS 2 graph's own
+ROS 2 Humble's), or published live (visualisation/topic_view.py, with the ROS 2 graph's own
 definitions). Takes plain arrays (poses N x 4 x 4, times in ns, points); what a run's
 messages are is decided above (run_mcap.py)."""
 

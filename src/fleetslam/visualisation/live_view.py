@@ -83,8 +83,9 @@ class NullView:
         pass
 
     def frame(self, robot: str, index: int, T_map_camera: np.ndarray, tracked: bool,
-              is_keyframe: bool, split_point: int, cloud_ms: float) -> None:
-        pass
+              is_keyframe: bool, split_point: int, cloud_ms: float,
+              timestamp: float | None = None) -> None:
+        """A frame the cloud tracked (``timestamp``: its capture time, seconds)."""
 
     def keyframe_poses(self, robot: str, frames: Sequence[int], poses: np.ndarray) -> None:
         pass
@@ -169,7 +170,8 @@ class LiveView(NullView):
             self._received[robot] = self._received.get(robot, 0) + nbytes
 
     def frame(self, robot: str, index: int, T_map_camera: np.ndarray, tracked: bool,
-              is_keyframe: bool, split_point: int, cloud_ms: float) -> None:
+              is_keyframe: bool, split_point: int, cloud_ms: float,
+              timestamp: float | None = None) -> None:
         self._put(("frame", robot, index, T_map_camera, tracked, is_keyframe, split_point,
                    cloud_ms))
 

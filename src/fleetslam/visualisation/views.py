@@ -1,8 +1,10 @@
 """Which live views the cloud runs (``--view`` / ``--save``: rerun's, live_view.py;
-``--foxglove``: Foxglove's, foxglove_view.py), as one view its sessions and merger call."""
+``--foxglove``: the Foxglove app's, ``--ros2-out``: a ROS 2 graph's, both topic_view.py), as
+one view its sessions and merger call."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -12,6 +14,7 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.visualisation.live_view import LiveView, NullView
+from fleetslam.visualisation.topic_view import TopicView
 
 
 class Views(NullView):
@@ -34,9 +37,11 @@ class Views(NullView):
             v.received(robot, nbytes)
 
     def frame(self, robot: str, index: int, T_map_camera: np.ndarray, tracked: bool,
-              is_keyframe: bool, split_point: int, cloud_ms: float) -> None:
+              is_keyframe: bool, split_point: int, cloud_ms: float,
+              timestamp: float | None = None) -> None:
         for v in self.views:
-            v.frame(robot, index, T_map_camera, tracked, is_keyframe, split_point, cloud_ms)
+            v.frame(robot, index, T_map_camera, tracked, is_keyframe, split_point, cloud_ms,
+                    timestamp)
 
     def keyframe_poses(self, robot: str, frames: Sequence[int], poses: np.ndarray) -> None:
         for v in self.views:
@@ -64,14 +69,22 @@ class Views(NullView):
 def open_view(config: Config, save: str | Path | None, live: bool,
               foxglove_port: int | None = None) -> NullView:
     """The cloud's view for these options: rerun's with ``save`` or ``live``, Foxglove's
-    with ``foxglove_port``, both, or off (a NullView)."""
+    with ``foxglove_port``, the ROS 2 graph's at ``[ros2_out] endpoint`` (``--ros2-out``),
+    as many as asked, or off (a NullView)."""
     views: list[NullView] = []
     if save is not None or live:
         views.append(LiveView.open(config, Path(save) if save is not None else None, live))
+    distro = config.ros2_out.distro
     if foxglove_port is not None:
-        from fleetslam.visualisation.foxglove_view import FoxgloveView
+        from fleetslam.visualisation.foxglove_view import FoxgloveSink
 
-        views.append(FoxgloveView(config.view, foxglove_port))
+        views.append(TopicView(FoxgloveSink(config.view, foxglove_port, distro), distro))
+    if config.ros2_out.endpoint:
+        from fleetslam.visualisation.ros2_sink import Ros2Sink
+
+        # One node per cloud process: ROS 2 wants node names unique on a graph.
+        views.append(TopicView(Ros2Sink(config.ros2_out, f"fleetslam_cloud_{os.getpid()}"),
+                               distro))
     if not views:
         return NullView()
     return views[0] if len(views) == 1 else Views(views)
