@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -94,3 +95,32 @@ def secure_endpoint() -> str:
     from fleetslam.launch import free_endpoint
 
     return free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
+
+
+# ---------------------------------------------------------------- a ROS 2 graph over Zenoh
+
+@pytest.fixture(scope="module")
+def ros_router() -> Iterator[str]:
+    """A Zenoh router on a free loopback port, standing in for the robot's rmw_zenohd."""
+    from fleetslam.launch import free_endpoint
+    from fleetslam.transport.zenoh_session import open_router
+
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    yield endpoint
+    router.close()
+
+
+@pytest.fixture
+def sdk_session(ros_router) -> Iterator[str]:
+    """zenoh-ros2-sdk's one shared session, on ``ros_router``, closed after the test (the
+    SDK keeps it in a class attribute for the whole process otherwise)."""
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    port = int(ros_router.rsplit(":", 1)[1])
+    session = ZenohSession.get_instance("127.0.0.1", port)
+    if session.router_port != port:  # left over from another router
+        session.close()
+        session = ZenohSession.get_instance("127.0.0.1", port)
+    yield ros_router
+    session.close()

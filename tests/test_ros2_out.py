@@ -13,7 +13,6 @@ import logging
 import struct
 import threading
 import time
-from collections.abc import Iterator
 from types import SimpleNamespace
 
 import numpy as np
@@ -118,32 +117,6 @@ def test_attachment_round_trip():
 # ---------------------------------------------------------------------------- the node
 
 
-@pytest.fixture
-def ros_graph() -> Iterator[str]:
-    """A Zenoh router on a free loopback port, standing in for the robot's rmw_zenohd."""
-    from fleetslam.launch import free_endpoint
-    from fleetslam.transport.zenoh_session import open_router
-
-    endpoint = free_endpoint()
-    router = open_router(endpoint)
-    yield endpoint
-    router.close()
-
-
-@pytest.fixture
-def sdk(ros_graph) -> Iterator[str]:
-    """zenoh-ros2-sdk's one shared session on ``ros_graph``, closed after the test."""
-    from zenoh_ros2_sdk.session import ZenohSession
-
-    port = int(ros_graph.rsplit(":", 1)[1])
-    session = ZenohSession.get_instance("127.0.0.1", port)
-    if session.router_port != port:
-        session.close()
-        session = ZenohSession.get_instance("127.0.0.1", port)
-    yield ros_graph
-    session.close()
-
-
 def sdk_subscriber(endpoint: str, topic: str, ros_type: str, sink: list,
                    transient_local: bool = False):
     """zenoh-ros2-sdk's subscriber, with the definition and hash from rosbags (offline)."""
@@ -167,11 +140,11 @@ def wait_for(condition, timeout: float, what: str) -> None:
         time.sleep(0.02)
 
 
-def test_a_node_announces_itself_and_its_publishers_as_rmw_zenoh_does(ros_graph):
+def test_a_node_announces_itself_and_its_publishers_as_rmw_zenoh_does(ros_router):
     from fleetslam.datasets.ros2_session import open_ros_session
     from fleetslam.ros2_out.node import RosNode
 
-    session = open_ros_session(ros_graph, 5.0)
+    session = open_ros_session(ros_router, 5.0)
     try:
         node = RosNode(session, "fleetslam_r1", domain_id=3)
         pub = node.publisher("/r1/pose", cdr.POSE_STAMPED, 10)
@@ -197,7 +170,7 @@ def test_a_node_announces_itself_and_its_publishers_as_rmw_zenoh_does(ros_graph)
         session.close()
 
 
-def test_a_late_subscriber_gets_the_transient_local_message(sdk):
+def test_a_late_subscriber_gets_the_transient_local_message(sdk_session):
     """Published before anyone listens: zenoh-ros2-sdk's TRANSIENT_LOCAL subscriber (on a
     one-chunk topic: the SDK looks late publishers up unmangled) and zenoh-ext's
     AdvancedSubscriber with late-publisher detection (on a namespaced topic) get it."""
@@ -206,7 +179,7 @@ def test_a_late_subscriber_gets_the_transient_local_message(sdk):
     from fleetslam.datasets.ros2_session import open_ros_session
     from fleetslam.ros2_out.node import RosNode
 
-    session = open_ros_session(sdk, 5.0)
+    session = open_ros_session(sdk_session, 5.0)
     T = _pose(3)
     try:
         node = RosNode(session, "fleetslam_r1")
@@ -216,7 +189,7 @@ def test_a_late_subscriber_gets_the_transient_local_message(sdk):
         latched.publish(cdr.pose_stamped(11, "r1/map", T))
         time.sleep(0.3)
         got: list = []
-        sub = sdk_subscriber(sdk, "/tf_static", cdr.TF_MESSAGE, got, transient_local=True)
+        sub = sdk_subscriber(sdk_session, "/tf_static", cdr.TF_MESSAGE, got, transient_local=True)
         wait_for(lambda: got, 5.0, "the SDK's late subscriber")
         np.testing.assert_allclose(_message_T(got[0].transforms[0].transform), T, atol=1e-12)
         sub.close()
@@ -383,21 +356,21 @@ def run_through_cloud(tmp_path, robots: list, merge: bool = False,
     return summary
 
 
-def ros_robot(robot_id: str, spec: str, cloud: str, ros_graph: str | None = None, **ros2_out):
+def ros_robot(robot_id: str, spec: str, cloud: str, ros_router: str | None = None, **ros2_out):
     from fleetslam.datasets.recording import open_source
     from fleetslam.edge.robot import Robot
 
     config = Config()
     config.transport.endpoint = cloud
-    if ros_graph is not None:
-        config.ros2_out.endpoint = ros_graph
+    if ros_router is not None:
+        config.ros2_out.endpoint = ros_router
     for key, value in ros2_out.items():
         setattr(config.ros2_out, key, value)
     return Robot(robot_id, open_source(spec), robot_id, 3, config, show_progress=False)
 
 
 @pytest.mark.realdata
-def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk, tmp_path):
+def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk_session, tmp_path):
     """Two robots on real frames (TUM fr1_rpy 0-89 and 50-149) through a cloud; r1
     publishes to a ROS 2 graph (a router standing in for rmw_zenohd). Subscribers we did
     not write get /r1/pose for >= 95 % of r1's tracked frames, each the pose the cloud
@@ -411,13 +384,13 @@ def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk, tmp_path):
     static: list = []
     paths: list = []
     status: list = []
-    subs = [sdk_subscriber(sdk, "/r1/path", cdr.PATH, paths),
-            sdk_subscriber(sdk, "/diagnostics", cdr.DIAGNOSTIC_ARRAY, status),
-            sdk_subscriber(sdk, "/r1/pose", cdr.POSE_STAMPED, poses),
-            sdk_subscriber(sdk, "/tf", cdr.TF_MESSAGE, tfs),
-            sdk_subscriber(sdk, "/tf_static", cdr.TF_MESSAGE, static, transient_local=True)]
+    subs = [sdk_subscriber(sdk_session, "/r1/path", cdr.PATH, paths),
+            sdk_subscriber(sdk_session, "/diagnostics", cdr.DIAGNOSTIC_ARRAY, status),
+            sdk_subscriber(sdk_session, "/r1/pose", cdr.POSE_STAMPED, poses),
+            sdk_subscriber(sdk_session, "/tf", cdr.TF_MESSAGE, tfs),
+            sdk_subscriber(sdk_session, "/tf_static", cdr.TF_MESSAGE, static, transient_local=True)]
     cloud = free_endpoint()
-    r1 = ros_robot("r1", f"{TUM_RPY}:0-89", cloud, sdk, hold_s=120.0)
+    r1 = ros_robot("r1", f"{TUM_RPY}:0-89", cloud, sdk_session, hold_s=120.0)
     try:
         summary = run_through_cloud(tmp_path, [r1, ros_robot("r2", f"{TUM_RPY}:50-149", cloud)],
                                     merge=True)
@@ -472,9 +445,9 @@ def _transform_message(store, stamp_ns: int, parent: str, child: str, T: np.ndar
 
 
 @pytest.mark.realdata
-def test_with_odometry_the_robot_publishes_map_to_odom(sdk, tmp_path):
+def test_with_odometry_the_robot_publishes_map_to_odom(sdk_session, tmp_path):
     """REP 105: the robot's graph has odometry (odom -> base_link on /tf, from zenoh-ros2-
-    sdk) and the camera's mounting (static base_link -> camera): the robot publishes
+    sdk_session) and the camera's mounting (static base_link -> camera): the robot publishes
     r1/map -> odom, never a second parent for the camera, and map -> odom composed with the
     robot's own odom -> camera at the frame's stamp is the pose the cloud tracked."""
     from zenoh_ros2_sdk.publisher import ROS2Publisher
@@ -489,7 +462,7 @@ def test_with_odometry_the_robot_publishes_map_to_odom(sdk, tmp_path):
             for i, t in enumerate(stamps)}
     mount = make_T(rotation_exp([-np.pi / 2, 0.0, -np.pi / 2]), [0.1, 0.0, 0.3])
     camera = "camera_rgb_optical_frame"
-    port = int(sdk.rsplit(":", 1)[1])
+    port = int(sdk_session.rsplit(":", 1)[1])
     pubs = {name: ROS2Publisher(name, cdr.TF_MESSAGE,
                                 msg_definition=store.generate_msgdef(cdr.TF_MESSAGE, 2)[0],
                                 type_hash=store.hash_rihs01(cdr.TF_MESSAGE),
@@ -507,10 +480,10 @@ def test_with_odometry_the_robot_publishes_map_to_odom(sdk, tmp_path):
                                                                T) for t, T in odom.items()])
 
     tfs: list = []
-    sub = sdk_subscriber(sdk, "/tf", cdr.TF_MESSAGE, tfs)
+    sub = sdk_subscriber(sdk_session, "/tf", cdr.TF_MESSAGE, tfs)
     node = threading.Thread(target=base_node, daemon=True)
     node.start()
-    r1 = ros_robot("r1", f"{TUM_RPY}:0-59", free_endpoint(), sdk, camera_frame=camera)
+    r1 = ros_robot("r1", f"{TUM_RPY}:0-59", free_endpoint(), sdk_session, camera_frame=camera)
     try:
         run_through_cloud(tmp_path, [r1])
     finally:
@@ -583,7 +556,7 @@ def test_a_tf_message_that_is_not_one_is_refused_with_the_reason():
 
 
 def test_the_cloud_publishes_poses_and_each_merges_maps_for_late_subscribers(
-        sdk, tmp_path, synthetic_scene):
+        sdk_session, tmp_path, synthetic_scene):
     """``cloud --ros2-out``: each robot's pose as the cloud tracks it (zenoh-ros2-sdk's
     subscriber: every tracked frame, at its capture time, the pose of online.tum), and after
     the merge, for a subscriber that starts only then (zenoh-ext's AdvancedSubscriber
@@ -600,16 +573,16 @@ def test_the_cloud_publishes_poses_and_each_merges_maps_for_late_subscribers(
     _, folders = synthetic_scene
     cloud = free_endpoint()
     config = Config()
-    config.ros2_out.endpoint = sdk
+    config.ros2_out.endpoint = sdk_session
     view = open_view(config, None, False)
     assert view.sink.wait_connected(10.0)
     robots = [ros_robot(f"r{i}", str(f), cloud) for i, f in enumerate(folders)]
     got: dict[str, list] = {"/map/global": [], "/map/grid": [], "/r1/global_path": []}
     poses: list = []
-    live = sdk_subscriber(sdk, "/r0/pose", cdr.POSE_STAMPED, poses)
+    live = sdk_subscriber(sdk_session, "/r0/pose", cdr.POSE_STAMPED, poses)
 
     def subscribe_late(_) -> None:
-        session = open_ros_session(sdk, 5.0)
+        session = open_ros_session(sdk_session, 5.0)
         try:
             subs = [zenoh.ext.declare_advanced_subscriber(
                 session, topic_key(0, topic), lambda s, t=topic: got[t].append(s),
