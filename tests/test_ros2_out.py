@@ -581,7 +581,13 @@ def test_the_cloud_publishes_poses_and_each_merges_maps_for_late_subscribers(
     poses: list = []
     live = sdk_subscriber(sdk_session, "/r0/pose", cdr.POSE_STAMPED, poses)
 
+    static: list = []
+
     def subscribe_late(_) -> None:
+        late_tf = sdk_subscriber(sdk_session, "/tf_static", cdr.TF_MESSAGE, static,
+                                 transient_local=True)
+        wait_for(lambda: static, 10.0, "the merge's /tf_static")
+        late_tf.close()
         session = open_ros_session(sdk_session, 5.0)
         try:
             subs = [zenoh.ext.declare_advanced_subscriber(
@@ -606,6 +612,13 @@ def test_the_cloud_publishes_poses_and_each_merges_maps_for_late_subscribers(
     assert set(by_stamp) == set(online)  # every tracked frame, at its capture time
     for stamp, p in by_stamp.items():
         np.testing.assert_allclose(tum_from_T(_message_T(p.pose)[None])[0], online[stamp],
+                                   atol=1e-9)
+    fleet = {t.child_frame_id: t for t in static[-1].transforms}
+    assert set(fleet) == {"r0/map", "r1/map"}
+    for robot, t in fleet.items():
+        assert t.header.frame_id == "map"
+        np.testing.assert_allclose(_message_T(t.transform),
+                                   np.array(merge["T_global_map"][robot.split("/")[0]]),
                                    atol=1e-9)
     store = _typestore()
     cloud_msg = store.deserialize_cdr(got["/map/global"][-1].payload.to_bytes(),

@@ -211,7 +211,7 @@ class MergerService:
             if q.keyframe < len(poses[q.robot]) and p.keyframe < len(poses[p.robot]):
                 lines.append((poses[q.robot][q.keyframe][:3, 3].copy(),
                               poses[p.robot][p.keyframe][:3, 3].copy(), c.kept))
-        self.view.merged(transforms, lines)
+        self.view.merged(transforms, lines, m.components())
         self._view_due = False
         self._view_at = time.monotonic()
 

@@ -95,8 +95,9 @@ class NullView:
         pass
 
     def merged(self, T_global_map: dict[str, np.ndarray],
-               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]]) -> None:
-        pass
+               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
+               groups: dict[str, list[str]] | None = None) -> None:
+        """Where the merger places each robot's map (``groups``: anchor -> members)."""
 
     def fleet_map(self, run_dir: Path, summary: dict[str, Any]) -> None:
         """A merge wrote its outputs in ``run_dir`` (``summary``: its summary.json)."""
@@ -184,7 +185,8 @@ class LiveView(NullView):
                    decimated_by))
 
     def merged(self, T_global_map: dict[str, np.ndarray],
-               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]]) -> None:
+               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
+               groups: dict[str, list[str]] | None = None) -> None:
         self._put(("merged", T_global_map, constraints))
 
     def close(self) -> None:

@@ -5,8 +5,10 @@ cloud --ros2-out ENDPOINT``, ``ros2_sink.py``) or the Foxglove app (``--foxglove
     /<robot>/pose        geometry_msgs/PoseStamped  each frame this worker tracked, in
                                                     <robot>/map, at its capture time
     /tf                  tf2_msgs/TFMessage         <robot>/map -> <robot>/camera
-    /tf_static           tf2_msgs/TFMessage         map -> <robot>/map, as the merger places
-                                                    the robots (every view.global_every_s)
+    /tf_static           tf2_msgs/TFMessage         map -> <robot>/map for the robots of the
+                                                    largest joined group (the merge's), as
+                                                    the merger places them (at most every
+                                                    view.global_every_s)
     /map/global, /map/grid, /map/octomap, /map/constraints, /<robot>/global_path
                                                     each merge's (run_mcap.add_fleet_map)
 
@@ -60,21 +62,32 @@ class TopicView(NullView):
             [(stamp, map_frame(robot), camera_frame(robot), T_map_camera)]), False)
 
     def merged(self, T_global_map: dict[str, np.ndarray],
-               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]]) -> None:
-        if not T_global_map:
+               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
+               groups: dict[str, list[str]] | None = None) -> None:
+        # `map` is one group's frame: the largest's (the one a merge writes; ties to the
+        # anchor whose id sorts first). A robot not joined yet is in no fleet frame.
+        joined = [(a, ms) for a, ms in (groups or {}).items() if len(ms) > 1]
+        if not joined:
             return
+        _, members = min(joined, key=lambda g: (-len(g[1]), g[0]))
         now = time.time_ns()
         self.sink.publish("/tf_static", cdr.TF_MESSAGE, cdr.tf_message(
-            [(now, GLOBAL_FRAME, map_frame(robot), T)
-             for robot, T in sorted(T_global_map.items())]), True)
+            [(now, GLOBAL_FRAME, map_frame(robot), T_global_map[robot])
+             for robot in sorted(members) if robot in T_global_map]), True)
 
     def fleet_map(self, run_dir: Path, summary: dict[str, Any]) -> None:
         if not (summary.get("merge") or {}).get("members"):
             return
+        now = time.time_ns()
         messages = RosMessages(self.store)
-        add_fleet_map(messages, Path(run_dir), summary, time.time_ns())
+        add_fleet_map(messages, Path(run_dir), summary, now)
         for _, _, topic, data in messages.messages:
             self.sink.publish(topic, messages.topics[topic][0], data, True)
+        # The merge's own transforms (FS-HICP's, summary.json's), after the graph's.
+        merge = summary["merge"]
+        self.sink.publish("/tf_static", cdr.TF_MESSAGE, cdr.tf_message(
+            [(now, GLOBAL_FRAME, map_frame(robot), np.array(merge["T_global_map"][robot]))
+             for robot in sorted(merge["members"])]), True)
 
     def close(self) -> None:
         self.sink.close()

@@ -53,9 +53,10 @@ class Views(NullView):
             v.keyframe_points(robot, index, T_map_keyframe, rgb, depth_raw, decimated_by)
 
     def merged(self, T_global_map: dict[str, np.ndarray],
-               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]]) -> None:
+               constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
+               groups: dict[str, list[str]] | None = None) -> None:
         for v in self.views:
-            v.merged(T_global_map, constraints)
+            v.merged(T_global_map, constraints, groups)
 
     def fleet_map(self, run_dir: Path, summary: dict[str, Any]) -> None:
         for v in self.views:
