@@ -37,11 +37,10 @@ import zenoh.ext
 from fleetslam.config import Ros2OutConfig
 from fleetslam.datasets.live import LiveSource
 from fleetslam.datasets.rmw_zenoh import dds_type_name, parse_attachment, topic_key
-from fleetslam.datasets.ros2_session import open_ros_session
-from fleetslam.datasets.ros2_topics import resolve_domain_id
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.edge.report import RobotReport
 from fleetslam.ros2_out import cdr
+from fleetslam.ros2_out.graph import GraphLink
 from fleetslam.ros2_out.node import RosNode, RosPublisher
 from fleetslam.ros2_out.tf_buffer import TfBuffer, TfError
 from fleetslam.transforms import invert
@@ -98,9 +97,8 @@ class RobotRosOut:
         self.node_name = f"fleetslam_{name}"
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._connected = threading.Event()
-        self._session: zenoh.Session | None = None
-        self._node: RosNode | None = None
+        self.graph = GraphLink(cfg, self.node_name, self, f"robot {robot_id}",
+                               hint="Set it with --ros2-out or [ros2_out] endpoint")
         self._pubs: dict[str, RosPublisher] = {}
         self._subs: list = []
         # The robot's own TF tree, as its graph publishes it (not ours: by publisher GID).
@@ -121,10 +119,8 @@ class RobotRosOut:
         self._round_trips: deque[float] = deque(maxlen=ROUND_TRIPS_KEPT)
         self._taken: dict[int, list[int | None]] = {}  # frame -> [taken, sent] ns
         self.timings: deque[PoseTiming] = deque(maxlen=TIMINGS_KEPT)
-        self._threads = [threading.Thread(target=self._connect, daemon=True,
-                                          name=f"ros2-out-{robot_id}-connect"),
-                         threading.Thread(target=self._periodic, daemon=True,
-                                          name=f"ros2-out-{robot_id}-periodic")]
+        self._periodic_thread = threading.Thread(target=self._periodic, daemon=True,
+                                                 name=f"ros2-out-{robot_id}-periodic")
 
     @property
     def camera_frame(self) -> str:
@@ -135,17 +131,17 @@ class RobotRosOut:
     # -- lifecycle ------------------------------------------------------------------------
 
     def start(self) -> RobotRosOut:
-        for thread in self._threads:
-            thread.start()
+        self.graph.start()
+        self._periodic_thread.start()
         return self
 
     def wait_connected(self, timeout: float) -> bool:
-        return self._connected.wait(timeout)
+        return self.graph.connected.wait(timeout)
 
     def close(self) -> None:
         self._stop.set()
-        for thread in self._threads:
-            thread.join(self.cfg.connect_timeout_s + 1.0)
+        self._periodic_thread.join(max(self.cfg.path_every_s, self.cfg.diagnostics_every_s)
+                                   + 1.0)
         with self._lock:
             for sub in self._subs:
                 try:
@@ -153,41 +149,11 @@ class RobotRosOut:
                 except zenoh.ZError:
                     pass
             self._subs = []
-            if self._node is not None:
-                self._node.close()
-            if self._session is not None:
-                self._session.close()
-            self._node = self._session = None
             self._pubs = {}
+        self.graph.close()
 
-    def _connect(self) -> None:
-        """Open the session (in the background: tracking never waits for ROS 2); said once
-        when the router does not answer, then tried again every retry_s."""
-        cfg = self.cfg
-        said = False
-        while not self._stop.is_set():
-            try:
-                session = open_ros_session(cfg.endpoint, cfg.connect_timeout_s, cfg.zenoh_config,
-                                           hint="Set it with --ros2-out or [ros2_out] endpoint")
-            except TimeoutError as exc:
-                if not said:
-                    log.warning("robot %s: ROS 2 out: %s; tracking goes on without it, trying "
-                                "again every %.0f s", self.robot_id, exc, cfg.retry_s)
-                    said = True
-                self._stop.wait(cfg.retry_s)
-                continue
-            except ValueError as exc:  # a bad Zenoh config file: it will not mend itself
-                log.error("robot %s: ROS 2 out is off: %s", self.robot_id, exc)
-                return
-            self._declare(session)
-            log.info("robot %s: publishing %s, /tf and %s to ROS 2 at %s (domain %d)",
-                     self.robot_id, self.topics["pose"], self.topics["path"], cfg.endpoint,
-                     self._node.domain_id if self._node else 0)
-            return
-
-    def _declare(self, session: zenoh.Session) -> None:
-        node = RosNode(session, self.node_name, domain_id=resolve_domain_id(self.cfg.domain_id),
-                       humble=self.cfg.distro == "humble")
+    def declare(self, node: RosNode) -> None:
+        """The node is up: this robot's publishers, and subscribers to its own TF."""
         pubs = {"pose": node.publisher(self.topics["pose"], cdr.POSE_STAMPED, POSE_DEPTH),
                 "tf": node.publisher("/tf", cdr.TF_MESSAGE, TF_DEPTH),
                 "tf_static": node.publisher("/tf_static", cdr.TF_MESSAGE, 1,
@@ -197,6 +163,7 @@ class RobotRosOut:
                                               DIAGNOSTICS_DEPTH)}
         ours = {pub.gid for pub in pubs.values()}
         tf_type = dds_type_name(cdr.TF_MESSAGE)
+        session = node.session
         subs = [session.declare_subscriber(
                     topic_key(node.domain_id, "/tf", tf_type),
                     lambda sample: self._on_tf(sample, False, ours)),
@@ -207,17 +174,10 @@ class RobotRosOut:
                     lambda sample: self._on_tf(sample, True, ours),
                     history=zenoh.ext.HistoryConfig(detect_late_publishers=True))]
         with self._lock:
-            if self._stop.is_set():
-                for sub in subs:
-                    sub.undeclare()
-                node.close()
-                session.close()
-                return
-            self._session, self._node, self._pubs, self._subs = session, node, pubs, subs
+            self._pubs, self._subs = pubs, subs
             placed = self._placed
         if placed is not None:
             self._publish_placed(placed)
-        self._connected.set()
 
     def _publish(self, name: str, data: bytes) -> None:
         pub = self._pubs.get(name)
@@ -332,7 +292,7 @@ class RobotRosOut:
         next_path = next_status = time.monotonic()
         while not self._stop.wait(max(0.0, min(next_path, next_status) - time.monotonic())):
             now = time.monotonic()
-            if not self._connected.is_set():  # the newest path and status once it is
+            if not self.graph.connected.is_set():  # the newest path and status once it is
                 next_path = next_status = now + min(cfg.path_every_s, cfg.diagnostics_every_s)
                 continue
             if now >= next_path:
