@@ -672,3 +672,41 @@ def test_a_tf_tree_with_a_loop_or_a_gap_costs_the_tf_not_the_pose(caplog):
     assert lines[-1] == "robot r1: ROS 2 out: /tf placed again (r1/map -> world)"
     assert len(lines) == 2 and all("\n" not in line for line in lines)
     assert out.tracked_frames == 5 and out.tf_skipped == 4
+
+
+@pytest.mark.realdata
+def test_robot_and_cloud_processes_publish_with_the_flag(ros_router, tmp_path):
+    """``fleetslam cloud --ros2-out`` and ``fleetslam robot --ros2-out`` as processes, onto
+    one graph: the cloud's node announces itself, and both publish /r1/pose for (nearly)
+    every tracked frame (the flag once reached the cloud after its views were made)."""
+    from fleetslam.datasets.rmw_zenoh import topic_key
+    from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
+    from fleetslam.transport.zenoh_session import open_connecting
+
+    require(TUM_RPY)
+    session = open_connecting(ros_router, 10.0)
+    got: list = []
+    sub = session.declare_subscriber(topic_key(0, "/r1/pose"), got.append)
+    nodes: set[str] = set()
+    cloud_endpoint = free_endpoint()
+    cloud = start_cloud(cloud_endpoint, tmp_path / "cloud", tmp_path / "cloud.log",
+                        extra=["--ros2-out", ros_router])
+    try:
+        robot = start_robot(cloud_endpoint, "r1", f"{TUM_RPY}:0-29", 3, tmp_path / "r1.log",
+                            extra=["--ros2-out", ros_router])
+        wait_for(lambda: robot.poll() is not None, 120, "the robot process")
+        assert robot.returncode == 0, (tmp_path / "r1.log").read_text()
+        nodes = {str(r.ok.key_expr).split("/")[-1] for r in
+                 session.liveliness().get("@ros2_lv/0/*/*/*/NN/**", timeout=2.0) if r.ok}
+    finally:
+        stop(cloud)
+        sub.undeclare()
+        session.close()
+    assert any(n.startswith("fleetslam_cloud_") for n in nodes), nodes
+    online = _tum_rows(tmp_path / "cloud" / "r1" / "online.tum")
+    stamps = []
+    for sample in got:
+        sec, nanosec = cdr.CdrReader(sample.payload.to_bytes(), "/r1/pose").unpack("iI")
+        stamps.append(sec * 1_000_000 + int(round(nanosec / 1000)))
+    assert len(stamps) >= 2 * 0.95 * len(online)  # the robot's and the cloud's
+    assert set(stamps) <= set(online)

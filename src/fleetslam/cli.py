@@ -235,15 +235,15 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.visualisation.recording import live_plan
 
     _setup_logging(args.quiet)
-    view = open_view(config, args.save, args.view, args.foxglove)
-    for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
-        print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
     if args.worker_id:
         set_from_flag(config.placement, "worker_id", args.worker_id, "--worker-id")
     if args.coordination:
         set_from_flag(config.placement, "coordination", args.coordination, "--coordination")
-    if args.ros2_out:
+    if args.ros2_out:  # before the views: the ROS 2 graph's is one of them
         set_from_flag(config.ros2_out, "endpoint", args.ros2_out, "--ros2-out")
+    view = open_view(config, args.save, args.view, args.foxglove)
+    for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
+        print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
     server = CloudServer(config, Path(args.out), args.listen, view=view,
                          connect=args.connect).start()
     stop = threading.Event()
