@@ -11,7 +11,6 @@ soon without asking.
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 
@@ -22,9 +21,6 @@ from fleetslam.config import MergeConfig
 from fleetslam.transforms import invert, rotation_angle_deg
 from fleetslam.transport import keys, protocol
 
-log = logging.getLogger("fleetslam.merge")
-
-
 class FleetFrames:
     def __init__(self, cfg: MergeConfig, publish: Publish) -> None:
         self.cfg = cfg
@@ -33,7 +29,6 @@ class FleetFrames:
         # robot -> (group, T_global_map, final) as last sent
         self._sent: dict[str, tuple[str, np.ndarray, bool]] = {}
         self._resent_at = time.monotonic()
-        self.messages = 0
 
     def _worth_sending(self, robot: str, group: str, T: np.ndarray, final: bool) -> bool:
         """New, in another group, a merge's (final), or moved beyond placement_move_*."""
@@ -71,5 +66,4 @@ class FleetFrames:
             self._send(robot, group, T, final)
 
     def _send(self, robot: str, group: str, T: np.ndarray, final: bool) -> None:
-        self.messages += 1
         self.publish(keys.reply(robot), protocol.encode(protocol.placed(group, T, final)))

@@ -84,17 +84,15 @@ def mangle(name: str) -> str:
     return name.replace("/", "%") if name else "%"
 
 
-# rmw's QoS enums as rmw_zenoh writes them into a token (an empty field: the default).
-RELIABLE, BEST_EFFORT = 1, 2
-TRANSIENT_LOCAL, VOLATILE = 1, 2
+# rmw's durability enum as rmw_zenoh writes it into a token (an empty field: the default).
+TRANSIENT_LOCAL = 1
 
 
-def qos_chunk(depth: int, transient_local: bool = False, best_effort: bool = False) -> str:
+def qos_chunk(depth: int, transient_local: bool = False) -> str:
     """rmw_zenoh's QoS chunk, ``<reliability>:<durability>:<history>,<depth>:<deadline>:
     <lifespan>:<liveliness>``, keep-last ``depth`` and the rest default (reliable,
     volatile, infinite durations, automatic liveliness), e.g. ``::,7:,:,:,,``."""
-    return (f"{BEST_EFFORT if best_effort else ''}:"
-            f"{TRANSIENT_LOCAL if transient_local else ''}:,{depth}:,:,:,,")
+    return f":{TRANSIENT_LOCAL if transient_local else ''}:,{depth}:,:,:,,"
 
 
 def node_token(domain_id: int, session_id: str, node_id: int, namespace: str,

@@ -103,14 +103,13 @@ class RobotRosOut:
         self._subs: list = []
         # The robot's own TF tree, as its graph publishes it (not ours: by publisher GID).
         self.tf = TfBuffer(cfg.tf_buffer_s)
-        self.tf_messages = 0
         self.tf_rejected = 0  # /tf messages that were not TFMessages (said once)
         self.tf_skipped = 0  # frames whose TF could not be placed in the robot's tree
         self._tf_problem: str | None = None  # the one said last, until it mends
         # The tracked poses (online, as the feedback gave them), for the path.
         self._stamps: deque[int] = deque(maxlen=cfg.path_max_poses)
         self._poses: deque[np.ndarray] = deque(maxlen=cfg.path_max_poses)
-        self._path_sent = 0  # poses the last path held, so an unchanged one is not re-sent
+        self._path_sent = 0  # tracked_frames when the path was last sent: unchanged since?
         self._placed: Placed | None = None
         self.state = "waiting"  # waiting, tracking, lost, relocalised
         self.tracked_frames = 0
@@ -134,9 +133,6 @@ class RobotRosOut:
         self.graph.start()
         self._periodic_thread.start()
         return self
-
-    def wait_connected(self, timeout: float) -> bool:
-        return self.graph.connected.wait(timeout)
 
     def close(self) -> None:
         self._stop.set()
@@ -206,7 +202,6 @@ class RobotRosOut:
                 log.warning("robot %s: ROS 2 out: a TF message rejected (said once): %s",
                             self.robot_id, exc)
             return
-        self.tf_messages += 1
         self.tf.add(transforms, static)
 
     def _placed_in_tree(self, stamp: int, T_map_camera: np.ndarray
@@ -304,10 +299,10 @@ class RobotRosOut:
 
     def publish_path(self) -> None:
         with self._lock:
-            if len(self._stamps) == self._path_sent and self.tracked_frames <= len(self._stamps):
+            if self.tracked_frames == self._path_sent:
                 return
             stamps, poses = list(self._stamps), np.array(self._poses).reshape(-1, 4, 4)
-            self._path_sent = len(stamps)
+            self._path_sent = self.tracked_frames
         if stamps:
             self._publish("path", cdr.path(stamps[-1], self.map_frame, stamps, poses))
 

@@ -52,13 +52,6 @@ class OccupancyGrid:
     def free(self) -> int:
         return int((self.image == FREE).sum())
 
-    def cell_of(self, points_grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(row, column) of grid-frame points (outside the image: out of range)."""
-        col = np.floor((points_grid[:, 0] - self.origin_xy[0]) / self.resolution)
-        row = self.image.shape[0] - 1 - np.floor(
-            (points_grid[:, 1] - self.origin_xy[1]) / self.resolution)
-        return row.astype(np.int64), col.astype(np.int64)
-
     def ros_cells(self) -> np.ndarray:
         """nav_msgs/OccupancyGrid's data: -1 unknown, 0 free, 100 occupied, row 0 at the
         origin (the image's bottom row)."""

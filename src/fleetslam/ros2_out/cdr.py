@@ -68,11 +68,6 @@ class CdrWriter:
         self.uint32(len(data))
         self.buf += data
 
-    def octets(self, data: bytes) -> None:
-        """A sequence of bytes (uint8[] / int8[]): its length, then the bytes."""
-        self.uint32(len(data))
-        self.buf += data
-
     def time(self, stamp_ns: int) -> None:
         """builtin_interfaces/Time: int32 sec, uint32 nanosec."""
         sec, nanosec = divmod(int(stamp_ns), _NS)

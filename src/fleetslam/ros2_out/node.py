@@ -65,8 +65,6 @@ class RosPublisher:
         # borrowed"): both under this lock, and nothing is put once closed.
         self._lock = threading.Lock()
         self._closed = False
-        self.published = 0
-        self.bytes = 0
 
     def publish(self, cdr: bytes) -> bool:
         """Put one message; False once closed."""
@@ -75,8 +73,6 @@ class RosPublisher:
                 return False
             attachment = make_attachment(next(self._sequence), time.time_ns(), self.gid)
             self._pub.put(cdr, attachment=attachment)
-            self.published += 1
-            self.bytes += len(cdr)
             return True
 
     def close(self) -> None:

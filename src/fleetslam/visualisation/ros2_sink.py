@@ -2,8 +2,8 @@
 --ros2-out ENDPOINT``), as a node ``fleetslam_<worker>`` made of plain Zenoh the way
 rmw_zenoh makes one (ros2_out/node.py): latched topics transient local, so a subscriber that
 starts later still gets the latest map. An unreachable router is said once and tried again
-every ``[ros2_out] retry_s``; what could not be published meanwhile is counted, and no
-caller ever waits for it.
+every ``[ros2_out] retry_s``; what comes meanwhile is dropped, and no caller ever waits for
+it.
 """
 
 from __future__ import annotations
@@ -27,8 +27,6 @@ class Ros2Sink:
         self._definitions = RosMessages(STORES[cfg.distro])  # the type hashes
         self._lock = threading.Lock()
         self._pubs: dict[str, RosPublisher] = {}
-        self.published = 0
-        self.unpublished = 0
         self.graph = GraphLink(cfg, node_name, self, "the cloud",
                                hint="Set it with fleetslam cloud --ros2-out or [ros2_out] "
                                     "endpoint").start()
@@ -47,10 +45,8 @@ class Ros2Sink:
                 pub = self._pubs[topic] = node.publisher(
                     topic, typename, LATCHED_DEPTH if latched else STREAM_DEPTH,
                     transient_local=latched, type_hash=self._definitions.type_hash(typename))
-        if pub is None or not pub.publish(data):
-            self.unpublished += 1
-            return
-        self.published += 1
+        if pub is not None:
+            pub.publish(data)  # False once closed: the cloud is stopping
 
     def close(self) -> None:
         with self._lock:
