@@ -20,6 +20,7 @@ websockets = pytest.importorskip("websockets")
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 0x01
+UNKNOWN = "Unknown channel ID:"
 
 
 async def _subscribe(port: int, topics: list[str], wanted: int, timeout: float
@@ -37,15 +38,23 @@ async def _subscribe(port: int, topics: list[str], wanted: int, timeout: float
                 data = await ws.recv()
                 if isinstance(data, str):
                     message = json.loads(data)
-                    if message.get("op") != "advertise":
-                        continue
                     new = []
-                    for channel in message["channels"]:
-                        if channel["topic"] in got and channel["topic"] not in channels:
-                            channels[channel["topic"]] = channel
-                            sub = len(by_sub) + 1
-                            by_sub[sub] = channel["topic"]
-                            new.append({"id": sub, "channelId": channel["id"]})
+                    if message.get("op") == "advertise":
+                        for channel in message["channels"]:
+                            if channel["topic"] in got and channel["topic"] not in channels:
+                                channels[channel["topic"]] = channel
+                                sub = len(by_sub) + 1
+                                by_sub[sub] = channel["topic"]
+                                new.append({"id": sub, "channelId": channel["id"]})
+                    elif message.get("op") == "status" and UNKNOWN in message.get("message", ""):
+                        # foxglove-sdk 0.30 sends a new channel's advertise before it knows
+                        # the channel itself: a subscription that comes back at once is
+                        # refused. Ask again, as a client that reads the status would.
+                        channel_id = int(message["message"].rsplit(":", 1)[1])
+                        await asyncio.sleep(0.05)
+                        new = [{"id": sub, "channelId": channel_id}
+                               for sub, topic in by_sub.items()
+                               if channels[topic]["id"] == channel_id]
                     if new:
                         await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
                 elif data[0] == MESSAGE_DATA:
