@@ -255,12 +255,20 @@ def test_outputs_mcap_false_writes_none(synthetic_scene, tmp_path):
     assert "mcap" not in summary
 
 
-def test_a_lone_robot_stays_in_its_own_map_frame(synthetic_scene, tmp_path):
+def test_a_lone_robot_has_its_level_map_too(synthetic_scene, tmp_path):
+    """One robot: its map made level is the run's global map (map_frame.py), so run.mcap
+    places it in ``map`` as a merge's would be."""
     source = f"{synthetic_scene[1][0]}:0-7"
     out = tmp_path / "solo"
-    run_fleet([("solo", source, open_source(source))], Config(), out, False)
+    summary = run_fleet([("solo", source, open_source(source))], Config(), out, False)
     topics = _decoded(out / "run.mcap")
-    assert set(topics) == {"/solo/path", "/solo/map", "/tf"}  # no merge, no global map
+    assert {"/solo/path", "/solo/map", "/tf", "/tf_static", "/map/global", "/map/grid",
+            "/solo/global_path"} <= set(topics)
     tf = [t for message in topics["/tf"] for t in message.transforms]
-    assert {(t.header.frame_id, t.child_frame_id) for t in tf} == {("solo/map", "solo/camera")}
+    assert {(t.header.frame_id, t.child_frame_id) for t in tf} == {("map", "solo/camera")}
     assert len(tf) == 8
+    (static,) = [t for message in topics["/tf_static"] for t in message.transforms]
+    assert (static.header.frame_id, static.child_frame_id) == ("map", "solo/map")
+    T = np.array(summary["merge"]["T_global_map"]["solo"])
+    np.testing.assert_allclose([static.transform.translation.x, static.transform.translation.y,
+                                static.transform.translation.z], T[:3, 3], atol=1e-9)

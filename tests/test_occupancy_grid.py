@@ -92,7 +92,10 @@ def _known_plan(summary, folders, meta, image, out):
     anchor = summary["merge"]["anchor"]
     folder = folders[int(anchor[1:])]
     _, gt = read_tum_trajectory(folder / "groundtruth.txt")
-    T_world_grid = gt[0] @ np.array(summary["merge"]["grid"]["T_map_grid"])
+    # The map frame is level (map_frame.py); the summary says where it lies in the
+    # anchor's own map, whose origin is the anchor's first camera.
+    T_world_grid = gt[0] @ np.array(summary["merge"]["map_frame"]["T_anchor_map"]) \
+        @ np.array(summary["merge"]["grid"]["T_map_grid"])
     h, w = image.shape
     res = meta["resolution"]
     cols, rows = np.meshgrid(np.arange(w), np.arange(h))

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+
 
 
 def _finite(value: int | float) -> bool:
@@ -23,6 +24,18 @@ def _finite(value: int | float) -> bool:
         return math.isfinite(value)
     except OverflowError:  # an integer too large for a float (JSON allows 10**400)
         return False
+
+
+def mounting_problem(values: tuple[float, ...]) -> str | None:
+    """Why ``values`` is not a mounting (empty, or x y z qx qy qz qw with a unit-able
+    quaternion), or None."""
+    if not values:
+        return None
+    if len(values) != 7 or not all(_finite(v) for v in values):
+        return f"must be empty or 7 finite numbers x y z qx qy qz qw, got {list(values)}"
+    if not 0.5 < math.sqrt(sum(v * v for v in values[3:])) < 2.0:
+        return f"quaternion {list(values[3:])} is not a rotation (its norm is far from 1)"
+    return None
 
 
 # How far outside the image (in image widths / heights) a principal point may lie.
@@ -47,6 +60,21 @@ class Camera:
     # the colour camera's centre; empty = the colour camera's own (distorted) pixel grid.
     # A class-level default: a checkpoint written before this field restores with it empty.
     depth_intrinsics: tuple[float, ...] = ()
+    # The camera's mounting: its optical frame in the robot's base_link as x y z qx qy qz qw
+    # (REP 103/105; ``[camera] base_link``); empty = not given. With it the fleet's map is
+    # the anchor's base_link at its first frame (mapping/map_frame.py: T_base_camera).
+    base_link: tuple[float, ...] = ()
+
+    def mounted(self, base_link: tuple[float, ...] | None, where: str = "[camera] base_link"
+                ) -> "Camera":
+        """This camera with the mounting ``base_link`` (None: as it is); ValueError naming
+        ``where`` if it is not one."""
+        if base_link is None:
+            return self
+        problem = mounting_problem(tuple(base_link))
+        if problem:
+            raise ValueError(f"{where} {problem}")
+        return replace(self, base_link=tuple(float(v) for v in base_link))
 
     @property
     def K(self) -> np.ndarray:
@@ -162,6 +190,7 @@ class Camera:
             values["invalid_depth"] = tuple(int(v) for v in values.get("invalid_depth", (0,)))
             values["depth_intrinsics"] = tuple(float(v)
                                                for v in values.get("depth_intrinsics", ()))
+            values["base_link"] = tuple(float(v) for v in values.get("base_link", ()))
             camera = Camera(**values)
         except (ValueError, TypeError, OverflowError) as exc:  # float(10**400), int(inf)
             raise ValueError(f"{where}: not a valid camera: {exc}") from exc
@@ -192,6 +221,9 @@ class Camera:
                 or min(camera.depth_intrinsics[:2]) <= 0):
             raise ValueError(f"{where}: depth_intrinsics must be empty or 4 finite numbers "
                              f"fx, fy, cx, cy with fx, fy > 0")
+        problem = mounting_problem(camera.base_link)
+        if problem:
+            raise ValueError(f"{where}: base_link {problem}")
         return camera
 
     @staticmethod

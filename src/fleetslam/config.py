@@ -786,6 +786,18 @@ class GridConfig:
     margin_cells: Annotated[int, at_least(0)] = 5
 
 
+@dataclass
+class CameraConfig:
+    """The camera on the robot, beyond what its images and calibration say."""
+
+    # The camera's mounting (REP 105): its optical frame (x right, y down, z forward) in
+    # the robot's base_link (x forward, z up) as x y z qx qy qz qw, the order of ROS's
+    # static_transform_publisher. Unset: not known. Given, the fleet's map frame is the
+    # anchor robot's base_link at its first frame (mapping/map_frame.py).
+    base_link: Annotated[tuple[float, float, float, float, float, float, float] | None,
+                         FINITE] = None
+
+
 # A Zenoh endpoint, or empty (off).
 OPTIONAL_ENDPOINT = Text(lambda s: endpoint_problem(s) if s else None,
                          "empty, or a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
@@ -852,6 +864,7 @@ class Config:
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     ros2_out: Ros2OutConfig = field(default_factory=Ros2OutConfig)
     grid: GridConfig = field(default_factory=GridConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
 
 
 def _update(obj: Any, values: dict[str, Any], path: str, prefix: str = "") -> None:

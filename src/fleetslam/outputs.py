@@ -110,7 +110,7 @@ def read_robot_summary(robot_dir: Path) -> dict[str, Any] | None:
 
 def fleet_summary(robots: list[dict[str, Any]], merge: dict[str, Any] | None, config: Config,
                   wall_s: float) -> dict[str, Any]:
-    """The summary of a run: one entry per robot, the merge (None for one robot)."""
+    """The summary of a run: one entry per robot, the merge (None: interrupted)."""
     return {"version": SUMMARY_VERSION, "wall_time_s": wall_s, "robots": robots,
             "merge": merge, "config": config_to_dict(config)}
 
@@ -236,7 +236,7 @@ def summary_table(summary: dict[str, Any], drop_empty: bool = False) -> str:
     transport = transport_table(summary)
     if transport:
         text += "\n\nrobot -> cloud (separate processes over Zenoh)\n" + text_of(transport)
-    merge = summary.get("merge")
+    merge = fleet_merge(summary)
     if merge:
         head, lines = merge_notes(merge)
         text += "\n\n" + "\n".join([head, text_of(merge_robot_table(merge)), *lines])
@@ -244,6 +244,13 @@ def summary_table(summary: dict[str, Any], drop_empty: bool = False) -> str:
     if dropped:
         text += f"\nnot shown (no value for any robot): {', '.join(dropped)}"
     return text
+
+
+def fleet_merge(summary: dict[str, Any]) -> dict[str, Any] | None:
+    """The summary's merge where robots were merged (a lone robot's run has one too, for its
+    level global map, with nothing to tell about a merge)."""
+    merge = summary.get("merge")
+    return merge if merge and len(merge.get("robots") or {}) > 1 else None
 
 
 def merge_robot_table(merge: dict[str, Any]) -> Table:

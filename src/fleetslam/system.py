@@ -177,7 +177,7 @@ def track_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config,
     trackers = [RobotTracker(name, source, seq, config) for name, source, seq in robots]
     merger = MapMerger(config)
     for t in trackers:
-        merger.add_robot(t.name, t.sequence.camera)
+        merger.add_robot(t.name, t.sequence.camera.mounted(config.camera.base_link))
     total = sum(len(t.sequence) for t in trackers)
     progress = Progress("tracking", total, enabled=show_progress)
     done = 0
@@ -232,8 +232,9 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
                               run.poses, run.timestamps[run.keyframe_indices],
                               run.keyframe_poses, run.map_points, run.map_colors,
                               run.online_poses, run.tracked, run.grid)
-        merged = len(runs) > 1 and not interrupt.requested
-        if len(runs) > 1 and not merged:
+        # A lone robot gets the fleet's outputs too: its map made level (map_frame.py).
+        merged = not interrupt.requested
+        if not merged:
             skipped.append("the merge and the global map")
         global_map = build_global_map(merger, [r.track() for r in runs], config, out_dir) \
             if merged else None
@@ -255,7 +256,7 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
 def make_summary(runs: list[RobotRun], merger: MapMerger | None,
                  global_map: GlobalMap | None, config: Config, wall_s: float
                  ) -> dict[str, Any]:
-    """The run's summary; ``merger`` None: no merge (one robot, or an interrupted run)."""
+    """The run's summary; ``merger`` None: no merge (an interrupted run)."""
     robots = [{
         "name": r.name, "source": r.source, "camera": r.sequence.camera_source,
         "frames": len(r.timestamps), "keyframes": len(r.keyframe_indices),

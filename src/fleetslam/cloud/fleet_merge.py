@@ -108,12 +108,10 @@ class FleetMerge:
             raise NothingToMerge("no robot has finished yet, so there is nothing to merge (a "
                                  "robot finishes at the end of its stream; `fleetslam status` "
                                  "lists the robots this cloud serves)")
-        global_map = None
         self._still_merger("the global map")
-        if len(finished) > 1:
-            global_map = self.merger.locked(lambda m: build_global_map(
-                m, [f.track for f in finished], self.config, self.out_dir))
-        if global_map is not None and self.merger.frames is not None:
+        global_map = self.merger.locked(lambda m: build_global_map(
+            m, [f.track for f in finished], self.config, self.out_dir))
+        if self.merger.frames is not None:
             # Each member robot still connected hears summary.json's transform.
             self.merger.frames.update({m: (global_map.anchor, T) for m, T in
                                        global_map.T_global_map.items()}, final=True)
@@ -121,7 +119,7 @@ class FleetMerge:
         merge["robots"] = {k: v for k, v in merge["robots"].items()
                            if k in {f.robot_id for f in finished}}
         summary = fleet_summary([f.summary for f in finished],
-                                merge if len(finished) > 1 else None, self.config,
+                                merge, self.config,
                                 time.perf_counter() - start)
         self._still_merger("summary.json")
         if self.config.outputs.mcap:

@@ -23,9 +23,11 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.cloud.fleet_frames import FleetFrames
 from fleetslam.config import Config
+from fleetslam.mapping.map_frame import live_map_frame
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
+from fleetslam.transforms import invert
 from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.merge")
@@ -60,6 +62,7 @@ class MergerService:
         # view.global_every_s, on this thread (never on a robot's session).
         self.view = view or NullView()
         self._view_every_s = config.view.global_every_s
+        self.grid = config.grid
         self._view_due = False
         self._view_at = -float("inf")
         self.frames = frames
@@ -203,17 +206,28 @@ class MergerService:
         if not self.view.enabled:
             return
         m = self.merger
-        transforms = {name: m.T_global_map(name) for name in m.robots}
+        level = self._level(m)
+        transforms = {name: level[name] @ m.T_global_map(name) for name in m.robots}
         poses = m.global_keyframe_poses()
         lines = []
         for c in m.constraints:
             q, p = c.match.query, c.match.place
             if q.keyframe < len(poses[q.robot]) and p.keyframe < len(poses[p.robot]):
-                lines.append((poses[q.robot][q.keyframe][:3, 3].copy(),
-                              poses[p.robot][p.keyframe][:3, 3].copy(), c.kept))
+                lines.append(((level[q.robot] @ poses[q.robot][q.keyframe])[:3, 3],
+                              (level[p.robot] @ poses[p.robot][p.keyframe])[:3, 3], c.kept))
         self.view.merged(transforms, lines, m.components())
         self._view_due = False
         self._view_at = time.monotonic()
+
+    def _level(self, m: MapMerger) -> dict[str, np.ndarray]:
+        """Each robot's T_map_graph: its group's level map frame while the robots run
+        (map_frame.py: the anchor's mounting, else [grid] up; a merge finds the floor)."""
+        out = {}
+        for anchor, members in m.components().items():
+            T_graph_map = live_map_frame(m.T_global_map(anchor), m.robots[anchor].camera,
+                                         self.grid)
+            out.update({r: invert(T_graph_map) for r in members})
+        return out
 
     def _structure(self) -> tuple[int, tuple[tuple[str, ...], ...]]:
         """What placements depend on: the inter-robot constraints and the groups."""
@@ -233,7 +247,8 @@ class MergerService:
                 # A lone robot's map is its group's frame: nothing to tell, no graph to solve.
                 joined = {r: anchor for anchor, members in m.components().items()
                           if len(members) > 1 for r in members}
-                return {r: (anchor, m.T_global_map(r)) for r, anchor in joined.items()}
+                level = self._level(m)
+                return {r: (anchor, level[r] @ m.T_global_map(r)) for r, anchor in joined.items()}
 
             self.frames.update(self.locked(placements))
         self.frames.resend_due()

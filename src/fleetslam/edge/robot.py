@@ -141,6 +141,7 @@ class Robot:
             runs_front_end = offload_at > 0 or planner is not None
             stages = front_end_stages()
             sides = Sides(edge=FrontEndState(config, sequence.camera) if runs_front_end else None)
+        sequence.camera.mounted(config.camera.base_link)  # a bad mounting is said now
         self.report = RobotReport(robot_id, offload_at)
         self.encoder = FrameEncoder(self.robot_id, sequence.camera, config, stages, sides,
                                     self.report, paper_yaml_dir)
@@ -434,7 +435,9 @@ class Robot:
     def _hello(self) -> dict[str, Any]:
         # A live camera's frame count is unknown (None) until it stops; the cloud reads it
         # nowhere (resume goes by its own next index).
-        message = Hello(self.offload_at, self.sequence.camera, self.source,
+        # The cloud hears the camera's mounting too (the fleet's map frame: map_frame.py).
+        camera = self.sequence.camera.mounted(self.config.camera.base_link)
+        message = Hello(self.offload_at, camera, self.source,
                         self.planner is not None).message(
             None if self.live is not None else len(self.sequence))
         cfg = self.config.transport

@@ -76,20 +76,25 @@ class OccupancyGrid:
                 "occupied_cells": self.occupied, "free_cells": self.free}
 
 
-def _unit(v: np.ndarray) -> np.ndarray | None:
+def unit(v: np.ndarray) -> np.ndarray | None:
     n = float(np.linalg.norm(v))
     return v / n if n > 1e-9 else None
 
 
-def find_floor(points: np.ndarray, camera_poses: np.ndarray, cfg: GridConfig
-               ) -> tuple[np.ndarray, float, str]:
-    """(up, floor height along up, source): the floor plane's, else the configured up."""
-    configured = _unit(np.asarray(cfg.up, np.float64))
+def find_floor(points: np.ndarray, camera_poses: np.ndarray, cfg: GridConfig,
+               known_up: np.ndarray | None = None) -> tuple[np.ndarray, float, str]:
+    """(up, floor height along up, source): the floor plane's, else ``known_up`` (the
+    camera's mounting), else the configured up."""
+    configured = unit(np.asarray(cfg.up, np.float64))
     if configured is None:
         raise ValueError(f"[grid] up = {list(cfg.up)} is not a direction (all zero)")
+    fallback = "config"
     # A camera's image y points down: the cameras' mean -y is roughly up.
-    guess = _unit(-camera_poses[:, :3, 1].mean(axis=0)) if len(camera_poses) else None
+    guess = unit(-camera_poses[:, :3, 1].mean(axis=0)) if len(camera_poses) else None
     guess = configured if guess is None else guess
+    if known_up is not None:
+        configured = guess = unit(np.asarray(known_up, np.float64))
+        fallback = "camera mounting"
     centres = camera_poses[:, :3, 3]
     if len(points) >= cfg.floor_min_points:
         rng = np.random.default_rng(0)
@@ -101,7 +106,7 @@ def find_floor(points: np.ndarray, camera_poses: np.ndarray, cfg: GridConfig
         cos_tilt = np.cos(np.radians(cfg.floor_max_tilt_deg))
         for _ in range(_RANSAC_TRIES):
             a, b, c = low[rng.choice(len(low), 3, replace=False)]
-            n = _unit(np.cross(b - a, c - a))
+            n = unit(np.cross(b - a, c - a))
             if n is None or abs(float(n @ guess)) < cos_tilt:
                 continue
             n = n if n @ guess > 0 else -n
@@ -115,7 +120,7 @@ def find_floor(points: np.ndarray, camera_poses: np.ndarray, cfg: GridConfig
             for band in (cfg.floor_inlier_m, cfg.floor_inlier_m / 2):
                 inliers = points[np.abs(points @ n - d) < band]
                 centre = inliers.mean(axis=0)
-                refined = _unit(np.linalg.svd(inliers - centre, full_matrices=False)[2][2])
+                refined = unit(np.linalg.svd(inliers - centre, full_matrices=False)[2][2])
                 if refined is None:
                     break
                 n = refined if refined @ guess > 0 else -refined
@@ -126,7 +131,7 @@ def find_floor(points: np.ndarray, camera_poses: np.ndarray, cfg: GridConfig
             if not len(centres) or (centres @ n - d).min() > cfg.min_height_m:
                 return n, d, "floor plane"
     heights = points @ configured if len(points) else np.zeros(1)
-    return configured, float(np.percentile(heights, 1)), "config"
+    return configured, float(np.percentile(heights, 1)), fallback
 
 
 def _lowest_surface(heights: np.ndarray, found: float, cfg: GridConfig) -> float:
@@ -154,7 +159,7 @@ def level_frame(up: np.ndarray, floor: float, camera_poses: np.ndarray) -> np.nd
     first = camera_poses[0] if len(camera_poses) else np.eye(4)
     x = None
     for axis in (first[:3, 2], first[:3, 0], np.array([1.0, 0, 0]), np.array([0, 1.0, 0])):
-        x = _unit(axis - (axis @ up) * up)
+        x = unit(axis - (axis @ up) * up)
         if x is not None:
             break
     assert x is not None
@@ -193,12 +198,12 @@ def _ray_cells(origin: np.ndarray, ends: np.ndarray, cfg: GridConfig) -> np.ndar
 
 
 def occupancy_grid(scans: Sequence[tuple[np.ndarray, np.ndarray]], camera_poses: np.ndarray,
-                   cfg: GridConfig) -> OccupancyGrid:
+                   cfg: GridConfig, known_up: np.ndarray | None = None) -> OccupancyGrid:
     """The grid of keyframe scans, each (points in the map frame, its camera centre);
     ``camera_poses`` (K x 4 x 4, the keyframes', first one first) give the guess of up and
-    the grid frame's heading."""
+    the grid frame's heading; ``known_up`` (from a mounting) replaces the guess."""
     points = np.vstack([p for p, _ in scans]) if scans else np.zeros((0, 3))
-    up, floor, source = find_floor(points, camera_poses, cfg)
+    up, floor, source = find_floor(points, camera_poses, cfg, known_up)
     T_map_grid = level_frame(up, floor, camera_poses)
     T_grid_map = invert(T_map_grid)
     res = cfg.resolution_m

@@ -23,10 +23,11 @@ from fleetslam.config import Config
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.dense_map import keyframe_local_cloud, voxel_downsample
-from fleetslam.mapping.occupancy_grid import occupancy_grid, write_nav2_map
+from fleetslam.mapping.map_frame import base_link_frame, mounting_up
+from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid, write_nav2_map
 from fleetslam.mapping.octomap_export import write_octomap
 from fleetslam.merging.merger import MapMerger
-from fleetslam.transforms import poses_from_references, transform_points
+from fleetslam.transforms import invert, poses_from_references, transform_points
 from fleetslam.registration.fshicp import fshicp
 from fleetslam.registration.metrics import transform_error
 
@@ -63,6 +64,8 @@ class GlobalMap:
     points: int = 0
     octomap: dict[str, Any] | None = None
     grid: dict[str, Any] | None = None  # the nav2 map (global_map.pgm / .yaml)
+    # How the level map frame was found, and where it lies in the anchor's own map.
+    map_frame: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0  # building it: dense refinement, graph, FS-HICP, outputs
 
 
@@ -125,7 +128,7 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     graph_poses = merger.global_keyframe_poses()
     result = GlobalMap(members, anchor, {}, {}, {}, {})
     for name in by_name:
-        if name in members and len(members) > 1:
+        if name in members and (len(members) > 1 or len(by_name) == 1):
             continue
         if name not in merger.robots or not merger.robots[name].keyframes:
             result.not_merged[name] = "no keyframe features reached the merger (it made " \
@@ -135,7 +138,7 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
         else:
             result.not_merged[name] = "no robot shares a verified place with another"
     kf_poses = {m: graph_poses[m].copy() for m in members}
-    result.T_global_map_graph = {m: merger.T_global_map(m) for m in members}
+    result.T_global_map_graph = {m: merger.T_global_map(m) for m in members}  # made level below
     correction = {m: np.eye(4) for m in members}
     if config.merge.fshicp_refine and len(members) > 1:
         placed = {m: voxel_downsample(np.vstack(_place(clouds[m], kf_poses[m])), None,
@@ -155,21 +158,34 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
                 correction[m] = fit.T_target_source
                 kf_poses[m] = fit.T_target_source @ kf_poses[m]
                 placed[m] = transform_points(fit.T_target_source, placed[m])
-    for m in members:
-        result.T_global_map[m] = correction[m] @ result.T_global_map_graph[m]
-        result.keyframe_poses[m] = kf_poses[m]
-        track = by_name[m]
-        result.trajectories[m] = global_trajectory(track, kf_poses[m], result.T_global_map[m])
-        write_tum_trajectory(out_dir / "global" / f"{m}.tum", track.timestamps,
-                             result.trajectories[m],
-                             comment=f"fleetslam robot {m} in the global frame "
-                                     f"(robot {anchor}'s first camera)")
-    # Every keyframe placed once, for the point cloud and the octree's scans.
+    # Every keyframe placed once, for the point cloud, the grid and the octree's scans.
     placed_points = [p for m in members for p in _place(clouds[m], kf_poses[m])]
     origins = [T[:3, 3] for m in members for T in kf_poses[m]]
     colors_in = [c for m in members for _, c in clouds[m]]
     if not placed_points:  # a lone robot whose keyframes never reached the merger
         placed_points, colors_in = [np.zeros((0, 3))], [np.zeros((0, 3), np.uint8)]
+    # The anchor's first keyframe first: the grid is level under it, facing its view.
+    poses = np.vstack([kf_poses[m] for m in sorted(members, key=lambda m: m != anchor)])
+    graph = dict(result.T_global_map_graph)
+    T_graph_anchor = correction.get(anchor, np.eye(4)) @ (
+        graph[anchor] if anchor in graph else merger.T_global_map(anchor))
+    grid, T_map_graph, result.map_frame = _fleet_frame(
+        list(zip(placed_points, origins)), poses.reshape(-1, 4, 4),
+        merger.robots[anchor].camera, T_graph_anchor, config)
+    # Everything from here on in the level map frame (map_frame.py).
+    placed_points = [transform_points(T_map_graph, p) for p in placed_points]
+    origins = [transform_points(T_map_graph, o[None])[0] for o in origins]
+    for m in members:
+        result.T_global_map_graph[m] = T_map_graph @ graph[m]
+        result.T_global_map[m] = T_map_graph @ correction[m] @ graph[m]
+        result.keyframe_poses[m] = T_map_graph @ kf_poses[m]
+        track = by_name[m]
+        result.trajectories[m] = global_trajectory(track, result.keyframe_poses[m],
+                                                   result.T_global_map[m])
+        write_tum_trajectory(out_dir / "global" / f"{m}.tum", track.timestamps,
+                             result.trajectories[m],
+                             comment=f"fleetslam robot {m} in the fleet's map frame (level, "
+                                     f"z up: {result.map_frame['source']}; robot {anchor}'s)")
     points, colors = voxel_downsample(np.vstack(placed_points), np.vstack(colors_in),
                                       config.map.voxel_m)
     assert colors is not None
@@ -181,16 +197,31 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     stats["seconds"] = time.perf_counter() - start
     stats["scans"] = len(origins)
     result.octomap = stats
-    # The anchor's first keyframe first: the grid is level under it, facing its view.
-    poses = np.vstack([kf_poses[m] for m in sorted(members, key=lambda m: m != anchor)])
-    grid = occupancy_grid(list(zip(placed_points, origins)), poses.reshape(-1, 4, 4),
-                          config.grid)
-    write_nav2_map(out_dir / "global_map", grid, f"the global frame ({anchor}'s map)")
+    write_nav2_map(out_dir / "global_map", grid, "the fleet's map frame")
     result.grid = grid.summary("global_map.pgm")
     result.seconds = time.perf_counter() - started
-    log.info("global map: %s in %s's frame, %d points, octomap %d occupied / %d free leaves",
-             ", ".join(members), anchor, len(points), stats["occupied"], stats["free"])
+    log.info("global map: %s in the map frame (%s's, up from the %s), %d points, octomap "
+             "%d occupied / %d free leaves", ", ".join(members), anchor,
+             result.map_frame["source"], len(points), stats["occupied"], stats["free"])
     return result
+
+
+def _fleet_frame(scans: list[tuple[np.ndarray, np.ndarray]], poses: np.ndarray,
+                 anchor_camera: Camera, T_graph_anchor: np.ndarray, config: Config
+                 ) -> tuple[OccupancyGrid, np.ndarray, dict[str, Any]]:
+    """(the grid, in the map frame; T_map_graph; how the map frame was found): the anchor's
+    base_link at its first frame with a mounting, else the grid's level frame (map_frame.py)."""
+    grid = occupancy_grid(scans, poses, config.grid, mounting_up(T_graph_anchor, anchor_camera))
+    mounted = base_link_frame(T_graph_anchor, anchor_camera)
+    if mounted is None:
+        T_graph_map, source = grid.T_map_grid, grid.up_source
+        grid.T_map_grid = np.eye(4)
+    else:
+        T_graph_map, source = mounted, "camera mounting"
+        grid.T_map_grid = invert(mounted) @ grid.T_map_grid
+    return grid, invert(T_graph_map), {"source": source,
+                                       "T_anchor_map": (invert(T_graph_anchor)
+                                                        @ T_graph_map).tolist()}
 
 
 def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, Any]:
@@ -247,6 +278,6 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
             "global_trajectories": {m: f"global/{m}.tum" for m in global_map.members},
             "global_map": "global_map.ply", "global_map_points": global_map.points,
             "octomap": global_map.octomap, "global_map_seconds": global_map.seconds,
-            "grid": global_map.grid,
+            "grid": global_map.grid, "map_frame": global_map.map_frame,
         })
     return out

@@ -10,8 +10,8 @@ from typing import Any
 from fleetslam.tables import _cell
 from fleetslam.reporting.plots import Figure
 from fleetslam.reporting.run import RunData
-from fleetslam.outputs import (constraint_table, merge_notes, merge_robot_table, robot_table,
-                               transport_table)
+from fleetslam.outputs import (constraint_table, fleet_merge, merge_notes, merge_robot_table,
+                               robot_table, transport_table)
 
 STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px;
@@ -86,7 +86,7 @@ def render_page(run: RunData, figures: list[Figure], skipped: dict[str, str]) ->
     transport = transport_table(s)
     if transport:
         parts.append("<h2>Robot &rarr; cloud</h2>" + _table(*transport))
-    merge = s.get("merge")
+    merge = fleet_merge(s)
     if merge:
         head, lines = merge_notes(merge)
         parts.append(f"<h2>Merge</h2><p>{html.escape(head)}</p>"

@@ -28,6 +28,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from fleetslam.evaluation.ate import ate_errors, rpe_errors  # noqa: E402
+from fleetslam.outputs import fleet_merge  # noqa: E402
 
 from fleetslam.reporting.run import (  # noqa: E402
     RunData,
@@ -408,7 +409,7 @@ def draw_global_map(run: RunData, ax: Axes) -> None:
 
 def plot_global_map(run: RunData, path: Path) -> Figure | str:
     if run.map_points is None or not len(run.map_points):
-        return "no global_map.ply (fewer than two robots merged)"
+        return "no global_map.ply (the run made no global map)"
     if len(run.merged) < 1:
         return "no global trajectories to place the map's view"
     fig, ax = plt.subplots(figsize=(8, 6.5))
@@ -424,7 +425,7 @@ def plot_global_map(run: RunData, path: Path) -> Figure | str:
     return Figure(path.name, "Global map from above",
                   "global_map.ply seen from above (each cell shows its highest point; the "
                   "ceiling is cut off) with every merged robot's global path, both in the "
-                  "global map frame (the map frame of the group's first robot): no ground "
+                  "fleet's level map frame (z up; the group's first robot's): no ground "
                   "truth involved, so where the trajectory plots align to ground truth their "
                   "axes differ from these.")
 
@@ -525,7 +526,7 @@ def plot_link(run: RunData, path: Path, bin_s: float = 1.0) -> Figure | str:
 
 
 def plot_merge(run: RunData, path: Path) -> Figure | str:
-    merge = run.summary.get("merge")
+    merge = fleet_merge(run.summary)
     if not merge:
         return "one robot: no merge"
     names = sorted(merge.get("robots") or {r.name for r in run.robots})
