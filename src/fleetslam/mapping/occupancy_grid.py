@@ -4,8 +4,9 @@ can navigate in what fleetslam mapped.
 
 - Up: the floor plane found in the map (RANSAC among the lowest points, its normal within
   ``floor_max_tilt_deg`` of the cameras' up, the cameras above it); where no floor shows,
-  ``[grid] up`` (a direction in the map frame) with the floor at the lowest points. The grid
-  says which it used. (A robot's own TF knows up too: not read here, the cloud has no TF.)
+  the camera mounting's up where one is given (map_frame.py), else ``[grid] up`` (a
+  direction in the map frame) with the floor at the lowest points. The grid says which it
+  used. (A robot's own TF knows up too: not read here, the cloud has no TF.)
 - The grid's frame is level (REP 103: z up, x the first camera's view along the floor,
   origin under the first camera on the floor); ``T_map_grid`` places it in the map frame.
 - Occupied: at least ``occupied_min_points`` map points in a cell between ``min_height_m``
