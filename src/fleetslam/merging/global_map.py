@@ -126,38 +126,13 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     # Every constraint of the group on the keyframes' depth, before the graph places them.
     merger.refine_constraints(cloud_of)
     graph_poses = merger.global_keyframe_poses()
-    result = GlobalMap(members, anchor, {}, {}, {}, {})
-    for name in by_name:
-        if name in members and (len(members) > 1 or len(by_name) == 1):
-            continue
-        if name not in merger.robots or not merger.robots[name].keyframes:
-            result.not_merged[name] = "no keyframe features reached the merger (it made " \
-                                      "no keyframe, or none of its keyframe messages arrived)"
-        elif len(members) > 1:
-            result.not_merged[name] = "shares no verified place with " + ", ".join(members)
-        else:
-            result.not_merged[name] = "no robot shares a verified place with another"
+    result = GlobalMap(members, anchor, {}, {}, {}, {},
+                       not_merged=_not_merged(merger, list(by_name), members))
     kf_poses = {m: graph_poses[m].copy() for m in members}
     result.T_global_map_graph = {m: merger.T_global_map(m) for m in members}  # made level below
     correction = {m: np.eye(4) for m in members}
     if config.merge.fshicp_refine and len(members) > 1:
-        placed = {m: voxel_downsample(np.vstack(_place(clouds[m], kf_poses[m])), None,
-                                      config.map.voxel_m)[0] for m in members}
-        for m in members[1:]:
-            target = np.vstack([placed[o] for o in members if o != m])
-            fit = fshicp(placed[m], target, np.eye(4), config.fshicp)
-            improved = fit.final_fitness < fit.initial_fitness
-            moved = transform_error(fit.T_target_source, np.eye(4))
-            result.fshicp.append({
-                "robot": m, "initial_fitness_m2": fit.initial_fitness,
-                "final_fitness_m2": fit.final_fitness, "kept": bool(improved),
-                "rotation_deg": moved.rotation_deg, "translation_m": moved.translation_m,
-                "seconds": fit.seconds, "coarse_steps": fit.coarse_steps,
-                "fine_steps": fit.fine_steps})
-            if improved:
-                correction[m] = fit.T_target_source
-                kf_poses[m] = fit.T_target_source @ kf_poses[m]
-                placed[m] = transform_points(fit.T_target_source, placed[m])
+        result.fshicp = _refine_by_fshicp(members, clouds, kf_poses, correction, config)
     # Every keyframe placed once, for the point cloud, the grid and the octree's scans.
     placed_points = [p for m in members for p in _place(clouds[m], kf_poses[m])]
     origins = [T[:3, 3] for m in members for T in kf_poses[m]]
@@ -186,10 +161,24 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
                              result.trajectories[m],
                              comment=f"fleetslam robot {m} in the fleet's map frame (level, "
                                      f"z up: {result.map_frame['source']}; robot {anchor}'s)")
-    points, colors = voxel_downsample(np.vstack(placed_points), np.vstack(colors_in),
-                                      config.map.voxel_m)
-    assert colors is not None
-    write_ply(out_dir / "global_map.ply", points, colors)
+    _write_maps(out_dir, placed_points, origins, colors_in, grid, config, result)
+    result.seconds = time.perf_counter() - started
+    log.info("global map: %s in the map frame (%s's, up from the %s), %d points, octomap "
+             "%d occupied / %d free leaves", ", ".join(members), anchor,
+             result.map_frame["source"], result.points, result.octomap["occupied"],
+             result.octomap["free"])
+    return result
+
+
+def _write_maps(out_dir: Path, placed_points: list[np.ndarray], origins: list[np.ndarray],
+                colors: list[np.ndarray], grid: OccupancyGrid, config: Config,
+                result: GlobalMap) -> None:
+    """global_map.ply (voxel-fused), .bt (each keyframe a scan from its camera) and the
+    nav2 grid, all in the map frame; their counts into ``result``."""
+    points, fused_colors = voxel_downsample(np.vstack(placed_points), np.vstack(colors),
+                                            config.map.voxel_m)
+    assert fused_colors is not None
+    write_ply(out_dir / "global_map.ply", points, fused_colors)
     result.points = len(points)
     start = time.perf_counter()
     stats = write_octomap(out_dir / "global_map.bt", zip(placed_points, origins),
@@ -199,11 +188,48 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     result.octomap = stats
     write_nav2_map(out_dir / "global_map", grid, "the fleet's map frame")
     result.grid = grid.summary("global_map.pgm")
-    result.seconds = time.perf_counter() - started
-    log.info("global map: %s in the map frame (%s's, up from the %s), %d points, octomap "
-             "%d occupied / %d free leaves", ", ".join(members), anchor,
-             result.map_frame["source"], len(points), stats["occupied"], stats["free"])
-    return result
+
+
+def _not_merged(merger: MapMerger, robots: list[str], members: list[str]) -> dict[str, str]:
+    """Why each robot outside the global map is (a lone robot's run: none)."""
+    out = {}
+    for name in robots:
+        if name in members and (len(members) > 1 or len(robots) == 1):
+            continue
+        if name not in merger.robots or not merger.robots[name].keyframes:
+            out[name] = "no keyframe features reached the merger (it made no keyframe, or " \
+                        "none of its keyframe messages arrived)"
+        elif len(members) > 1:
+            out[name] = "shares no verified place with " + ", ".join(members)
+        else:
+            out[name] = "no robot shares a verified place with another"
+    return out
+
+
+def _refine_by_fshicp(members: list[str], clouds: dict[str, list[tuple[np.ndarray, np.ndarray]]],
+                      kf_poses: dict[str, np.ndarray], correction: dict[str, np.ndarray],
+                      config: Config) -> list[dict[str, Any]]:
+    """FS-HICP of each member's dense map to the rest of the group's, kept where it lowers
+    the fitness: ``kf_poses`` and ``correction`` updated in place; one record per robot."""
+    records = []
+    placed = {m: voxel_downsample(np.vstack(_place(clouds[m], kf_poses[m])), None,
+                                  config.map.voxel_m)[0] for m in members}
+    for m in members[1:]:
+        target = np.vstack([placed[o] for o in members if o != m])
+        fit = fshicp(placed[m], target, np.eye(4), config.fshicp)
+        improved = fit.final_fitness < fit.initial_fitness
+        moved = transform_error(fit.T_target_source, np.eye(4))
+        records.append({
+            "robot": m, "initial_fitness_m2": fit.initial_fitness,
+            "final_fitness_m2": fit.final_fitness, "kept": bool(improved),
+            "rotation_deg": moved.rotation_deg, "translation_m": moved.translation_m,
+            "seconds": fit.seconds, "coarse_steps": fit.coarse_steps,
+            "fine_steps": fit.fine_steps})
+        if improved:
+            correction[m] = fit.T_target_source
+            kf_poses[m] = fit.T_target_source @ kf_poses[m]
+            placed[m] = transform_points(fit.T_target_source, placed[m])
+    return records
 
 
 def _fleet_frame(scans: list[tuple[np.ndarray, np.ndarray]], poses: np.ndarray,
