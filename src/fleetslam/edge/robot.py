@@ -46,6 +46,7 @@ from fleetslam.edge.encoder import FrameEncoder
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
+from fleetslam.edge.fleet_frame import FleetFrame
 from fleetslam.edge.ros2_out import RobotRosOut
 from fleetslam.edge.sender import FrameOutbox, Sender
 from fleetslam.edge.uploader import KeyframeUploader
@@ -92,6 +93,28 @@ class OnboardTracker(Protocol):
     def keyframe_poses(self) -> dict[int, np.ndarray]: ...
 
 
+def _check_arguments(robot_id: str, live: LiveSource | None, offload_at: int, rate: str,
+                     paper_yaml_dir: Path | None, planner: OnlinePlanner | None,
+                     onboard: OnboardTracker | None) -> float | None:
+    """The robot's frame rate (None: as fast as it goes); ValueError for arguments that do
+    not go together."""
+    check_point(offload_at)
+    if (offload_at == ROBOT_TRACKS) != (onboard is not None):
+        raise ValueError(f"a robot tracks by itself (and is given its onboard pipeline) at "
+                         f"point {ROBOT_TRACKS} only, not at {offload_at}")
+    fps = parse_rate(rate)
+    if live is not None and fps is not None:
+        raise ValueError(f"robot {robot_id}: {live.description} delivers frames at "
+                         f"its own rate; --rate {rate} holds back recorded frames only")
+    if paper_yaml_dir is not None and offload_at != 3:
+        raise ValueError("the paper's YAML message holds the state at point 3 "
+                         f"(--offload-at paper), not {offload_at}")
+    if planner is not None and offload_at not in planner.cfg.online_points:
+        raise ValueError(f"an adaptive robot starts at one of "
+                         f"{', '.join(map(str, planner.cfg.online_points))}")
+    return fps
+
+
 class Robot:
     """``sequence``: a recording (paced by ``rate``) or a live source, started by the caller
     (its camera model builds the stages), which the robot closes when its run ends."""
@@ -104,18 +127,9 @@ class Robot:
                  link_trace: list[tuple[int, float]] | None = None,
                  onboard: OnboardTracker | None = None) -> None:
         self.robot_id = keys.check_robot_id(robot_id)
-        check_point(offload_at)
-        if (offload_at == ROBOT_TRACKS) != (onboard is not None):
-            raise ValueError(f"a robot tracks by itself (and is given its onboard pipeline) at "
-                             f"point {ROBOT_TRACKS} only, not at {offload_at}")
-        self.fps = parse_rate(rate)
         self.live = sequence if isinstance(sequence, LiveSource) else None
-        if self.live is not None and self.fps is not None:
-            raise ValueError(f"robot {robot_id}: {self.live.description} delivers frames at "
-                             f"its own rate; --rate {rate} holds back recorded frames only")
-        if paper_yaml_dir is not None and offload_at != 3:
-            raise ValueError("the paper's YAML message holds the state at point 3 "
-                             f"(--offload-at paper), not {offload_at}")
+        self.fps = _check_arguments(robot_id, self.live, offload_at, rate, paper_yaml_dir,
+                                    planner, onboard)
         if paper_yaml_dir is not None:
             paper_yaml_dir.mkdir(parents=True, exist_ok=True)
         self.sequence = sequence
@@ -127,9 +141,6 @@ class Robot:
         # An adaptive robot re-plans its point (among those the cloud switches between frame
         # by frame), its ORB features and its frame step while it runs.
         self.planner = planner
-        if planner is not None and offload_at not in planner.cfg.online_points:
-            raise ValueError(f"an adaptive robot starts at one of "
-                             f"{', '.join(map(str, planner.cfg.online_points))}")
         self.link_trace = dict(link_trace or [])
         # The robot holds the state of the stages it runs: the front end at points 1-3 (an
         # adaptive robot may run any part of it at any moment), nothing at point 0 (the
@@ -154,8 +165,9 @@ class Robot:
         # The robot's own ROS 2 graph: its pose, TF, path and status as they come.
         self.ros_out = RobotRosOut(self.robot_id, config.ros2_out, self.report, sequence) \
             if config.ros2_out.endpoint else None
-        # Ends the hold after the session (ros2_out.hold_s): a merge's placement, or a stop.
-        self._hold_over = threading.Event()
+        # Where the cloud places its map, and the node held up for it after the session.
+        self.fleet_frame = FleetFrame(self.robot_id, self.report, self.ros_out,
+                                      config.ros2_out.hold_s)
         self.sender: Sender | None = None  # the link, once run() has connected
         self._replies: queue.Queue = queue.Queue()
         # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
@@ -206,26 +218,9 @@ class Robot:
         elif kind == "error":
             self._on_error(message)
         elif kind == "placed":
-            self._on_placed(message)
+            self.fleet_frame.take(message)
         else:
             self._replies.put(message)
-
-    def _on_placed(self, message: dict[str, Any]) -> None:
-        """Where the cloud placed this robot's map in its group's frame: to the report and
-        to ROS 2 (map -> <robot>/map); a malformed one is said and dropped."""
-        self.report.placed_messages += 1
-        try:
-            placed = protocol.parse_placed(message)
-        except ValueError as exc:
-            self.report.placed_rejected += 1
-            log.warning("robot %s: placement from the cloud rejected: %s", self.robot_id, exc)
-            return
-        self.report.placed = {"group": placed.group, "final": placed.final,
-                              "T_global_map": placed.T_global_map.tolist()}
-        if self.ros_out is not None:
-            self.ros_out.placed(placed)
-        if placed.final:
-            self._hold_over.set()
 
     def _on_error(self, message: dict[str, Any]) -> None:
         log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
@@ -275,17 +270,12 @@ class Robot:
         try:
             self._stream()
             self._finish()
-            self._hold()
+            self.fleet_frame.hold()
         finally:
             if self.live is not None:
                 self.live.close()
             if self.ros_out is not None:
                 self.ros_out.close()
-                self.report.ros2_poses = self.ros_out.tracked_frames
-                self.report.ros2_unpublished = self.ros_out.unpublished
-                self.report.ros2_timings = [
-                    (t.frame_index, t.taken_ns, t.sent_ns, t.feedback_ns, t.published_ns)
-                    for t in self.ros_out.timings]
             self.uploader.stop()
             self.sender.close()
             for sub in subs:
@@ -293,23 +283,12 @@ class Robot:
             zs.close()
         return self.report
 
-    def _hold(self) -> None:
-        """With ROS 2 out, keep the node up after the session ended, ``ros2_out.hold_s`` at
-        most: its TF stays, and a merge's final placement of its map reaches ROS 2."""
-        hold = self.config.ros2_out.hold_s
-        if self.ros_out is None or hold <= 0 or self._hold_over.is_set():
-            return
-        log.info("robot %s: holding its ROS 2 node up to %.0f s for a merge's placement "
-                 "(Ctrl-C ends it)", self.robot_id, hold)
-        if not self._hold_over.wait(hold):
-            log.info("robot %s: no merge placed its map within %.0f s", self.robot_id, hold)
-
     def stop(self) -> None:
         """End the stream before the next frame; the run then ends as at the end of a
         recording (the end message, the uploads the cloud still needs, its 'ended'): how a
         live camera's run is ended."""
         self._stopping.set()
-        self._hold_over.set()
+        self.fleet_frame.release()
 
     def _stream(self) -> None:
         """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send."""

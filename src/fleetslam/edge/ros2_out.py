@@ -147,6 +147,11 @@ class RobotRosOut:
             self._subs = []
             self._pubs = {}
         self.graph.close()
+        self.report.ros2_poses = self.tracked_frames
+        self.report.ros2_unpublished = self.unpublished
+        self.report.ros2_timings = [
+            (t.frame_index, t.taken_ns, t.sent_ns, t.feedback_ns, t.published_ns)
+            for t in self.timings]
 
     def declare(self, node: RosNode) -> None:
         """The node is up: this robot's publishers, and subscribers to its own TF."""
