@@ -22,6 +22,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid
 from fleetslam.merging.global_map import (
     GlobalMap,
@@ -208,8 +209,10 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
     scans: list = []
     run.map_points, run.map_colors = build_dense_map(run.sequence.camera, keyframes(), config.map,
                                                      scans)
+    # Up in the robot's map (its first camera) from the camera's mounting, where given.
+    up = mounting_up(np.eye(4), run.sequence.camera.mounted(config.camera.base_link))
     run.grid = occupancy_grid(scans, np.asarray(run.keyframe_poses).reshape(-1, 4, 4),
-                              config.grid)
+                              config.grid, up)
 
 
 def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,

@@ -17,6 +17,7 @@ from fleetslam.cloud.session_state import SessionState
 from fleetslam.cloud.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import occupancy_grid
 from fleetslam.merging.global_map import RobotTrack
 from fleetslam.outputs import (
@@ -81,19 +82,21 @@ class SessionOutputs:
         kf_index = sorted(kf_poses)
         time_of = {r.index: r.timestamp for r in rows}
 
+        mapped: list[np.ndarray] = []  # the poses of the keyframes with images
+
         def keyframes():
             for i in kf_index:
                 if not self.store.has_keyframe(self.robot_id, i):
                     continue  # the robot could not upload it (a live camera's, gone)
                 _, upload = decode_keyframe(self.store.keyframe(self.robot_id, i))
+                mapped.append(kf_poses[i])
                 yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
                        kf_poses[i], upload.stride)
 
         scans: list = []
         points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map, scans)
-        grid = occupancy_grid(scans, np.array([kf_poses[i] for i in kf_index
-                                               if self.store.has_keyframe(self.robot_id, i)]
-                                              ).reshape(-1, 4, 4), self.config.grid)
+        grid = occupancy_grid(scans, np.array(mapped).reshape(-1, 4, 4), self.config.grid,
+                              mounting_up(np.eye(4), st.hello.camera))
         write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
                           np.array([time_of.get(i, np.nan) for i in kf_index]),
                           np.array([kf_poses[i] for i in kf_index]).reshape(-1, 4, 4),
