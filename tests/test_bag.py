@@ -396,3 +396,42 @@ def test_the_jpeg_bag_tracks_within_ten_percent_of_the_folders_ate(tum_bags, fol
     bag_ate = ate_summary(run.poses[ok], gt)["rmse_m"]
     folder_ate = run_ate(folder_run)["rmse_m"]
     assert bag_ate <= 1.10 * folder_ate, (bag_ate, folder_ate)
+
+
+def _claiming(png: bytes, width: int, height: int) -> bytes:
+    """``png`` with its IHDR claiming width x height (its CRC made right): a small message
+    that would decode to a huge image."""
+    import struct
+    import zlib
+
+    ihdr = png[12:16] + struct.pack(">II", width, height) + png[24:29]
+    return png[:8] + png[8:12] + ihdr + struct.pack(">I", zlib.crc32(ihdr)) + png[33:]
+
+
+def test_a_compressed_image_is_sized_from_its_header_before_it_is_decoded():
+    """A PNG whose header claims 20000 x 20000 pixels (a decompression bomb) is refused
+    before decoding, as colour and as compressedDepth; one of another size than the camera's
+    too, where the camera is known (a live ROS 2 topic)."""
+    import struct
+
+    import cv2
+
+    from fleetslam.datasets.ros_messages import RosMessageError, colour_image, depth_image
+
+    ts = bw.typestore_for("mcap")
+    png = cv2.imencode(".png", np.full((H, W, 3), 7, np.uint8))[1].tobytes()
+    bomb = bw.compressed(ts, 0, "png", _claiming(png, 20000, 20000))
+    with pytest.raises(RosMessageError, match=r"^c: compressed image \('png'\) not decoded: "
+                       r"20000 x 20000 pixels exceed the limit of 16777216$"):
+        colour_image(bomb, "c")
+    assert colour_image(bw.compressed(ts, 0, "png", png), "c", (W, H)).shape == (H, W, 3)
+    with pytest.raises(RosMessageError, match=rf"not decoded: {W} x {H} pixels, the camera's "
+                       r"images are 640 x 480$"):
+        colour_image(bw.compressed(ts, 0, "png", png), "c", (640, 480))
+    depth_png = cv2.imencode(".png", np.full((H, W), 500, np.uint16))[1].tobytes()
+    depth = bw.compressed(ts, 0, "16UC1; compressedDepth png",
+                          struct.pack("<iff", 0, 0.0, 0.0) + _claiming(depth_png, 20000, 20000))
+    with pytest.raises(RosMessageError, match="compressedDepth payload not decoded: 20000 x"):
+        depth_image(depth, "d", MILLIMETRE_DEPTH_SCALE)
+    with pytest.raises(RosMessageError, match=r"is neither PNG nor JPEG"):
+        colour_image(bw.compressed(ts, 0, "png", b"GIF89a" + bytes(40)), "c")

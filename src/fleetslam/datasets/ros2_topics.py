@@ -394,8 +394,9 @@ class Ros2TopicSource(SlotCounts):
         message = self._decode(*colour)
         # The camera's TF frame, for what the robot publishes back (edge/ros2_out.py).
         self.camera_frame_id = str(message.header.frame_id).lstrip("/")
-        rgb = colour_image(message, colour[2])
-        raw = depth_image(self._decode(*depth), depth[2], camera.depth_scale)
+        size = (camera.width, camera.height)
+        rgb = colour_image(message, colour[2], size)
+        raw = depth_image(self._decode(*depth), depth[2], camera.depth_scale, size)
         for image, where in ((rgb, colour[2]), (raw, depth[2])):
             if image.shape[:2] != (camera.height, camera.width):
                 raise RosMessageError(f"{where}: image of {image.shape[1]} x {image.shape[0]} "

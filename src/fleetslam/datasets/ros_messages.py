@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from fleetslam.camera import Camera
+from fleetslam.io.coded_image import codec_of, coded_image_problem
 
 # 16-bit depth in millimetres (REP 118): 1000 raw values a metre.
 MILLIMETRE_DEPTH_SCALE = 1000.0
@@ -72,10 +73,26 @@ def _image_pixels(msg: Any, where: str, dtype: np.dtype, channels: int) -> np.nd
     return pixels.reshape((h, w, channels) if channels > 1 else (h, w))
 
 
-def colour_image(msg: Any, where: str) -> np.ndarray:
-    """An Image or CompressedImage to H x W x 3 uint8 RGB."""
+def _decode_coded(data: np.ndarray, flags: int, where: str, what: str,
+                  size: tuple[int, int] | None) -> np.ndarray | None:
+    """cv2.imdecode of a PNG or JPEG once its header says it is worth decoding (within the
+    pixel limit, ``size`` (width, height) where the camera is known); RosMessageError
+    otherwise. None: OpenCV could not decode it."""
+    raw = data.tobytes()
+    codec = codec_of(raw)
+    if codec is None:
+        raise RosMessageError(f"{where}: {what} ({data.size} bytes) is neither PNG nor JPEG")
+    problem = coded_image_problem(raw, codec, size)
+    if problem:
+        raise RosMessageError(f"{where}: {what} not decoded: {problem}")
+    return cv2.imdecode(data, flags)
+
+
+def colour_image(msg: Any, where: str, size: tuple[int, int] | None = None) -> np.ndarray:
+    """An Image or CompressedImage to H x W x 3 uint8 RGB; ``size``: the camera's (width,
+    height), which a compressed image must have before it is decoded."""
     if hasattr(msg, "format"):
-        return _compressed_colour(msg, where)
+        return _compressed_colour(msg, where, size)
     encoding = str(msg.encoding)
     if encoding in ("rgb8", "bgr8"):
         pixels = _image_pixels(msg, where, np.uint8, 3)
@@ -90,11 +107,12 @@ def colour_image(msg: Any, where: str) -> np.ndarray:
                           f"(use one of {', '.join(COLOUR_ENCODINGS)})")
 
 
-def _compressed_colour(msg: Any, where: str) -> np.ndarray:
+def _compressed_colour(msg: Any, where: str, size: tuple[int, int] | None) -> np.ndarray:
     fmt = str(msg.format)
     if "compresseddepth" in fmt.lower():
         raise RosMessageError(f"{where}: a compressedDepth image ({fmt!r}) is depth, not colour")
-    image = cv2.imdecode(_data(msg), cv2.IMREAD_COLOR)
+    image = _decode_coded(_data(msg), cv2.IMREAD_COLOR, where, f"compressed image ({fmt!r})",
+                          size)
     if image is None:
         raise RosMessageError(f"{where}: compressed image ({fmt!r}, {_data(msg).size} bytes) "
                               f"does not decode as JPEG or PNG")
@@ -144,12 +162,14 @@ def _depth_encoding(msg: Any, where: str) -> str:
     return encoding
 
 
-def depth_image(msg: Any, where: str, scale: float) -> np.ndarray:
+def depth_image(msg: Any, where: str, scale: float, size: tuple[int, int] | None = None
+                ) -> np.ndarray:
     """An Image or compressedDepth CompressedImage to H x W uint16 at ``scale`` raw values a
-    metre; no measurement (0, NaN, infinite, out of the 16-bit range) is 0."""
+    metre; no measurement (0, NaN, infinite, out of the 16-bit range) is 0. ``size``: as
+    colour_image's."""
     encoding = _depth_encoding(msg, where)
     if hasattr(msg, "format"):
-        metres_or_mm = _compressed_depth(msg, where, encoding)
+        metres_or_mm = _compressed_depth(msg, where, encoding, size)
     elif encoding == "16UC1":
         metres_or_mm = _image_pixels(msg, where, np.uint16, 1)
     else:
@@ -167,13 +187,15 @@ def depth_image(msg: Any, where: str, scale: float) -> np.ndarray:
     return np.where(ok, raw, 0).astype(np.uint16)
 
 
-def _compressed_depth(msg: Any, where: str, encoding: str) -> np.ndarray:
+def _compressed_depth(msg: Any, where: str, encoding: str, size: tuple[int, int] | None
+                      ) -> np.ndarray:
     data = _data(msg)
     if data.size <= _COMPRESSED_DEPTH_HEADER.size:
         raise RosMessageError(f"{where}: compressedDepth message of {data.size} bytes")
     _, quant_a, quant_b = _COMPRESSED_DEPTH_HEADER.unpack(data[:_COMPRESSED_DEPTH_HEADER.size]
                                                           .tobytes())
-    png = cv2.imdecode(data[_COMPRESSED_DEPTH_HEADER.size:], cv2.IMREAD_UNCHANGED)
+    png = _decode_coded(data[_COMPRESSED_DEPTH_HEADER.size:], cv2.IMREAD_UNCHANGED, where,
+                        "compressedDepth payload", size)
     if png is None or png.dtype != np.uint16 or png.ndim != 2:
         raise RosMessageError(f"{where}: compressedDepth payload is not a 16-bit PNG")
     if encoding == "16UC1":

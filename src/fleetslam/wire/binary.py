@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from fleetslam.config import IMAGE_CODECS  # re-exported: the wire's image codecs
+from fleetslam.io.coded_image import MAX_IMAGE_PIXELS, coded_image_problem, coded_size
 from fleetslam.wire.envelope import WireError
 
 # PNG images: zlib's run-length strategy. On the real 640x480 frames it is both smaller and
@@ -20,8 +21,6 @@ from fleetslam.wire.envelope import WireError
 # 154 vs 175 kB, colour 458 vs 482 kB (7-Scenes); higher levels cost 1.5-3x the time.
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY,
               cv2.IMWRITE_PNG_STRATEGY_RLE]
-# Larger images are refused before decoding (a 4K frame has 8.3 Mpixels).
-MAX_IMAGE_PIXELS = 1 << 24
 # Smallest zstd block a payload is cut into (Writer.sections).
 SECTION_MIN_BYTES = 256
 
@@ -169,21 +168,6 @@ _CODEC_IDS = {"png": 0, "jpeg": 1, "delta": 2}
 # in ~1 ms; decoding is one cumulative sum.
 DEPTH_CODEC = "delta"
 _CODEC_NAMES = {v: k for k, v in _CODEC_IDS.items()}
-# JPEG start-of-frame markers (baseline, progressive, ...): they carry the image size.
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-# Markers (and fill bytes) walked before the size is found: a real JPEG has a handful (APPn,
-# DQT, COM); a payload of millions of 4-byte segments would keep this Python loop busy for
-# seconds (bench/fuzz_wire.py).
-_JPEG_MAX_MARKERS = 1024
-# Scans (SOS markers) a JPEG may have: libjpeg's progressive scripts use at most 10. Every
-# scan is a pass over the whole image, so thousands of tiny scans take libjpeg seconds at
-# MAX_IMAGE_PIXELS (a 36 kB message: 28 s). Entropy-coded data stuffs 0xFF as FF 00, so
-# counting FF DA overcounts at most (a thumbnail in an APP segment).
-MAX_JPEG_SCANS = 64
-# PNG chunks allowed per kB of image: OpenCV's libpng writes 8 kB IDAT chunks, but libpng
-# spends microseconds on every chunk however small, so 14 MB of 15-byte iTXt chunks (a 150 kB
-# message once zstd-compressed) took it 2.4 s (bench/fuzz_wire.py).
-_PNG_CHUNKS_PER_KB = 1
 
 
 def check_codec(codec: str) -> None:
@@ -217,41 +201,6 @@ def _encode(image: np.ndarray, codec: str, jpeg_quality: int) -> bytes:
     if not ok:
         raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image as {codec}")
     return buf.tobytes()
-
-
-def _coded_size(data: bytes, codec: str) -> tuple[int, int] | None:
-    """(width, height) from the image's own header, without decoding it."""
-    if codec == "png":
-        if len(data) < 24 or data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR":
-            return None
-        return struct.unpack(">II", data[16:24])
-    if data[:2] != b"\xff\xd8":
-        return None
-    i = 2
-    for _ in range(_JPEG_MAX_MARKERS):
-        if i + 9 > len(data) or data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in _JPEG_SOF:
-            h, w = struct.unpack(">HH", data[i + 5:i + 9])
-            return w, h
-        (length,) = struct.unpack(">H", data[i + 2:i + 4])
-        i += 2 + length
-    return None
-
-
-def _png_chunks_bounded(data: bytes) -> bool:
-    """At most 16 chunks plus _PNG_CHUNKS_PER_KB per kB (a walk of at most that many steps)."""
-    i = 8
-    for _ in range(16 + _PNG_CHUNKS_PER_KB * len(data) // 1024):
-        if i + 8 > len(data):
-            return True
-        (length,) = struct.unpack_from(">I", data, i)
-        i += 12 + length
-    return i + 8 > len(data)
 
 
 def put_image(w: Writer, image: np.ndarray, codec: str, jpeg_quality: int = 90) -> None:
@@ -299,12 +248,11 @@ def get_image(r: Reader, what: str, size: tuple[int, int] | None = None
     if codec == DEPTH_CODEC:  # the planes' length is checked before anything is allocated
         return _delta_decode(r.shuffled("u2", h * width, what).reshape(h, width)), codec
     data = r.blob(what)
-    if _coded_size(data, codec) != (width, h):
+    if coded_size(data, codec) != (width, h):
         raise WireError(f"{what}: not a {width}x{h} {codec} image")
-    if codec == "jpeg" and data.count(b"\xff\xda") > MAX_JPEG_SCANS:
-        raise WireError(f"{what}: more than {MAX_JPEG_SCANS} JPEG scans")
-    if codec == "png" and not _png_chunks_bounded(data):
-        raise WireError(f"{what}: more than {_PNG_CHUNKS_PER_KB} PNG chunk per kB")
+    problem = coded_image_problem(data, codec)
+    if problem:
+        raise WireError(f"{what}: {problem}")
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     dtype = np.uint8 if itemsize == 1 else np.uint16
     expected = (h, width) if channels == 1 else (h, width, 3)
