@@ -895,3 +895,49 @@ def test_keyframes_a_live_robot_no_longer_holds_are_mapped_without_images(cloud,
     assert summary["keyframes_without_images"] == len(keyframes) == summary["keyframes"]
     assert summary["map_points"] == 0
     robot.close()
+
+
+def test_a_damaged_stored_keyframe_costs_its_images_not_the_robots_end(messages, tmp_path,
+                                                                       caplog):
+    """A keyframe file damaged on disk after it was acknowledged: the session still ends
+    (the robot answered 'ended', trajectory and map written), that keyframe left out of the
+    dense map with one line naming it."""
+    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.cloud.store import CloudStore
+    from fleetslam.transport.protocol import Hello
+    from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
+
+    seq0, msgs0, _ = messages["r0"]
+    replies: list[dict] = []
+    store = CloudStore(tmp_path)
+    session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), exact_config(), store,
+                                lambda k, d: replies.append(json.loads(d))
+                                if k == keys.reply("r0") else None)
+    for data in msgs0:
+        session.submit_frame(data, time.monotonic())
+    session.drain()
+    keyframes = [r.index for r in session.state.rows if r.is_keyframe]
+    assert len(keyframes) >= 2
+    stride = exact_config().map.pixel_stride
+    for seq, index in enumerate(keyframes):
+        frame = seq0[index]
+        upload = KeyframeUpload.from_frame(index, frame.timestamp, frame.rgb, frame.depth_raw,
+                                           stride)
+        session.submit_keyframe(encode_keyframe("r0", seq, upload, exact_config().wire),
+                                time.monotonic())
+    deadline = time.monotonic() + 30
+    while len(store.keyframe_indices("r0")) < len(keyframes):
+        assert time.monotonic() < deadline, replies
+        time.sleep(0.05)
+    damaged = store.robot_dir("r0") / "keyframes" / f"{keyframes[0]:06d}.fskf"
+    damaged.write_bytes(damaged.read_bytes()[:100])  # cut short on disk
+    session.submit_control({"type": "end", "last_seq": N_FRAMES - 1}, time.monotonic())
+    deadline = time.monotonic() + 60
+    while not any(r["type"] == "ended" for r in replies):
+        assert time.monotonic() < deadline, replies
+        time.sleep(0.05)
+    session.close()
+    summary = next(r for r in replies if r["type"] == "ended")["summary"]
+    assert summary["frames"] == N_FRAMES and summary["map_points"] > 0
+    assert f"robot r0: stored keyframe {keyframes[0]} cannot be read" in caplog.text
+    assert str(damaged) in caplog.text

@@ -308,3 +308,39 @@ def test_the_checkpoint_fuzzer_finds_nothing_on_a_few_cases():
     result = fuzz.fuzz(blobs, camera, frame, 60, seed=7)
     assert all(sum(o.values()) == 12 for o in result["outcomes"].values()), result
     assert result["non_clean"] == 0, result["findings"]
+
+
+def _within(seconds: float, call) -> object:
+    """``call()``'s result, or a failure if it takes longer than ``seconds`` (a hang)."""
+    import threading
+
+    result: list = []
+    thread = threading.Thread(target=lambda: result.append(call()), daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"still waiting after {seconds} s"
+    return result[0]
+
+
+def test_a_fifo_or_a_folder_named_as_a_checkpoint_is_refused_at_once(tmp_path):
+    """Opening a FIFO to read waits for a writer for ever: a store that holds one where a
+    checkpoint (or a keyframe) belongs refuses it as not a regular file, at once."""
+    import os
+
+    store = CloudStore(tmp_path)
+    (tmp_path / "r0" / "keyframes").mkdir(parents=True)
+    os.mkfifo(tmp_path / "r0" / CHECKPOINT)
+    os.mkfifo(tmp_path / "r0" / "keyframes" / "000003.fskf")
+    (tmp_path / "r1" / CHECKPOINT).mkdir(parents=True)
+
+    def refused(call):
+        try:
+            call()
+        except CheckpointError as exc:
+            return exc
+        raise AssertionError("not refused")
+
+    for call in (lambda: store.load_checkpoint("r0"), lambda: store.keyframe("r0", 3),
+                 lambda: store.load_checkpoint("r1")):
+        error = _within(10.0, lambda: refused(call))
+        assert "not a regular file" in str(error)

@@ -16,19 +16,25 @@ robot sessions and its merge, cloud/): the files of each robot and the schema of
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from fleetslam.config import Config, config_to_dict
+from fleetslam.io.files import UnreadableFile, read_regular
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
 from fleetslam.mapping.occupancy_grid import OccupancyGrid, write_nav2_map
 from fleetslam.tables import _cell, format_table
 
+log = logging.getLogger("fleetslam.outputs")
+
 SUMMARY_VERSION = 3
 ROBOT_SUMMARY = "robot.json"
+# A robot.json is a few kB; a larger file is not one fleetslam wrote.
+MAX_ROBOT_SUMMARY_BYTES = 16 << 20
 ROBOT_REPORT = "robot_report.json"
 
 
@@ -103,9 +109,18 @@ def write_robot_summary(robot_dir: Path, summary: dict[str, Any]) -> None:
 
 
 def read_robot_summary(robot_dir: Path) -> dict[str, Any] | None:
-    """A robot's entry as written when it ended; None if it has not."""
+    """A robot's entry as written when it ended; None if it has not (or it cannot be read:
+    said, as its session's counts are then the checkpoint's)."""
     path = robot_dir / ROBOT_SUMMARY
-    return json.loads(path.read_text()) if path.exists() else None
+    if not path.exists():
+        return None
+    try:
+        entry = json.loads(read_regular(path, MAX_ROBOT_SUMMARY_BYTES, "the limit of"))
+    except (UnreadableFile, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        log.error("%s: not a robot summary fleetslam wrote (%s); its counts are left out",
+                  path, exc)
+        return None
+    return entry if isinstance(entry, dict) else None
 
 
 def fleet_summary(robots: list[dict[str, Any]], merge: dict[str, Any] | None, config: Config,

@@ -27,7 +27,9 @@ from fleetslam.outputs import (
     write_robot_summary,
 )
 from fleetslam.pipeline.split import ROBOT_TRACKS
-from fleetslam.wire.messages import decode_keyframe
+from fleetslam.wire.data_tree import CheckpointError
+from fleetslam.wire.envelope import WireError
+from fleetslam.wire.messages import KeyframeUpload, decode_keyframe
 
 log = logging.getLogger("fleetslam.cloud")
 
@@ -86,9 +88,9 @@ class SessionOutputs:
 
         def keyframes():
             for i in kf_index:
-                if not self.store.has_keyframe(self.robot_id, i):
-                    continue  # the robot could not upload it (a live camera's, gone)
-                _, upload = decode_keyframe(self.store.keyframe(self.robot_id, i))
+                upload = self._stored_upload(i)
+                if upload is None:
+                    continue
                 mapped.append(kf_poses[i])
                 yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
                        kf_poses[i], upload.stride)
@@ -124,14 +126,30 @@ class SessionOutputs:
         camera = self.state.hello.camera
 
         def keyframe_image(index: int) -> tuple[np.ndarray, np.ndarray, int] | None:
-            if not self.store.has_keyframe(self.robot_id, index):
-                return None  # never uploaded: the robot had it no more (a live camera)
-            _, upload = decode_keyframe(self.store.keyframe(self.robot_id, index))
+            upload = self._stored_upload(index)
+            if upload is None:
+                return None
             return upload.rgb, camera.depth_to_metres(upload.depth_raw), upload.stride
 
         return RobotTrack(self.robot_id, camera, timestamps, self.trajectory(),
                           self._merger_references(), [r.T_reference_camera for r in rows],
                           keyframe_image)
+
+    def _stored_upload(self, index: int) -> KeyframeUpload | None:
+        """The keyframe's stored upload; None where there is none (the robot could not upload
+        it: a live camera's, gone) or it cannot be read (damaged on disk: said, and the map
+        is made without its images, never the robot's end held up)."""
+        if not self.store.has_keyframe(self.robot_id, index):
+            return None
+        try:
+            _, upload = decode_keyframe(self.store.keyframe(self.robot_id, index))
+        except (WireError, CheckpointError) as exc:
+            reason = exc.reason if isinstance(exc, CheckpointError) else str(exc)
+            log.error("robot %s: stored keyframe %d cannot be read, so its images are left "
+                      "out of the map: %s: %s", self.robot_id, index,
+                      self.store.keyframe_file(self.robot_id, index), reason)
+            return None
+        return upload
 
     def _merger_references(self) -> np.ndarray:
         """Each frame's reference keyframe as the merger numbers keyframes (-1: none). A

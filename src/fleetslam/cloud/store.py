@@ -29,7 +29,9 @@ from pathlib import Path
 from fleetslam.cloud import checkpoint_shape, session_state
 from fleetslam.cloud.session_state import SessionState
 from fleetslam.config import TransportConfig
+from fleetslam.io.files import UnreadableFile, read_regular
 from fleetslam.wire.data_tree import Capture, CheckpointError
+from fleetslam.wire.envelope import MAX_PAYLOAD_BYTES
 
 log = logging.getLogger("fleetslam.cloud")
 
@@ -56,23 +58,16 @@ def write_durably(path: Path, data: bytes) -> None:
         os.close(dir_fd)
 
 
-def _read_bounded(path: Path, limit: int, of_what: str) -> bytes:
-    """The file's bytes; CheckpointError naming it if it is missing, unreadable or over
-    ``limit`` bytes (never more than that is read)."""
+def _read_bounded(path: Path, limit: int, of_what: str,
+                  setting: str = "transport.max_checkpoint_bytes") -> bytes:
+    """The file's bytes; CheckpointError naming it if it is missing, unreadable, not a
+    regular file or over ``limit`` bytes (never more than that is read)."""
+    limit_of = f"the limit {of_what} of" if of_what else "the limit of"
     try:
-        with open(path, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            if size > limit:
-                limit_of = f"the limit {of_what} of" if of_what else "the limit of"
-                raise CheckpointError(str(path), f"{size} bytes exceeds {limit_of} {limit} "
-                                                 f"(transport.max_checkpoint_bytes)")
-            # What the file holds, never more than the limit (read() allocates what it is
-            # asked for; a file growing meanwhile is cut and refused as damaged).
-            return f.read(size + 1)
-    except FileNotFoundError:
-        raise CheckpointError(str(path), "missing") from None
-    except OSError as exc:
-        raise CheckpointError(str(path), f"cannot be read ({exc})") from None
+        return read_regular(path, limit, limit_of)
+    except UnreadableFile as exc:
+        reason = f"{exc.reason} ({setting})" if "exceeds" in exc.reason else exc.reason
+        raise CheckpointError(exc.where, reason) from None
 
 
 class CloudStore:
@@ -86,17 +81,20 @@ class CloudStore:
     def robot_dir(self, robot_id: str) -> Path:
         return self.root / robot_id
 
-    def _keyframe_path(self, robot_id: str, frame_index: int) -> Path:
+    def keyframe_file(self, robot_id: str, frame_index: int) -> Path:
         return self.robot_dir(robot_id) / "keyframes" / f"{frame_index:06d}.fskf"
 
     def put_keyframe(self, robot_id: str, frame_index: int, message: bytes) -> None:
-        write_durably(self._keyframe_path(robot_id, frame_index), message)
+        write_durably(self.keyframe_file(robot_id, frame_index), message)
 
     def has_keyframe(self, robot_id: str, frame_index: int) -> bool:
-        return self._keyframe_path(robot_id, frame_index).exists()
+        return self.keyframe_file(robot_id, frame_index).exists()
 
     def keyframe(self, robot_id: str, frame_index: int) -> bytes:
-        return self._keyframe_path(robot_id, frame_index).read_bytes()
+        """A stored keyframe message; CheckpointError naming its file if it cannot be read
+        (missing, not a regular file, larger than any message the wire takes)."""
+        return _read_bounded(self.keyframe_file(robot_id, frame_index), MAX_PAYLOAD_BYTES,
+                             "of a message", "the wire's payload limit")
 
     def keyframe_indices(self, robot_id: str) -> list[int]:
         folder = self.robot_dir(robot_id) / "keyframes"

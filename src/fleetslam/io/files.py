@@ -1,0 +1,46 @@
+"""Reading a file fleetslam wrote, as one that may not be: only a regular file (opening a
+FIFO to read waits for a writer for ever), never more than a limit."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+
+class UnreadableFile(ValueError):
+    """``where`` (the file) and ``reason`` (what is wrong with it)."""
+
+    def __init__(self, where: str, reason: str) -> None:
+        super().__init__(f"{where}: {reason}")
+        self.where = where
+        self.reason = reason
+
+
+def read_regular(path: Path, limit: int, limit_name: str) -> bytes:
+    """The file's bytes; UnreadableFile if it is missing (reason "missing"), unreadable, not
+    a regular file or over ``limit`` bytes (``limit_name`` says which limit)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        raise UnreadableFile(str(path), "missing") from None
+    except OSError as exc:
+        raise UnreadableFile(str(path), f"cannot be read ({exc})") from None
+    try:
+        status = os.fstat(fd)
+        if not stat.S_ISREG(status.st_mode):
+            raise UnreadableFile(str(path), "not a regular file (a FIFO, a device or a "
+                                            "folder?), so not one fleetslam wrote")
+        if status.st_size > limit:
+            raise UnreadableFile(str(path), f"{status.st_size} bytes exceeds {limit_name} "
+                                            f"{limit}")
+        with os.fdopen(fd, "rb") as f:
+            fd = -1  # the file object closes it now
+            # What the file holds, never more than the limit (read() allocates what it is
+            # asked for; a file growing meanwhile is cut, and refused by its reader).
+            return f.read(min(status.st_size + 1, limit + 1))
+    except OSError as exc:
+        raise UnreadableFile(str(path), f"cannot be read ({exc})") from None
+    finally:
+        if fd >= 0:
+            os.close(fd)
