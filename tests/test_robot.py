@@ -190,3 +190,44 @@ def test_a_robot_whose_end_is_refused_says_why_at_once(tmp_path_factory):
     assert not thread.is_alive(), "the robot still waits for an answer to its end"
     assert isinstance(raised[0], RuntimeError)
     assert "refused its end: nothing to end" in str(raised[0])
+
+
+def test_a_session_the_cloud_lost_mid_run_is_said_and_reported(tmp_path,
+                                                                  synthetic_scene):
+    """A cloud replaced mid-run by one that never had the robot's session (a restart on an
+    empty store): the robot's report and exit status say what the cloud kept (it had said
+    "N frames sent" and exited 0)."""
+    import threading
+    import time
+
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.launch import free_endpoint
+
+    _, folders = synthetic_scene
+    endpoint = free_endpoint()
+    config = Config()
+    server = CloudServer(config, tmp_path / "first", endpoint).start()
+    robot = Robot("r0", RgbdSequence(folders[0]), str(folders[0]), 3, config, endpoint,
+                  rate="10", show_progress=False)
+    reports: list = []
+    thread = threading.Thread(target=lambda: reports.append(robot.run()), daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 60
+        while robot.report.feedback < 8:
+            assert time.monotonic() < deadline and thread.is_alive()
+            time.sleep(0.05)
+        server.close()
+        server = CloudServer(config, tmp_path / "second", endpoint).start()
+        thread.join(180)
+    finally:
+        server.close()
+    assert not thread.is_alive() and reports
+    report = reports[0]
+    assert any("no longer had this robot's session" in why for why in report.incomplete)
+    assert report.cloud_frames is not None
+    assert report.cloud_frames < report.first_index + report.frames
+    assert any(f"holds {report.cloud_frames} of the" in why for why in report.incomplete)

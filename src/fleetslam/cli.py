@@ -19,6 +19,10 @@ from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
 from fleetslam.validation.endpoints import check_endpoint
 
+# `fleetslam robot`'s exit status when the cloud kept less than the robot sent (a session
+# it lost, frames lost on the link or with a worker): the report's `incomplete` says why.
+EXIT_INCOMPLETE = 3
+
 
 def _default_out(kind: str) -> Path:
     return Path("runs") / f"{kind}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -434,8 +438,14 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
           f"({report.upload_retries} upload retries), {report.frame_bytes / max(report.frames, 1) / 1000:.1f} "
           f"kB/frame, total {report.total_s:.1f} s"
           + (f"; from {report.live_source}: {report.camera_taken} frames taken, "
-             f"{report.camera_skipped} skipped (the robot was busy)" if live else ""),
+             f"{report.camera_skipped} skipped (the robot was busy)" if live else "")
+          + (f"; the cloud kept {report.cloud_frames}" if report.cloud_frames is not None
+             else ""),
           file=sys.stderr)
+    if report.incomplete:
+        print(f"robot {args.id}: the cloud did not keep everything sent: "
+              + "; ".join(report.incomplete), file=sys.stderr)
+        return EXIT_INCOMPLETE
     return 0
 
 

@@ -4,8 +4,11 @@ counters, times and sends, filled in by the parts of the robot as they work."""
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict, dataclass, field
 from typing import Any
+
+log = logging.getLogger("fleetslam.robot")
 
 
 @dataclass
@@ -38,6 +41,11 @@ class RobotReport:
     # The cloud could not restore this robot's stored session (why, and where it kept the
     # checkpoint): the run started a fresh session, the history before it is not in it.
     history_lost: str | None = None
+    # What the cloud kept: the frames its trajectory holds at the end (its summary's), and
+    # why that is less than the robot sent (a session lost mid-run, frames lost on the
+    # link or with a worker); empty: the cloud has every frame. `fleetslam robot` exits 3.
+    cloud_frames: int | None = None
+    incomplete: list[str] = field(default_factory=list)
     cloud_summary: dict[str, Any] | None = None
     # An adaptive robot: every re-plan (measured link, chosen point / features / step) and
     # how many frames went at each point; frames it skipped by its frame step (its own
@@ -88,6 +96,44 @@ class RobotReport:
     encode_ms_mean: float | None = None
     encode_ms_p95: float | None = None
     inter_coding: dict[str, Any] = field(default_factory=dict)
+
+    def note_welcome(self, welcome: dict[str, Any], at_frame: int | None) -> None:
+        """A welcome to a hello: the robot's first (``at_frame`` None) or one mid-run, after
+        the cloud lost the robot; a session the cloud could not keep is said and recorded."""
+        lost = welcome.get("history_lost")
+        if lost:
+            # The cloud could not restore this robot's stored session: it starts afresh.
+            log.error("robot %s: the cloud lost this robot's session history and starts a "
+                      "fresh session: %s", self.robot_id, lost)
+            self.history_lost = str(lost)
+            self.incomplete.append(f"the cloud lost the session's history: {lost}")
+        if at_frame is None:
+            return
+        next_index = int(welcome.get("next_index", 0))
+        if not welcome.get("resumed") and not lost:
+            why = f"the cloud no longer had this robot's session at frame {at_frame}: a " \
+                  f"fresh session holds the frames from there on, not those before"
+        elif next_index < at_frame:
+            why = f"the cloud's session resumed at frame {next_index}: frames " \
+                  f"{next_index}-{at_frame - 1}, sent before, are not in it"
+        else:
+            return
+        log.error("robot %s: %s", self.robot_id, why)
+        self.incomplete.append(why)
+
+    def note_cloud_kept(self) -> None:
+        """The end's summary: how many frames the cloud's trajectory holds against those
+        sent; fewer is said and recorded."""
+        frames = (self.cloud_summary or {}).get("frames")
+        if not isinstance(frames, int):
+            return
+        self.cloud_frames = frames
+        sent = self.first_index + self.frames
+        if frames < sent:
+            why = f"the cloud's trajectory holds {frames} of the {sent} frames sent " \
+                  f"({self.frames_lost_on_link} lost on the link)"
+            log.error("robot %s: %s", self.robot_id, why)
+            self.incomplete.append(why)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)

@@ -310,7 +310,9 @@ class Robot:
                 continue
             if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
                 outbox.drain()
-                seq = max(seq, int(self._hello()["next_seq"]))
+                welcome = self._hello()
+                self.report.note_welcome(welcome, i)
+                seq = max(seq, int(welcome["next_seq"]))
             pacer.wait(i, frame.timestamp)
             if not self.window.wait_for_room():
                 # Nobody may be serving this robot any more (a cloud that lost it, a worker
@@ -398,12 +400,7 @@ class Robot:
                 f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
                 f"but a robot that tracks itself (point 6) kept its map on the robot and "
                 f"cannot resume it; start again under a new --id")
-        lost = welcome.get("history_lost")
-        if lost:
-            # The cloud could not restore this robot's stored session: it starts afresh.
-            log.error("robot %s: the cloud lost this robot's session history and starts a "
-                      "fresh session: %s", self.robot_id, lost)
-            self.report.history_lost = str(lost)
+        self.report.note_welcome(welcome, None)
         if welcome.get("resumed"):
             self.report.resumed_at = start_index
             log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,
@@ -508,5 +505,6 @@ class Robot:
         self.window.record(r, self.sender.t0)
         self.encoder.record(r)
         r.cloud_summary = answer.get("summary")
+        r.note_cloud_kept()
         if self.planner is not None:
             r.plan_history = self.planner.history
