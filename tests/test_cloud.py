@@ -941,3 +941,33 @@ def test_a_damaged_stored_keyframe_costs_its_images_not_the_robots_end(messages,
     assert summary["frames"] == N_FRAMES and summary["map_points"] > 0
     assert f"robot r0: stored keyframe {keyframes[0]} cannot be read" in caplog.text
     assert str(damaged) in caplog.text
+
+
+def test_a_merge_names_each_robot_it_leaves_out_unfinished(cloud, messages):
+    """r0 ended, r1 still streaming: the merge is r0's, and r1 is in not_merged with why
+    (it was left out silently)."""
+    server, client = cloud
+    robots = {}
+    for name in ("r0", "r1"):
+        seq, msgs, _ = messages[name]
+        robots[name] = FakeRobot(client, name, seq.camera)
+        robots[name].hello()
+        for data in msgs[:6] if name == "r1" else msgs:
+            robots[name].send(data)
+    try:
+        robots["r1"].poses(6)
+        robots["r0"].poses(N_FRAMES)
+        robots["r0"].z.put(keys.control("r0"), protocol.encode(protocol.end(N_FRAMES - 1,
+                                                                             unavailable=None)))
+        reply = robots["r0"].reply("need", timeout=30.0)
+        robots["r0"].z.put(keys.control("r0"), protocol.encode(
+            protocol.end(N_FRAMES - 1, None, None, reply["frames"])))
+        robots["r0"].reply("ended", timeout=60.0)
+        summary = server.merge()
+    finally:
+        for robot in robots.values():
+            robot.close()
+    merge = summary["merge"]
+    assert [r["name"] for r in summary["robots"]] == ["r0"]
+    assert merge["not_merged"]["r1"] == ("not finished: its stream has not ended (6 frames "
+                                         "tracked so far)")

@@ -265,7 +265,8 @@ def fleet_merge(summary: dict[str, Any]) -> dict[str, Any] | None:
     """The summary's merge where robots were merged (a lone robot's run has one too, for its
     level global map, with nothing to tell about a merge)."""
     merge = summary.get("merge")
-    return merge if merge and len(merge.get("robots") or {}) > 1 else None
+    return merge if merge and len({*(merge.get("robots") or {}),
+                                   *(merge.get("not_merged") or {})}) > 1 else None
 
 
 def merge_robot_table(merge: dict[str, Any]) -> Table:
@@ -273,7 +274,10 @@ def merge_robot_table(merge: dict[str, Any]) -> Table:
     evaluation = merge.get("evaluation") or {}
     relative = {r["robot"]: r for r in evaluation.get("relative_poses", [])}
     rows = []
-    for name, info in sorted(merge["robots"].items()):
+    # Robots the merge left out before it began (not finished) have no group to show.
+    left_out = {name: {"anchor": None} for name in merge.get("not_merged") or {}
+                if name not in merge["robots"]}
+    for name, info in sorted({**merge["robots"], **left_out}.items()):
         joined = info.get("joined")
         rel = relative.get(name, {})
         rows.append([name, info["anchor"],

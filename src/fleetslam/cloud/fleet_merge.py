@@ -99,8 +99,13 @@ class FleetMerge:
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not caught up with the robots' keyframes "
                                f"within {timeout_s:.0f} s; ask again")
-        finished = sorted([*(s.finished for _, s in self.sessions.now() if s.finished),
-                           *self._finished_elsewhere()], key=lambda f: f.robot_id)
+        here = self.sessions.now()
+        elsewhere, unfinished = self._elsewhere({robot_id for robot_id, _ in here})
+        unfinished.update({robot_id: f"not finished: its stream has not ended "
+                                     f"({s.state.counts['frames']} frames tracked so far)"
+                           for robot_id, s in here if not s.finished})
+        finished = sorted([*(s.finished for _, s in here if s.finished), *elsewhere],
+                          key=lambda f: f.robot_id)
         if not self.merger.drain(timeout_s):
             raise RuntimeError(f"the merger has not taken the other workers' robots within "
                                f"{timeout_s:.0f} s; ask again")
@@ -118,6 +123,9 @@ class FleetMerge:
         merge = self.merger.locked(lambda m: merge_summary(m, global_map))
         merge["robots"] = {k: v for k, v in merge["robots"].items()
                            if k in {f.robot_id for f in finished}}
+        merge["not_merged"] = {**unfinished, **merge.get("not_merged", {})}
+        for robot, why in unfinished.items():
+            log.warning("merge: robot %s left out: %s", robot, why)
         summary = fleet_summary([f.summary for f in finished],
                                 merge, self.config,
                                 time.perf_counter() - start)
@@ -142,22 +150,26 @@ class FleetMerge:
         except Exception:
             log.exception("the merge's maps could not be published")
 
-    def _finished_elsewhere(self) -> list[FinishedMap]:
-        """The finished robots other workers serve (or served), read from the store; the
-        merger takes their keyframes as a restored session hands them over."""
-        here = {robot_id for robot_id, _ in self.sessions.now()}
-        found = []
+    def _elsewhere(self, here: set[str]) -> tuple[list[FinishedMap], dict[str, str]]:
+        """The robots other workers serve (or served), read from the store: the finished
+        ones (the merger takes their keyframes as a restored session hands them over), and
+        why each of the others is left out."""
+        found, unfinished = [], {}
         for robot_id in self.sessions.store.robots_with_checkpoints():
             if robot_id in here:
                 continue
             session = self.sessions.stored(robot_id)
-            if session is None or not session.state.ended:
+            if session is None:
+                continue
+            if not session.state.ended:
+                unfinished[robot_id] = "not finished: its stream has not ended (its " \
+                                       "checkpoint says so)"
                 continue
             state = session.state
             self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
                                   session.merger_poses())
             found.append(session.outputs.finished_map())
-        return found
+        return found, unfinished
 
     def _write_mcap(self, summary: dict[str, Any]) -> str | None:
         """``run.mcap`` of what was just merged (its name); like the report, a failure costs
