@@ -136,6 +136,18 @@ def test_a_depth_camera_info_with_its_own_distortion_is_named(tmp_path):
         camera_from_info(colour, "c.bag topic /c", 1000.0, depth, "depth.bag topic /d")
 
 
+def test_a_camera_info_the_cloud_would_refuse_is_refused_here(tmp_path):
+    """A principal point far outside the image (cx = 50000): `fleetslam run` used to take
+    what a cloud refuses in the robot's hello."""
+    from fleetslam.datasets.ros_messages import RosMessageError, camera_from_info
+
+    ts = bw.typestore_for("ros1")
+    with pytest.raises(RosMessageError, match=r"^c.bag topic /c: CameraInfo: cx must be "
+                       r"within 4 image sizes of the image, got 50000.0$"):
+        camera_from_info(bw.camera_info(ts, 0, 50.0, 50.0, 50000.0, 2.5, W, H),
+                         "c.bag topic /c", 1000.0)
+
+
 def test_32fc1_depth_is_carried_at_5000_a_metre(tmp_path):
     seq = open_source(str(tiny_bag(tmp_path / "b.bag", depth={"/cam/depth/image": "32FC1"})))
     assert seq.camera.depth_scale == 5000.0

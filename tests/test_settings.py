@@ -97,3 +97,12 @@ def test_a_flag_is_checked_like_the_setting_it_sets(argv, message, capsys):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("fleetslam: error: ") and message in err and err.count("\n") == 1
+
+
+def test_a_config_file_that_is_not_utf8_is_named(tmp_path):
+    from fleetslam.config import load_config
+
+    path = tmp_path / "bad.toml"
+    path.write_bytes(b"[grid]\nresolution_m = 0.05 # \xff\xfe\n")
+    with pytest.raises(ValueError, match=r"bad.toml: cannot read config: 'utf-8' codec"):
+        load_config(path)

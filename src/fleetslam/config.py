@@ -917,7 +917,7 @@ def load_config(path: str | Path | None = None) -> Config:
         path = Path(path)
         try:
             values = tomllib.loads(path.read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise ValueError(f"{path}: cannot read config: {exc}") from exc
         _update(config, values, str(path))
     return config

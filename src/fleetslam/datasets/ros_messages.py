@@ -232,8 +232,12 @@ def camera_from_info(msg: Any, where: str, depth_scale: float,
                     f"colour camera ({where}): fleetslam needs depth registered to colour, "
                     f"or to an undistorted pinhole")
             depth_intrinsics = (dfx, dfy, dcx, dcy)
-    return Camera(fx, fy, cx, cy, width, height, distortion, depth_scale=depth_scale,
-                  invalid_depth=(0,), depth_intrinsics=depth_intrinsics)
+    camera = Camera(fx, fy, cx, cy, width, height, distortion, depth_scale=depth_scale,
+                    invalid_depth=(0,), depth_intrinsics=depth_intrinsics)
+    try:  # what the cloud checks a hello's camera for, so a run refuses what a cloud would
+        return Camera.from_dict(camera.to_dict(), f"{where}: CameraInfo")
+    except ValueError as exc:
+        raise RosMessageError(str(exc)) from None
 
 
 def _intrinsics(msg: Any, where: str) -> tuple[float, float, float, float, int, int,
