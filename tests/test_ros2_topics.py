@@ -648,3 +648,69 @@ def test_fleetslam_robot_tracks_live_ros2_topics_and_ctrl_c_ends_it(sdk_session,
 
     ate = trajectory_ate(tmp_path / "cloud" / "r1" / "trajectory.tum", RgbdSequence(folder))
     assert ate is not None and ate["rmse_m"] < 0.1
+
+
+class FaultyCameraNode(CameraNode):
+    """A camera node that publishes frame ``bad`` as a colour image two columns narrower
+    than its camera (one bad message), then stops without a word."""
+
+    def __init__(self, *args, bad: int, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.bad = bad
+
+    def publish_frame(self, i: int) -> None:
+        if i != self.bad:
+            super().publish_frame(i)
+            return
+        frame = self.sequence[i]
+        colour = self._header(*stamp_of(self.sequence.rgb_paths[i].stem), "rgb_optical")
+        h, w = self.camera.height, self.camera.width - 2
+        self.publishers["colour"].publish(header=colour, height=h, width=w, encoding="rgb8",
+                                          is_bigendian=0, step=w * 3,
+                                          data=frame.rgb[:, :w].reshape(-1))
+        depth = self._header(*stamp_of(self.sequence.depth_paths[i].stem), "rgb_optical")
+        pixels = (frame.depth_raw[:, :w] / np.float32(self.camera.depth_scale)).astype("<f4")
+        self.publishers["depth"].publish(header=depth, height=h, width=w, encoding="32FC1",
+                                         is_bigendian=0, step=w * 4,
+                                         data=np.frombuffer(pixels.tobytes(), np.uint8))
+
+
+def test_a_bad_message_is_skipped_and_a_silent_camera_ends_the_session(sdk_session, tmp_path):
+    """One camera message that is not a frame of the camera: skipped and counted, the run
+    goes on. The camera then falls silent: the robot ends its session as a stop does (the
+    cloud's 'ended', trajectory and map written), the reason in its report (it was an
+    exit 2 with no report and the session left unfinished)."""
+    import threading
+
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.edge.robot import Robot
+    from fleetslam.launch import free_endpoint
+
+    folder = require(TUM_RPY)
+    config = ros2_config(live_frame_timeout_s=3.0)
+    endpoint = free_endpoint()
+    server = CloudServer(Config(), tmp_path / "cloud", endpoint).start()
+    node = FaultyCameraNode(sdk_session, folder, frames=40, rate_hz=10.0, bad=12,
+                            wait_for_subscriber_s=30.0)
+    source = Ros2TopicSource.from_spec(f"ros2:{sdk_session}", config)
+    reports: list = []
+    try:
+        node.start()
+        source.start(timeout=20.0)
+        robot = Robot("r1", source, f"ros2:{sdk_session}", 3, config, endpoint,
+                      show_progress=False)
+        thread = threading.Thread(target=lambda: reports.append(robot.run()), daemon=True)
+        thread.start()
+        thread.join(180)
+        assert not thread.is_alive()
+    finally:
+        node.close()
+        source.close()
+        server.close()
+    report = reports[0]
+    assert report.camera_rejected == 1
+    assert report.camera_ended is not None and "delivered no frame in 3.0 s" in \
+        report.camera_ended
+    assert report.cloud_summary is not None  # the cloud's 'ended': the session finished
+    assert report.cloud_summary["frames"] == report.frames >= 20
+    assert (tmp_path / "cloud" / "r1" / "trajectory.tum").exists()

@@ -438,7 +438,10 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
           f"({report.upload_retries} upload retries), {report.frame_bytes / max(report.frames, 1) / 1000:.1f} "
           f"kB/frame, total {report.total_s:.1f} s"
           + (f"; from {report.live_source}: {report.camera_taken} frames taken, "
-             f"{report.camera_skipped} skipped (the robot was busy)" if live else "")
+             f"{report.camera_skipped} skipped (the robot was busy), "
+             f"{report.camera_rejected} messages refused" if live else "")
+          + (f"; the camera's stream ended: {report.camera_ended}" if report.camera_ended
+             else "")
           + (f"; the cloud kept {report.cloud_frames}" if report.cloud_frames is not None
              else ""),
           file=sys.stderr)

@@ -499,7 +499,8 @@ class SourceConfig:
     rgb_topic: Annotated[str, ANY_TEXT] = ""
     depth_topic: Annotated[str, ANY_TEXT] = ""
     camera_info_topic: Annotated[str, ANY_TEXT] = ""
-    # A live camera that delivers no frame this long ends the robot's run with an error.
+    # A live camera that delivers no frame this long ends the robot's session as a stop
+    # does (end, uploads, map), the reason in its report.
     live_frame_timeout_s: Annotated[float, above(0.0)] = 10.0
     # Live ROS 2 topics over rmw_zenoh (datasets/ros2_topics.py, source spec `ros2` or
     # `ros2:ENDPOINT`). The robot's ROS 2 Zenoh router: rmw_zenoh's default, on the robot.

@@ -79,6 +79,9 @@ class SlotCounts:
     """The counts of a live source that feeds a ``NewestFrame`` slot (``self._slot``)."""
 
     _slot: NewestFrame
+    # Messages the source could not make a frame of, skipped (a live ROS 2 topic's); a
+    # camera read through its driver (RealSense, a replay) has none to refuse.
+    rejected: int = 0
 
     @property
     def skipped(self) -> int:
@@ -124,6 +127,8 @@ class LiveSource(Protocol):
     def skipped(self) -> int:
         """Frames the camera delivered that the robot never took."""
         ...
+
+    rejected: int  # messages it could not make a frame of, skipped
 
     @property
     def delivered(self) -> int:

@@ -61,6 +61,8 @@ from fleetslam.datasets.stamp_pairing import COLOUR, DEPTH, StampPairer
 from fleetslam.validation.endpoints import check_endpoint
 
 log = logging.getLogger("fleetslam.datasets.ros2")
+# A skipped camera message is said the first time and then once every this many.
+REJECTED_SAID_EVERY = 100
 
 SPEC = "ros2"
 # What the message types are decoded with: sensor_msgs is the same in Humble and Jazzy.
@@ -180,16 +182,27 @@ class Ros2TopicSource(SlotCounts):
         log.info("%s: camera from %s", self.description, self.camera_source)
 
     def take(self, timeout: float) -> Frame | None:
-        pair = self._slot.take(timeout)
-        if pair is None:
-            return None
-        try:
-            frame = self._frame(*pair)
-        except Exception as exc:
-            self._fail(exc)  # the next message would fail the same way
-            raise
-        frame.index = self._slot.taken - 1
-        return frame
+        """The newest frame; a pair of messages that is not one (not CDR, an image that does
+        not decode or is not the camera's size) is skipped and counted (``rejected``), said
+        in one line the first time and every REJECTED_SAID_EVERY after."""
+        deadline = time.monotonic() + timeout
+        while True:
+            pair = self._slot.take(max(deadline - time.monotonic(), 0.0))
+            if pair is None:
+                return None
+            try:
+                frame = self._frame(*pair)
+            except RosMessageError as exc:
+                self.rejected += 1
+                if self.rejected % REJECTED_SAID_EVERY == 1:
+                    log.warning("%s: a camera message skipped (%d so far): %s",
+                                self.description, self.rejected, exc)
+                continue
+            except Exception as exc:
+                self._fail(exc)  # not the message's fault: the next would fail the same way
+                raise
+            frame.index = self._slot.taken - 1
+            return frame
 
     @property
     def unpaired(self) -> int:

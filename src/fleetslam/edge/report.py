@@ -63,6 +63,10 @@ class RobotReport:
     camera_taken: int = 0
     camera_skipped: int = 0
     camera_before_resume: int = 0
+    # Messages of the camera the robot could not make a frame of (skipped and counted), and
+    # why the camera's stream ended before the robot was stopped (a silent camera).
+    camera_rejected: int = 0
+    camera_ended: str | None = None
     # Keyframes the cloud asked for that the robot could no longer upload (a live camera's,
     # gone from its buffer, or from before a restart): the map is built without them.
     keyframes_unavailable: int = 0

@@ -335,6 +335,7 @@ class Robot:
         if self.live is not None:  # whether the camera's stream ended or the robot stopped
             self.report.camera_skipped = self.live.skipped
             self.report.camera_delivered = self.live.delivered
+            self.report.camera_rejected = self.live.rejected
         progress.finish(i + 1 - start_index, self._progress_note(k, step))
         self.report.streaming_s = time.monotonic() - t0
         self._last_seq = seq - 1
@@ -360,9 +361,14 @@ class Robot:
             except TimeoutError:
                 if time.monotonic() < deadline:
                     continue
-                raise RuntimeError(f"robot {self.robot_id}: {live.description} delivered no "
-                                   f"frame in {timeout:.1f} s (source.live_frame_timeout_s): "
-                                   f"is the camera still streaming?") from None
+                # A camera node restarting, a cable out: the run so far is kept as at a stop
+                # (the end, the uploads, the map), with the reason in the report.
+                why = (f"{live.description} delivered no frame in {timeout:.1f} s "
+                       f"(source.live_frame_timeout_s): is the camera still streaming?")
+                log.warning("robot %s: %s; the robot ends its session with what it has",
+                            self.robot_id, why)
+                self.report.camera_ended = why
+                return
             deadline = time.monotonic() + timeout
             if frame is None:  # the camera's stream ended (a replay or a recording did)
                 break
