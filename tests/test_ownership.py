@@ -93,6 +93,44 @@ def test_the_service_says_why_it_did_not_start(tmp_path):
         EtcdService(tmp_path / "bad" / "etcd").start()
 
 
+def test_a_tls_etcd_serves_the_labs_workers_and_no_one_else(tmp_path):
+    """etcd as docs/deployment.md starts it, with `fleetslam certs`' material: mutual TLS.
+    The workers' certificate reads and writes; plain http, https without a certificate, and
+    a robot's certificate of the lab (another CA) are refused before any key is touched."""
+    import ssl
+    import urllib.request
+
+    from fleetslam.cloud.etcd_gateway import EtcdError, EtcdTls
+    from fleetslam.transport.certs import make_lab
+
+    lab = make_lab(tmp_path / "lab", ["localhost", "127.0.0.1"], ["r1"])
+    service = EtcdService(tmp_path / "run" / "etcd", certs=lab["etcd"]).start()
+    try:
+        assert service.endpoint.startswith("https://127.0.0.1:")
+        worker = EtcdClient(service.endpoint, tls=EtcdTls.from_folder(lab["etcd"]))
+        worker.put("fleet/owner/r1", "w1")
+        assert worker.get("fleet/owner/r1").value == b"w1"
+        plain = EtcdClient(service.endpoint.replace("https", "http"))
+        with pytest.raises(EtcdError):
+            plain.put("fleet/owner/r1", "attacker")
+        anonymous = ssl.create_default_context(cafile=str(lab["etcd"] / "ca.pem"))
+        robot = ssl.create_default_context(cafile=str(lab["etcd"] / "ca.pem"))
+        robot.load_cert_chain(str(tmp_path / "lab" / "r1.pem"), str(tmp_path / "lab" / "r1.key"))
+        for context in (anonymous, robot):
+            request = urllib.request.Request(f"{service.endpoint}/v3/kv/put", method="POST",
+                                             data=b'{"key": "Zm9v", "value": "YmFy"}')
+            with pytest.raises((ssl.SSLError, OSError)):
+                with urllib.request.urlopen(request, timeout=5, context=context) as reply:
+                    reply.read()
+        assert worker.get("foo") is None and worker.get("fleet/owner/r1").value == b"w1"
+    finally:
+        service.stop()
+    with pytest.raises(ValueError, match="https needs the coordination service's"):
+        EtcdClient("https://127.0.0.1:2379")
+    with pytest.raises(ValueError, match="not the coordination service's TLS folder"):
+        EtcdTls.from_folder(tmp_path / "lab")
+
+
 # -- ownership ----------------------------------------------------------------------------
 
 def test_two_workers_competing_get_one_owner_and_increasing_epochs(etcd, keys):

@@ -19,10 +19,6 @@ from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
 from fleetslam.validation.endpoints import check_endpoint
 
-# `fleetslam robot`'s exit status when the cloud kept less than the robot sent (a session
-# it lost, frames lost on the link or with a worker): the report's `incomplete` says why.
-EXIT_INCOMPLETE = 3
-
 
 def _default_out(kind: str) -> Path:
     return Path("runs") / f"{kind}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -243,6 +239,9 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
         set_from_flag(config.placement, "worker_id", args.worker_id, "--worker-id")
     if args.coordination:
         set_from_flag(config.placement, "coordination", args.coordination, "--coordination")
+    if args.coordination_certs:
+        set_from_flag(config.placement, "coordination_certs", args.coordination_certs,
+                      "--coordination-certs")
     if args.ros2_out:  # before the views: the ROS 2 graph's is one of them
         set_from_flag(config.ros2_out, "endpoint", args.ros2_out, "--ros2-out")
     view = open_view(config, args.save, args.view, args.foxglove)
@@ -393,6 +392,7 @@ def _warn_of_another_identity(robot_id: str, config: Config) -> None:
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.recording import absolute_spec
     from fleetslam.edge.robot import Robot
+    from fleetslam.edge.report import EXIT_INCOMPLETE
     from fleetslam.pipeline.split import ROBOT_TRACKS
 
     _setup_logging(args.quiet)
@@ -754,10 +754,14 @@ def build_parser() -> argparse.ArgumentParser:
                             "(`fleetslam router`); robots are shared among the workers")
     cloud.add_argument("--worker-id", help="this worker's name in the placement (A-Z a-z 0-9 "
                        "_ -; default w-<host>-<pid>)")
-    cloud.add_argument("--coordination", metavar="http://HOST:PORT",
+    cloud.add_argument("--coordination", metavar="https://HOST:PORT",
                        help="with several workers: the etcd that decides which worker owns "
                             "which robot, fenced against partitions (config [placement] "
                             "coordination; every worker of a fleet is given the same)")
+    cloud.add_argument("--coordination-certs", metavar="DIR",
+                       help="the etcd's TLS folder `fleetslam certs` made (<lab>/etcd): its "
+                            "CA and the workers' client certificate ([placement] "
+                            "coordination_certs)")
     cloud.add_argument("--out", required=True, help="the store: maps, trajectories, "
                        "keyframes and checkpoints (reused after a restart; every worker of "
                        "a fleet is given the same folder, a shared volume across machines)")

@@ -27,7 +27,8 @@ ENDPOINT = Text(endpoint_problem, "a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/H
 HOST = Text(host_problem, "a host name or an IP address")
 # The coordination service of many workers; empty: none.
 ETCD_ENDPOINT = Text(lambda s: http_endpoint_problem(s) if s else None,
-                     "empty, or an etcd endpoint http://HOST:PORT")
+                     "empty, or an etcd endpoint https://HOST:PORT (http://HOST:PORT for "
+                     "an etcd without TLS)")
 # A worker id is a Zenoh key chunk (transport/keys.py); empty: chosen by the worker.
 WORKER_ID = Text(lambda s: name_problem(s) if s else None,
                  "empty, or 1..64 characters of A-Z a-z 0-9 _ -")
@@ -696,6 +697,10 @@ class PlacementConfig:
     # and whose checkpoint is current (cloud/fenced_store.py). Empty: workers agree through
     # Zenoh liveliness alone (placement.py), which is not fenced against partitions.
     coordination: Annotated[str, ETCD_ENDPOINT] = ""
+    # The coordination service's TLS folder (``fleetslam certs`` writes it as <lab>/etcd:
+    # its CA, the workers' client certificate and key); with it the endpoint is https and
+    # etcd takes only that certificate (docs/deployment.md). Empty: plain http.
+    coordination_certs: Annotated[str, ANY_TEXT] = ""
     # Many workers with a coordination service (cloud/ownership.py): each worker's etcd
     # lease, in whole seconds (etcd's unit; 2 is its least). A worker that cannot renew it
     # stops serving 3/4 of it after its last renewal; its robots go to another worker once

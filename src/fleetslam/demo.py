@@ -24,6 +24,7 @@ from fleetslam.launch import (
     stop,
     stop_all,
 )
+from fleetslam.edge.report import EXIT_INCOMPLETE
 from fleetslam.outputs import ROBOT_REPORT, add_deployment, add_robot_reports, write_summary
 from fleetslam.progress import Progress
 from fleetslam.transport.certs import make_lab
@@ -49,16 +50,17 @@ def _await_workers(client: CloudClient, workers: int, timeout_s: float) -> None:
         time.sleep(0.5)
 
 
-def _start_coordination(out: Path, config_path: str | None) -> EtcdService | None:
-    """The etcd that fences the workers' ownership of robots, under the run's folder; None,
-    said once, when etcd is not installed (the workers then agree through liveliness, which
-    a partition can fool)."""
+def _start_coordination(out: Path, config_path: str | None, certs: Path | None
+                        ) -> EtcdService | None:
+    """The etcd that fences the workers' ownership of robots, under the run's folder (with
+    ``certs``, the lab's <lab>/etcd: mutual TLS); None, said once, when etcd is not
+    installed (the workers then agree through liveliness, which a partition can fool)."""
     if etcd_binary() is None:
         print(f"fleetslam demo: etcd is not installed, so the workers' ownership of robots is "
               f"not fenced against partitions; {INSTALL_HINT}", file=sys.stderr)
         return None
     deadline = load_config(config_path).placement.coordination_start_s
-    return EtcdService(out / "etcd", deadline).start()
+    return EtcdService(out / "etcd", deadline, certs=certs).start()
 
 
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
@@ -81,17 +83,21 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
     endpoint = free_endpoint()
     names = [f"r{i}" for i in range(len(sources))]
     configs = {name: zenoh_config for name in ["cloud", "client", "worker", *names]}
+    etcd_certs = None
     if secure and zenoh_config is None:
         lab = make_lab(out / "tls", ["localhost", "127.0.0.1"], names)
         endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
+        etcd_certs = lab.pop("etcd")
         configs = {name: str(path) for name, path in lab.items()}
     logs = out / "logs"
     etcd = None
     if workers > 1:
-        etcd = _start_coordination(out, config_path) if coordination else None
+        etcd = _start_coordination(out, config_path, etcd_certs) if coordination else None
         worker_args = list(cloud_args or [])
         if etcd is not None:
             worker_args += ["--coordination", etcd.endpoint]
+            if etcd.certs is not None:
+                worker_args += ["--coordination-certs", str(etcd.certs)]
         cloud = start_router(endpoint, logs / "router.log", configs["cloud"])
         cloud_workers = [start_worker(endpoint, f"w{i}", out, logs / f"w{i}.log", config_path,
                                       extra=worker_args, zenoh_config=configs["worker"])
@@ -118,7 +124,7 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
             if time.monotonic() > deadline:
                 raise RuntimeError(f"robots still running after {timeout_s:.0f} s")
             for name, p in robots.items():
-                if p.poll() not in (None, 0):
+                if p.poll() not in (None, 0, EXIT_INCOMPLETE):
                     raise RuntimeError(f"robot {name} failed (exit {p.returncode}):\n"
                                        + _tail(logs / f"{name}.log"))
             try:
@@ -131,11 +137,16 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
             except TimeoutError:
                 pass
             time.sleep(0.5)
-        failed = {n: p.returncode for n, p in robots.items() if p.returncode != 0}
+        failed = {n: p.returncode for n, p in robots.items()
+                  if p.returncode not in (0, EXIT_INCOMPLETE)}
         if failed:
             name = next(iter(failed))
             raise RuntimeError(f"robot {name} failed (exit {failed[name]}):\n"
                                + _tail(logs / f"{name}.log"))
+        for name, p in robots.items():  # finished, but the cloud did not keep every frame
+            if p.returncode == EXIT_INCOMPLETE:
+                print(f"fleetslam demo: robot {name}: the cloud did not keep every frame it "
+                      f"sent (`incomplete` in {out / name / ROBOT_REPORT})", file=sys.stderr)
         progress.update(total)
         summary = client.merge()
     except BaseException:

@@ -24,6 +24,8 @@ import urllib.request
 from pathlib import Path
 from types import TracebackType
 
+from fleetslam.cloud.etcd_gateway import EtcdTls
+
 log = logging.getLogger("fleetslam.coordination")
 
 BINARY = "etcd"
@@ -53,11 +55,14 @@ class EtcdService:
     ``etcd.endpoint`` is the URL clients use."""
 
     def __init__(self, data_dir: Path, start_deadline_s: float = 10.0,
-                 binary: str = BINARY, also_listen: tuple[str, ...] = ()) -> None:
+                 binary: str = BINARY, also_listen: tuple[str, ...] = (),
+                 certs: Path | None = None) -> None:
         """``also_listen``: IP addresses of this machine where clients reach it too, on the
         same port (a partition experiment's worker in a network namespace), besides
-        loopback."""
+        loopback. ``certs``: the lab's coordination TLS folder (``fleetslam certs``'s
+        <lab>/etcd): clients then need https and a certificate of its CA."""
         self.data_dir = Path(data_dir)
+        self.certs = None if certs is None else Path(certs)
         self.also_listen = tuple(also_listen)
         self.start_deadline_s = start_deadline_s
         self.binary = binary
@@ -66,8 +71,17 @@ class EtcdService:
         self._process: subprocess.Popen[bytes] | None = None
 
     @property
+    def scheme(self) -> str:
+        return "http" if self.certs is None else "https"
+
+    @property
     def endpoint(self) -> str:
-        return f"http://127.0.0.1:{self.client_port}"
+        return f"{self.scheme}://127.0.0.1:{self.client_port}"
+
+    @property
+    def tls(self) -> EtcdTls | None:
+        """What a client of this etcd needs (None: plain http)."""
+        return None if self.certs is None else EtcdTls.from_folder(self.certs)
 
     @property
     def log_path(self) -> Path:
@@ -86,7 +100,7 @@ class EtcdService:
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
         self.client_port, self.peer_port = _free_port(), _free_port()
         peer = f"http://127.0.0.1:{self.peer_port}"
-        clients = ",".join([self.endpoint] + [f"http://{host}:{self.client_port}"
+        clients = ",".join([self.endpoint] + [f"{self.scheme}://{host}:{self.client_port}"
                                               for host in self.also_listen])
         args = [path, "--name", "fleetslam", "--data-dir", str(self.data_dir),
                 "--listen-client-urls", clients, "--advertise-client-urls", clients,
@@ -96,6 +110,10 @@ class EtcdService:
                 # Every checkpoint moves a pointer: keep the last 10k revisions, not all of
                 # a long run's (a watch resuming from before them starts at the oldest kept).
                 "--auto-compaction-mode", "revision", "--auto-compaction-retention", "10000"]
+        if self.certs is not None:  # etcd's documented transport security: mutual TLS
+            args += ["--cert-file", str(self.certs / "server.pem"),
+                     "--key-file", str(self.certs / "server.key"),
+                     "--client-cert-auth", "--trusted-ca-file", str(self.certs / "ca.pem")]
         with open(self.log_path, "ab") as out:
             self._process = subprocess.Popen(args, stdout=out, stderr=out,
                                              stdin=subprocess.DEVNULL)
@@ -129,8 +147,11 @@ class EtcdService:
                     f"the end of {self.log_path}:\n  {self._log_tail()}")
             # Never past the deadline: etcd may have bound its port and not serve yet.
             timeout = min(1.0, max(0.001, deadline - time.monotonic()))
+            tls = self.tls
             try:
-                with urllib.request.urlopen(f"{self.endpoint}/health", timeout=timeout) as reply:
+                with urllib.request.urlopen(f"{self.endpoint}/health", timeout=timeout,
+                                            context=None if tls is None else tls.context()
+                                            ) as reply:
                     if json.loads(reply.read()).get("health") == "true":
                         return
                     last = "it answered, not healthy yet"

@@ -20,9 +20,11 @@ import http.client
 import json
 import logging
 import socket
+import ssl
 import threading
 import urllib.parse
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 log = logging.getLogger("fleetslam.coordination")
@@ -110,21 +112,78 @@ class TxnResult:
         return [KeyValue.from_json(kv) for kv in body.get("kvs", [])]
 
 
+@dataclass(frozen=True)
+class EtcdTls:
+    """The coordination service's TLS material as ``fleetslam certs`` writes it
+    (``<lab>/etcd``): its CA, and the client certificate and key the workers present
+    (etcd runs with --client-cert-auth: nothing without a certificate of this CA gets in)."""
+
+    folder: Path
+
+    @staticmethod
+    def from_folder(folder: str | Path) -> "EtcdTls":
+        tls = EtcdTls(Path(folder))
+        missing = [p.name for p in (tls.ca, tls.cert, tls.key) if not p.is_file()]
+        if missing:
+            raise ValueError(f"{folder}: not the coordination service's TLS folder of a "
+                             f"fleetslam lab (no {', '.join(missing)}; `fleetslam certs` "
+                             f"writes it as <lab>/etcd)")
+        return tls
+
+    @property
+    def ca(self) -> Path:
+        return self.folder / "ca.pem"
+
+    @property
+    def cert(self) -> Path:
+        return self.folder / "client.pem"
+
+    @property
+    def key(self) -> Path:
+        return self.folder / "client.key"
+
+    def context(self) -> ssl.SSLContext:
+        """A client's: etcd's certificate checked against the CA, ours presented."""
+        context = ssl.create_default_context(cafile=str(self.ca))
+        context.load_cert_chain(str(self.cert), str(self.key))
+        return context
+
+
+def _opener(endpoint: str, tls: EtcdTls | None
+            ) -> Callable[[float | None], http.client.HTTPConnection]:
+    """What opens a connection to ``endpoint`` (http://HOST:PORT, or https://HOST:PORT with
+    ``tls``) with a given timeout; ValueError if the two do not go together."""
+    url = urllib.parse.urlsplit(endpoint)
+    if url.scheme not in ("http", "https") or not url.hostname or not url.port:
+        raise ValueError(f"etcd endpoint {endpoint!r}: expected http://HOST:PORT or "
+                         f"https://HOST:PORT")
+    if (url.scheme == "https") != (tls is not None):
+        raise ValueError(f"etcd endpoint {endpoint!r}: https needs the coordination "
+                         f"service's certificates (--coordination-certs), and they need "
+                         f"https")
+    host, port = url.hostname, url.port
+    if tls is None:
+        return lambda timeout: http.client.HTTPConnection(host, port, timeout=timeout)
+    context = tls.context()
+    return lambda timeout: http.client.HTTPSConnection(host, port, timeout=timeout,
+                                                       context=context)
+
+
 class EtcdClient:
-    def __init__(self, endpoint: str, timeout_s: float = 2.0) -> None:
-        """``endpoint``: http://HOST:PORT of an etcd member."""
-        url = urllib.parse.urlsplit(endpoint)
-        if url.scheme != "http" or not url.hostname or not url.port:
-            raise ValueError(f"etcd endpoint {endpoint!r}: expected http://HOST:PORT")
+    def __init__(self, endpoint: str, timeout_s: float = 2.0, tls: EtcdTls | None = None
+                 ) -> None:
+        """``endpoint``: http://HOST:PORT of an etcd member, or https://HOST:PORT with
+        ``tls`` (the lab's coordination certificates)."""
         self.endpoint = endpoint
-        self._host, self._port = url.hostname, url.port
+        self._open = _opener(endpoint, tls)
         self.timeout_s = timeout_s
+        self.tls = tls
         self._local = threading.local()
 
     def _connection(self) -> http.client.HTTPConnection:
         conn = getattr(self._local, "conn", None)
         if conn is None:
-            conn = http.client.HTTPConnection(self._host, self._port, timeout=self.timeout_s)
+            conn = self._open(self.timeout_s)
             self._local.conn = conn
         return conn
 
@@ -232,12 +291,9 @@ class Watch:
 
     def __init__(self, endpoint: str, prefix: bytes | str,
                  on_events: Callable[[list[Event]], None], start_revision: int = 0,
-                 retry_s: float = 0.5) -> None:
-        url = urllib.parse.urlsplit(endpoint)
-        if url.scheme != "http" or not url.hostname or not url.port:
-            raise ValueError(f"etcd endpoint {endpoint!r}: expected http://HOST:PORT")
+                 retry_s: float = 0.5, tls: EtcdTls | None = None) -> None:
         self.endpoint = endpoint
-        self._host, self._port = url.hostname, url.port
+        self._open = _opener(endpoint, tls)
         self._prefix = prefix.encode() if isinstance(prefix, str) else prefix
         self._on_events = on_events
         self.next_revision = start_revision
@@ -275,7 +331,7 @@ class Watch:
     def _stream(self) -> None:
         # No read timeout: a quiet prefix sends nothing for as long as it likes; close()
         # shuts the socket to end the read.
-        conn = http.client.HTTPConnection(self._host, self._port, timeout=None)
+        conn = self._open(None)
         self._conn = conn
         try:
             request = {"key": b64(self._prefix), "range_end": b64(prefix_end(self._prefix))}

@@ -66,7 +66,8 @@ class FencedPlacement(Placement):
         self.ownership.start()
         self.loads.start()
         prefix = self.ownership.keys.owner("")
-        self._watch = Watch(self.ownership.client.endpoint, prefix, self._on_events).start()
+        client = self.ownership.client
+        self._watch = Watch(client.endpoint, prefix, self._on_events, tls=client.tls).start()
         if not self._watch.created.wait(self.ownership.ttl_s * 2):
             log.warning("the etcd watch of owners at %s is not open yet; retrying",
                         self.ownership.client.endpoint)

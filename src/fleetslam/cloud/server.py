@@ -35,7 +35,7 @@ from typing import Any
 import zenoh
 
 from fleetslam.backend.workers import LocalMappingPool
-from fleetslam.cloud.etcd_gateway import EtcdClient
+from fleetslam.cloud.etcd_gateway import EtcdClient, EtcdTls
 from fleetslam.cloud.fenced_placement import FencedPlacement, wait_for_etcd
 from fleetslam.cloud.fenced_store import FencedStore
 from fleetslam.cloud.fleet_frames import FleetFrames
@@ -81,8 +81,10 @@ class CloudServer:
         # current (fenced); without, the store is plain and liveliness decides.
         self.ownership: Ownership | None = None
         if config.placement.coordination:
-            self.ownership = Ownership(EtcdClient(config.placement.coordination),
-                                       self.worker_id, config.placement.lease_s)
+            certs = config.placement.coordination_certs
+            client = EtcdClient(config.placement.coordination,
+                                tls=EtcdTls.from_folder(certs) if certs else None)
+            self.ownership = Ownership(client, self.worker_id, config.placement.lease_s)
             self.store: CloudStore = FencedStore(self.out_dir, self.ownership,
                                                  config.transport.max_checkpoint_bytes)
         else:

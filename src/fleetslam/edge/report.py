@@ -10,6 +10,10 @@ from typing import Any
 
 log = logging.getLogger("fleetslam.robot")
 
+# `fleetslam robot`'s exit status when the cloud kept less than the robot sent (a session
+# it lost, frames lost on the link or with a worker): the report's `incomplete` says why.
+EXIT_INCOMPLETE = 3
+
 
 @dataclass
 class RobotReport:
@@ -133,9 +137,10 @@ class RobotReport:
             return
         self.cloud_frames = frames
         sent = self.first_index + self.frames
-        if frames < sent:
+        # Frames the link lost are said already (its count); the others are news.
+        if frames < sent - self.frames_lost_on_link:
             why = f"the cloud's trajectory holds {frames} of the {sent} frames sent " \
-                  f"({self.frames_lost_on_link} lost on the link)"
+                  f"({self.frames_lost_on_link} of them lost on the link)"
             log.error("robot %s: %s", self.robot_id, why)
             self.incomplete.append(why)
 

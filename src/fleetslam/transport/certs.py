@@ -1,6 +1,8 @@
 """A lab's TLS material in one command (``fleetslam certs``): a certificate authority, a
 certificate for the cloud (its host names), one per robot (its id as the common name) and
-one for the operator's tools, and the Zenoh config files that use them. TLS is mutual: the
+one for the operator's tools, and the Zenoh config files that use them; in ``etcd/`` the
+coordination service's (a CA of its own, etcd's server certificate, the workers' client
+certificate). TLS is mutual: the
 cloud accepts only peers holding a certificate of the lab (Zenoh's ``enable_mtls``), and its
 access control lets each certificate use only its own keys (``access_control.py``). The
 same command adds robots to an existing lab.
@@ -74,6 +76,46 @@ def _issue(subject: str, key: ec.EllipticCurvePrivateKey, ca_key: ec.EllipticCur
     return builder.sign(ca_key, hashes.SHA256())
 
 
+def _make_ca(common_name: str) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    now = datetime.datetime.now(datetime.timezone.utc)
+    ca_key = _key()
+    ca_name = _name(common_name)
+    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name)
+          .public_key(ca_key.public_key()).serial_number(x509.random_serial_number())
+          .not_valid_before(now - datetime.timedelta(minutes=5))
+          .not_valid_after(now + datetime.timedelta(days=VALID_DAYS))
+          .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+          .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True,
+                                       crl_sign=True, content_commitment=False,
+                                       key_encipherment=False, data_encipherment=False,
+                                       key_agreement=False, encipher_only=False,
+                                       decipher_only=False), critical=True)
+          .sign(ca_key, hashes.SHA256()))
+    return ca_key, ca
+
+
+def make_etcd_certs(folder: Path, hosts: list[str]) -> Path:
+    """The coordination service's TLS material in ``folder`` (``<lab>/etcd``): a CA of its
+    own (so the robots' certificates, of the lab's CA, open nothing of etcd), etcd's server
+    certificate for ``hosts`` and the one client certificate the cloud workers present
+    (etcd's --client-cert-auth takes only certificates of this CA). Returns ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    ca_key, ca = _make_ca("fleetslam coordination CA")
+    _write_key(folder / "ca.key", ca_key)
+    _write_cert(folder / "ca.pem", ca)
+    server_key, client_key = _key(), _key()
+    _write_key(folder / "server.key", server_key)
+    # Client use too: etcd's JSON gateway calls etcd's own gRPC with this certificate, and
+    # with --client-cert-auth that call must present one (else every request: HTTP 503).
+    _write_cert(folder / "server.pem", _issue("fleetslam etcd", server_key, ca_key, ca.subject,
+                                              hosts, [ExtendedKeyUsageOID.SERVER_AUTH,
+                                                      ExtendedKeyUsageOID.CLIENT_AUTH]))
+    _write_key(folder / "client.key", client_key)
+    _write_cert(folder / "client.pem", _issue(WORKER, client_key, ca_key, ca.subject, [],
+                                              [ExtendedKeyUsageOID.CLIENT_AUTH]))
+    return folder
+
+
 def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
     """Write ca.pem/ca.key, cloud.pem/cloud.key, operator.pem/.key, <robot>.pem/.key, lab.json
     and the Zenoh configs: cloud.json5 (the router: TLS listener and access control),
@@ -89,20 +131,8 @@ def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
     if not hosts:
         raise ValueError("the cloud's certificate needs at least one host name or address")
     out.mkdir(parents=True, exist_ok=True)
-    now = datetime.datetime.now(datetime.timezone.utc)
-    ca_key = _key()
-    ca_name = _name("fleetslam lab CA")
-    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name)
-          .public_key(ca_key.public_key()).serial_number(x509.random_serial_number())
-          .not_valid_before(now - datetime.timedelta(minutes=5))
-          .not_valid_after(now + datetime.timedelta(days=VALID_DAYS))
-          .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-          .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True,
-                                       crl_sign=True, content_commitment=False,
-                                       key_encipherment=False, data_encipherment=False,
-                                       key_agreement=False, encipher_only=False,
-                                       decipher_only=False), critical=True)
-          .sign(ca_key, hashes.SHA256()))
+    ca_key, ca = _make_ca("fleetslam lab CA")
+    ca_name = ca.subject
     _write_key(out / "ca.key", ca_key)
     _write_cert(out / "ca.pem", ca)
     cloud_key = _key()
@@ -112,6 +142,7 @@ def make_lab(out: Path, hosts: list[str], robots: list[str]) -> dict[str, Path]:
     _client(out, OPERATOR, "client.json5", ca_key, ca_name)
     _write_manifest(out, {"hosts": hosts, "robots": []})
     _client(out, WORKER, "worker.json5", ca_key, ca_name)
+    make_etcd_certs(out / "etcd", hosts)
     return _add_robots(out, robots)
 
 
@@ -135,7 +166,9 @@ def _add_robots(out: Path, robots: list[str]) -> dict[str, Path]:
                  "listen_certificate": str((out / "cloud.pem").resolve()),
                  "enable_mtls": True}
     # The cloud is the router all clients go through, so its ACL sees every message.
-    files = {"ca": out / "ca.pem",
+    if not (out / "etcd").exists():  # a lab made before the coordination service's TLS
+        make_etcd_certs(out / "etcd", manifest["hosts"])
+    files = {"ca": out / "ca.pem", "etcd": out / "etcd",
              "cloud": _config(out / "cloud.json5", "router", tls_cloud,
                               fleet_acl(manifest["robots"])),
              "client": out / "client.json5", "worker": out / "worker.json5"}

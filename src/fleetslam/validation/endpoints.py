@@ -31,13 +31,13 @@ def host_problem(host: str) -> str | None:
 
 
 def http_endpoint_problem(url: str) -> str | None:
-    """What is wrong with ``url`` as an etcd endpoint ``http://HOST:PORT``, or None."""
+    """What is wrong with ``url`` as an etcd endpoint ``http(s)://HOST:PORT``, or None."""
     scheme, sep, address = url.partition("://")
-    if scheme != "http" or not sep:
-        return "not http://HOST:PORT"
+    if scheme not in ("http", "https") or not sep:
+        return "not http://HOST:PORT or https://HOST:PORT"
     host, colon, port = address.rstrip("/").rpartition(":")
     if not colon or not host:
-        return "not http://HOST:PORT"
+        return "not http://HOST:PORT or https://HOST:PORT"
     if not (port.isdigit() and 1 <= int(port) <= 65535):
         return f"port {port!r} is not a number in 1..65535"
     return host_problem(host.strip("[]"))
