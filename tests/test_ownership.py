@@ -273,6 +273,57 @@ def test_a_finished_robot_stays_finished(etcd, keys, tmp_path):
         b.close()
 
 
+def test_a_rolled_back_or_dangling_pointer_is_not_trusted(etcd, keys, tmp_path, caplog):
+    """Someone with etcd access moves r1's pointer back one checkpoint, then at a file that
+    is not there: the worker restores the newest checkpoint on disk (every keyframe it
+    acknowledged), says why, and never starts a fresh session over it."""
+    import json
+
+    a = _worker(etcd.endpoint, "wa", keys)
+    store = FencedStore(tmp_path, a)
+    try:
+        a.grant("r1")
+        store.save_checkpoint("r1", _state(5))
+        older = store.current("r1")
+        store.save_checkpoint("r1", _state(9))
+        raw = EtcdClient(etcd.endpoint)
+        pointer = json.loads(raw.get(keys.current("r1")).value)
+        raw.put(keys.current("r1"), json.dumps({**pointer, "seq": older.seq,
+                                                "file": older.file}))
+        assert store.load_checkpoint("r1").last_index == 9
+        assert "behind the newest on disk" in caplog.text
+        raw.put(keys.current("r1"), json.dumps({**pointer, "file": "session.1.000009.ckpt"}))
+        assert store.load_checkpoint("r1").last_index == 9
+        assert "names session.1.000009.ckpt, which is not there: not trusted" in caplog.text
+    finally:
+        a.close()
+
+
+def test_an_owner_key_without_a_lease_is_no_owner(etcd, keys, tmp_path, caplog):
+    """An owner key written without a lease (by hand, or with a worker's credentials) is
+    refused and removed, and the robot granted: it was never served. An owner's key
+    overwritten under it: its next checkpoint is refused, and it stops serving the robot
+    (it was served on, every checkpoint refused, the robot stuck) so a new grant follows."""
+    raw = EtcdClient(etcd.endpoint)
+    raw.put(keys.owner("r1"), "squatter")
+    fenced: list = []
+    a = _worker(etcd.endpoint, "wa", keys, fenced)
+    store = FencedStore(tmp_path, a)
+    try:
+        epoch = a.grant("r1")
+        assert epoch is not None and a.owner("r1").worker == "wa"
+        assert "owner key names 'squatter' without a lease" in caplog.text
+        store.save_checkpoint("r1", _state(4))
+        raw.put(keys.owner("r1"), "squatter")  # overwritten: now lease-less, not a's
+        with pytest.raises(NotOwner):
+            store.save_checkpoint("r1", _state(8))
+        assert fenced and fenced[-1][1] == [("r1", epoch)] and a.epoch("r1") is None
+        assert a.grant("r1") > epoch  # granted again, the squatter's key removed
+        assert store.load_checkpoint("r1").last_index == 4
+    finally:
+        a.close()
+
+
 def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
     """etcd itself stalls (SIGSTOP) longer than the lease: no renewal reaches it, so every
     worker stops serving within the lease; resumed, the robot is granted again with a larger

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import threading
 from collections import deque
 from contextlib import contextmanager
@@ -68,6 +69,20 @@ class Pointer:
             raise CheckpointError(where, f"the pointer names {pointer.file!r}, not a checkpoint "
                                          f"file of the robot's folder")
         return pointer
+
+
+_BLOB = re.compile(r"^session\.(\d+)\.(\d+)\.ckpt$")
+
+
+def newest_blob(folder: Path) -> tuple[int, int, str] | None:
+    """(epoch, seq, file name) of the newest checkpoint blob in a robot's folder, or None."""
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return None
+    found = [(int(m.group(1)), int(m.group(2)), name) for name in names
+             if (m := _BLOB.match(name))]
+    return max(found) if found else None
 
 
 class CoordinationUnavailable(ConnectionError):
@@ -144,6 +159,8 @@ class FencedStore(CloudStore):
                 why = "it has no owner now"
             log.warning("robot %s: checkpoint of worker %s epoch %d refused: %s%s", robot_id,
                         self.ownership.worker_id, epoch, why, " (ended)" if ends else "")
+            if not owners or owners[0].create_revision != epoch or owners[0].lease != lease:
+                self.ownership.lost(robot_id, epoch, why)
             raise NotOwner(f"robot {robot_id}: checkpoint of epoch {epoch} refused: {why}")
         self._keep_few(robot_id, path)
 
@@ -175,16 +192,32 @@ class FencedStore(CloudStore):
         return self.current(robot_id) is not None
 
     def load_checkpoint(self, robot_id: str) -> SessionState | None:
-        """The checkpoint the pointer names (None: none); CheckpointError as CloudStore's."""
+        """The checkpoint the pointer names (None: none); CheckpointError as CloudStore's.
+        A pointer is not trusted blindly: one behind the newest checkpoint blob of the
+        robot's folder (rolled back), or naming a file that is not there, is said and the
+        newest blob restored instead, never a fresh session over acknowledged keyframes."""
         for _ in range(READ_ATTEMPTS):
             pointer = self.current(robot_id)
             if pointer is None:
                 return None
-            path = self.robot_dir(robot_id) / pointer.file
+            folder = self.robot_dir(robot_id)
+            newest = newest_blob(folder)
+            if newest is not None and newest[:2] > (pointer.epoch, pointer.seq):
+                log.error("robot %s: etcd's current checkpoint (epoch %d seq %d) is behind the "
+                          "newest on disk (%s): a rolled-back pointer is not trusted; "
+                          "restoring the newest", robot_id, pointer.epoch, pointer.seq,
+                          newest[2])
+                return self.load_checkpoint_file(folder / newest[2])
+            path = folder / pointer.file
             if path.exists():
                 return self.load_checkpoint_file(path)
-            # Gone: the pointer has moved on since it was read (its writer keeps two), or the
-            # blob was lost; the pointer, read again, says which.
+            # Gone: the pointer has moved on since it was read (its writer keeps two), or it
+            # names a file that never was; the pointer, read again, says which.
+        if newest is not None:
+            log.error("robot %s: etcd's current checkpoint names %s, which is not there: not "
+                      "trusted; restoring the newest on disk (%s)", robot_id, pointer.file,
+                      newest[2])
+            return self.load_checkpoint_file(folder / newest[2])
         raise CheckpointError(str(path), "the current checkpoint's file is missing")
 
     def unfenced_checkpoints(self) -> list[str]:

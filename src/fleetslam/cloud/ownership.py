@@ -166,7 +166,7 @@ class Ownership:
         kv = self.client.get(self.keys.owner(robot))
         return None if kv is None else Owner(kv.value.decode(), kv.create_revision, kv.lease)
 
-    def grant(self, robot: str) -> int | None:
+    def grant(self, robot: str, retry: bool = True) -> int | None:
         """Own ``robot``: its new epoch, or None if another worker (or this one, under an
         older lease) owns it or this worker is fenced. EtcdError if etcd cannot be asked."""
         with self._lock:
@@ -188,6 +188,15 @@ class Ownership:
             epoch = result.ranged(1)[0].create_revision
         else:
             held = result.ranged(0)
+            if held and held[0].lease == 0 and retry:
+                # No grant is ever without a lease: written outside fleetslam (by hand, or by
+                # someone holding a worker's credentials). Not an owner: said, removed (only
+                # that very key), and the grant asked again.
+                log.error("robot %s: its owner key names %r without a lease (not a grant): "
+                          "refused and deleted", robot, held[0].value.decode(errors="replace"))
+                self.client.txn([compare(key, "CREATE", held[0].create_revision),
+                                 compare(key, "LEASE", 0)], [delete_op(key)])
+                return self.grant(robot, retry=False)
             if not held or held[0].lease != lease:
                 if held:
                     log.debug("robot %s: owned by %s (epoch %d)", robot,
@@ -217,6 +226,22 @@ class Ownership:
         log.info("release robot %s by worker %s epoch %d%s", robot, self.worker_id, epoch,
                  "" if result.succeeded else " (it was no longer ours)")
         return result.succeeded
+
+    def lost(self, robot: str, epoch: int, why: str) -> None:
+        """etcd no longer has this worker's grant of ``robot`` (``epoch``): its key changed or
+        went (not by a fence of this worker's lease). The robot is dropped as at a fence, so
+        it says hello again and is granted afresh, instead of being served with every
+        checkpoint refused."""
+        with self._lock:
+            if self._mine.get(robot) != epoch:
+                return
+            del self._mine[robot]
+        log.error("robot %s: worker %s lost its grant epoch %d (%s): stops serving it",
+                  robot, self.worker_id, epoch, why)
+        try:
+            self.on_fenced([(robot, epoch)])
+        except Exception:
+            log.exception("worker %s: the fence callback failed", self.worker_id)
 
     # -- the lease ----------------------------------------------------------------------------
 
