@@ -324,6 +324,61 @@ def test_an_owner_key_without_a_lease_is_no_owner(etcd, keys, tmp_path, caplog):
         a.close()
 
 
+def test_ended_only_when_the_final_checkpoint_is_durable(etcd, keys, tmp_path,
+                                                       tmp_path_factory):
+    """The owner key changes under the session before the robot's end: the final checkpoint
+    is refused, so the cloud does not say "ended" (it did, after 30 s, while etcd said the
+    robot was unfinished): the robot hears why, at once, and keeps what it holds."""
+    import json
+
+    from conftest import exact_config, small_scene
+
+    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.backend.back_end import TrackingPipeline
+    from fleetslam.pipeline.split import run_stages
+    from fleetslam.pipeline.states import CapturedFrame
+    from fleetslam.transport import keys as wire_keys
+    from fleetslam.wire.frames import encode_frame_message
+
+    folder = small_scene(tmp_path_factory, 6)[0]
+    seq = RgbdSequence(folder)
+    robot = TrackingPipeline(exact_config(), seq.camera)
+    messages = []
+    for n, f in enumerate(seq):
+        state = run_stages(robot.split(3)[0], CapturedFrame(f.index, f.timestamp, f.rgb,
+                                                             f.depth_m), robot.sides)
+        messages.append(encode_frame_message(state, 3, "r1", n, seq.camera, exact_config().wire))
+    a = _worker(etcd.endpoint, "wa", keys)
+    store = FencedStore(tmp_path, a)
+    replies: list[dict] = []
+    session = None
+    try:
+        a.grant("r1")
+        session = RobotSession.open("r1", Hello(3, seq.camera, "test"), exact_config(), store,
+                                    lambda k, d: replies.append(json.loads(d))
+                                    if k == wire_keys.reply("r1") else None)
+        for data in messages:
+            session.submit_frame(data, time.monotonic())
+        session.drain()
+        EtcdClient(etcd.endpoint).put(keys.owner("r1"), "someone else")
+        started = time.monotonic()
+        unavailable = [r.index for r in session.state.rows if r.is_keyframe]
+        session.submit_control({"type": "end", "last_seq": len(messages) - 1,
+                                "unavailable": unavailable}, time.monotonic())
+        wait_for(lambda: any(r["type"] in ("ended", "error") for r in replies), 20,
+                 "an answer to the end")
+        assert time.monotonic() - started < 10.0
+    finally:
+        if session is not None:
+            session.close()
+        a.close()
+    answer = next(r for r in replies if r["type"] in ("ended", "error"))
+    assert answer["type"] == "error" and answer["code"] == "failed", answer
+    assert "final checkpoint is not durable" in answer["reason"]
+    assert not any(r["type"] == "ended" for r in replies)
+
+
 def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
     """etcd itself stalls (SIGSTOP) longer than the lease: no renewal reaches it, so every
     worker stops serving within the lease; resumed, the robot is granted again with a larger

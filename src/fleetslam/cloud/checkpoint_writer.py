@@ -57,6 +57,9 @@ class CheckpointWriter:
         # (it may cover no newer frame than the last keyframe's).
         self._queued = 0
         self._written = 0
+        # The newest checkpoint number whose write failed, and why (the end must not say
+        # "ended" over it).
+        self._failed: tuple[int, str] = (0, "")
         self._durable = threading.Condition()
         self._interval_s = interval_s
         self._captured_at = -float("inf")
@@ -117,8 +120,24 @@ class CheckpointWriter:
 
     def wait_for_number(self, number: int, timeout: float = CHECKPOINT_WAIT_S) -> bool:
         """Until checkpoint ``number`` (or a later one) is on disk; whether it is."""
+        return self.not_durable(number, timeout) is None
+
+    def not_durable(self, number: int, timeout: float = CHECKPOINT_WAIT_S) -> str | None:
+        """Until checkpoint ``number`` (or a later one) is on disk and current, or its write
+        failed: None when it is, else why not (the store's refusal, or the time it took)."""
         with self._durable:
-            return self._durable.wait_for(lambda: self._written >= number, timeout)
+            self._durable.wait_for(lambda: self._written >= number
+                                   or self._failed[0] >= number, timeout)
+            if self._written >= number:
+                return None
+            if self._failed[0] >= number:
+                return self._failed[1]
+            return f"not written within {timeout:.0f} s"
+
+    def _fail(self, number: int, why: str) -> None:
+        with self._durable:
+            self._failed = (max(self._failed[0], number), why)
+            self._durable.notify_all()
 
     def _write(self) -> None:
         while (item := self._queue.get()) is not None:
@@ -136,9 +155,11 @@ class CheckpointWriter:
                 # Fenced or taken over: the placement drops this session; nothing it holds
                 # is acknowledged or merged from here on.
                 log.warning("robot %s: checkpoint not written: %s", self.robot_id, exc)
+                self._fail(number, f"refused: {exc}")
                 continue
-            except OSError:
+            except OSError as exc:
                 log.exception("robot %s: checkpoint not written", self.robot_id)
+                self._fail(number, f"not written: {exc}")
             else:
                 self._chunks_written(blob.chunks if isinstance(blob, Capture) else ())
                 with self._durable:

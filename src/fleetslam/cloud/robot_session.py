@@ -740,8 +740,16 @@ class RobotSession:
         # Durable before the robot hears "ended": another worker restores it finished.
         self.state.ended = True
         number = self.checkpoints.checkpoint(self.state.last_index)
-        if not self.checkpoints.wait_for_number(number):
-            log.error("robot %s: its final checkpoint is not on disk", self.robot_id)
+        why = self.checkpoints.not_durable(number)
+        if why is not None:
+            # "ended" means the finished session is durable and current: not so, the robot
+            # keeps what it holds and ends again (with this worker, or the next owner).
+            self.state.ended, self.finished = False, None
+            log.error("robot %s: its final checkpoint is not durable (%s): not ended",
+                      self.robot_id, why)
+            return self._reply(protocol.error(
+                protocol.Code.FAILED, f"the session's final checkpoint is not durable ({why}): "
+                f"nothing ended; keep what you hold and end again", answer_to="end"))
         log.info("robot %s ended in %.2f s: last loop queries and local BA %.2f s, outputs "
                  "%.2f s, final checkpoint %.2f s", self.robot_id, time.perf_counter() - t0,
                  t1 - t0, t2 - t1, time.perf_counter() - t2)

@@ -78,6 +78,7 @@ class CloudRefused(RuntimeError):
     def __init__(self, message: dict[str, Any]) -> None:
         super().__init__(str(message.get("reason")))
         self.reason = str(message.get("reason"))
+        self.code = message.get("code")
         self.full = message.get("full") is True  # no session slot free: may free up
         self.max_sessions = message.get("max_sessions")
 
@@ -481,6 +482,9 @@ class Robot:
         for _ in range(cfg.max_attempts):
             if self.uploader.error:
                 raise RuntimeError(self.uploader.error)
+            if self._need_hello.is_set():  # the cloud lost the session meanwhile
+                self.report.note_welcome(self._hello(), self.report.first_index
+                                         + self.report.frames)
             # Keyframes the robot cannot upload (a live camera's, gone from its buffer): the
             # cloud builds the map without their images instead of asking again.
             self.sender.control(protocol.end(self._last_seq, poses_json, camera,
@@ -490,8 +494,14 @@ class Robot:
             try:
                 answer = self._await_reply(("need", "ended"), END_TIMEOUT_S, "end")
             except CloudRefused as refusal:
-                raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
-                                   f"refused its end: {refusal.reason}") from None
+                if refusal.code != protocol.Code.FAILED.value:
+                    raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
+                                       f"refused its end: {refusal.reason}") from None
+                # Not ended (its final checkpoint is not durable): end again, soon.
+                log.warning("robot %s: the cloud did not end the session: %s",
+                            self.robot_id, refusal.reason)
+                time.sleep(cfg.connect_timeout_s)
+                continue
             if answer is None:
                 raise RuntimeError(f"robot {self.robot_id}: the cloud did not finish in "
                                    f"{END_TIMEOUT_S:.0f} s")
