@@ -12,7 +12,6 @@ import threading
 import time
 from dataclasses import replace
 
-import numpy as np
 import pytest
 from conftest import exact_config, small_scene
 from test_cloud import FakeRobot

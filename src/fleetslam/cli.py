@@ -43,7 +43,7 @@ def _finish(summary: dict, out: Path, quiet: bool = False) -> None:
     interrupted = summary.get("interrupted")
     if interrupted:
         tracked = interrupted["frames_tracked"]
-        print(f"\ninterrupted (Ctrl-C): kept the frames tracked ("
+        print("\ninterrupted (Ctrl-C): kept the frames tracked ("
               + ", ".join(f"{r} {n}/{interrupted['frames_given'][r]}" for r, n in tracked.items())
               + "); not built: " + (", ".join(interrupted["not_built"]) or "nothing"))
     print(f"\noutputs in {out}/ ({_output_files(summary)})")
@@ -433,18 +433,7 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     if args.report:
         Path(args.report).parent.mkdir(parents=True, exist_ok=True)
         Path(args.report).write_text(report.to_json())
-    print(f"robot {args.id}: {report.frames} frames sent from {report.first_index} "
-          f"({report.frames_lost_on_link} lost on the link), {report.keyframes} keyframes "
-          f"({report.upload_retries} upload retries), {report.frame_bytes / max(report.frames, 1) / 1000:.1f} "
-          f"kB/frame, total {report.total_s:.1f} s"
-          + (f"; from {report.live_source}: {report.camera_taken} frames taken, "
-             f"{report.camera_skipped} skipped (the robot was busy), "
-             f"{report.camera_rejected} messages refused" if live else "")
-          + (f"; the camera's stream ended: {report.camera_ended}" if report.camera_ended
-             else "")
-          + (f"; the cloud kept {report.cloud_frames}" if report.cloud_frames is not None
-             else ""),
-          file=sys.stderr)
+    print(report.summary_line(), file=sys.stderr)
     if report.incomplete:
         print(f"robot {args.id}: the cloud did not keep everything sent: "
               + "; ".join(report.incomplete), file=sys.stderr)

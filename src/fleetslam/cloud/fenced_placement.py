@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import threading
 import time
 from typing import Any, Callable
 
@@ -37,7 +36,6 @@ from fleetslam.cloud.etcd_gateway import EtcdError, Event, Watch
 from fleetslam.cloud.ownership import MERGER, Ownership
 from fleetslam.cloud.placement import Placement
 from fleetslam.config import PlacementConfig
-from fleetslam.transport import keys
 
 log = logging.getLogger("fleetslam.placement")
 

@@ -1,15 +1,25 @@
 """When the robot takes its frames: ``--rate`` (as fast as it can, at a fixed rate, at the
 recording's timestamps) and a read-ahead thread that decodes the next images, as a camera
-driver delivers them."""
+driver delivers them; a live camera's newest frame each time the robot is ready."""
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
 from collections.abc import Iterator
 
+from dataclasses import replace
+
+from fleetslam.datasets.live import LiveSource
 from fleetslam.datasets.source import Frame, RecordedSource
+from fleetslam.edge.report import RobotReport
+
+log = logging.getLogger("fleetslam.robot")
+
+# How often a robot waiting for a live camera's frame looks whether it was stopped.
+STOP_POLL_S = 0.25
 
 
 def parse_rate(text: str) -> float | None:
@@ -69,3 +79,37 @@ def read_ahead(sequence: RecordedSource, start: int, name: str,
         if isinstance(frame, Exception):
             raise frame
         yield frame
+
+
+def live_frames(live: LiveSource, start_index: int, timeout_s: float,
+                stopping: threading.Event, report: RobotReport, resume_after: float | None,
+                robot_id: str) -> Iterator[Frame]:
+    """The live camera's newest frame each time the robot asks, numbered on from
+    ``start_index``, until it is stopped, the stream ends, or the camera is silent for
+    ``timeout_s`` (said, and in the report: the run so far is kept as at a stop). Frames
+    not after ``resume_after`` (a resumed session has that moment already) are dropped."""
+    index = start_index
+    deadline = time.monotonic() + timeout_s
+    while not stopping.is_set():
+        try:  # short waits, so a stop is seen while the camera is silent
+            frame = live.take(min(STOP_POLL_S, max(deadline - time.monotonic(), 0.0)))
+        except TimeoutError:
+            if time.monotonic() < deadline:
+                continue
+            # A camera node restarting, a cable out: the run so far is kept as at a stop
+            # (the end, the uploads, the map), with the reason in the report.
+            why = (f"{live.description} delivered no frame in {timeout_s:.1f} s "
+                   f"(source.live_frame_timeout_s): is the camera still streaming?")
+            log.warning("robot %s: %s; the robot ends its session with what it has",
+                        robot_id, why)
+            report.camera_ended = why
+            return
+        deadline = time.monotonic() + timeout_s
+        if frame is None:  # the camera's stream ended (a replay or a recording did)
+            return
+        if resume_after is not None and frame.timestamp <= resume_after:
+            report.camera_before_resume += 1  # the session has this moment already
+            continue
+        report.camera_taken += 1
+        yield replace(frame, index=index)
+        index += 1

@@ -144,5 +144,21 @@ class RobotReport:
             log.error("robot %s: %s", self.robot_id, why)
             self.incomplete.append(why)
 
+    def summary_line(self) -> str:
+        """What ``fleetslam robot`` says when it is done."""
+        live = self.live_source is not None
+        return (f"robot {self.robot_id}: {self.frames} frames sent from {self.first_index} "
+                f"({self.frames_lost_on_link} lost on the link), {self.keyframes} keyframes "
+                f"({self.upload_retries} upload retries), "
+                f"{self.frame_bytes / max(self.frames, 1) / 1000:.1f} kB/frame, total "
+                f"{self.total_s:.1f} s"
+                + (f"; from {self.live_source}: {self.camera_taken} frames taken, "
+                   f"{self.camera_skipped} skipped (the robot was busy), "
+                   f"{self.camera_rejected} messages refused" if live else "")
+                + (f"; the camera's stream ended: {self.camera_ended}" if self.camera_ended
+                   else "")
+                + (f"; the cloud kept {self.cloud_frames}" if self.cloud_frames is not None
+                   else ""))
+
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)

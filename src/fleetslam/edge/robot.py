@@ -33,7 +33,6 @@ import queue
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -44,7 +43,7 @@ from fleetslam.datasets.live import LiveSource
 from fleetslam.datasets.source import Frame, RecordedSource
 from fleetslam.edge.encoder import FrameEncoder
 from fleetslam.edge.flow import FlowWindow
-from fleetslam.edge.pacing import Pacer, parse_rate, read_ahead
+from fleetslam.edge.pacing import Pacer, live_frames, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
 from fleetslam.edge.fleet_frame import FleetFrame
 from fleetslam.edge.ros2_out import RobotRosOut
@@ -68,8 +67,6 @@ log = logging.getLogger("fleetslam.robot")
 
 # A robot that sends "end" waits this long for its last frames and map (cloud backlog).
 END_TIMEOUT_S = 900.0
-# How often a robot waiting for a live camera's frame looks whether it was stopped.
-STOP_POLL_S = 0.25
 
 
 class CloudRefused(RuntimeError):
@@ -353,32 +350,8 @@ class Robot:
         if self.live is None:
             yield from read_ahead(self.sequence, start_index, f"robot-{self.robot_id}-read")
             return
-        live, timeout = self.live, self.config.source.live_frame_timeout_s
-        index = start_index
-        deadline = time.monotonic() + timeout
-        while not self._stopping.is_set():
-            try:  # short waits, so a stop is seen while the camera is silent
-                frame = live.take(min(STOP_POLL_S, max(deadline - time.monotonic(), 0.0)))
-            except TimeoutError:
-                if time.monotonic() < deadline:
-                    continue
-                # A camera node restarting, a cable out: the run so far is kept as at a stop
-                # (the end, the uploads, the map), with the reason in the report.
-                why = (f"{live.description} delivered no frame in {timeout:.1f} s "
-                       f"(source.live_frame_timeout_s): is the camera still streaming?")
-                log.warning("robot %s: %s; the robot ends its session with what it has",
-                            self.robot_id, why)
-                self.report.camera_ended = why
-                return
-            deadline = time.monotonic() + timeout
-            if frame is None:  # the camera's stream ended (a replay or a recording did)
-                break
-            if self._resume_after is not None and frame.timestamp <= self._resume_after:
-                self.report.camera_before_resume += 1  # the session has this moment already
-                continue
-            self.report.camera_taken += 1
-            yield replace(frame, index=index)
-            index += 1
+        yield from live_frames(self.live, start_index, self.config.source.live_frame_timeout_s,
+                               self._stopping, self.report, self._resume_after, self.robot_id)
 
     def _adapt(self, i: int, start_index: int, k: int, step: int) -> tuple[int, int]:
         """Before frame ``i``: the emulated link changes (a recorded trace); an adaptive robot

@@ -8,13 +8,10 @@ limit, in ``robot_stage_ms``) or scaled from this host's by the planner's speed 
 from __future__ import annotations
 
 import json
-import platform
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-import numpy as np
 
 
 PROFILE_VERSION = 1
