@@ -291,9 +291,9 @@ def test_a_rolled_back_or_dangling_pointer_is_not_trusted(etcd, keys, tmp_path, 
                                                 "file": older.file}))
         assert store.load_checkpoint("r1").last_index == 9
         assert "behind the newest on disk" in caplog.text
-        raw.put(keys.current("r1"), json.dumps({**pointer, "file": "session.1.000009.ckpt"}))
+        raw.put(keys.current("r1"), json.dumps({**pointer, "file": "session.999999.000009.ckpt"}))
         assert store.load_checkpoint("r1").last_index == 9
-        assert "names session.1.000009.ckpt, which is not there: not trusted" in caplog.text
+        assert "names session.999999.000009.ckpt, which is not there: not trusted" in caplog.text
     finally:
         a.close()
 
@@ -378,6 +378,41 @@ def test_ended_only_when_the_final_checkpoint_is_durable(etcd, keys, tmp_path,
     assert not any(r["type"] == "ended" for r in replies)
 
 
+def test_an_etcd_wiped_and_started_again_loses_no_checkpoint(tmp_path, keys, caplog):
+    """etcd's data lost, a new etcd started: its epochs count from 1 again. The store's
+    checkpoints are neither overwritten (a new era's names) nor forgotten (a worker restores
+    the newest, and says why); it had started the robot afresh over them."""
+    first = EtcdService(tmp_path / "etcd-a").start()
+    try:
+        a = _worker(first.endpoint, "wa", keys)
+        store_a = FencedStore(tmp_path / "store", a)
+        epoch_a = a.grant("r1")
+        store_a.save_checkpoint("r1", _state(5))
+        store_a.save_checkpoint("r1", _state(7))
+        a.close()
+    finally:
+        first.stop()
+    before = {p.name: p.read_bytes() for p in (tmp_path / "store" / "r1").glob("session.*")}
+    second = EtcdService(tmp_path / "etcd-b").start()  # empty: a new history
+    try:
+        b = _worker(second.endpoint, "wb", keys)
+        store_b = FencedStore(tmp_path / "store", b)
+        assert store_b.robots_with_checkpoints() == ["r1"]
+        epoch_b = b.grant("r1")
+        assert epoch_b <= epoch_a  # etcd counts again: the epoch alone would repeat
+        assert store_b.load_checkpoint("r1").last_index == 7
+        assert "etcd names no checkpoint, yet its folder holds some" in caplog.text
+        store_b.save_checkpoint("r1", _state(9))
+        assert "etcd's history was reset" in caplog.text
+        after = {p.name: p.read_bytes() for p in (tmp_path / "store" / "r1").glob("session.*")}
+        assert all(after.get(name) == data for name, data in before.items())  # none over
+        assert store_b.current("r1").file.startswith("session.1-")
+        assert store_b.load_checkpoint("r1").last_index == 9
+        b.close()
+    finally:
+        second.stop()
+
+
 def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
     """etcd itself stalls (SIGSTOP) longer than the lease: no renewal reaches it, so every
     worker stops serving within the lease; resumed, the robot is granted again with a larger
@@ -437,3 +472,35 @@ def test_a_watch_hears_puts_deletes_and_expiries(etcd, keys):
     finally:
         watch.close()
     assert not watch._thread.is_alive()
+
+
+def test_a_watch_hears_that_etcds_history_was_reset(tmp_path):
+    """etcd wiped and started again on its address: a running worker's watch had asked for
+    revisions after those it heard, which the new etcd would reach only much later (the
+    worker never served again). It says so, has its owner re-read, and hears new events."""
+    from fleetslam.cloud.etcd_gateway import Watch
+
+    first = EtcdService(tmp_path / "a").start()
+    port = first.client_port
+    events: list = []
+    resets: list = []
+    client = EtcdClient(first.endpoint)
+    for i in range(30):
+        client.put(f"p/{i}", "x")
+    watch = Watch(first.endpoint, "p/", events.extend, retry_s=0.1,
+                  on_reset=lambda: resets.append(time.monotonic())).start()
+    second = None
+    try:
+        assert watch.created.wait(10)
+        client.put("p/seen", "y")
+        wait_for(lambda: any(e.kv.key == b"p/seen" for e in events), 10, "the first event")
+        first.stop()
+        second = EtcdService(tmp_path / "b", client_port=port).start()  # empty: a new history
+        wait_for(lambda: resets, 20, "the watch to hear the reset")
+        EtcdClient(second.endpoint).put("p/new", "z")
+        wait_for(lambda: any(e.kv.key == b"p/new" for e in events), 20, "an event after it")
+    finally:
+        watch.close()
+        first.stop()
+        if second is not None:
+            second.stop()

@@ -56,7 +56,7 @@ class EtcdService:
 
     def __init__(self, data_dir: Path, start_deadline_s: float = 10.0,
                  binary: str = BINARY, also_listen: tuple[str, ...] = (),
-                 certs: Path | None = None) -> None:
+                 certs: Path | None = None, client_port: int = 0) -> None:
         """``also_listen``: IP addresses of this machine where clients reach it too, on the
         same port (a partition experiment's worker in a network namespace), besides
         loopback. ``certs``: the lab's coordination TLS folder (``fleetslam certs``'s
@@ -66,7 +66,7 @@ class EtcdService:
         self.also_listen = tuple(also_listen)
         self.start_deadline_s = start_deadline_s
         self.binary = binary
-        self.client_port = 0
+        self.client_port = client_port  # 0: a free one at start
         self.peer_port = 0
         self._process: subprocess.Popen[bytes] | None = None
 
@@ -98,7 +98,7 @@ class EtcdService:
                 f"the coordination service needs the `{self.binary}` program, which is not "
                 f"on PATH: {INSTALL_HINT}")
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
-        self.client_port, self.peer_port = _free_port(), _free_port()
+        self.client_port, self.peer_port = self.client_port or _free_port(), _free_port()
         peer = f"http://127.0.0.1:{self.peer_port}"
         clients = ",".join([self.endpoint] + [f"{self.scheme}://{host}:{self.client_port}"
                                               for host in self.also_listen])

@@ -178,6 +178,7 @@ class EtcdClient:
         self._open = _opener(endpoint, tls)
         self.timeout_s = timeout_s
         self.tls = tls
+        self.cluster_id: str | None = None  # as etcd's last answer said
         self._local = threading.local()
 
     def _connection(self) -> http.client.HTTPConnection:
@@ -227,7 +228,17 @@ class EtcdClient:
         if reply.status != 200 or "error" in answer:
             message = answer.get("message") or answer.get("error") or answer
             raise EtcdError(f"etcd {self.endpoint} /v3/{path}: HTTP {reply.status}: {message}")
+        cluster = (answer.get("header") or {}).get("cluster_id")
+        if cluster is not None:
+            self.cluster_id = str(cluster)
         return answer
+
+    def cluster(self) -> str:
+        """etcd's cluster id: a new one is a new history (an etcd wiped and started again
+        counts its revisions, so epochs, from 1 again)."""
+        self.call("kv/range", {"key": b64("\0")})
+        assert self.cluster_id is not None
+        return self.cluster_id
 
     # -- keys ---------------------------------------------------------------------------------
 
@@ -291,9 +302,14 @@ class Watch:
 
     def __init__(self, endpoint: str, prefix: bytes | str,
                  on_events: Callable[[list[Event]], None], start_revision: int = 0,
-                 retry_s: float = 0.5, tls: EtcdTls | None = None) -> None:
+                 retry_s: float = 0.5, tls: EtcdTls | None = None,
+                 on_reset: Callable[[], None] | None = None) -> None:
+        """``on_reset``: called when etcd's history was reset under the watch (an etcd wiped
+        and started again counts revisions from 1: the events from here on have revisions
+        below those heard before, and what was known of the prefix is void)."""
         self.endpoint = endpoint
         self._open = _opener(endpoint, tls)
+        self._on_reset = on_reset or (lambda: None)
         self._prefix = prefix.encode() if isinstance(prefix, str) else prefix
         self._on_events = on_events
         self.next_revision = start_revision
@@ -361,6 +377,19 @@ class Watch:
                     raise EtcdError(f"etcd {self.endpoint} /v3/watch: canceled "
                                     f"({result.get('cancel_reason', 'no reason given')})")
                 if result.get("created"):
+                    now = int((result.get("header") or {}).get("revision", 0))
+                    if self.next_revision > now + 1:
+                        log.error("etcd at %s has revision %d, the watch of %r had heard up "
+                                  "to %d: etcd's history was reset; what was known of it is "
+                                  "read again", self.endpoint, now, self._prefix,
+                                  self.next_revision - 1)
+                        self.next_revision = 1  # the new history from its start
+                        try:
+                            self._on_reset()
+                        except Exception:
+                            log.exception("etcd watch of %r: the reset's callback failed",
+                                          self._prefix)
+                        raise EtcdError(f"etcd {self.endpoint} /v3/watch: history reset")
                     self.created.set()
                 events = [Event(e.get("type") == "DELETE", KeyValue.from_json(e["kv"]))
                           for e in result.get("events", [])]

@@ -65,13 +65,12 @@ class FencedPlacement(Placement):
         self.loads.start()
         prefix = self.ownership.keys.owner("")
         client = self.ownership.client
-        self._watch = Watch(client.endpoint, prefix, self._on_events, tls=client.tls).start()
+        self._watch = Watch(client.endpoint, prefix, self._on_events, tls=client.tls,
+                            on_reset=self._reread).start()
         if not self._watch.created.wait(self.ownership.ttl_s * 2):
             log.warning("the etcd watch of owners at %s is not open yet; retrying",
                         self.ownership.client.endpoint)
-        # What etcd holds now (a watch event of the same key and a newer revision wins).
-        for kv in self.ownership.client.get_prefix(prefix):
-            self._apply(kv.key.decode()[len(prefix):], False, kv)
+        self._reread(clear=False)
         self._discover()
         self._elector.start()
         self.claim(MERGER)
@@ -126,6 +125,16 @@ class FencedPlacement(Placement):
                         robot, exc)
 
     # -- etcd's answers ---------------------------------------------------------------------
+
+    def _reread(self, clear: bool = True) -> None:
+        """What etcd holds now (a watch event of the same key and a newer revision wins);
+        ``clear``: after etcd's history was reset, the owners known before are void."""
+        prefix = self.ownership.keys.owner("")
+        if clear:
+            with self._lock:
+                self._owners.clear()
+        for kv in self.ownership.client.get_prefix(prefix):
+            self._apply(kv.key.decode()[len(prefix):], False, kv)
 
     def _on_events(self, events: list[Event]) -> None:
         prefix = self.ownership.keys.owner("")

@@ -71,18 +71,55 @@ class Pointer:
         return pointer
 
 
-_BLOB = re.compile(r"^session\.(\d+)\.(\d+)\.ckpt$")
+# A checkpoint blob: session.<epoch>.<seq>.ckpt in the store's first coordination era,
+# session.<era>-<epoch>.<seq>.ckpt after (etcd_era).
+_BLOB = re.compile(r"^session\.(?:(\d+)-)?(\d+)\.(\d+)\.ckpt$")
+# Where the store keeps the eras: one file per etcd history it has been written under.
+ERAS = "coordination"
 
 
-def newest_blob(folder: Path) -> tuple[int, int, str] | None:
-    """(epoch, seq, file name) of the newest checkpoint blob in a robot's folder, or None."""
+def blob_order(name: str) -> tuple[int, int, int] | None:
+    """(era, epoch, seq) of a checkpoint blob's name, None for another file."""
+    m = _BLOB.match(name)
+    return None if m is None else (int(m.group(1) or 0), int(m.group(2)), int(m.group(3)))
+
+
+def newest_blob(folder: Path) -> tuple[int, int, int, str] | None:
+    """(era, epoch, seq, file name) of the newest checkpoint blob of a robot's folder."""
     try:
         names = os.listdir(folder)
     except OSError:
         return None
-    found = [(int(m.group(1)), int(m.group(2)), name) for name in names
-             if (m := _BLOB.match(name))]
+    found = [(*order, name) for name in names if (order := blob_order(name)) is not None]
     return max(found) if found else None
+
+
+def etcd_era(root: Path, cluster_id: str) -> int:
+    """The store's era for the etcd history ``cluster_id``: 0 for the first it was written
+    under, one more for each new one after (an etcd wiped and started again gives epochs
+    from 1 again: without eras its blobs would take the names of older ones). Each era is
+    a file made exclusively, so workers meeting a new history at once agree."""
+    folder = root / ERAS
+    folder.mkdir(parents=True, exist_ok=True)
+    while True:
+        eras = {}
+        for name in os.listdir(folder):
+            era, _, cluster = name.partition(".")
+            if era.isdigit() and cluster:
+                eras[cluster] = int(era)
+        if cluster_id in eras:
+            return eras[cluster_id]
+        era = max(eras.values(), default=-1) + 1
+        try:
+            fd = os.open(folder / f"{era}.{cluster_id}", os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            continue  # another worker took this number meanwhile: read again
+        os.close(fd)
+        if era:
+            log.error("etcd's history was reset (cluster %s is new to the store %s): its "
+                      "checkpoints from now on are era %d, never over the older ones", cluster_id,
+                      root, era)
+        return era
 
 
 class CoordinationUnavailable(ConnectionError):
@@ -98,6 +135,7 @@ class FencedStore(CloudStore):
         self.keys = ownership.keys
         self._lock = threading.Lock()
         self._seq: dict[tuple[str, int], int] = {}
+        self._eras: dict[str, int] = {}  # etcd cluster id -> the store's era of it
         self._written: dict[str, deque[Path]] = {}
         self.refused = 0
 
@@ -123,11 +161,16 @@ class FencedStore(CloudStore):
         """The write of a worker that was granted ``robot_id`` with ``epoch`` under ``lease``,
         whatever it believes now (a worker paused past its own fence still gets here): etcd
         decides, in one transaction. NotOwner / CoordinationUnavailable as write_checkpoint."""
+        era = self._era()
         with self._lock:
             seq = self._seq.get((robot_id, epoch), 0) + 1
             self._seq[(robot_id, epoch)] = seq
-        name = f"session.{epoch}.{seq:06d}.ckpt"
+        name = f"session.{era}-{epoch}.{seq:06d}.ckpt" if era else \
+            f"session.{epoch}.{seq:06d}.ckpt"
         path = self.robot_dir(robot_id) / name
+        if path.exists():  # never over a stored checkpoint, whatever etcd says
+            raise NotOwner(f"robot {robot_id}: {path} exists already (etcd's epoch {epoch} "
+                           f"was used before): checkpoint refused")
         # Chunks are named by content: a stale writer's are the same files, never wrong.
         self.write_chunks(robot_id, blob)
         self.write_checkpoint_file(robot_id, path, blob)
@@ -164,6 +207,14 @@ class FencedStore(CloudStore):
             raise NotOwner(f"robot {robot_id}: checkpoint of epoch {epoch} refused: {why}")
         self._keep_few(robot_id, path)
 
+    def _era(self) -> int:
+        """This store's era of the etcd history the worker talks to now."""
+        cluster = self.client.cluster_id or self.client.cluster()
+        with self._lock:
+            if self._eras.get(cluster) is None:
+                self._eras[cluster] = etcd_era(self.root, cluster)
+            return self._eras[cluster]
+
     def _drop(self, path: Path) -> None:
         # Never current, and never to be: a stale blob left behind would only mislead.
         try:
@@ -196,18 +247,23 @@ class FencedStore(CloudStore):
         A pointer is not trusted blindly: one behind the newest checkpoint blob of the
         robot's folder (rolled back), or naming a file that is not there, is said and the
         newest blob restored instead, never a fresh session over acknowledged keyframes."""
+        folder = self.robot_dir(robot_id)
         for _ in range(READ_ATTEMPTS):
             pointer = self.current(robot_id)
-            if pointer is None:
-                return None
-            folder = self.robot_dir(robot_id)
             newest = newest_blob(folder)
-            if newest is not None and newest[:2] > (pointer.epoch, pointer.seq):
-                log.error("robot %s: etcd's current checkpoint (epoch %d seq %d) is behind the "
-                          "newest on disk (%s): a rolled-back pointer is not trusted; "
-                          "restoring the newest", robot_id, pointer.epoch, pointer.seq,
-                          newest[2])
-                return self.load_checkpoint_file(folder / newest[2])
+            if pointer is None:
+                if newest is None:
+                    return None
+                log.error("robot %s: etcd names no checkpoint, yet its folder holds some "
+                          "(etcd's history reset, or the pointer deleted): restoring the "
+                          "newest (%s)", robot_id, newest[3])
+                return self.load_checkpoint_file(folder / newest[3])
+            named = blob_order(pointer.file)
+            if newest is not None and named is not None and newest[:3] > named:
+                log.error("robot %s: etcd's current checkpoint (%s) is behind the newest on "
+                          "disk (%s): a rolled-back pointer is not trusted; restoring the "
+                          "newest", robot_id, pointer.file, newest[3])
+                return self.load_checkpoint_file(folder / newest[3])
             path = folder / pointer.file
             if path.exists():
                 return self.load_checkpoint_file(path)
@@ -216,8 +272,8 @@ class FencedStore(CloudStore):
         if newest is not None:
             log.error("robot %s: etcd's current checkpoint names %s, which is not there: not "
                       "trusted; restoring the newest on disk (%s)", robot_id, pointer.file,
-                      newest[2])
-            return self.load_checkpoint_file(folder / newest[2])
+                      newest[3])
+            return self.load_checkpoint_file(folder / newest[3])
         raise CheckpointError(str(path), "the current checkpoint's file is missing")
 
     def unfenced_checkpoints(self) -> list[str]:
@@ -227,8 +283,13 @@ class FencedStore(CloudStore):
         return [r for r in super().robots_with_checkpoints() if r not in named]
 
     def robots_with_checkpoints(self) -> list[str]:
+        """The robots etcd names a checkpoint of, and those whose folder holds checkpoint
+        blobs (etcd's history reset loses the pointers, not the checkpoints)."""
         prefix = self.keys.currents()
-        return sorted(kv.key.decode()[len(prefix):] for kv in self.client.get_prefix(prefix))
+        named = {kv.key.decode()[len(prefix):] for kv in self.client.get_prefix(prefix)}
+        on_disk = {p.parent.name for p in self.root.glob("*/session.*.ckpt")
+                   if blob_order(p.name) is not None}
+        return sorted(named | on_disk)
 
     def set_aside(self, robot_id: str) -> list[Path]:
         """As CloudStore's (the current blob and the keyframes moved aside, kept), and the
