@@ -142,6 +142,12 @@ class FencedPlacement(Placement):
             self._apply(event.kv.key.decode()[len(prefix):], event.deleted, event.kv)
 
     def _apply(self, robot: str, deleted: bool, kv: Any) -> None:
+        if not deleted and kv.lease == 0:
+            # No grant is without a lease (ownership.py): not an owner; the next grant of
+            # the robot removes the key.
+            log.error("robot %s: owner key %r without a lease (not a grant): no owner",
+                      robot, kv.value.decode(errors="replace"))
+            deleted = True
         with self._lock:
             known = self._owners.get(robot)
             if known is not None and known[2] >= kv.mod_revision:
