@@ -63,6 +63,21 @@ def _start_coordination(out: Path, config_path: str | None, certs: Path | None
     return EtcdService(out / "etcd", deadline, certs=certs).start()
 
 
+def _check_robots(robots: dict[str, subprocess.Popen], logs: Path, out: Path) -> None:
+    """Every robot finished: RuntimeError with the log of one that failed; one whose cloud
+    kept less than it sent (exit 3) is said, and the run goes on."""
+    failed = {n: p.returncode for n, p in robots.items()
+              if p.returncode not in (0, EXIT_INCOMPLETE)}
+    if failed:
+        name = next(iter(failed))
+        raise RuntimeError(f"robot {name} failed (exit {failed[name]}):\n"
+                           + _tail(logs / f"{name}.log"))
+    for name, p in robots.items():
+        if p.returncode == EXIT_INCOMPLETE:
+            print(f"fleetslam demo: robot {name}: the cloud did not keep every frame it sent "
+                  f"(`incomplete` in {out / name / ROBOT_REPORT})", file=sys.stderr)
+
+
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
              link_args: list[str] | None = None, show_progress: bool = True,
              timeout_s: float = 1800.0, zenoh_config: str | None = None,
@@ -137,16 +152,7 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
             except TimeoutError:
                 pass
             time.sleep(0.5)
-        failed = {n: p.returncode for n, p in robots.items()
-                  if p.returncode not in (0, EXIT_INCOMPLETE)}
-        if failed:
-            name = next(iter(failed))
-            raise RuntimeError(f"robot {name} failed (exit {failed[name]}):\n"
-                               + _tail(logs / f"{name}.log"))
-        for name, p in robots.items():  # finished, but the cloud did not keep every frame
-            if p.returncode == EXIT_INCOMPLETE:
-                print(f"fleetslam demo: robot {name}: the cloud did not keep every frame it "
-                      f"sent (`incomplete` in {out / name / ROBOT_REPORT})", file=sys.stderr)
+        _check_robots(robots, logs, out)
         progress.update(total)
         summary = client.merge()
     except BaseException:
