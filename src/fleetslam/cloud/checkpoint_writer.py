@@ -157,6 +157,9 @@ class CheckpointWriter:
                 log.warning("robot %s: checkpoint not written: %s", self.robot_id, exc)
                 self._fail(number, f"refused: {exc}")
                 continue
+            except ConnectionError as exc:  # etcd not reachable (fenced_store.py): said
+                log.warning("robot %s: checkpoint not written: %s", self.robot_id, exc)
+                self._fail(number, f"not made current: {exc}")
             except OSError as exc:
                 log.exception("robot %s: checkpoint not written", self.robot_id)
                 self._fail(number, f"not written: {exc}")
