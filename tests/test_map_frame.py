@@ -92,7 +92,10 @@ def test_the_live_map_frame_from_the_mounting_or_the_configured_up():
     assert Camera.from_dict(mounted.to_dict()).base_link == mounted.base_link
 
 
-def test_a_bad_mounting_is_refused_naming_it(tmp_path):
+def test_a_bad_mounting_is_refused_naming_it(tmp_path, synthetic_scene):
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.system import run_fleet
+
     camera = Camera(500.0, 500.0, 320.0, 240.0)
     with pytest.raises(ValueError, match=r"\[camera\] base_link quaternion .* not a rotation"):
         camera.mounted((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
@@ -102,3 +105,11 @@ def test_a_bad_mounting_is_refused_naming_it(tmp_path):
     path.write_text("[camera]\nbase_link = [0, 0, 0, 0, 0, 1]\n")
     with pytest.raises(ValueError, match=r"c.toml: camera.base_link .* expected a list of 7"):
         load_config(path)
+    # A run is refused before it writes anything.
+    _, folders = synthetic_scene
+    config = Config()
+    config.camera.base_link = (0.0,) * 7
+    with pytest.raises(ValueError, match=r"\[camera\] base_link quaternion"):
+        run_fleet([("r0", str(folders[0]), RgbdSequence(folders[0]))], config,
+                  tmp_path / "run", show_progress=False)
+    assert not (tmp_path / "run").exists()

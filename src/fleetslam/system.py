@@ -221,6 +221,8 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
     where a sequence has it (after the run); return the summary. A Ctrl-C ends it early:
     the trajectories tracked so far are written, and ``summary["interrupted"]`` says so."""
     start = time.perf_counter()
+    for _, _, sequence in robots:  # a bad mounting is said before anything is written
+        sequence.camera.mounted(config.camera.base_link)
     out_dir.mkdir(parents=True, exist_ok=False)
     skipped: list[str] = []  # what a Ctrl-C left unbuilt
     with Interrupt() as interrupt:
