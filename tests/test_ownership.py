@@ -504,3 +504,42 @@ def test_a_watch_hears_that_etcds_history_was_reset(tmp_path):
         first.stop()
         if second is not None:
             second.stop()
+
+
+def test_a_robot_hears_that_the_workers_cannot_reach_etcd(tmp_path):
+    """etcd out of reach: a worker can be granted no robot, and says so to a robot's hello
+    (the robot waited for 30 hellos, then blamed "no cloud" and the access control)."""
+    import json
+    import os
+    import signal
+
+    from test_cloud import FakeRobot
+
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.launch import free_endpoint
+    from fleetslam.transport import keys as wire_keys
+    from fleetslam.transport.protocol import PROTOCOL
+    from fleetslam.transport.zenoh_session import open_connecting
+
+    with EtcdService(tmp_path / "etcd") as etcd:
+        config = Config()
+        config.placement.coordination = etcd.endpoint
+        endpoint = free_endpoint()
+        server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+        client = open_connecting(endpoint)
+        robot = FakeRobot(client, "r1", CAMERA)
+        os.kill(etcd.pid, signal.SIGSTOP)
+        try:
+            wait_for(lambda: not server.ownership.live(), LEASE_S * 2, "the worker fenced")
+            hello = {"type": "hello", "protocol": PROTOCOL, "offload_at": 3,
+                     "camera": CAMERA.to_dict(), "source": "test"}
+            client.put(wire_keys.control("r1"), json.dumps(hello).encode())
+            answer = robot.reply("error", timeout=10.0)
+        finally:
+            os.kill(etcd.pid, signal.SIGCONT)
+            robot.close()
+            client.close()
+            server.close()
+    assert answer["answer_to"] == "hello" and answer["wait"] is True
+    assert f"cannot reach their coordination service (etcd at {etcd.endpoint})" in \
+        answer["reason"]

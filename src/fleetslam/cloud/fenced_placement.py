@@ -98,6 +98,12 @@ class FencedPlacement(Placement):
     def held(self) -> int:
         return sum(1 for robot in self.ownership.robots() if robot != MERGER)
 
+    def unavailable(self) -> str | None:
+        if self.ownership.live():
+            return None
+        return (f"the cloud's workers cannot reach their coordination service (etcd at "
+                f"{self.ownership.client.endpoint}): robots are served again once it answers")
+
     def owner(self, robot: str) -> str | None:
         with self._lock:
             held = self._owners.get(robot)

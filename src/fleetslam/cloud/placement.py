@@ -141,6 +141,11 @@ class Placement:
         with self._lock:
             return {robot: min(ws) for robot, ws in self.owners.items() if ws}
 
+    def unavailable(self) -> str | None:
+        """Why this worker cannot be granted any robot now (None: it can); liveliness alone
+        has nothing to wait for."""
+        return None
+
     def live_workers(self) -> list[str]:
         with self._lock:
             return sorted(self.workers | {self.worker_id})

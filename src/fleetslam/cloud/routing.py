@@ -214,6 +214,11 @@ class Router:
         placement = self._placement()
         if placement is None or placement.serves(robot_id):
             return self._on_robot_control(robot_id, data, arrival)
+        waiting = placement.unavailable()
+        if waiting is not None and _is_hello(data):
+            # Nobody can be granted the robot now: said, so that it waits for the right thing.
+            return self.error(keys.reply(robot_id), protocol.Code.REFUSED, waiting,
+                              answer_to="hello", wait=True)
         if placement.owner(robot_id) is not None:
             with self.sessions.lock:  # another worker's robot: nothing of it to keep here
                 self._pending.pop(robot_id, None)

@@ -77,6 +77,7 @@ class CloudRefused(RuntimeError):
         self.reason = str(message.get("reason"))
         self.code = message.get("code")
         self.full = message.get("full") is True  # no session slot free: may free up
+        self.wait = message.get("wait") is True  # the cloud cannot serve yet: may change
         self.max_sessions = message.get("max_sessions")
 
 
@@ -398,6 +399,7 @@ class Robot:
             None if self.live is not None else len(self.sequence))
         cfg = self.config.transport
         full = 0  # refusals because the cloud was full
+        waiting = None  # why the cloud said it cannot serve yet, the last time
         hint_at = time.monotonic() + cfg.silence_hint_s
         for _ in range(cfg.max_attempts):
             if time.monotonic() >= hint_at:  # once: the session is open, the cloud silent
@@ -409,6 +411,14 @@ class Robot:
             try:
                 welcome = self._await_reply(("welcome",), cfg.connect_timeout_s, "hello")
             except CloudRefused as refusal:
+                if refusal.wait:  # e.g. its coordination service out of reach: hello again
+                    if waiting != refusal.reason:
+                        log.warning("robot %s: %s; saying hello again", self.robot_id,
+                                    refusal.reason)
+                    waiting = refusal.reason
+                    hint_at = math.inf  # it answers: not silence
+                    time.sleep(cfg.connect_timeout_s)
+                    continue
                 # A full cloud frees slots (robots end, empty sessions expire): a few more
                 # hellos, further apart. Any other refusal (a bad hello, a changed point)
                 # would be refused again: stop at once.
@@ -432,9 +442,9 @@ class Robot:
                 self.encoder.restart(welcome)
                 self.window.clear()  # a new or resumed session answers none of them
                 return welcome
-        raise RuntimeError(f"robot {self.robot_id}: no answer from the cloud at "
+        raise RuntimeError(f"robot {self.robot_id}: no session from the cloud at "
                            f"{self.endpoint} after {cfg.max_attempts} hellos: "
-                           f"{self._silence()}")
+                           f"{waiting or self._silence()}")
 
     def _silence(self) -> str:
         """What to check when the cloud does not answer this robot's open session."""
