@@ -971,3 +971,18 @@ def test_a_merge_names_each_robot_it_leaves_out_unfinished(cloud, messages):
     assert [r["name"] for r in summary["robots"]] == ["r0"]
     assert merge["not_merged"]["r1"] == ("not finished: its stream has not ended (6 frames "
                                          "tracked so far)")
+
+
+def test_a_flood_of_status_requests_costs_one_build_per_interval(cloud):
+    """Each request is answered with its own id; the answer is built at most every
+    STATUS_EVERY_S (it was built for every request)."""
+    from fleetslam.cloud.server import STATUS_EVERY_S
+
+    server, _ = cloud
+    before = server.status_builds
+    started = time.monotonic()
+    answers = [server._status(f"q{i}") for i in range(200)]
+    took = time.monotonic() - started
+    assert [a["id"] for a in answers] == [f"q{i}" for i in range(200)]
+    assert all(a["type"] == "status" and a["robots"] == answers[0]["robots"] for a in answers)
+    assert server.status_builds - before <= 1 + int(took / STATUS_EVERY_S)

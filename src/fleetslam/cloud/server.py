@@ -56,6 +56,8 @@ from fleetslam.transport.zenoh_session import open_connecting, open_listening, p
 from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.cloud")
+# A status answer is built at most this often; requests in between get the last one.
+STATUS_EVERY_S = 0.2
 
 
 def default_worker_id() -> str:
@@ -90,6 +92,9 @@ class CloudServer:
         else:
             self.store = CloudStore(self.out_dir, config.transport.max_checkpoint_bytes)
         self.stopped = threading.Event()
+        self._status_lock = threading.Lock()
+        self._status_cache: tuple[float, dict[str, Any]] | None = None
+        self.status_builds = 0
         # This worker's load as placement weighs it: the cores it keeps busy for the robots
         # at work, at its own priority (its niced local BA and place search yield).
         self._cpu = CpuMeter(os.getpid(), config.placement.load_window_s, self._at_work,
@@ -232,6 +237,16 @@ class CloudServer:
         self.merge_requests.request(rid)
 
     def _status(self, rid: str | None) -> dict[str, Any]:
+        """The status answer; built at most every STATUS_EVERY_S (a flood of requests costs
+        one build per interval, each still answered with its own id)."""
+        now = time.monotonic()
+        with self._status_lock:
+            if self._status_cache is None or now - self._status_cache[0] >= STATUS_EVERY_S:
+                self._status_cache = (now, self._build_status())
+                self.status_builds += 1
+            return {**self._status_cache[1], "id": rid}
+
+    def _build_status(self) -> dict[str, Any]:
         robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
                       "worker": self.worker_id,
                       # Its memory budget: held now, and what it dropped unread.
@@ -241,7 +256,7 @@ class CloudServer:
                   for r, s in self.sessions.now()}
         placement = self.placement
         return protocol.status(
-            rid, robots, self.merger.status(), worker=self.worker_id,
+            None, robots, self.merger.status(), worker=self.worker_id,
             workers=placement.live_workers() if placement else [self.worker_id],
             placement=placement.table() if placement else {},
             elections=dict(placement.elections) if placement else {})
