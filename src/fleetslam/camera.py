@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 
 
-
 def _finite(value: int | float) -> bool:
     try:
         return math.isfinite(value)

@@ -115,7 +115,8 @@ def read_robot_summary(robot_dir: Path) -> dict[str, Any] | None:
     if not path.exists():
         return None
     try:
-        entry = json.loads(read_regular(path, MAX_ROBOT_SUMMARY_BYTES, "the limit of"))
+        entry = json.loads(read_regular(path, MAX_ROBOT_SUMMARY_BYTES,
+                                        f"the limit of {MAX_ROBOT_SUMMARY_BYTES}"))
     except (UnreadableFile, UnicodeDecodeError, json.JSONDecodeError) as exc:
         log.error("%s: not a robot summary fleetslam wrote (%s); its counts are left out",
                   path, exc)

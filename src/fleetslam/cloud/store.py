@@ -64,10 +64,9 @@ def _read_bounded(path: Path, limit: int, of_what: str,
     regular file or over ``limit`` bytes (never more than that is read)."""
     limit_of = f"the limit {of_what} of" if of_what else "the limit of"
     try:
-        return read_regular(path, limit, limit_of)
+        return read_regular(path, limit, f"{limit_of} {limit} ({setting})")
     except UnreadableFile as exc:
-        reason = f"{exc.reason} ({setting})" if "exceeds" in exc.reason else exc.reason
-        raise CheckpointError(exc.where, reason) from None
+        raise CheckpointError(exc.where, exc.reason) from None
 
 
 class CloudStore:

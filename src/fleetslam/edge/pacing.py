@@ -9,7 +9,6 @@ import queue
 import threading
 import time
 from collections.abc import Iterator
-
 from dataclasses import replace
 
 from fleetslam.datasets.live import LiveSource

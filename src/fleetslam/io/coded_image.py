@@ -84,6 +84,12 @@ def coded_image_problem(data: bytes, codec: str,
         return f"{width} x {height} pixels exceed the limit of {MAX_IMAGE_PIXELS}"
     if expected is not None and (width, height) != tuple(expected):
         return f"{width} x {height} pixels, the camera's images are {expected[0]} x {expected[1]}"
+    return coded_work_problem(data, codec)
+
+
+def coded_work_problem(data: bytes, codec: str) -> str | None:
+    """Why an image whose size was checked would still cost its decoder too much (too many
+    JPEG scans or PNG chunks), or None."""
     if codec == "jpeg" and data.count(b"\xff\xda") > MAX_JPEG_SCANS:
         return f"more than {MAX_JPEG_SCANS} JPEG scans"
     if codec == "png" and not png_chunks_bounded(data):

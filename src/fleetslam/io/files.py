@@ -19,7 +19,8 @@ class UnreadableFile(ValueError):
 
 def read_regular(path: Path, limit: int, limit_name: str) -> bytes:
     """The file's bytes; UnreadableFile if it is missing (reason "missing"), unreadable, not
-    a regular file or over ``limit`` bytes (``limit_name`` says which limit)."""
+    a regular file or over ``limit`` bytes (``limit_name`` says which limit, e.g. "the
+    limit of 1000 (a setting)": the reason is "<size> bytes exceeds <limit_name>")."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except FileNotFoundError:
@@ -32,8 +33,7 @@ def read_regular(path: Path, limit: int, limit_name: str) -> bytes:
             raise UnreadableFile(str(path), "not a regular file (a FIFO, a device or a "
                                             "folder?), so not one fleetslam wrote")
         if status.st_size > limit:
-            raise UnreadableFile(str(path), f"{status.st_size} bytes exceeds {limit_name} "
-                                            f"{limit}")
+            raise UnreadableFile(str(path), f"{status.st_size} bytes exceeds {limit_name}")
         with os.fdopen(fd, "rb") as f:
             fd = -1  # the file object closes it now
             # What the file holds, never more than the limit (read() allocates what it is

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from fleetslam.config import IMAGE_CODECS  # re-exported: the wire's image codecs
-from fleetslam.io.coded_image import MAX_IMAGE_PIXELS, coded_image_problem, coded_size
+from fleetslam.io.coded_image import MAX_IMAGE_PIXELS, coded_size, coded_work_problem
 from fleetslam.wire.envelope import WireError
 
 # PNG images: zlib's run-length strategy. On the real 640x480 frames it is both smaller and
@@ -250,7 +250,8 @@ def get_image(r: Reader, what: str, size: tuple[int, int] | None = None
     data = r.blob(what)
     if coded_size(data, codec) != (width, h):
         raise WireError(f"{what}: not a {width}x{h} {codec} image")
-    problem = coded_image_problem(data, codec)
+    # The header's size was just checked (within MAX_IMAGE_PIXELS above): the work only.
+    problem = coded_work_problem(data, codec)
     if problem:
         raise WireError(f"{what}: {problem}")
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
