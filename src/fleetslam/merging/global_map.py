@@ -69,16 +69,21 @@ class GlobalMap:
     seconds: float = 0.0  # building it: dense refinement, graph, FS-HICP, outputs
 
 
+def largest_component(components: dict[str, list[str]]) -> str:
+    """The anchor of the group with the most members; on a tie, the one whose anchor's id
+    sorts first (the group a merge writes, and the live ``map`` frame follows)."""
+    return min(components, key=lambda a: (-len(components[a]), a))
+
+
 def largest_group(merger: MapMerger, among: Iterable[str]) -> tuple[str, list[str]]:
-    """(anchor, members among ``among``) of the biggest component; on a tie, the one whose
-    anchor's id sorts first. The group's frame is its anchor's, even if the anchor is not
-    among them."""
+    """(anchor, members among ``among``) of the biggest component (largest_component). The
+    group's frame is its anchor's, even if the anchor is not among them."""
     among = set(among)
     components = {a: [m for m in ms if m in among] for a, ms in merger.components().items()}
     components = {a: ms for a, ms in components.items() if ms}
     if not components:
         raise ValueError("no robot to merge")
-    anchor = min(components, key=lambda a: (-len(components[a]), a))
+    anchor = largest_component(components)
     return anchor, components[anchor]
 
 

@@ -27,6 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from fleetslam.io.mcap_out import RosMessages
+from fleetslam.merging.global_map import largest_component
 from fleetslam.ros2_out import cdr
 from fleetslam.run_mcap import GLOBAL_FRAME, add_fleet_map, camera_frame, map_frame
 from fleetslam.visualisation.live_view import NullView
@@ -64,12 +65,12 @@ class TopicView(NullView):
     def merged(self, T_global_map: dict[str, np.ndarray],
                constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
                groups: dict[str, list[str]] | None = None) -> None:
-        # `map` is one group's frame: the largest's (the one a merge writes; ties to the
-        # anchor whose id sorts first). A robot not joined yet is in no fleet frame.
-        joined = [(a, ms) for a, ms in (groups or {}).items() if len(ms) > 1]
+        # `map` is one group's frame: the largest's, as a merge picks it. A robot not
+        # joined yet is in no fleet frame.
+        joined = {a: ms for a, ms in (groups or {}).items() if len(ms) > 1}
         if not joined:
             return
-        _, members = min(joined, key=lambda g: (-len(g[1]), g[0]))
+        members = joined[largest_component(joined)]
         now = time.time_ns()
         self.sink.publish("/tf_static", cdr.TF_MESSAGE, cdr.tf_message(
             [(now, GLOBAL_FRAME, map_frame(robot), T_global_map[robot])
