@@ -2,13 +2,16 @@
 so only that worker is partitioned from the coordination service (etcd itself keeps running
 for the others). Cut, it forwards nothing and connects nothing new, keeping what is open
 open (a partition, not a refusal: the client sees its requests time out); healed, what
-waited is delivered, as TCP would after a partition."""
+waited is delivered, as TCP would after a partition. Slowed, every byte arrives ``delay_s``
+after it was sent (a congested link's queue, without its drops)."""
 
 from __future__ import annotations
 
 import select
 import socket
 import threading
+import time
+from collections import deque
 
 
 class LinkCutter:
@@ -19,6 +22,7 @@ class LinkCutter:
         self._up = threading.Event()
         self._up.set()
         self._closed = threading.Event()
+        self.delay_s = 0.0
         threading.Thread(target=self._accept, daemon=True).start()
 
     @property
@@ -55,17 +59,23 @@ class LinkCutter:
             a.close()
             return
         peers = {a: b, b: a}
+        # Bytes on their way: (when they arrive, where to, what), in order.
+        line: deque[tuple[float, socket.socket, bytes]] = deque()
         try:
             while not self._closed.is_set():
                 if not self._up.is_set():
                     self._up.wait(0.05)  # held, not forwarded: bytes wait in the buffers
                     continue
-                ready, _, _ = select.select(list(peers), [], [], 0.05)
+                while line and line[0][0] <= time.monotonic():
+                    _, to, data = line.popleft()
+                    to.sendall(data)
+                wait = 0.05 if not line else min(0.05, max(0.0, line[0][0] - time.monotonic()))
+                ready, _, _ = select.select(list(peers), [], [], wait)
                 for s in ready:
                     data = s.recv(65536)
                     if not data:
                         return
-                    peers[s].sendall(data)
+                    line.append((time.monotonic() + self.delay_s, peers[s], data))
         except OSError:
             return
         finally:

@@ -165,6 +165,25 @@ def test_unpaired_images_are_counted_and_reported(tmp_path):
     assert (len(loose), loose.unpaired_rgb) == (4, 0)
 
 
+def test_a_repeated_stamp_is_played_once_so_the_run_and_the_cloud_agree(tmp_path):
+    """Colour frames 2 and 3 carry one stamp (a driver publishing a frame twice), each paired
+    with its own depth image: a cloud refuses the second (its stamp is not after the last
+    frame's), so the source leaves it out for every run and says so."""
+    stamps = [0.0, 1 / 30, 2.5 / 30, 2.5 / 30, 4 / 30, 5 / 30]
+    path = tiny_bag(tmp_path / "b.bag", frames=6, colour_stamps=stamps)
+    seq = open_source(str(path))
+    assert (seq.pairs, len(seq), seq.repeated) == (6, 5, 1)
+    assert np.all(np.diff(seq.timestamps) > 0) and not seq.retimed
+    assert "1 frame left out: the stamp repeats the frame's before" in seq.camera_source
+    # Played backwards too: the repeat is left out, the rest re-timed forward.
+    back = open_source(f"{path}:0-5,4-0")
+    assert (len(back), back.repeated) == (5 + 4, 2) and np.all(np.diff(back.timestamps) > 0)
+    one = tiny_bag(tmp_path / "one.bag", frames=2, colour_stamps=[0.5 / 30] * 2)
+    assert len(open_source(str(one))) == 1
+    with pytest.raises(ValueError, match=r"every frame of frames 1-1 repeats the stamp"):
+        open_source(f"{one}:1-1")
+
+
 def test_a_given_camera_overrides_and_keeps_the_depth_topics_scale(tmp_path):
     path = tiny_bag(tmp_path / "b.bag", info="none")
     with pytest.raises(BagError) as exc:

@@ -706,6 +706,10 @@ class PlacementConfig:
     # stops serving 3/4 of it after its last renewal; its robots go to another worker once
     # etcd expires it, so a lost machine's robots fail over in about this.
     lease_s: Annotated[int, between(2, 600)] = 2
+    # The lease is renewed by a process of its own (cloud/lease_keeper.py) only while the
+    # worker shows it is alive: a worker stopped or frozen this long lets its lease go (its
+    # robots fail over this plus lease_s later). Long enough for a loaded worker's beat.
+    stall_s: Annotated[float, between(0.5, 600.0)] = 5.0
     # The Zenoh lease a worker announces to its router: the router drops the link of a
     # worker it has not heard from this long. Until then the router may wait on that link
     # (a reliable message blocks behind a full queue), holding up every robot's messages

@@ -1,7 +1,7 @@
 """Which worker owns which robot, decided by etcd (not by who is reachable), with fencing tokens.
 
-Each worker holds one etcd lease of ``placement.lease_s`` seconds, renewed every third of it.
-A robot's owner is the key ``<prefix>owner/<robot>`` = worker id, attached to that lease:
+Each worker holds one etcd lease of ``placement.lease_s`` seconds, renewed by a process of its
+own (``lease_keeper.py``: no renewal waits for the worker's busy interpreter). A robot's owner is the key ``<prefix>owner/<robot>`` = worker id, attached to that lease:
 
 - ``grant(robot)`` is one transaction: it succeeds only if the robot has no owner key (a dead
   worker's key went with its lease), and writes the key. Its **epoch** (the fencing token) is
@@ -13,8 +13,9 @@ A robot's owner is the key ``<prefix>owner/<robot>`` = worker id, attached to th
   stops serving them, before etcd can expire the lease and grant them to anyone else. etcd
   expires a lease no earlier than ``lease_s`` after the renewal it last received, which was
   sent after the time this worker counts from; so the fence comes at least ``margin`` first.
-- Fenced, the worker asks for a new lease (its robots are gone: they are granted again, to
-  whoever asks, with new epochs).
+- Fenced, the worker gets a new lease (its robots are gone: they are granted again, to
+  whoever asks, with new epochs). A worker that stops beating (stopped, frozen) for
+  ``placement.stall_s`` has its lease let go the same way.
 
 The merger is granted the same way, under the name ``MERGER``: one at a time, fenced alike.
 Every grant, release and fence is logged with its epoch (the partition tests check them).
@@ -28,12 +29,14 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, LeaseExpired, compare,
-                                          delete_op, put_op, range_op)
+from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, compare, delete_op, put_op,
+                                          range_op)
+from fleetslam.cloud.lease_keeper import LeaseKeeper
+from fleetslam.config import PlacementConfig
 
 log = logging.getLogger("fleetslam.ownership")
 
-# Told which (robot, epoch) this worker may no longer serve; called on the lease thread, must
+# Told which (robot, epoch) this worker may no longer serve; called on the lease's thread, must
 # return quickly (stop serving; the store refuses the rest anyway).
 Fenced = Callable[[list[tuple[str, int]]], None]
 
@@ -41,6 +44,10 @@ Fenced = Callable[[list[tuple[str, int]]], None]
 # The merger is granted like a robot (one at a time, with an epoch); robot ids are
 # [A-Za-z0-9_-] (validation/names.py), so this name is never a robot's.
 MERGER = "@merger"
+# The lease's thread beats for its keeper this often (and fences at the lease's moment).
+BEAT_S = 0.1
+# A keeper's process starts within this (spawned: a fresh interpreter and its imports).
+START_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -76,16 +83,17 @@ class NotOwner(PermissionError):
 
 class Ownership:
     def __init__(self, client: EtcdClient, worker_id: str, lease_s: int,
-                 on_fenced: Fenced | None = None, keys: Keys = Keys()) -> None:
+                 on_fenced: Fenced | None = None, keys: Keys = Keys(),
+                 stall_s: float = PlacementConfig.stall_s) -> None:
         self.client = client
         self.worker_id = worker_id
         self.lease_s = lease_s
         self.keys = keys
         # Public: the placement that serves the robots sets it once it exists.
         self.on_fenced: Fenced = on_fenced or (lambda robots: None)
+        self._keeper = LeaseKeeper(client, worker_id, lease_s, stall_s)
         self._lock = threading.Lock()
-        self._lease = 0  # 0: none (not started, or fenced and not yet renewed)
-        self._valid_until = 0.0  # monotonic: this worker serves its robots until then
+        self._lease = 0  # the lease this worker's robots are granted under; 0: none yet
         self._mine: dict[str, int] = {}  # robot -> epoch
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
@@ -102,9 +110,13 @@ class Ownership:
     # -- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> "Ownership":
-        self._new_lease()
-        self._thread = threading.Thread(target=self._keep, name=f"lease-{self.worker_id}",
-                                        daemon=True)
+        """The first lease (EtcdError if etcd grants none), then the thread that beats for
+        the keeper and fences this worker when its lease lapses."""
+        # Starting the keeper's process takes a fraction of a second; etcd's own timeout on top.
+        lease, ttl = self._keeper.start(START_S + self.client.timeout_s)
+        self._adopt(lease, ttl)
+        self._thread = threading.Thread(target=self._watch_lease,
+                                        name=f"lease-{self.worker_id}", daemon=True)
         self._thread.start()
         return self
 
@@ -113,22 +125,35 @@ class Ownership:
         self._closed.set()
         if self._thread is not None:
             self._thread.join(self.ttl_s)
+        lease, _ = self._keeper.read()
         with self._lock:
-            lease, self._lease, self._mine = self._lease, 0, {}
-        if lease:
-            try:
+            self._lease, self._mine = 0, {}
+        if not self._keeper.close(self.ttl_s + self.client.timeout_s) and lease:
+            try:  # the keeper did not end on its own: its lease is revoked from here
                 self.client.lease_revoke(lease)
             except EtcdError as exc:  # it expires by itself
                 log.warning("worker %s: lease %x not revoked (%s); it expires within %g s",
                             self.worker_id, lease, exc, self.ttl_s)
+        self._log_keeper()
 
-    def _new_lease(self) -> None:
-        sent = time.monotonic()
-        lease, ttl = self.client.lease_grant(self.lease_s)
+    def _adopt(self, lease: int, ttl: int) -> None:
         with self._lock:
             self._lease = lease
-            self._valid_until = sent + ttl - self.margin_s
         log.info("worker %s: lease %x of %d s", self.worker_id, lease, ttl)
+
+    @property
+    def _valid_until(self) -> float:
+        """Until when (monotonic) this worker may serve under its lease; 0: not at all."""
+        lease, valid_until = self._keeper.read()
+        return valid_until if lease and lease == self._lease else 0.0
+
+    def _serving_lease(self) -> int:
+        """The lease this worker's robots are served under, if it is alive now (else 0);
+        called with ``_lock`` held."""
+        lease, valid_until = self._keeper.read()
+        if lease == 0 or lease != self._lease or time.monotonic() >= valid_until:
+            return 0
+        return lease
 
     # -- what the worker asks -------------------------------------------------------------------
 
@@ -139,12 +164,12 @@ class Ownership:
     def live(self) -> bool:
         """Whether this worker's lease is surely alive at etcd now (not fenced)."""
         with self._lock:
-            return self._lease != 0 and time.monotonic() < self._valid_until
+            return self._serving_lease() != 0
 
     def epoch(self, robot: str) -> int | None:
         """This worker's epoch for ``robot`` if it owns it now (None: it does not)."""
         with self._lock:
-            if self._lease == 0 or time.monotonic() >= self._valid_until:
+            if not self._serving_lease():
                 return None
             return self._mine.get(robot)
 
@@ -152,10 +177,9 @@ class Ownership:
         """(epoch, lease) under which this worker owns ``robot`` now; None if it does not
         (the fenced store conditions its writes on both)."""
         with self._lock:
-            if self._lease == 0 or time.monotonic() >= self._valid_until:
-                return None
-            epoch = self._mine.get(robot)
-            return None if epoch is None else (epoch, self._lease)
+            lease = self._serving_lease()
+            epoch = self._mine.get(robot) if lease else None
+            return None if epoch is None else (epoch, lease)
 
     def robots(self) -> dict[str, int]:
         with self._lock:
@@ -170,8 +194,8 @@ class Ownership:
         """Own ``robot``: its new epoch, or None if another worker (or this one, under an
         older lease) owns it or this worker is fenced. EtcdError if etcd cannot be asked."""
         with self._lock:
-            lease = self._lease
-            if not lease or time.monotonic() >= self._valid_until:
+            lease = self._serving_lease()
+            if not lease:
                 return None
             if robot in self._mine:
                 return self._mine[robot]
@@ -245,43 +269,39 @@ class Ownership:
 
     # -- the lease ----------------------------------------------------------------------------
 
-    def _keep(self) -> None:
-        """Renew the lease every third of it; fence at ``valid_until`` without a renewal;
-        fenced, ask for a new lease."""
-        every = self.ttl_s / 3
+    def _watch_lease(self) -> None:
+        """Beat for the keeper; fence at the lease's moment without a renewal; adopt the
+        keeper's next lease; start a keeper again if its process died."""
         while not self._closed.is_set():
+            self._keeper.beat()
+            self._log_keeper()
+            lease, valid_until = self._keeper.read()
             with self._lock:
-                lease, valid_until = self._lease, self._valid_until
+                mine = self._lease
             now = time.monotonic()
-            if lease and now >= valid_until:
-                self._fence(lease, valid_until)
-                continue
-            if not lease:
-                try:
-                    self._new_lease()
-                except EtcdError as exc:
-                    log.debug("worker %s: no new lease yet (%s)", self.worker_id, exc)
-                    self._closed.wait(every)
-                continue
-            sent = time.monotonic()
-            try:
-                # Never waits past the fence: an answer after it is no use.
-                ttl = self.client.lease_keepalive(lease, timeout_s=max(0.05, min(
-                    every, valid_until - sent)))
-            except LeaseExpired as exc:  # expired at etcd already (a pause of this process)
-                log.warning("worker %s: %s", self.worker_id, exc)
-                self._fence(lease, valid_until)
-                continue
-            except EtcdError as exc:
-                log.warning("worker %s: lease %x not renewed (%s); fenced in %.2f s without "
-                            "a renewal", self.worker_id, lease, exc,
-                            max(0.0, valid_until - time.monotonic()))
-                self._closed.wait(min(every / 4, max(0.0, valid_until - time.monotonic())))
-                continue
-            with self._lock:
-                if self._lease == lease:
-                    self._valid_until = max(self._valid_until, sent + ttl - self.margin_s)
-            self._closed.wait(max(0.0, min(sent + every, valid_until) - time.monotonic()))
+            if mine and (lease != mine or now >= valid_until):
+                self._fence(mine, valid_until if lease == mine else now)
+                mine = 0
+            if not mine and lease and now < valid_until:
+                self._adopt(lease, self._keeper.granted()[1])
+            if not self._keeper.alive() and not self._closed.is_set():
+                self._restart_keeper()
+            self._closed.wait(max(0.0, min(BEAT_S, valid_until - now) if lease else BEAT_S))
+
+    def _log_keeper(self) -> None:
+        for message in self._keeper.messages():
+            if message[0] == "log":
+                log.log(message[1], message[2])
+            else:  # no new lease yet: said once it is granted, or by placement's status
+                log.debug(message[1])
+
+    def _restart_keeper(self) -> None:
+        log.error("worker %s: its lease process ended (exit %s); starting another",
+                  self.worker_id, self._keeper.exitcode)
+        self._keeper.close(0.0)
+        self._keeper = LeaseKeeper(self.client, self.worker_id, self.lease_s,
+                                   self._keeper.stall_s)
+        self._keeper.spawn()  # its lease is adopted here once granted
 
     def _fence(self, lease: int, valid_until: float) -> None:
         with self._lock:
@@ -299,7 +319,3 @@ class Ownership:
             self.on_fenced(robots)
         except Exception:
             log.exception("worker %s: the fence callback failed", self.worker_id)
-        try:  # the old lease, if etcd still has it: its robots are free sooner
-            self.client.lease_revoke(lease)
-        except EtcdError:
-            pass

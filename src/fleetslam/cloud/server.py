@@ -86,7 +86,8 @@ class CloudServer:
             certs = config.placement.coordination_certs
             client = EtcdClient(config.placement.coordination,
                                 tls=EtcdTls.from_folder(certs) if certs else None)
-            self.ownership = Ownership(client, self.worker_id, config.placement.lease_s)
+            self.ownership = Ownership(client, self.worker_id, config.placement.lease_s,
+                                       stall_s=config.placement.stall_s)
             self.store: CloudStore = FencedStore(self.out_dir, self.ownership,
                                                  config.transport.max_checkpoint_bytes)
         else:

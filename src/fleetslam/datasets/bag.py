@@ -25,7 +25,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import SourceConfig
-from fleetslam.datasets.ranges import play_order
+from fleetslam.datasets.ranges import play_order, repeated_text
 from fleetslam.datasets.ros_messages import (
     CAMERA_INFO_TYPE, COLOUR_ENCODINGS, DEPTH_ENCODINGS, IMAGE_TYPES, camera_from_info,
     colour_image, depth_image, depth_image_scale, image_format, image_role, stamp_seconds)
@@ -199,14 +199,17 @@ class BagSequence:
         self.recorded_timestamps = played.recorded_timestamps
         self.timestamps = played.timestamps
         self.retimed = played.retimed
+        self.repeated = played.repeated
         self._rgb_keys: list[Key] = [(self.rgb_topic, int(rgb_ns[i]), int(rgb_rank[i]))
                                      for i in ci]
         self._depth_keys: list[Key] = [(self.depth_topic, int(depth_ns[j]),
                                         int(depth_rank[j])) for j in di]
         self.camera_source = (f"{camera_source}; {self.pairs} colour/depth pairs, unpaired "
-                              f"{self.unpaired_rgb} colour and {self.unpaired_depth} depth")
-        log.info("%s: %s and %s, camera %s", self.folder, self.rgb_topic, self.depth_topic,
-                 self.camera_source)
+                              f"{self.unpaired_rgb} colour and {self.unpaired_depth} depth"
+                              + (f"; {repeated_text(self.repeated)}" if self.repeated
+                                 else ""))
+        log.log(logging.WARNING if self.repeated else logging.INFO, "%s: %s and %s, camera %s",
+                self.folder, self.rgb_topic, self.depth_topic, self.camera_source)
         connections = [c for c in self._reader.connections
                        if c.topic in (self.rgb_topic, self.depth_topic)]
         needed = set(self._rgb_keys) | set(self._depth_keys)

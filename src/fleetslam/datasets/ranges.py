@@ -44,14 +44,17 @@ class PlayOrder:
     recorded_timestamps: np.ndarray  # (N,) the frames' own stamps (ground truth is there)
     timestamps: np.ndarray  # (N,) increasing: recorded, or re-timed if they were not
     retimed: bool
+    repeated: int = 0  # frames left out: their stamp repeats the frame's before them
 
 
 def play_order(recorded: np.ndarray, segments: list[tuple[int, int]] | None, where: str
                ) -> PlayOrder:
     """The frames of ``segments`` (inclusive ranges played one after the other; ``a > b``
     plays backwards; None: all) of a recording whose frames have the stamps ``recorded``
-    (increasing). Played stamps that do not increase (a backward range) are re-timed at the
-    recording's median frame interval, so time still runs forward."""
+    (in recording order, not decreasing). A frame whose stamp repeats the one's before it is
+    left out (one frame published twice; a session's stamps must increase, and the cloud
+    refuses the repeat). Played stamps that do not increase (a backward range) are re-timed
+    at the recording's median frame interval, so time still runs forward."""
     total = len(recorded)
     segments = segments or [(0, total - 1)]
     parts = []
@@ -60,10 +63,28 @@ def play_order(recorded: np.ndarray, segments: list[tuple[int, int]] | None, whe
             raise ValueError(f"{where}: frame range {a}-{b} outside 0-{total - 1}")
         parts.append(np.arange(a, b + 1) if a <= b else np.arange(a, b - 1, -1))
     order = np.concatenate(parts)
-    stamps = recorded[order]
+    repeats = np.r_[False, np.diff(recorded) <= 0]
+    kept = order[~repeats[order]]
+    if not len(kept):
+        raise ValueError(f"{where}: every frame of {segments_text(segments)} repeats the stamp "
+                         f"of the frame before it: nothing to play")
+    stamps = recorded[kept]
     retimed = bool(np.any(np.diff(stamps) <= 0))
     timestamps = stamps.copy()
     if retimed:
-        dt = float(np.median(np.diff(recorded))) if total > 1 else SINGLE_FRAME_INTERVAL_S
-        timestamps = recorded[order[0]] + dt * np.arange(len(order))
-    return PlayOrder(order, stamps, timestamps, retimed)
+        distinct = np.diff(recorded)[~repeats[1:]]
+        dt = float(np.median(distinct)) if len(distinct) else SINGLE_FRAME_INTERVAL_S
+        timestamps = recorded[kept[0]] + dt * np.arange(len(kept))
+    return PlayOrder(kept, stamps, timestamps, retimed, len(order) - len(kept))
+
+
+def repeated_text(repeated: int) -> str:
+    """What a source says of the frames ``play_order`` left out (empty: none)."""
+    if not repeated:
+        return ""
+    return (f"{repeated} frame{'s' if repeated > 1 else ''} left out: the stamp repeats "
+            f"the frame's before")
+
+
+def segments_text(segments: list[tuple[int, int]]) -> str:
+    return "frames " + ",".join(f"{a}-{b}" for a, b in segments)

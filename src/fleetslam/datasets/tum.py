@@ -11,6 +11,7 @@ freiburg1/2/3 camera named by the folder (``freiburg1`` or ``fr1`` ...); the ROS
 from __future__ import annotations
 
 import functools
+import logging
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -19,10 +20,12 @@ import cv2
 import numpy as np
 
 from fleetslam.camera import TUM_CAMERAS, Camera
-from fleetslam.datasets.ranges import play_order
+from fleetslam.datasets.ranges import play_order, repeated_text
 from fleetslam.datasets.source import Frame
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.transforms import interpolate_poses
+
+log = logging.getLogger(__name__)
 
 # TUM's associate.py pairs stamps closer than this (seconds).
 MAX_ASSOCIATION_DIFF_S = 0.02
@@ -141,6 +144,8 @@ class RgbdSequence:
         self.recorded_timestamps = played.recorded_timestamps
         self.timestamps = played.timestamps
         self.retimed = played.retimed
+        if played.repeated:
+            log.warning("%s: %s", self.folder / "rgb.txt", repeated_text(played.repeated))
         self.rgb_paths = [self.folder / rgb[i][1] for i, _ in pairs]
         self.depth_paths = [self.folder / depth[j][1] for _, j in pairs]
         for path in self.rgb_paths + self.depth_paths:
