@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import exact_config, small_scene
+from conftest import exact_config, small_scene, wait_for
 
 from fleetslam.cloud.server import CloudServer
 from fleetslam.datasets.tum import RgbdSequence
@@ -412,7 +412,7 @@ def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
     assert got == [2, "end", 3, 4] and q.dropped == 2
 
 
-def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scene):
+def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scene, messages):
     config = exact_config()
     config.transport.max_sessions = 1
     endpoint = free_endpoint()
@@ -422,6 +422,8 @@ def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scen
         camera = RgbdSequence(scene[0]).camera
         first = FakeRobot(client, "r0", camera)
         first.hello()
+        first.send(messages["r0"][1][0])  # a robot that sent a frame keeps its slot
+        wait_for(lambda: server.sessions.live("r0").heard_frame, 10.0, "r0's frame")
         second = FakeRobot(client, "r1", camera)
         second.z.put(keys.control("r1"), json.dumps(
             {"type": "hello", "protocol": PROTOCOL, "offload_at": K,

@@ -1,7 +1,7 @@
 """The control path against floods and hostile orders (issue 27, items 1, 7, 8): an end
 before any frame is refused with a reason, ends and other control messages pass the same
 admission as frames (rate limit, pause; no thread or traceback per message), a full cloud
-is reported as full and frees the slots of sessions that never tracked a frame, and a
+is reported as full and gives the slots of sessions that only said hello to the next hello, and a
 robot that tracks itself cannot record frame indices that go back or jump."""
 
 from __future__ import annotations
@@ -132,35 +132,77 @@ def test_a_robot_paused_for_flooding_control_is_dropped_unread(scene, tmp_path):
         session.close()
 
 
-def test_a_full_cloud_says_so_and_empty_sessions_free_their_slots(scene, tmp_path):
+def _first_frame(folder, robot_id: str) -> bytes:
+    """The first frame message a robot at point 3 sends."""
+    from fleetslam.backend.back_end import TrackingPipeline
+    from fleetslam.pipeline.split import run_stages
+    from fleetslam.pipeline.states import CapturedFrame
+
+    seq = RgbdSequence(folder)
+    f = seq[0]
+    pipeline = TrackingPipeline(exact_config(), seq.camera)
+    state = run_stages(pipeline.split(3)[0], CapturedFrame(f.index, f.timestamp, f.rgb,
+                                                           f.depth_m), pipeline.sides)
+    return encode_frame_message(state, 3, robot_id, 0, seq.camera, exact_config().wire)
+
+
+def test_hellos_alone_never_keep_a_robot_out_and_a_full_cloud_says_so(scene, tmp_path,
+                                                                      caplog):
+    """On plain TCP anyone may say hello under made-up ids: a session that only said hello
+    gives its slot to the next hello of a cloud that is full (oldest first), so a flood of
+    them churns among themselves while the robots that sent frames keep theirs. Full of
+    robots that sent frames, the cloud refuses and says why."""
     config = exact_config()
     config.transport.max_sessions = 2
-    config.transport.idle_empty_session_s = 1.0
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
     camera = RgbdSequence(scene[0]).camera
-    robots = [FakeRobot(client, f"fake{i}", camera) for i in range(2)]
-    genuine = FakeRobot(client, "r0", camera)
+    fakes = [FakeRobot(client, f"fake{i}", camera) for i in range(2)]
+    robots = [FakeRobot(client, f"r{i}", camera, offload_at=3) for i in range(2)]
     try:
-        for r in robots:
-            r.hello()
-        client.put(keys.control("r0"), json.dumps(
-            {"type": "hello", "protocol": PROTOCOL, "offload_at": 3,
-             "camera": camera.to_dict()}).encode())
-        refusal = genuine.reply("error")
-        assert refusal["full"] is True and refusal["answer_to"] == "hello"
-        assert "full" in refusal["reason"]
-        # The made-up robots say hello again but never send a frame: their slots free.
-        for r in robots:
-            client.put(keys.control(r.id), json.dumps(
+        with caplog.at_level(logging.WARNING, "fleetslam.cloud"):
+            for fake in fakes:
+                fake.hello()
+            for robot in robots:
+                robot.hello()  # welcomed: the oldest made-up session made room
+                robot.send(_first_frame(scene[0], robot.id))
+                _wait_for(lambda: server.sessions.live(robot.id) is not None
+                          and server.sessions.live(robot.id).heard_frame)
+        assert set(server.sessions) == {"r0", "r1"}
+        assert any("fake0: its session (a hello" in r.getMessage()
+                   and "closed for robot r0's hello" in r.getMessage() for r in caplog.records)
+        for _ in range(20):  # the flood goes on: nothing of the robots' is given up
+            client.put(keys.control("fake0"), json.dumps(
                 {"type": "hello", "protocol": PROTOCOL, "offload_at": 3,
                  "camera": camera.to_dict()}).encode())
-        _wait_for(lambda: not {"fake0", "fake1"} & set(server.sessions))
-        genuine.hello()
+        refusal = fakes[0].reply("error")
+        assert refusal["full"] is True and refusal["answer_to"] == "hello"
+        assert "full" in refusal["reason"]
+        assert set(server.sessions) == {"r0", "r1"}
     finally:
-        for r in robots + [genuine]:
+        for r in fakes + robots:
             r.close()
+        client.close()
+        server.close()
+
+
+def test_a_session_that_never_tracks_a_frame_is_closed(scene, tmp_path, caplog):
+    config = exact_config()
+    config.transport.idle_empty_session_s = 0.5
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    client = open_connecting(endpoint)
+    fake = FakeRobot(client, "fake0", RgbdSequence(scene[0]).camera)
+    try:
+        with caplog.at_level(logging.INFO, "fleetslam.cloud"):
+            fake.hello()
+            # Logged once it is closed (out of the table first).
+            _wait_for(lambda: any(r.getMessage().startswith(
+                "robot fake0: session closed, no frame") for r in caplog.records))
+        assert "fake0" not in set(server.sessions)
+    finally:
+        fake.close()
         client.close()
         server.close()
 

@@ -619,8 +619,8 @@ class TransportConfig:
     # An unfinished session that hears nothing from its robot this long is checkpointed and
     # closed (its threads and memory freed); the robot's next message restores it.
     idle_session_s: Annotated[float, above(0.0)] = 900.0
-    # ... and one that never tracked a frame (nothing to checkpoint) after this long, so a
-    # flood of hellos under made-up ids cannot hold every session slot for idle_session_s.
+    # ... and one that never tracked a frame (nothing to checkpoint) after this long (a full
+    # cloud gives such a session's slot to the next hello at once, if no frame came).
     idle_empty_session_s: Annotated[float, above(0.0)] = 30.0
     # A robot refused because the cloud is full says hello again this many times, waiting
     # full_retry_s, then twice that, and so on (sessions free up: robots end, empty ones

@@ -106,6 +106,8 @@ class RobotSession:
         self.admission = Admission(state.robot_id, config.transport, state.counts,
                                    self._counts_lock)
         self.last_heard = self.opened = time.monotonic()
+        # Whether a frame has arrived (a hello alone holds a slot only until it is needed).
+        self.heard_frame = False
         # The bytes its frames, uploads and references hold (memory_budget.py): a raw frame
         # in the inbox is ("frame", data, arrival, charge), a decoded one ("frame",
         # (header, state, charge), arrival); each releases its charge when tracked or dropped.
@@ -213,6 +215,7 @@ class RobotSession:
 
     def submit_frame(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
+        self.heard_frame = True
         self.view.received(self.robot_id, len(data))
         if self.admission.paused():
             return

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Iterator, Mapping
 from typing import Callable
 
@@ -93,7 +94,7 @@ class SessionTable(Mapping[str, RobotSession]):
         """A new session for the robot's hello (the live one if a hello just opened it); None
         if the table is full (``full``)."""
         with self.lock:
-            if robot_id not in self._live and self.full():
+            if robot_id not in self._live and self.full() and not self._make_room(robot_id):
                 return None
             session = self._live.get(robot_id)
             if session is None:
@@ -105,6 +106,24 @@ class SessionTable(Mapping[str, RobotSession]):
             self.view.robot(robot_id, hello.camera)
             self._joined(robot_id, hello.camera, None)
             return session
+
+    def _make_room(self, robot_id: str) -> bool:
+        """Close the oldest session that only said hello (no frame arrived, nothing tracked
+        or stored) for ``robot_id``'s hello; whether there was one. On plain TCP anyone may
+        say hello under any id: hellos alone must never keep a robot out. Its robot, if real,
+        is told no_session at its first frame and says hello again. Called with the lock."""
+        empty = [(s.opened, r, s) for r, s in self._live.items()
+                 if not s.heard_frame and not s.state.rows and s.finished is None
+                 and not self.store.has_checkpoint(r)]
+        if not empty:
+            return False
+        _, victim, session = min(empty)
+        del self._live[victim]
+        session.close()
+        log.warning("robot %s: its session (a hello %.1f s ago, no frame since) closed for "
+                    "robot %s's hello: the cloud is full", victim,
+                    time.monotonic() - session.opened, robot_id)
+        return True
 
     def session(self, robot_id: str) -> RobotSession | None:
         """The live session, or the one restored from its checkpoint after a restart; None
