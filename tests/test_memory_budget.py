@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA, exact_config, require, small_scene
+from conftest import SHARED_DATA, exact_config, require, small_scene, wait_for
 
 from fleetslam.cloud.robot_session import RobotSession
 from fleetslam.cloud.store import CloudStore
@@ -200,7 +200,7 @@ def test_hellos_beyond_the_cloud_budget_are_refused_with_the_reason(point0, tmp_
     from fleetslam.launch import free_endpoint
     from fleetslam.transport.zenoh_session import open_connecting
 
-    camera, _ = point0
+    camera, messages = point0
     config = exact_config()
     config.transport.session_budget_mb = 16.0
     config.transport.cloud_budget_mb = 32.0
@@ -209,8 +209,13 @@ def test_hellos_beyond_the_cloud_budget_are_refused_with_the_reason(point0, tmp_
     client = open_connecting(endpoint)
     robots = [FakeRobot(client, r, camera, offload_at=0) for r in ("r0", "r1", "r2")]
     try:
-        robots[0].hello()
-        robots[1].hello()
+        for robot in robots[:2]:
+            robot.hello()
+            # A frame arrived: the session is no longer one that only said hello (whose
+            # slot a full cloud gives to the next hello).
+            robot.send(messages[0])
+            wait_for(lambda: server.sessions.live(robot.id).heard_frame, 10.0,
+                     f"{robot.id}'s frame")
         client.put(keys.control("r2"), json.dumps(
             {"type": "hello", "protocol": protocol.PROTOCOL, "offload_at": 0,
              "camera": camera.to_dict()}).encode())
