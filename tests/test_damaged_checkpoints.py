@@ -344,3 +344,42 @@ def test_a_fifo_or_a_folder_named_as_a_checkpoint_is_refused_at_once(tmp_path):
                  lambda: store.load_checkpoint("r1")):
         error = _within(10.0, lambda: refused(call))
         assert "not a regular file" in str(error)
+
+
+@pytest.mark.parametrize("where", ["behind", "inside"])
+def test_a_checkpoint_padded_with_a_sparse_hole_is_refused_unread(tmp_path, where):
+    """A real checkpoint with a 256 MB hole (a sparse file: no disk, all of it memory once
+    read) behind its directory, or between its members and the directory: the archive's
+    own directory (read at the end alone) accounts for a few kB, so it is refused before
+    the file is read whole, naming the file."""
+    import os
+
+    blob = _checkpoint()
+    path = tmp_path / "r0" / CHECKPOINT
+    path.parent.mkdir()
+    hole = 256 << 20
+    if where == "behind":
+        path.write_bytes(blob)
+        os.truncate(path, len(blob) + hole)
+    else:  # the members, a hole, then the directory moved past it (offsets rewritten)
+        with zipfile.ZipFile(io.BytesIO(blob)) as archive:
+            directory_at = archive.start_dir
+        end = blob.rindex(b"PK\x05\x06")
+        tail = bytearray(blob[directory_at:])
+        moved = directory_at + hole
+        at = end - directory_at + 16  # the end record's directory offset
+        tail[at:at + 4] = moved.to_bytes(4, "little")
+        with open(path, "wb") as f:
+            f.write(blob[:directory_at])
+            f.seek(moved)
+            f.write(tail)
+    tracemalloc.start()
+    try:
+        with pytest.raises(CheckpointError, match=r"not an archive fleetslam wrote|not a zip"
+                           ) as error:
+            CloudStore(tmp_path).load_checkpoint("r0")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert str(path) in str(error.value)
+    assert peak < 16 << 20, peak

@@ -29,7 +29,8 @@ from pathlib import Path
 from fleetslam.cloud import checkpoint_shape, session_state
 from fleetslam.cloud.session_state import SessionState
 from fleetslam.config import TransportConfig
-from fleetslam.io.files import UnreadableFile, read_regular
+from fleetslam.io.files import UnreadableFile, Vet, read_regular
+from fleetslam.wire import npz_reader
 from fleetslam.wire.data_tree import Capture, CheckpointError
 from fleetslam.wire.envelope import MAX_PAYLOAD_BYTES
 
@@ -59,12 +60,14 @@ def write_durably(path: Path, data: bytes) -> None:
 
 
 def _read_bounded(path: Path, limit: int, of_what: str,
-                  setting: str = "transport.max_checkpoint_bytes") -> bytes:
+                  setting: str = "transport.max_checkpoint_bytes", vet: Vet | None = None
+                  ) -> bytes:
     """The file's bytes; CheckpointError naming it if it is missing, unreadable, not a
-    regular file or over ``limit`` bytes (never more than that is read)."""
+    regular file, over ``limit`` bytes (never more than that is read) or refused by
+    ``vet`` before it is read."""
     limit_of = f"the limit {of_what} of" if of_what else "the limit of"
     try:
-        return read_regular(path, limit, f"{limit_of} {limit} ({setting})")
+        return read_regular(path, limit, f"{limit_of} {limit} ({setting})", vet)
     except UnreadableFile as exc:
         raise CheckpointError(exc.where, exc.reason) from None
 
@@ -121,7 +124,8 @@ class CloudStore:
         """A chunk's bytes and its file's name; CheckpointError if it is missing or over
         ``limit`` bytes."""
         path = self._chunk_path(robot_id, name)
-        return _read_bounded(path, limit, "of the checkpoint and its chunks"), str(path)
+        return (_read_bounded(path, limit, "of the checkpoint and its chunks",
+                              vet=npz_reader.layout_problem), str(path))
 
     def save_checkpoint(self, robot_id: str, state: SessionState) -> None:
         self.write_checkpoint(robot_id, session_state.capture(state))
@@ -164,7 +168,7 @@ class CloudStore:
     def load_checkpoint_file(self, path: Path) -> SessionState:
         """The checkpoint in ``path`` (CheckpointError as load_checkpoint, also if there is
         none)."""
-        data = _read_bounded(path, self.max_checkpoint_bytes, "")
+        data = _read_bounded(path, self.max_checkpoint_bytes, "", vet=npz_reader.layout_problem)
         robot_id = path.parent.name
         state = session_state.load(data, str(path), self.max_checkpoint_bytes,
                                    lambda name, limit: self.read_chunk(robot_id, name, limit))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import stat
 from pathlib import Path
+from typing import BinaryIO, Callable
 
 
 class UnreadableFile(ValueError):
@@ -17,10 +18,15 @@ class UnreadableFile(ValueError):
         self.reason = reason
 
 
-def read_regular(path: Path, limit: int, limit_name: str) -> bytes:
+# Given the open file and its size, why it must not be read (None: read it).
+Vet = Callable[[BinaryIO, int], "str | None"]
+
+
+def read_regular(path: Path, limit: int, limit_name: str, vet: Vet | None = None) -> bytes:
     """The file's bytes; UnreadableFile if it is missing (reason "missing"), unreadable, not
-    a regular file or over ``limit`` bytes (``limit_name`` says which limit, e.g. "the
-    limit of 1000 (a setting)": the reason is "<size> bytes exceeds <limit_name>")."""
+    a regular file, over ``limit`` bytes (``limit_name`` says which limit, e.g. "the
+    limit of 1000 (a setting)": the reason is "<size> bytes exceeds <limit_name>") or
+    refused by ``vet`` (what its format says of the file before it is read whole)."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except FileNotFoundError:
@@ -36,6 +42,9 @@ def read_regular(path: Path, limit: int, limit_name: str) -> bytes:
             raise UnreadableFile(str(path), f"{status.st_size} bytes exceeds {limit_name}")
         with os.fdopen(fd, "rb") as f:
             fd = -1  # the file object closes it now
+            if vet is not None and (problem := vet(f, status.st_size)) is not None:
+                raise UnreadableFile(str(path), problem)
+            f.seek(0)
             # What the file holds, never more than the limit (read() allocates what it is
             # asked for; a file growing meanwhile is cut, and refused by its reader).
             return f.read(min(status.st_size + 1, limit + 1))

@@ -16,6 +16,7 @@ import io
 import struct
 import tokenize
 import zipfile
+from typing import BinaryIO
 
 import numpy as np
 
@@ -29,16 +30,52 @@ class NpzError(ValueError):
     """An .npz that cannot be accepted; the text says why."""
 
 
+# zipfile documents BadZipFile only; on a damaged directory its parsing can also fail with
+# these (seen by bench/fuzz_checkpoint.py; NotImplementedError: "zip file version 6.5").
+_ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError,
+               struct.error, OverflowError, IndexError, KeyError, UnicodeDecodeError,
+               NotImplementedError)
+
+
 def _members(data: bytes) -> list[zipfile.ZipInfo]:
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
             return archive.infolist()
-    # zipfile documents BadZipFile only; on a damaged directory its parsing can also fail
-    # with these (seen by bench/fuzz_checkpoint.py).
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError,
-            struct.error, OverflowError, IndexError, KeyError, UnicodeDecodeError,
-            NotImplementedError) as exc:  # NotImplementedError: "zip file version 6.5"
+    except _ZIP_ERRORS as exc:
         raise NpzError(f"not a zip archive ({exc})") from None
+
+
+# Bytes a member may take beyond its name and data (local header extras: zip64's 20, a
+# data descriptor's 24), and the archive after its directory (zip64 end record and
+# locator, 76; the end record, 22).
+_MEMBER_SLACK = 64
+_TAIL_SLACK = 98
+
+
+def layout_problem(f: BinaryIO, size: int) -> str | None:
+    """Why the open file of ``size`` bytes is not laid out as ``np.savez`` writes an archive
+    (None: it is), read from its directory at the end alone: every byte must belong to a
+    member, the directory or its end. A file padded or holed past its members (a sparse
+    gigabyte behind a real checkpoint) is refused before it is read whole."""
+    if not size:
+        return "empty file"
+    try:
+        with zipfile.ZipFile(f) as archive:
+            members = archive.infolist()
+            directory_at = archive.start_dir
+            comment = len(archive.comment)
+    except _ZIP_ERRORS as exc:
+        return f"not a zip archive ({exc})"
+    data = sum(30 + len(i.orig_filename.encode()) + i.compress_size for i in members)
+    directory = sum(46 + len(i.orig_filename.encode()) + len(i.extra) + len(i.comment)
+                    for i in members)
+    unaccounted = directory_at - data
+    tail = size - directory_at - directory - comment
+    if not 0 <= unaccounted <= _MEMBER_SLACK * len(members) or not 0 <= tail <= _TAIL_SLACK:
+        return (f"{size} bytes, of which its {len(members)} members and their directory "
+                f"account for {data + directory}: not an archive fleetslam wrote (padded, "
+                f"or a hole in it?)")
+    return None
 
 
 def _check_member(info: zipfile.ZipInfo, budget: int) -> str:
