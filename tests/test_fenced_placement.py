@@ -129,6 +129,41 @@ def test_a_closed_workers_robot_goes_to_the_other_at_once(etcd, request):
         router.close()
 
 
+def test_a_worker_that_lost_a_grant_tells_its_robot_at_once(etcd, request):
+    """The robot's owner key went under its worker (deleted by someone holding the workers'
+    certificate; the worker found out when its checkpoint was refused): the worker stops
+    serving the robot and tells it `no_session`, so it says hello again now, not after
+    waiting out its frames in flight (it waited 5 s)."""
+    import json
+    import queue
+
+    from fleetslam.transport import keys as wire_keys
+
+    keys = Keys(f"test/{request.node.name}/")
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    a = Worker(endpoint, etcd.endpoint, "wa", keys)
+    robot = open_connecting(endpoint, 20.0)
+    heard: queue.Queue = queue.Queue()
+    sub = robot.declare_subscriber(wire_keys.reply("r1"),
+                                   lambda s: heard.put(json.loads(s.payload.to_bytes())))
+    try:
+        a.placement.claim("r1")
+        wait_for(lambda: a.placement.serves("r1"), 10, "wa to serve r1")
+        epoch = a.placement.ownership.robots()["r1"]
+        EtcdClient(etcd.endpoint).delete(keys.owner("r1"))
+        a.placement.ownership.lost("r1", epoch, "its checkpoint was refused")
+        told = heard.get(timeout=5.0)
+        assert told["type"] == "error" and told["code"] == "no_session"
+        assert f"epoch {epoch}" in told["reason"] and "say hello again" in told["reason"]
+        assert not a.placement.serves("r1") and a.when("gave up", "r1") is not None
+    finally:
+        sub.undeclare()
+        robot.close()
+        a.close()
+        router.close()
+
+
 @pytest.mark.parametrize("busy", [0.0, 1.6])
 def test_robots_arriving_together_go_by_measured_load(etcd, request, busy):
     """Eight robots heard by both workers at once. Equally loaded, they spread; with one

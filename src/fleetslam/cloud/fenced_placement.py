@@ -36,6 +36,7 @@ from fleetslam.cloud.etcd_gateway import EtcdError, Event, Watch
 from fleetslam.cloud.ownership import MERGER, Ownership
 from fleetslam.cloud.placement import Placement
 from fleetslam.config import PlacementConfig
+from fleetslam.transport import keys, protocol
 
 log = logging.getLogger("fleetslam.placement")
 
@@ -50,6 +51,7 @@ class FencedPlacement(Placement):
         super().__init__(z, worker_id, cfg, load, won, give_up, wants)
         self.ownership = ownership
         ownership.on_fenced = self._on_fenced
+        ownership.on_lost = self._on_lost
         # robot -> (worker, epoch, mod revision) as etcd last said; the merger under MERGER.
         self._owners: dict[str, tuple[str, int, int]] = {}
         self.elections = {"won": 0, "lost": 0, "failovers": 0, "given_up": 0, "fenced": 0}
@@ -191,6 +193,21 @@ class FencedPlacement(Placement):
                 continue  # merges() says no from now on
             self.elections["fenced"] += 1
             self._give_up(robot)
+
+    def _on_lost(self, robot: str, epoch: int, why: str) -> None:
+        """etcd no longer has this worker's grant (its key changed or went; this worker is
+        in touch with etcd, and so, likely, with the robot): stop serving it, and tell the
+        robot at once, so it says hello again now instead of after its wait for answers."""
+        self._on_fenced([(robot, epoch)])
+        if robot == MERGER:
+            return
+        reason = (f"worker {self.worker_id} no longer serves robot {robot} (its grant, epoch "
+                  f"{epoch}, is gone from the coordination service: {why}); say hello again")
+        try:
+            self.z.put(keys.reply(robot), protocol.encode(protocol.error(
+                protocol.Code.NO_SESSION, reason)))
+        except zenoh.ZError as exc:  # the robot waits for answers, then says hello anyway
+            log.warning("robot %s: not told it lost its worker (%s)", robot, exc)
 
     # -- the election ---------------------------------------------------------------------------
 

@@ -39,6 +39,7 @@ log = logging.getLogger("fleetslam.ownership")
 # Told which (robot, epoch) this worker may no longer serve; called on the lease's thread, must
 # return quickly (stop serving; the store refuses the rest anyway).
 Fenced = Callable[[list[tuple[str, int]]], None]
+Lost = Callable[[str, int, str], None]
 
 
 # The merger is granted like a robot (one at a time, with an epoch); robot ids are
@@ -89,8 +90,11 @@ class Ownership:
         self.worker_id = worker_id
         self.lease_s = lease_s
         self.keys = keys
-        # Public: the placement that serves the robots sets it once it exists.
+        # Public: the placement that serves the robots sets it once it exists. ``on_lost``
+        # (robot, epoch, why): a grant etcd no longer has while this worker is in touch
+        # with it (None: as at a fence).
         self.on_fenced: Fenced = on_fenced or (lambda robots: None)
+        self.on_lost: Lost | None = None
         self._keeper = LeaseKeeper(client, worker_id, lease_s, stall_s)
         self._lock = threading.Lock()
         self._lease = 0  # the lease this worker's robots are granted under; 0: none yet
@@ -263,7 +267,10 @@ class Ownership:
         log.error("robot %s: worker %s lost its grant epoch %d (%s): stops serving it",
                   robot, self.worker_id, epoch, why)
         try:
-            self.on_fenced([(robot, epoch)])
+            if self.on_lost is not None:
+                self.on_lost(robot, epoch, why)
+            else:
+                self.on_fenced([(robot, epoch)])
         except Exception:
             log.exception("worker %s: the fence callback failed", self.worker_id)
 
