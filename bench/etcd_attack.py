@@ -1,6 +1,7 @@
 """etcd under attack while a fleet runs: what an outsider can do to the coordination service
 (nothing), and what someone holding a worker's etcd credentials can (roll a pointer back,
-point it at a missing file, write a lease-less owner, delete the owner and the pointer),
+point it at a missing file, write a lease-less owner, delete the owner and the pointer,
+squat a robot for a worker that does not exist),
 measured as the robots feel it.
 
     .venv/bin/python bench/etcd_attack.py [--cases outsider,rollback,...] [--rate 10]
@@ -17,7 +18,10 @@ workers' certificate (``<run>/tls/etcd``) unless the case is the outsider's:
                   killed (SIGKILL), so the next owner reads the pointer;
   missing-file    r0's pointer set to a file that is not there, then r0's worker killed;
   leaseless-owner r0's owner key overwritten without a lease (r0's worker still serves);
-  delete-both     r0's owner key and pointer deleted.
+  delete-both     r0's owner key and pointer deleted;
+  squat           r0's owner key overwritten under the attacker's own lease (60 s),
+                  naming a worker that does not exist (w9): r0's worker loses its grant
+                  at its next checkpoint, and nobody hears w9.
 
 Measured per case: the outsider's writes refused; per robot its exit status (0, or 3: the
 cloud kept less than it sent, said in its report), frames sent and in the cloud's
@@ -48,7 +52,7 @@ from fleetslam.demo import run_demo
 from fleetslam.tables import format_table
 
 PIECES = ["0-199", "130-329"]
-CASES = ["outsider", "rollback", "missing-file", "leaseless-owner", "delete-both"]
+CASES = ["outsider", "rollback", "missing-file", "leaseless-owner", "delete-both", "squat"]
 KEYS = Keys()
 
 
@@ -117,6 +121,9 @@ class Attack:
         elif self.case == "delete-both":
             stolen.delete(KEYS.owner("r0"))
             stolen.delete(KEYS.current("r0"))
+        elif self.case == "squat":
+            lease, _ = stolen.lease_grant(60)
+            stolen.put(KEYS.owner("r0"), "w9", lease)
         print(f"  {self.case}: attacked r0 (owner {victim}) at {frames} frames", flush=True)
 
 

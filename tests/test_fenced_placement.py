@@ -164,6 +164,41 @@ def test_a_worker_that_lost_a_grant_tells_its_robot_at_once(etcd, request):
         router.close()
 
 
+def test_a_robot_squatted_by_a_worker_nobody_hears_is_taken_over(etcd, request, caplog):
+    """Someone holding the workers' certificate grants a robot, before it arrives, to a
+    worker that does not exist, under a lease they keep alive: the robot would never be
+    served. Its owner is heard by no worker (no Zenoh token) for two leases from the
+    robot's first hello: the grant is deleted and the robot claimed."""
+    import logging
+
+    keys = Keys(f"test/{request.node.name}/")
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    squatter = EtcdClient(etcd.endpoint)
+    lease, _ = squatter.lease_grant(60)
+    squatter.put(keys.owner("r1"), "w9", lease)
+    a = Worker(endpoint, etcd.endpoint, "wa", keys)
+    try:
+        with caplog.at_level(logging.INFO, "fleetslam"):
+            wait_for(lambda: a.placement.table().get("r1") == "w9", 10, "wa to read the squat")
+            asked = time.monotonic()
+            # The robot's hellos: each asks who owns it, and claims it once nobody does.
+            while not a.placement.serves("r1"):
+                assert time.monotonic() - asked < 4 * CFG.lease_s + 5, "never taken over"
+                if a.placement.owner("r1") is None:
+                    a.placement.claim("r1")
+                time.sleep(0.2)
+        assert time.monotonic() - asked >= 2 * CFG.lease_s  # heard of first, not at once
+        owner = squatter.get(keys.owner("r1"))
+        assert owner.value == b"wa" and owner.lease != lease
+        assert any("its owner 'w9' is a worker nobody hears: taken over" in r.getMessage()
+                   for r in caplog.records)
+    finally:
+        a.close()
+        squatter.lease_revoke(lease)
+        router.close()
+
+
 @pytest.mark.parametrize("busy", [0.0, 1.6])
 def test_robots_arriving_together_go_by_measured_load(etcd, request, busy):
     """Eight robots heard by both workers at once. Equally loaded, they spread; with one

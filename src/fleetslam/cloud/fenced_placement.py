@@ -40,6 +40,11 @@ from fleetslam.transport import keys, protocol
 
 log = logging.getLogger("fleetslam.placement")
 
+# A robot's owner in etcd that no worker has heard (its Zenoh token) for this many leases
+# serves nobody: its robot is taken over. Tokens reach every worker within the routers'
+# round trip; a worker starting up is heard before it is granted anything.
+UNHEARD_OWNER_LEASES = 2
+
 
 class FencedPlacement(Placement):
     def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
@@ -59,6 +64,8 @@ class FencedPlacement(Placement):
         # Robots claimed because their owner went (a takeover): claimed at once, not after
         # the load's wait (failover time counts; a new robot's placement does not).
         self._takeovers: set[str] = set()
+        # robot -> (epoch, since): its owner in etcd is a worker nobody hears (below).
+        self._unheard: dict[str, tuple[int, float]] = {}
 
     # -- lifecycle ------------------------------------------------------------------------
 
@@ -109,7 +116,24 @@ class FencedPlacement(Placement):
     def owner(self, robot: str) -> str | None:
         with self._lock:
             held = self._owners.get(robot)
-        return held[0] if held else None
+            return held[0] if held and not self._owner_unheard(robot, held) else None
+
+    def _owner_unheard(self, robot: str, held: tuple[str, int, int]) -> bool:
+        """Whether ``robot``'s owner in etcd is a worker no one has heard on Zenoh (no
+        worker token) for ``UNHEARD_OWNER_LEASES`` leases since it was first asked about: a
+        grant written with a worker's certificate for a worker that does not exist, or a
+        worker cut off from the robots. It serves nobody, so it counts as no owner and the
+        robot's hello is claimed (``_elect`` deletes that grant first). Called with the lock."""
+        worker, epoch, _ = held
+        if robot == MERGER or worker == self.worker_id or worker in self.workers:
+            self._unheard.pop(robot, None)
+            return False
+        now = time.monotonic()
+        since = self._unheard.get(robot)
+        if since is None or since[0] != epoch:
+            self._unheard[robot] = (epoch, now)
+            return False
+        return now - since[1] >= UNHEARD_OWNER_LEASES * self.ownership.ttl_s
 
     def table(self) -> dict[str, str]:
         with self._lock:
@@ -117,7 +141,9 @@ class FencedPlacement(Placement):
 
     def claim(self, robot: str) -> None:
         with self._lock:
-            if self._closed.is_set() or robot in self._electing or robot in self._owners:
+            held = self._owners.get(robot)
+            if self._closed.is_set() or robot in self._electing or (
+                    held and not self._owner_unheard(robot, held)):
                 return
             self._electing.add(robot)
         self._bids.put(robot)
@@ -257,9 +283,15 @@ class FencedPlacement(Placement):
     def _elect(self, robot: str) -> None:
         try:
             for attempt in range(self.cfg.max_rounds):
+                with self._lock:
+                    held = self._owners.get(robot)
+                    unheard = held if held and self._owner_unheard(robot, held) else None
                 if self._closed.is_set() or (robot != MERGER and self.owner(robot)):
                     return
                 try:
+                    if unheard is not None:
+                        self.ownership.evict(robot, unheard[1], f"its owner {unheard[0]!r} "
+                                             f"is a worker nobody hears: taken over")
                     epoch = self.ownership.grant(robot)
                 except EtcdError as exc:
                     log.warning("robot %s: etcd not asked (%s); again in %g s (round %d)",

@@ -255,6 +255,16 @@ class Ownership:
                  "" if result.succeeded else " (it was no longer ours)")
         return result.succeeded
 
+    def evict(self, robot: str, epoch: int, why: str) -> bool:
+        """Delete another's grant of ``robot`` (``epoch``: only that very key) that serves
+        nobody (``why``); whether it was still there. Its holder, if any, is refused its
+        next checkpoint (fenced_store.py) and stops serving (``lost``)."""
+        key = self.keys.owner(robot)
+        result = self.client.txn([compare(key, "CREATE", epoch)], [delete_op(key)])
+        log.error("robot %s: grant epoch %d %s (%s)", robot, epoch,
+                  "deleted" if result.succeeded else "already gone", why)
+        return result.succeeded
+
     def lost(self, robot: str, epoch: int, why: str) -> None:
         """etcd no longer has this worker's grant of ``robot`` (``epoch``): its key changed or
         went (not by a fence of this worker's lease). The robot is dropped as at a fence, so
