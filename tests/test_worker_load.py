@@ -41,6 +41,28 @@ def test_robots_granted_since_a_report_weigh_the_configured_cost():
     assert firsts == {"w0", "w1"}
 
 
+def test_a_robot_counts_its_cost_until_held_through_a_whole_window(monkeypatch):
+    """A report between two grants used to forget the first (its CPU not measured yet):
+    robots arriving together then went 2 + 6. A report counts only the robots held all
+    through the measuring window."""
+    import fleetslam.cloud.worker_load as worker_load
+
+    cfg = PlacementConfig(load_window_s=5.0)
+    held = [0]
+    loads = WorkerLoads(None, "w0", cfg, lambda: 0.0, lambda: held[0])  # type: ignore[arg-type]
+    monkeypatch.setattr(worker_load, "put", lambda *a, **k: None)
+    clock = [100.0]
+    monkeypatch.setattr(worker_load.time, "monotonic", lambda: clock[0])
+    loads.report()
+    held[0] = 2
+    clock[0] += 0.5
+    assert loads.report().owned == 0  # granted within the window: not measured yet
+    assert loads.score("w0", 2) == pytest.approx(0.8)
+    clock[0] += 5.0
+    assert loads.report().owned == 2  # held a whole window: in the measurement
+    assert loads.score("w0", 2) == pytest.approx(0.0)
+
+
 def test_the_meter_sees_a_busy_process_and_robots_gone_quiet_at_once():
     robots = [1]
     meter = CpuMeter(os.getpid(), window_s=0.2, active=lambda: robots[0], robot_cost=0.4)

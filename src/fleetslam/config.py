@@ -688,9 +688,9 @@ class PlacementConfig:
     load_window_s: Annotated[float, above(0.0)] = 5.0
     # A robot heard from within this many seconds is at work: its worker's load counts it.
     active_s: Annotated[float, above(0.0)] = 2.0
-    # What a robot counts until its cost is measured (cores): one granted since its worker's
-    # last report, or at work on a worker that has not had robots at work for a while.
-    # 4 robots at 10 fps at offloading point 3 kept 1.75 cores busy (bench/worker_scaling.py).
+    # What a robot counts until its cost is measured (cores): one granted within its worker's
+    # measuring window (load_window_s), or at work on a worker that has not had robots at
+    # work for a while. 4 robots at 10 fps at point 3 kept 1.75 cores busy (worker_scaling).
     robot_cost_cores: Annotated[float, above(0.0)] = 0.4
     # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides
     # which worker owns which robot and the merger, with fencing (cloud/fenced_placement.py)

@@ -1,13 +1,15 @@
 """How loaded each cloud worker is, measured: the cores its process and its child processes
-at its priority kept busy lately (niced ones, local BA and the place search, yield), and how many robots it held when it measured. Every worker
+at its priority kept busy lately (niced ones, local BA and the place search, yield), and how
+many robots it held all through that window. Every worker
 publishes its own every ``placement.load_report_s`` (``fleet/cloud/load/<worker>``) and
 keeps the others'; placement ranks the workers for a new robot by it, so robots go by
 measured cost, not by count (the merging worker, a robot tracking itself at point 6, a robot
 gone quiet: each weighs what it costs).
 
-A robot granted after a worker's last report is not in its measurement yet: it counts
-``placement.robot_cost_cores`` until the next report (robots arriving together would all
-go to the worker that measured least otherwise).
+A robot granted within the window is not (all) in the measurement yet: it counts
+``placement.robot_cost_cores`` until the worker has held it through a whole window (robots
+arriving together would all go to the worker that measured least otherwise; counted only
+until the next report, 0.5 s, they did so whenever a report fell between two grants).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import math
 import os
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -106,7 +109,9 @@ class CpuMeter:
 @dataclass(frozen=True)
 class LoadReport:
     busy: float  # cores
-    owned: int  # robots the worker held when it measured
+    # Robots the worker held through the whole measuring window (their cost is in ``busy``;
+    # one granted since counts at placement.robot_cost_cores until it has been measured).
+    owned: int
 
 
 def parse_report(data: bytes) -> LoadReport:
@@ -146,6 +151,7 @@ class WorkerLoads:
         self._lock = threading.Lock()
         self.reports: dict[str, LoadReport] = {}
         self._rejected: set[str] = set()  # workers whose bad report was logged
+        self._held: deque[tuple[float, int]] = deque()  # (when, robots held) over the window
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._run, name="worker-load", daemon=True)
         self._subscriber: Any = None
@@ -163,7 +169,13 @@ class WorkerLoads:
 
     def report(self) -> LoadReport:
         """Measure this worker now, keep it as its own report and publish it."""
-        mine = LoadReport(round(float(self._measure()), 3), int(self._owned()))
+        now = time.monotonic()
+        with self._lock:
+            self._held.append((now, int(self._owned())))
+            while self._held[0][0] < now - self.cfg.load_window_s:
+                self._held.popleft()
+            measured = min(n for _, n in self._held)
+        mine = LoadReport(round(float(self._measure()), 3), measured)
         with self._lock:
             self.reports[self.worker_id] = mine
         # Droppable: the next report replaces it; never waited for behind a full queue.
