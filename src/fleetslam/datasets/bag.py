@@ -198,16 +198,14 @@ class BagSequence:
         self.first = int(played.order[0])
         self.recorded_timestamps = played.recorded_timestamps
         self.timestamps = played.timestamps
-        self.retimed = played.retimed
-        self.repeated = played.repeated
+        self.retimed, self.repeated = played.retimed, played.repeated
         self._rgb_keys: list[Key] = [(self.rgb_topic, int(rgb_ns[i]), int(rgb_rank[i]))
                                      for i in ci]
         self._depth_keys: list[Key] = [(self.depth_topic, int(depth_ns[j]),
                                         int(depth_rank[j])) for j in di]
-        self.camera_source = (f"{camera_source}; {self.pairs} colour/depth pairs, unpaired "
-                              f"{self.unpaired_rgb} colour and {self.unpaired_depth} depth"
-                              + (f"; {repeated_text(self.repeated)}" if self.repeated
-                                 else ""))
+        self.camera_source = "; ".join(filter(None, [camera_source, (
+            f"{self.pairs} colour/depth pairs, unpaired {self.unpaired_rgb} colour and "
+            f"{self.unpaired_depth} depth"), repeated_text(self.repeated)]))
         log.log(logging.WARNING if self.repeated else logging.INFO, "%s: %s and %s, camera %s",
                 self.folder, self.rgb_topic, self.depth_topic, self.camera_source)
         connections = [c for c in self._reader.connections
