@@ -100,6 +100,24 @@ def secure_endpoint() -> str:
 # ---------------------------------------------------------------- a ROS 2 graph over Zenoh
 
 @pytest.fixture(scope="module")
+def etcd(tmp_path_factory):
+    """One real etcd on loopback for a test module (each test keeps to a key prefix of its
+    own); skip the module where the etcd program is missing."""
+    from fleetslam.cloud.coordination_service import EtcdService
+
+    with EtcdService(tmp_path_factory.mktemp("run") / "etcd") as service:
+        yield service
+
+
+@pytest.fixture
+def keys(request):
+    """A key prefix of the test's own in the module's etcd: no test sees another's robots."""
+    from fleetslam.cloud.ownership import Keys
+
+    return Keys(f"test/{request.node.name}/")
+
+
+@pytest.fixture(scope="module")
 def ros_router() -> Iterator[str]:
     """A Zenoh router on a free loopback port, standing in for the robot's rmw_zenohd."""
     from fleetslam.launch import free_endpoint

@@ -14,7 +14,7 @@ import pytest
 from conftest import wait_for
 from link_cutter import LinkCutter
 
-from fleetslam.cloud.coordination_service import EtcdService, etcd_binary
+from fleetslam.cloud.coordination_service import etcd_binary
 from fleetslam.cloud.etcd_gateway import EtcdClient
 from fleetslam.cloud.fenced_placement import FencedPlacement
 from fleetslam.cloud.ownership import Keys, Ownership
@@ -57,12 +57,6 @@ class Worker:
     def close(self) -> None:
         self.placement.close()
         self.z.close()
-
-
-@pytest.fixture(scope="module")
-def etcd(tmp_path_factory):
-    with EtcdService(tmp_path_factory.mktemp("run") / "etcd") as service:
-        yield service
 
 
 def test_a_cut_off_owner_stops_serving_before_the_robot_moves_and_never_takes_it_back(

@@ -17,7 +17,7 @@ import pytest
 from conftest import wait_for
 from link_cutter import LinkCutter
 
-from fleetslam.cloud.coordination_service import EtcdService, etcd_binary
+from fleetslam.cloud.coordination_service import etcd_binary
 from fleetslam.cloud.etcd_gateway import EXPEDITED_TOS, EtcdClient
 from fleetslam.cloud.ownership import Keys, Ownership
 from fleetslam.config import PlacementConfig
@@ -27,17 +27,6 @@ pytestmark = pytest.mark.skipif(
     reason="the etcd program is not installed (scripts/setup-system.sh installs etcd-server)")
 
 LEASE_S = PlacementConfig.lease_s
-
-
-@pytest.fixture(scope="module")
-def etcd(tmp_path_factory):
-    with EtcdService(tmp_path_factory.mktemp("run") / "etcd") as service:
-        yield service
-
-
-@pytest.fixture
-def keys(request) -> Keys:
-    return Keys(f"test/{request.node.name}/")
 
 
 def _worker(endpoint: str, keys: Keys, fenced: list, stall_s: float = PlacementConfig.stall_s

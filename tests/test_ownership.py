@@ -34,18 +34,6 @@ CAMERA = Camera(525.0, 525.0, 319.5, 239.5)
 LEASE_S = PlacementConfig.lease_s
 
 
-@pytest.fixture(scope="module")
-def etcd(tmp_path_factory):
-    with EtcdService(tmp_path_factory.mktemp("run") / "etcd") as service:
-        yield service
-
-
-@pytest.fixture
-def keys(request) -> Keys:
-    # Each test its own prefix: one etcd for the module, no test sees another's robots.
-    return Keys(f"test/{request.node.name}/")
-
-
 def _worker(endpoint: str, name: str, keys: Keys, fenced: list | None = None) -> Ownership:
     on_fenced = None if fenced is None else (lambda robots: fenced.append(
         (time.monotonic(), robots)))
