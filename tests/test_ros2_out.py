@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from conftest import TUM_RPY, require
+from conftest import TUM_RPY, require, wait_for
 from fleetslam.config import Config
 from fleetslam.datasets.rmw_zenoh import (
     key_topic,
@@ -130,14 +130,6 @@ def sdk_subscriber(endpoint: str, topic: str, ros_type: str, sink: list,
                           msg_definition=store.generate_msgdef(ros_type, 2)[0],
                           type_hash=store.hash_rihs01(ros_type), router_ip="127.0.0.1",
                           router_port=int(endpoint.rsplit(":", 1)[1]), qos=qos)
-
-
-def wait_for(condition, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout:.0f} s")
-        time.sleep(0.02)
 
 
 def test_a_node_announces_itself_and_its_publishers_as_rmw_zenoh_does(ros_router):
@@ -394,6 +386,14 @@ def test_the_robots_pose_tf_and_fleet_frame_reach_ros2(sdk_session, tmp_path):
     try:
         summary = run_through_cloud(tmp_path, [r1, ros_robot("r2", f"{TUM_RPY}:50-149", cloud)],
                                     merge=True)
+        final = summary["merge"].get("T_global_map", {}).get("r1")
+        # The robot published it before it ended; on a loaded machine it may still be on its
+        # way to our subscriber.
+        wait_for(lambda: final is None or any(
+            t.child_frame_id == "r1/map" and np.allclose(_message_T(t.transform), final,
+                                                         atol=1e-9)
+            for m in list(static) for t in m.transforms), 10.0,
+                 "the merge's map -> r1/map on /tf_static")
     finally:
         for sub in subs:
             sub.close()
