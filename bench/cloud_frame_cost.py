@@ -32,8 +32,8 @@ from shared_data import SEVEN_SCENES
 
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.camera import Camera
-from fleetslam.cloud.robot_session import RobotSession
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session.robot_session import RobotSession
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.tables import format_table
 from fleetslam.transport.protocol import Hello

@@ -45,9 +45,9 @@ from typing import Any
 
 from shared_data import SEVEN_SCENES
 
-from fleetslam.cloud.etcd_gateway import EtcdClient, EtcdError, EtcdTls, b64
-from fleetslam.cloud.fenced_store import newest_blob, stored_run
-from fleetslam.cloud.ownership import Keys
+from fleetslam.cloud.coordination.etcd_gateway import EtcdClient, EtcdError, EtcdTls, b64
+from fleetslam.cloud.coordination.fenced_store import newest_blob, stored_run
+from fleetslam.cloud.coordination.ownership import Keys
 from fleetslam.demo import run_demo
 from fleetslam.tables import format_table
 

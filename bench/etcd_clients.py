@@ -4,13 +4,12 @@ each client that works here, against one local etcd (coordination_service.py).
 
     .venv/bin/python bench/etcd_clients.py [--n 200] [--aetcd-python P] [--etcd3-python P]
 
-Clients: ``gateway`` (cloud/etcd_gateway.py: etcd's JSON gateway over HTTP, standard library),
-``aetcd`` (asyncio gRPC) and ``etcd3`` (gRPC, unmaintained). The gRPC ones need grpcio and
-protobuf, which the project does not install: give an interpreter that has them (a scratch
-venv, ``python -m venv /tmp/v && /tmp/v/bin/pip install aetcd``); each client runs in its own
-process with its interpreter. A client that cannot be imported or fails is reported as such.
-Writes bench/results/etcd_clients.json.
-"""
+Clients: ``gateway`` (cloud/coordination/etcd_gateway.py: etcd's JSON gateway over HTTP, standard
+library), ``aetcd`` (asyncio gRPC) and ``etcd3`` (gRPC, unmaintained). The gRPC ones need grpcio and
+protobuf, which the project does not install: give an interpreter that has them (a scratch venv,
+``python -m venv /tmp/v && /tmp/v/bin/pip install aetcd``); each client runs in its own process with
+its interpreter. A client that cannot be imported or fails is reported as such. Writes
+bench/results/etcd_clients.json."""
 
 from __future__ import annotations
 
@@ -35,7 +34,7 @@ def _summary(seconds: list[float]) -> dict[str, float]:
 
 
 def measure_gateway(endpoint: str, n: int) -> list[float]:
-    from fleetslam.cloud.etcd_gateway import EtcdClient, compare, put_op, range_op
+    from fleetslam.cloud.coordination.etcd_gateway import EtcdClient, compare, put_op, range_op
 
     client = EtcdClient(endpoint)
     lease, _ = client.lease_grant(10)
@@ -127,7 +126,7 @@ def main() -> None:
         return
 
     sys.path.insert(0, str(SRC))
-    from fleetslam.cloud.coordination_service import EtcdService
+    from fleetslam.cloud.coordination.coordination_service import EtcdService
     from fleetslam.tables import format_table
 
     rows = []

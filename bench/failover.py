@@ -30,8 +30,8 @@ from typing import Any
 
 from shared_data import SEVEN_SCENES
 
-from fleetslam.cloud.fenced_store import stored_run
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.coordination.fenced_store import stored_run
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.demo import run_demo
 from fleetslam.tables import format_table
 

@@ -53,8 +53,8 @@ from typing import Any, Callable
 import numpy as np
 
 from fleetslam.backend.back_end import TrackingPipeline, new_state
-from fleetslam.cloud.session_state import SessionState, TrajectoryRow, capture
-from fleetslam.cloud.store import CHECKPOINT, CloudStore
+from fleetslam.cloud.session.session_state import SessionState, TrajectoryRow, capture
+from fleetslam.cloud.session.store import CHECKPOINT, CloudStore
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.pipeline.states import CapturedFrame

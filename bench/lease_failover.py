@@ -1,5 +1,5 @@
-"""Failover time set by the lease (cloud/ownership.py): worker A owns a robot, its link to etcd
-is cut (a TCP relay, tests/link_cutter.py; etcd and worker B go on), B asks for the robot
+"""Failover time set by the lease (cloud/coordination/ownership.py): worker A owns a robot, its link
+to etcd is cut (a TCP relay, tests/link_cutter.py; etcd and worker B go on), B asks for the robot
 every ``--poll`` seconds until granted.
 
     .venv/bin/python bench/lease_failover.py [--trials 10] [--lease-s 2] [--poll 0.02] [--watch]
@@ -30,9 +30,9 @@ sys.path[:0] = [str(ROOT / "src"), str(ROOT / "tests")]
 
 from link_cutter import LinkCutter  # noqa: E402
 
-from fleetslam.cloud.coordination_service import EtcdService  # noqa: E402
-from fleetslam.cloud.etcd_gateway import EtcdClient, Watch  # noqa: E402
-from fleetslam.cloud.ownership import Keys, Ownership  # noqa: E402
+from fleetslam.cloud.coordination.coordination_service import EtcdService  # noqa: E402
+from fleetslam.cloud.coordination.etcd_gateway import EtcdClient, Watch  # noqa: E402
+from fleetslam.cloud.coordination.ownership import Keys, Ownership  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
 
 

@@ -26,7 +26,7 @@ from typing import Any
 
 from shared_data import SEVEN_SCENES
 
-from fleetslam.cloud.worker_load import tree_cpu_seconds as tree_cpu_s
+from fleetslam.cloud.coordination.worker_load import tree_cpu_seconds as tree_cpu_s
 from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop_all

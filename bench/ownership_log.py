@@ -5,12 +5,12 @@ The logs are ``fleetslam`` CLI logs ("%(asctime)s %(name)s %(levelname)s %(messa
 time to the millisecond; every worker on one host, so one clock). Two placements write
 different lines:
 
-- etcd placement (cloud/ownership.py, logger fleetslam.ownership):
+- etcd placement (cloud/coordination/ownership.py, logger fleetslam.ownership):
   ``grant robot R to worker W epoch E (lease L)`` starts W's ownership of R,
   ``release robot R by worker W epoch E`` / ``fence robot R on worker W epoch E`` ends it.
   The merger is granted as robot ``@merger`` the same way.
-- liveliness placement (cloud/placement.py): ``worker W serves robot R (bids: ...)`` starts it,
-  ``robot R is also served by worker X: giving it up`` (in W's log) ends it.
+- liveliness placement (cloud/coordination/placement.py): ``worker W serves robot R (bids:
+  ...)`` starts it, ``robot R is also served by worker X: giving it up`` (in W's log) ends it.
 
 An ownership with no end line ends when its worker's process ended (``ends``: the time the
 harness saw it exit or killed it): a worker believes it owns its robots until then.

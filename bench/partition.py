@@ -22,20 +22,19 @@ feedback, B's link is cut on the host side (``ip link set <veth> down``):
   congested     no cut: a token bucket of ``--tbf-rate`` on both ends of the veth for
                 ``--tbf-s`` s (tc tbf; this kernel has no netem): no failover, no flapping.
 
-Measured: a passive Zenoh client on the host (the observer) records every feedback to the
-robots (time, robot, frame index). Failover: cut -> the first feedback to a robot B owned at
-the cut after A was granted it (ownership from the workers' logs, bench/ownership_log.py).
-The robot's longest pause (robot_report.json: the longest time between two feedbacks) and
-the fleet's longest silence after the cut (no feedback to any robot) say what the robots
-felt: the router goes on forwarding to B until Zenoh's own lease (10 s) expires B's session.
-Frames lost: frames the robot sent that no feedback answered; answered twice: frames with
-more than one feedback. Acknowledged keyframes lost: keyframes in the robot's report
-(robot_report.json) acknowledged by the cloud, missing from the robot's final checkpoint in
-the store (fenced_store.stored_run: liveliness, ``<robot>/session.ckpt``; etcd, the file
-``fleetslam/current/<robot>`` names), read after every worker stopped. One owner: no robot's ownership intervals of two
-workers overlap. Merge groups and joint ATE as bench/failover.py (ground truth only after).
-Writes bench/results/partition.json (``--out``).
-"""
+Measured: a passive Zenoh client on the host (the observer) records every feedback to the robots
+(time, robot, frame index). Failover: cut -> the first feedback to a robot B owned at the cut after
+A was granted it (ownership from the workers' logs, bench/ownership_log.py). The robot's longest
+pause (robot_report.json: the longest time between two feedbacks) and the fleet's longest silence
+after the cut (no feedback to any robot) say what the robots felt: the router goes on forwarding to
+B until Zenoh's own lease (10 s) expires B's session. Frames lost: frames the robot sent that no
+feedback answered; answered twice: frames with more than one feedback. Acknowledged keyframes lost:
+keyframes in the robot's report (robot_report.json) acknowledged by the cloud, missing from the
+robot's final checkpoint in the store (fenced_store.stored_run: liveliness,
+``<robot>/session.ckpt``; etcd, the file ``fleetslam/current/<robot>`` names), read after every
+worker stopped. One owner: no robot's ownership intervals of two workers overlap. Merge groups and
+joint ATE as bench/failover.py (ground truth only after). Writes bench/results/partition.json
+(``--out``)."""
 
 from __future__ import annotations
 
@@ -62,8 +61,8 @@ import ownership_log  # noqa: E402
 from netns_link import NamespaceLink, remove_leftovers, unavailable  # noqa: E402
 from shared_data import SEVEN_SCENES  # noqa: E402
 
-from fleetslam.cloud.coordination_service import EtcdService  # noqa: E402
-from fleetslam.cloud.fenced_store import FencedStore, stored_run  # noqa: E402
+from fleetslam.cloud.coordination.coordination_service import EtcdService  # noqa: E402
+from fleetslam.cloud.coordination.fenced_store import FencedStore, stored_run  # noqa: E402
 from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.evaluation.fleet import score_fleet  # noqa: E402
 from fleetslam.launch import (CloudClient, free_endpoint, start_robot,  # noqa: E402

@@ -36,15 +36,9 @@ from pathlib import Path
 from fleet import Fleet, robot_messages, robot_messages_for
 from shared_data import SEVEN_SCENES, TUM_RPY
 
-from fleetslam.cloud.coordination_service import EtcdService
-from fleetslam.cloud.worker_load import tree_cpu_seconds as tree_cpu_s
-from fleetslam.launch import (
-    CloudClient,
-    free_endpoint,
-    start_router,
-    start_worker,
-    stop_all,
-)
+from fleetslam.cloud.coordination.coordination_service import EtcdService
+from fleetslam.cloud.coordination.worker_load import tree_cpu_seconds as tree_cpu_s
+from fleetslam.launch import CloudClient, free_endpoint, start_router, start_worker, stop_all
 from fleetslam.tables import format_table
 from fleetslam.transport.zenoh_session import open_connecting
 

@@ -34,7 +34,7 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
     fi
 fi
 # etcd, the coordination service many cloud workers agree on robot ownership through
-# (cloud/coordination_service.py; `fleetslam demo --workers N` starts one per run). The
+# (cloud/coordination/coordination_service.py; `fleetslam demo --workers N` starts one per run). The
 # package's own service is not needed (each run starts its own etcd on loopback).
 if ! command -v etcd >/dev/null 2>&1; then
     if command -v apt-get >/dev/null 2>&1; then

@@ -103,7 +103,7 @@ def secure_endpoint() -> str:
 def etcd(tmp_path_factory):
     """One real etcd on loopback for a test module (each test keeps to a key prefix of its
     own); skip the module where the etcd program is missing."""
-    from fleetslam.cloud.coordination_service import EtcdService
+    from fleetslam.cloud.coordination.coordination_service import EtcdService
 
     with EtcdService(tmp_path_factory.mktemp("run") / "etcd") as service:
         yield service
@@ -112,7 +112,7 @@ def etcd(tmp_path_factory):
 @pytest.fixture
 def keys(request):
     """A key prefix of the test's own in the module's etcd: no test sees another's robots."""
-    from fleetslam.cloud.ownership import Keys
+    from fleetslam.cloud.coordination.ownership import Keys
 
     return Keys(f"test/{request.node.name}/")
 

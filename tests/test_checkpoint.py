@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from conftest import small_scene
-from fleetslam.camera import Camera
 from fleetslam.backend.back_end import TrackingPipeline
-from fleetslam.cloud.session_state import CHECKPOINT_CLASSES, SessionState, TrajectoryRow, capture
-from fleetslam.cloud.store import CloudStore
+from fleetslam.camera import Camera
+from fleetslam.cloud.session.session_state import (CHECKPOINT_CLASSES, SessionState, TrajectoryRow,
+                                                   capture)
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.pipeline.states import CapturedFrame
@@ -125,7 +126,7 @@ def test_two_writers_of_one_checkpoint_never_break_it(frames, tmp_path):
 def test_the_merger_gets_a_keyframe_only_once_its_checkpoint_is_on_disk(frames, tmp_path):
     """A worker taking a session over from the store must find every keyframe the merger
     already holds: the keyframe goes to the merger after its checkpoint is written."""
-    from fleetslam.cloud.robot_session import RobotSession
+    from fleetslam.cloud.session.robot_session import RobotSession
 
     store = CloudStore(tmp_path)
     seen = []

@@ -12,9 +12,9 @@ import pytest
 
 from conftest import small_scene
 from fleetslam.backend.back_end import TrackingPipeline
-from fleetslam.cloud import session_state
-from fleetslam.cloud.session_state import Chunks, SessionState, TrajectoryRow, capture
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session import session_state
+from fleetslam.cloud.session.session_state import Chunks, SessionState, TrajectoryRow, capture
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.pipeline.states import CapturedFrame

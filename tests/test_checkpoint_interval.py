@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import time
 
-from fleetslam.cloud.checkpoint_writer import CheckpointWriter
-from fleetslam.cloud.store import CHECKPOINT, CloudStore
+from fleetslam.cloud.session.checkpoint_writer import CheckpointWriter
+from fleetslam.cloud.session.store import CHECKPOINT, CloudStore
 from fleetslam.wire.data_tree import Capture
 
 

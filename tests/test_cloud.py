@@ -274,8 +274,8 @@ def test_every_reply_that_asks_for_a_hello_carries_the_no_session_code(cloud, me
 
 
 def test_an_end_that_overtakes_the_last_frames_waits_for_them(messages, tmp_path):
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.store import CloudStore
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.store import CloudStore
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, _ = messages["r0"]
@@ -310,8 +310,8 @@ def test_frames_are_held_as_references_when_decoded_not_when_tracked(messages, t
     """Inter-frame coding refers to frames the cloud holds. The session says it holds a
     frame as soon as it is decoded: a tracker that lags (here: stopped) must not hold back
     what the robot may code against, or a busy cloud gets intra frames only."""
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.store import CloudStore
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.store import CloudStore
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, _ = messages["r0"]
@@ -400,7 +400,7 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
 
 
 def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
-    from fleetslam.cloud.inbox import WorkQueue
+    from fleetslam.cloud.session.inbox import WorkQueue
 
     q = WorkQueue(max_frames=3)
     for i in range(3):
@@ -487,8 +487,8 @@ def test_a_robot_flooding_bad_frames_is_paused_and_then_heard_again(messages, tm
     """Hundreds of rejected frames in a second: the session stops reading the robot's frames
     for a while (cheap drops instead of decoding), says so once, and tracks its good frames
     once the pause is over."""
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.store import CloudStore
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.store import CloudStore
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, poses0 = messages["r0"]
@@ -559,8 +559,8 @@ def test_a_busy_session_still_waits_for_the_last_frame_after_the_end(messages, t
     """The race of a quiet run that lost its last pose: the end had waited behind a backlog
     longer than the grace period, so the cloud gave up on a frame that was just arriving.
     The grace now runs from when the session gets to the end."""
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.store import CloudStore
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.store import CloudStore
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, _ = messages["r0"]
@@ -593,8 +593,8 @@ def test_a_busy_session_still_waits_for_the_last_frame_after_the_end(messages, t
 
 def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(messages,
                                                                                tmp_path):
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.store import CloudStore
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.store import CloudStore
     from fleetslam.transport.protocol import Hello
     from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 
@@ -904,8 +904,8 @@ def test_a_damaged_stored_keyframe_costs_its_images_not_the_robots_end(messages,
     """A keyframe file damaged on disk after it was acknowledged: the session still ends
     (the robot answered 'ended', trajectory and map written), that keyframe left out of the
     dense map with one line naming it."""
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.store import CloudStore
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.store import CloudStore
     from fleetslam.transport.protocol import Hello
     from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 

@@ -16,9 +16,9 @@ import pytest
 from conftest import exact_config, small_scene
 from test_cloud import FakeRobot
 
-from fleetslam.cloud.robot_session import RobotSession
 from fleetslam.cloud.server import CloudServer
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session.robot_session import RobotSession
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.edge.robot import Robot
 from fleetslam.launch import free_endpoint

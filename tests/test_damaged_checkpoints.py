@@ -20,8 +20,8 @@ from test_cloud import FakeRobot
 from fleetslam.backend.back_end import new_state
 from fleetslam.camera import Camera
 from fleetslam.cloud.server import CloudServer
-from fleetslam.cloud.session_state import SessionState, capture
-from fleetslam.cloud.store import CHECKPOINT, CloudStore
+from fleetslam.cloud.session.session_state import SessionState, capture
+from fleetslam.cloud.session.store import CHECKPOINT, CloudStore
 from fleetslam.config import Config
 from fleetslam.edge.report import RobotReport
 from fleetslam.edge.robot import Robot
@@ -265,8 +265,8 @@ def test_a_session_that_fails_to_start_from_its_checkpoint_starts_afresh(tmp_pat
     """A checkpoint that passes every check yet whose session fails to start (a bug) is
     handled as a damaged one: set aside, and the robot's next hello opens a fresh session
     that says why."""
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.sessions import SessionTable
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.sessions import SessionTable
     from fleetslam.visualisation.live_view import NullView
 
     (tmp_path / "r0").mkdir()

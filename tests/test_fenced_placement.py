@@ -1,9 +1,9 @@
-"""Workers placed by etcd (cloud/fenced_placement.py): two placements on one Zenoh router and
-one real etcd, one of them talking to etcd through a link the test cuts. The robot goes to
-one worker only; cut off, that worker stops serving it (its session dropped) before the
-other is granted the robot, which happens within about the lease; healed, the old owner
-does not take it back; the merger's role moves the same way. Robots arriving together go by
-the workers' measured loads."""
+"""Workers placed by etcd (cloud/coordination/fenced_placement.py): two placements on one Zenoh
+router and one real etcd, one of them talking to etcd through a link the test cuts. The robot goes
+to one worker only; cut off, that worker stops serving it (its session dropped) before the other is
+granted the robot, which happens within about the lease; healed, the old owner does not take it
+back; the merger's role moves the same way. Robots arriving together go by the workers' measured
+loads."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import pytest
 from conftest import wait_for
 from link_cutter import LinkCutter
 
-from fleetslam.cloud.coordination_service import etcd_binary
-from fleetslam.cloud.etcd_gateway import EtcdClient
-from fleetslam.cloud.fenced_placement import FencedPlacement
-from fleetslam.cloud.ownership import Keys, Ownership
+from fleetslam.cloud.coordination.coordination_service import etcd_binary
+from fleetslam.cloud.coordination.etcd_gateway import EtcdClient
+from fleetslam.cloud.coordination.fenced_placement import FencedPlacement
+from fleetslam.cloud.coordination.ownership import Keys, Ownership
 from fleetslam.config import PlacementConfig
 from fleetslam.launch import free_endpoint
 from fleetslam.transport.zenoh_session import open_connecting, open_router

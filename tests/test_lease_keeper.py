@@ -1,8 +1,7 @@
-"""A worker's lease kept by a process of its own (cloud/lease_keeper.py), through a real etcd:
-a slow link to etcd (answers later than a renewal period) and a worker whose interpreter is
-busy for longer than the fence leave the worker's robots with it; a worker frozen past
-``stall_s`` lets them go; a killed keeper is replaced; the keeper's packets are marked
-expedited."""
+"""A worker's lease kept by a process of its own (cloud/coordination/lease_keeper.py), through a
+real etcd: a slow link to etcd (answers later than a renewal period) and a worker whose interpreter
+is busy for longer than the fence leave the worker's robots with it; a worker frozen past
+``stall_s`` lets them go; a killed keeper is replaced; the keeper's packets are marked expedited."""
 
 from __future__ import annotations
 
@@ -17,9 +16,9 @@ import pytest
 from conftest import wait_for
 from link_cutter import LinkCutter
 
-from fleetslam.cloud.coordination_service import etcd_binary
-from fleetslam.cloud.etcd_gateway import EXPEDITED_TOS, EtcdClient
-from fleetslam.cloud.ownership import Keys, Ownership
+from fleetslam.cloud.coordination.coordination_service import etcd_binary
+from fleetslam.cloud.coordination.etcd_gateway import EXPEDITED_TOS, EtcdClient
+from fleetslam.cloud.coordination.ownership import Keys, Ownership
 from fleetslam.config import PlacementConfig
 
 pytestmark = pytest.mark.skipif(

@@ -148,8 +148,8 @@ def test_a_stalled_view_never_holds_up_a_session(scene, tmp_path):
     pytest.importorskip("rerun")
     from test_cloud import K, robot_messages
 
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.cloud.store import CloudStore
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.cloud.session.store import CloudStore
     from fleetslam.transport.protocol import Hello
     from fleetslam.visualisation.live_view import LiveView
 

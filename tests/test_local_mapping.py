@@ -16,18 +16,18 @@ import pytest
 from conftest import TUM_RPY, require
 from test_local_ba import CAMERA, N_KEYFRAMES, build_scene
 
-from fleetslam.config import Config
-from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.evaluation.fleet import run_ate
 from fleetslam.backend.back_end import CloudBackEnd, new_state
 from fleetslam.backend.local_ba import solve_local_ba
 from fleetslam.backend.local_mapping import LocalMapper, apply_solution, build_problem
 from fleetslam.backend.state import BackEndState
 from fleetslam.backend.workers import LocalMappingPool, SessionWorkers
-from fleetslam.cloud.session_state import SessionState, capture
-from fleetslam.cloud.store import CHECKPOINT, CloudStore
-from fleetslam.transport.protocol import Hello
+from fleetslam.cloud.session.session_state import SessionState, capture
+from fleetslam.cloud.session.store import CHECKPOINT, CloudStore
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.evaluation.fleet import run_ate
 from fleetslam.system import RobotTracker
+from fleetslam.transport.protocol import Hello
 
 NEWEST = N_KEYFRAMES - 1
 

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA, exact_config, require, small_scene, wait_for
 
-from fleetslam.cloud.robot_session import RobotSession
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session.robot_session import RobotSession
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.wire.frames import encode_frame_message
-from fleetslam.pipeline.states import CapturedFrame
 
 OVER_BUDGET = "frames dropped unread (over memory budget)"
 MB = 1 << 20

@@ -13,10 +13,10 @@ import pytest
 from conftest import SEVEN_SCENES, exact_config, require
 
 from fleetslam.backend.back_end import TrackingPipeline
-from fleetslam.cloud.memory_budget import held_bytes
-from fleetslam.cloud.robot_session import RobotSession
 from fleetslam.cloud.server import CloudServer
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session.memory_budget import held_bytes
+from fleetslam.cloud.session.robot_session import RobotSession
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.datasets.recording import open_source
 from fleetslam.edge.robot import Robot

@@ -1,9 +1,9 @@
-"""Robot ownership through a real etcd (cloud/ownership.py) and the store that refuses stale
-writers (cloud/fenced_store.py): two workers (two clients in this process, one of them
-talking to etcd through a link the test cuts) compete for robots; grants carry increasing
-epochs and never overlap in time; a cut-off worker fences itself before etcd can grant its
-robot to the other; its later writes never become current; a finished robot stays finished.
-Also the service helper (cloud/coordination_service.py) that starts etcd for a run."""
+"""Robot ownership through a real etcd (cloud/coordination/ownership.py) and the store that refuses
+stale writers (cloud/coordination/fenced_store.py): two workers (two clients in this process, one of
+them talking to etcd through a link the test cuts) compete for robots; grants carry increasing
+epochs and never overlap in time; a cut-off worker fences itself before etcd can grant its robot to
+the other; its later writes never become current; a finished robot stays finished. Also the service
+helper (cloud/coordination/coordination_service.py) that starts etcd for a run."""
 
 from __future__ import annotations
 
@@ -17,12 +17,13 @@ from link_cutter import LinkCutter
 
 from fleetslam.backend.back_end import new_state
 from fleetslam.camera import Camera
-from fleetslam.cloud.coordination_service import (CoordinationServiceError, EtcdService,
-                                                  etcd_binary)
-from fleetslam.cloud.etcd_gateway import EtcdClient
-from fleetslam.cloud.fenced_store import FencedStore
-from fleetslam.cloud.ownership import MERGER, Keys, NotOwner, Ownership
-from fleetslam.cloud.session_state import SessionState
+from fleetslam.cloud.coordination.coordination_service import (CoordinationServiceError,
+                                                               EtcdService, etcd_binary)
+from fleetslam.cloud.coordination.etcd_gateway import EtcdClient
+from fleetslam.cloud.coordination.fenced_store import FencedStore
+from fleetslam.cloud.coordination.ownership import MERGER, Keys, Ownership
+from fleetslam.cloud.session.session_state import SessionState
+from fleetslam.cloud.session.store import NotOwner
 from fleetslam.config import Config, PlacementConfig
 from fleetslam.transport.protocol import Hello
 
@@ -87,7 +88,7 @@ def test_a_tls_etcd_serves_the_labs_workers_and_no_one_else(tmp_path):
     import ssl
     import urllib.request
 
-    from fleetslam.cloud.etcd_gateway import EtcdError, EtcdTls
+    from fleetslam.cloud.coordination.etcd_gateway import EtcdError, EtcdTls
     from fleetslam.transport.certs import make_lab
 
     lab = make_lab(tmp_path / "lab", ["localhost", "127.0.0.1"], ["r1"])
@@ -320,9 +321,9 @@ def test_ended_only_when_the_final_checkpoint_is_durable(etcd, keys, tmp_path,
 
     from conftest import exact_config, small_scene
 
-    from fleetslam.cloud.robot_session import RobotSession
-    from fleetslam.datasets.tum import RgbdSequence
     from fleetslam.backend.back_end import TrackingPipeline
+    from fleetslam.cloud.session.robot_session import RobotSession
+    from fleetslam.datasets.tum import RgbdSequence
     from fleetslam.pipeline.split import run_stages
     from fleetslam.pipeline.states import CapturedFrame
     from fleetslam.transport import keys as wire_keys
@@ -439,7 +440,7 @@ def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
 
 
 def test_a_watch_hears_puts_deletes_and_expiries(etcd, keys):
-    from fleetslam.cloud.etcd_gateway import Watch
+    from fleetslam.cloud.coordination.etcd_gateway import Watch
 
     client = EtcdClient(etcd.endpoint)
     heard: list = []
@@ -466,7 +467,7 @@ def test_a_watch_hears_that_etcds_history_was_reset(tmp_path):
     """etcd wiped and started again on its address: a running worker's watch had asked for
     revisions after those it heard, which the new etcd would reach only much later (the
     worker never served again). It says so, has its owner re-read, and hears new events."""
-    from fleetslam.cloud.etcd_gateway import Watch
+    from fleetslam.cloud.coordination.etcd_gateway import Watch
 
     first = EtcdService(tmp_path / "a").start()
     port = first.client_port

@@ -34,7 +34,7 @@ def namespaces() -> None:
 
 @pytest.mark.realdata
 def test_lost_machine_fails_over_with_one_owner(namespaces: None, tmp_path: Path) -> None:
-    from fleetslam.cloud.coordination_service import etcd_binary
+    from fleetslam.cloud.coordination.coordination_service import etcd_binary
 
     placement = os.environ.get("FLEETSLAM_PARTITION_PLACEMENT", "etcd")
     if placement == "etcd" and etcd_binary() is None:
@@ -92,8 +92,8 @@ def test_the_ownership_check_finds_two_owners_at_once(tmp_path: Path) -> None:
 def test_the_service_also_listens_where_it_is_told(tmp_path: Path) -> None:
     """A worker in a namespace reaches etcd at the veth's host address: here 127.0.0.2 (every
     127/8 address is loopback on Linux), beside 127.0.0.1."""
-    from fleetslam.cloud.coordination_service import EtcdService, etcd_binary
-    from fleetslam.cloud.etcd_gateway import EtcdClient
+    from fleetslam.cloud.coordination.coordination_service import EtcdService, etcd_binary
+    from fleetslam.cloud.coordination.etcd_gateway import EtcdClient
 
     if etcd_binary() is None:
         pytest.skip("etcd is not installed (scripts/setup-system.sh)")

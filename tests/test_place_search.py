@@ -14,9 +14,9 @@ import pytest
 
 from conftest import SEVEN_SCENES, require
 from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.cloud.merge.merger_service import MergerService
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.cloud.merger_service import MergerService
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess, Searched
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame

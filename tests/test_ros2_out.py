@@ -1,4 +1,4 @@
-"""Live ROS 2 out (ros2_out/, edge/ros2_out.py, cloud/fleet_frames.py): what fleetslam
+"""Live ROS 2 out (ros2_out/, edge/ros2_out.py, cloud/merge/fleet_frames.py): what fleetslam
 publishes is checked against implementations we did not write. The messages byte for byte
 against rosbags' CDR serialiser and its REP-2016 type hashes; keys, tokens and transient
 local through zenoh-ros2-sdk's subscriber and zenoh-ext's AdvancedSubscriber (what
@@ -225,7 +225,7 @@ def test_a_placement_is_checked_before_it_is_used():
 
 
 def test_robots_hear_new_moved_and_final_placements_and_again_later():
-    from fleetslam.cloud.fleet_frames import FleetFrames
+    from fleetslam.cloud.merge.fleet_frames import FleetFrames
     from fleetslam.config import MergeConfig
 
     sent: list[tuple[str, dict]] = []

@@ -5,7 +5,7 @@ pipeline, for every offloading point k.
 Robot and cloud are built as the two processes build them: the robot (edge/robot.Robot, no
 network) holds only the state of the stages it runs, the cloud builds its own back-end (and a
 front end where it runs front-end stages) from the robot's hello (as
-cloud/robot_session.py); nothing passes between them but the hello, the welcome's
+cloud/session/robot_session.py); nothing passes between them but the hello, the welcome's
 reference-ring size, the frame messages and the cloud's acknowledgements."""
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ class RobotSide:
 
 class CloudSide:
     """The cloud's session for that robot, built from its hello alone (as
-    cloud/robot_session.py): its own config, its own back-end, a front end only if it runs
+    cloud/session/robot_session.py): its own config, its own back-end, a front end only if it runs
     front-end stages, and the ring of frames inter-coded ones refer to."""
 
     def __init__(self, hello: bytes) -> None:

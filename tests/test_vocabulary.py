@@ -8,12 +8,12 @@ import pytest
 
 from conftest import TUM_RPY, require
 from test_loop_closing import _flip_bits
-from fleetslam.cloud.session_state import CHECKPOINT_CLASSES
-from fleetslam.wire import data_tree
-from fleetslam.config import PlaceRecognitionConfig
 from fleetslam.backend.place_recognition import KeyframeDatabase
 from fleetslam.backend.places import make_database
 from fleetslam.backend.vocabulary import BowDatabase, Vocabulary, load_vocabulary
+from fleetslam.cloud.session.session_state import CHECKPOINT_CLASSES
+from fleetslam.config import PlaceRecognitionConfig
+from fleetslam.wire import data_tree
 
 
 @pytest.fixture(scope="module")

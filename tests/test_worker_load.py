@@ -1,5 +1,5 @@
-"""A worker's measured load (cloud/worker_load.py): reports are checked before use, a robot
-granted since a report weighs the configured cost until it is measured, equal loads are
+"""A worker's measured load (cloud/coordination/worker_load.py): reports are checked before use, a
+robot granted since a report weighs the configured cost until it is measured, equal loads are
 decided by the robot's hash (robots spread), and the meter sees a busy process."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from fleetslam.cloud.worker_load import CpuMeter, LoadReport, WorkerLoads, parse_report
+from fleetslam.cloud.coordination.worker_load import CpuMeter, LoadReport, WorkerLoads, parse_report
 from fleetslam.config import PlacementConfig
 
 
@@ -45,7 +45,7 @@ def test_a_robot_counts_its_cost_until_held_through_a_whole_window(monkeypatch):
     """A report between two grants used to forget the first (its CPU not measured yet):
     robots arriving together then went 2 + 6. A report counts only the robots held all
     through the measuring window."""
-    import fleetslam.cloud.worker_load as worker_load
+    import fleetslam.cloud.coordination.worker_load as worker_load
 
     cfg = PlacementConfig(load_window_s=5.0)
     held = [0]
@@ -86,7 +86,7 @@ def test_niced_background_work_is_not_a_robot_s_load():
     import subprocess
     import sys
 
-    from fleetslam.cloud.worker_load import tree_cpu_seconds
+    from fleetslam.cloud.coordination.worker_load import tree_cpu_seconds
 
     # The child spins for CPU time, not wall time: on a loaded machine a niced child gets
     # little of a core, and the test waits (a second at a time) until it has spun.

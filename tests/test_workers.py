@@ -14,25 +14,18 @@ import pytest
 
 from conftest import secure_endpoint, small_scene, wait_for
 
-from fleetslam.cloud.coordination_service import EtcdService, etcd_binary
-from fleetslam.cloud.etcd_gateway import EtcdClient
-from fleetslam.edge.report import EXIT_INCOMPLETE
-from fleetslam.cloud.fenced_store import FencedStore
-from fleetslam.cloud.ownership import Ownership
-from fleetslam.cloud.placement import Placement, rank
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.coordination.coordination_service import EtcdService, etcd_binary
+from fleetslam.cloud.coordination.etcd_gateway import EtcdClient
+from fleetslam.cloud.coordination.fenced_store import FencedStore
+from fleetslam.cloud.coordination.ownership import Ownership
+from fleetslam.cloud.coordination.placement import Placement, rank
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import PlacementConfig
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.edge.report import EXIT_INCOMPLETE
 from fleetslam.io.trajectory import read_tum_trajectory
-from fleetslam.launch import (
-    CloudClient,
-    free_endpoint,
-    start_robot,
-    start_router,
-    start_worker,
-    stop,
-    stop_all,
-)
+from fleetslam.launch import (CloudClient, free_endpoint, start_robot, start_router, start_worker,
+                              stop, stop_all)
 from fleetslam.transport.certs import make_lab
 from fleetslam.transport.zenoh_session import open_connecting, open_router
 

@@ -363,7 +363,7 @@ class MergeConfig:
     # the search then takes neither the GIL nor a core from the robots tracking in the same
     # worker (merging/place_search.py); off: on the merger's thread. A search not answered
     # within search_timeout_s turns the search in-line for good. Nothing but the merger's
-    # own queue waits for it (status and merges do not: cloud/merger_service.py). On since
+    # own queue waits for it (status and merges do not: cloud/merge/merger_service.py). On since
     # the search no longer depends on which robot came first (place_search.py: two-way
     # check, catch-up, put-off searches): worth about 30 % of a 2-core cloud's saturated
     # fps (issue 24).
@@ -607,7 +607,7 @@ class TransportConfig:
     max_queued_frames: Annotated[int, at_least(1)] = 256
     # Bytes a session may hold for its robot (frames waiting, undecoded and decoded, uploads
     # waiting, reference frames); beyond it frames and uploads are dropped unread and the
-    # robot told to slow down (cloud/memory_budget.py). A point-0 frame decodes to ~2.2 MB,
+    # robot told to slow down (cloud/session/memory_budget.py). A point-0 frame decodes to ~2.2 MB,
     # so an honest robot's window of max_frames_in_flight = 12 holds ~26 MB, plus an upload
     # or two (~0.6 MB each) and its references (64 x ~35 KB at point 3): 64 MB is twice that.
     session_budget_mb: Annotated[float, above(0.0)] = 64.0
@@ -639,7 +639,7 @@ class TransportConfig:
     max_keyframes: Annotated[int, at_least(1)] = 20_000
     # A session checkpoint larger than this (with all the chunks it names) is refused
     # unread, and no more than this is ever read of one (nothing in it is decompressed:
-    # cloud/store.py). A session's
+    # cloud/session/store.py). A session's
     # checkpoint grows by ~0.19 MB a keyframe (fr1_rpy, 150 frames: 37 keyframes, 7.1 MB),
     # so a session at max_keyframes needs ~3.8 GB.
     max_checkpoint_bytes: Annotated[int, at_least(1 << 20)] = 4 << 30
@@ -669,8 +669,8 @@ class TransportConfig:
 
 @dataclass
 class PlacementConfig:
-    """Cloud workers sharing robots (cloud/placement.py): how bids for a robot are settled,
-    and the leases of their coordination service (cloud/ownership.py)."""
+    """Cloud workers sharing robots (cloud/coordination/placement.py): how bids for a robot are
+    settled, and the leases of their coordination service (cloud/coordination/ownership.py)."""
 
     # A worker's name in the liveliness tokens; empty: w-<host>-<pid>.
     worker_id: Annotated[str, WORKER_ID] = ""
@@ -683,7 +683,7 @@ class PlacementConfig:
     max_rounds: Annotated[int, at_least(1)] = 5
     # Each worker measures the cores it keeps busy (its process and its local-mapping
     # processes, averaged over load_window_s) and tells the others this often; a new robot
-    # goes to the worker with the least (cloud/worker_load.py).
+    # goes to the worker with the least (cloud/coordination/worker_load.py).
     load_report_s: Annotated[float, above(0.0)] = 0.5
     load_window_s: Annotated[float, above(0.0)] = 5.0
     # A robot heard from within this many seconds is at work: its worker's load counts it.
@@ -692,22 +692,22 @@ class PlacementConfig:
     # measuring window (load_window_s), or at work on a worker that has not had robots at
     # work for a while. 4 robots at 10 fps at point 3 kept 1.75 cores busy (worker_scaling).
     robot_cost_cores: Annotated[float, above(0.0)] = 0.4
-    # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides
-    # which worker owns which robot and the merger, with fencing (cloud/fenced_placement.py)
-    # and whose checkpoint is current (cloud/fenced_store.py). Empty: workers agree through
-    # Zenoh liveliness alone (placement.py), which is not fenced against partitions.
+    # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides which
+    # worker owns which robot and the merger, with fencing (cloud/coordination/fenced_placement.py)
+    # and whose checkpoint is current (cloud/coordination/fenced_store.py). Empty: workers agree
+    # through Zenoh liveliness alone (placement.py), which is not fenced against partitions.
     coordination: Annotated[str, ETCD_ENDPOINT] = ""
     # The coordination service's TLS folder (``fleetslam certs`` writes it as <lab>/etcd:
     # its CA, the workers' client certificate and key); with it the endpoint is https and
     # etcd takes only that certificate (docs/deployment.md). Empty: plain http.
     coordination_certs: Annotated[str, ANY_TEXT] = ""
-    # Many workers with a coordination service (cloud/ownership.py): each worker's etcd
+    # Many workers with a coordination service (cloud/coordination/ownership.py): each worker's etcd
     # lease, in whole seconds (etcd's unit; 2 is its least). A worker that cannot renew it
     # stops serving 3/4 of it after its last renewal; its robots go to another worker once
     # etcd expires it, so a lost machine's robots fail over in about this.
     lease_s: Annotated[int, between(2, 600)] = 2
-    # The lease is renewed by a process of its own (cloud/lease_keeper.py) only while the
-    # worker shows it is alive: a worker stopped or frozen this long lets its lease go (its
+    # The lease is renewed by a process of its own (cloud/coordination/lease_keeper.py) only while
+    # the worker shows it is alive: a worker stopped or frozen this long lets its lease go (its
     # robots fail over this plus lease_s later). Long enough for a loaded worker's beat.
     stall_s: Annotated[float, between(0.5, 600.0)] = 5.0
     # The Zenoh lease a worker announces to its router: the router drops the link of a
@@ -716,7 +716,7 @@ class PlacementConfig:
     # (measured: the whole fleet silent ~10 s, Zenoh's default lease, after a worker's
     # machine was cut off). Keep-alives go 4 times per lease.
     zenoh_lease_s: Annotated[float, between(0.5, 600.0)] = 2.0
-    # The etcd a run starts (cloud/coordination_service.py) must be healthy within this.
+    # The etcd a run starts (cloud/coordination/coordination_service.py): healthy within this.
     coordination_start_s: Annotated[float, above(0.0)] = 10.0
 
 

@@ -10,21 +10,13 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from fleetslam.cloud.coordination_service import INSTALL_HINT, EtcdService, etcd_binary
+from fleetslam.cloud.coordination.coordination_service import INSTALL_HINT, EtcdService, etcd_binary
 from fleetslam.config import load_config
 from fleetslam.datasets.recording import open_source
-from fleetslam.evaluation.fleet import score_fleet
-from fleetslam.launch import (
-    CloudClient,
-    free_endpoint,
-    start_cloud,
-    start_robot,
-    start_router,
-    start_worker,
-    stop,
-    stop_all,
-)
 from fleetslam.edge.report import EXIT_INCOMPLETE
+from fleetslam.evaluation.fleet import score_fleet
+from fleetslam.launch import (CloudClient, free_endpoint, start_cloud, start_robot, start_router,
+                              start_worker, stop, stop_all)
 from fleetslam.outputs import ROBOT_REPORT, add_deployment, add_robot_reports, write_summary
 from fleetslam.progress import Progress
 from fleetslam.transport.certs import make_lab

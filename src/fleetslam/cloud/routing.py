@@ -17,12 +17,12 @@ from typing import Any, Callable
 
 import zenoh
 
-from fleetslam.cloud.inbox import REJECTION_REPLY_INTERVAL_S, Throttle
-from fleetslam.cloud.merge_role import MergeRole
-from fleetslam.cloud.placement import Placement
-from fleetslam.cloud.robot_session import Publish
-from fleetslam.cloud.memory_budget import sessions_allowed
-from fleetslam.cloud.sessions import SessionTable
+from fleetslam.cloud.coordination.placement import Placement
+from fleetslam.cloud.merge.merge_role import MergeRole
+from fleetslam.cloud.session.inbox import REJECTION_REPLY_INTERVAL_S, Throttle
+from fleetslam.cloud.session.memory_budget import sessions_allowed
+from fleetslam.cloud.session.robot_session import Publish
+from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello

@@ -35,21 +35,21 @@ from typing import Any
 import zenoh
 
 from fleetslam.backend.workers import LocalMappingPool
-from fleetslam.cloud.etcd_gateway import EtcdClient, EtcdTls
-from fleetslam.cloud.fenced_placement import FencedPlacement, wait_for_etcd
-from fleetslam.cloud.fenced_store import FencedStore
-from fleetslam.cloud.fleet_frames import FleetFrames
-from fleetslam.cloud.fleet_merge import FleetMerge, MergeRequests
-from fleetslam.cloud.idle_reaper import IdleReaper
-from fleetslam.cloud.merge_role import MergeRole
-from fleetslam.cloud.memory_budget import MB
-from fleetslam.cloud.ownership import Ownership
-from fleetslam.cloud.placement import Placement
-from fleetslam.cloud.robot_session import OVER_BUDGET
+from fleetslam.cloud.coordination.etcd_gateway import EtcdClient, EtcdTls
+from fleetslam.cloud.coordination.fenced_placement import FencedPlacement, wait_for_etcd
+from fleetslam.cloud.coordination.fenced_store import FencedStore
+from fleetslam.cloud.coordination.ownership import Ownership
+from fleetslam.cloud.coordination.placement import Placement
+from fleetslam.cloud.coordination.worker_load import CpuMeter
+from fleetslam.cloud.merge.fleet_frames import FleetFrames
+from fleetslam.cloud.merge.fleet_merge import FleetMerge, MergeRequests
+from fleetslam.cloud.merge.merge_role import MergeRole
 from fleetslam.cloud.routing import Router
-from fleetslam.cloud.sessions import SessionTable
-from fleetslam.cloud.store import CloudStore
-from fleetslam.cloud.worker_load import CpuMeter
+from fleetslam.cloud.session.idle_reaper import IdleReaper
+from fleetslam.cloud.session.memory_budget import MB
+from fleetslam.cloud.session.robot_session import OVER_BUDGET
+from fleetslam.cloud.session.sessions import SessionTable
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.zenoh_session import open_connecting, open_listening, put

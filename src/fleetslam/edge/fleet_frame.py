@@ -1,5 +1,5 @@
 """Where the cloud placed this robot's map in its group's frame: ``placed`` replies
-(cloud/fleet_frames.py) checked, kept in the report and handed to ROS 2 out as
+(cloud/merge/fleet_frames.py) checked, kept in the report and handed to ROS 2 out as
 ``map -> <robot>/map``; and the hold after the session (``ros2_out.hold_s``) that keeps the
 node up until a merge's final placement arrives."""
 

@@ -73,7 +73,7 @@ def fleet_acl(robots: list[str]) -> dict[str, Any]:
               [keys.feedback(robot), keys.reply(robot)])
     allow(OPERATOR, [keys.CLOUD_CONTROL], [keys.CLOUD_REPLY])
     # Cloud workers behind the router serve any robot: every fleet key, and the liveliness
-    # tokens they agree through (cloud/placement.py).
+    # tokens they agree through (cloud/coordination/placement.py).
     rules.append({"id": f"{WORKER} everything", "permission": "allow",
                   "flows": ["ingress", "egress"], "messages": _WORKER_MESSAGES,
                   "key_exprs": [f"{keys.ROOT}/**"]})

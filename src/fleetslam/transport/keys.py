@@ -73,11 +73,11 @@ CLOUD_REPLY = reply(CLOUD)
 
 
 WORKERS = f"{ROOT}/{CLOUD}/workers"
-# Keyframe summaries a worker publishes for the worker that merges (cloud/merger_service.py).
+# Keyframe summaries a worker publishes for the worker that merges (cloud/merge/merger_service.py).
 MERGE_KEYFRAMES = f"{ROOT}/{CLOUD}/keyframes"
 CLAIMS = f"{ROOT}/{CLOUD}/claims"
 OWNERS = f"{ROOT}/{CLOUD}/owners"
-# Each worker's measured load (cloud/worker_load.py).
+# Each worker's measured load (cloud/coordination/worker_load.py).
 LOADS = f"{ROOT}/{CLOUD}/load"
 
 

@@ -1,6 +1,6 @@
 """Object trees as data, never code: one versioned ``.npz`` holding the tree as JSON and
 every numpy array as an array (loaded with ``allow_pickle=False``). The cloud's session
-checkpoints (cloud/session_state.py) and the keyframes workers send the merger
+checkpoints (cloud/session/session_state.py) and the keyframes workers send the merger
 (wire/merger_keyframes.py) are written so.
 
 Only the classes the caller lists are rebuilt, and they are rebuilt by setting their saved
@@ -146,7 +146,7 @@ def capture(state: Any, classes: Classes, chunker: Chunker | None = None) -> Cap
 class CheckpointError(ValueError):
     """Data that cannot be restored: ``where`` (the file) and ``reason`` (what is wrong).
     The one exception :func:`loads` raises (and the checks of what it rebuilt, see
-    cloud/checkpoint_shape.py)."""
+    cloud/session/checkpoint_shape.py)."""
 
     def __init__(self, where: str, reason: str) -> None:
         super().__init__(f"{where}: {reason}")

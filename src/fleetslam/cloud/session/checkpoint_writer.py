@@ -19,8 +19,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from fleetslam.cloud.ownership import NotOwner
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session.store import CloudStore, NotOwner
 from fleetslam.wire.data_tree import Capture
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 

@@ -31,10 +31,10 @@ from typing import Any, Callable
 
 import zenoh
 
-from fleetslam.cloud.coordination_service import CoordinationServiceError
-from fleetslam.cloud.etcd_gateway import EtcdError, Event, Watch
-from fleetslam.cloud.ownership import MERGER, Ownership
-from fleetslam.cloud.placement import Placement
+from fleetslam.cloud.coordination.coordination_service import CoordinationServiceError
+from fleetslam.cloud.coordination.etcd_gateway import EtcdError, Event, Watch
+from fleetslam.cloud.coordination.ownership import MERGER, Ownership
+from fleetslam.cloud.coordination.placement import Placement
 from fleetslam.config import PlacementConfig
 from fleetslam.transport import keys, protocol
 

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from fleetslam.cloud.robot_session import Publish
+from fleetslam.cloud.session.robot_session import Publish
 from fleetslam.config import MergeConfig
 from fleetslam.transforms import invert, rotation_angle_deg
 from fleetslam.transport import keys, protocol

@@ -12,10 +12,10 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from fleetslam.cloud.merger_service import MergerService
-from fleetslam.cloud.robot_session import Publish
-from fleetslam.cloud.session_outputs import FinishedMap
-from fleetslam.cloud.sessions import SessionTable
+from fleetslam.cloud.merge.merger_service import MergerService
+from fleetslam.cloud.session.robot_session import Publish
+from fleetslam.cloud.session.session_outputs import FinishedMap
+from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.merging.global_map import build_global_map, merge_summary
 from fleetslam.outputs import fleet_summary, write_summary

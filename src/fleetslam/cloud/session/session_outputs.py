@@ -13,19 +13,15 @@ from typing import Any, Callable
 import numpy as np
 
 from fleetslam.backend.back_end import CloudBackEnd
-from fleetslam.cloud.session_state import SessionState
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session.session_state import SessionState
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import occupancy_grid
 from fleetslam.merging.global_map import RobotTrack
-from fleetslam.outputs import (
-    cloud_robot_summary,
-    read_robot_summary,
-    write_robot_files,
-    write_robot_summary,
-)
+from fleetslam.outputs import (cloud_robot_summary, read_robot_summary, write_robot_files,
+                               write_robot_summary)
 from fleetslam.pipeline.split import ROBOT_TRACKS
 from fleetslam.wire.data_tree import CheckpointError
 from fleetslam.wire.envelope import WireError

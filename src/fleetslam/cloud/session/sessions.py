@@ -14,11 +14,11 @@ from typing import Callable
 
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.camera import Camera
-from fleetslam.cloud.checkpoint_writer import KeyframeSink
-from fleetslam.cloud.memory_budget import sessions_allowed
-from fleetslam.cloud.robot_session import Publish, RobotSession
-from fleetslam.cloud.session_state import SessionState
-from fleetslam.cloud.store import CHECKPOINT, CloudStore
+from fleetslam.cloud.session.checkpoint_writer import KeyframeSink
+from fleetslam.cloud.session.memory_budget import sessions_allowed
+from fleetslam.cloud.session.robot_session import Publish, RobotSession
+from fleetslam.cloud.session.session_state import SessionState
+from fleetslam.cloud.session.store import CHECKPOINT, CloudStore
 from fleetslam.config import Config
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView

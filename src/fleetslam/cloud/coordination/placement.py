@@ -17,7 +17,7 @@ knows which one serves it. A robot's session lives on exactly one worker at a ti
   partition healing), the worker with the larger id gives the robot up.
 
 No state of its own is shared: every worker sees the same tokens, and the sessions'
-durable state lives in the shared store (``cloud/store.py``).
+durable state lives in the shared store (``cloud/session/store.py``).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from fleetslam.cloud.worker_load import WorkerLoads, spread
+from fleetslam.cloud.coordination.worker_load import WorkerLoads, spread
 from fleetslam.config import PlacementConfig
 from fleetslam.transport import keys
 

@@ -1,10 +1,9 @@
 """Which worker merges, and the keyframes its merger gets. One worker of the fleet runs the
-map merger (merger_service.py): with a coordination service the holder of the merger's
-fenced grant (fenced_placement.py), else the live one whose id sorts first. It takes its own sessions'
-keyframes as they are checkpointed, the other workers publish theirs to it
+map merger (merger_service.py): with a coordination service the holder of the merger's fenced grant
+(fenced_placement.py), else the live one whose id sorts first. It takes its own sessions' keyframes
+as they are checkpointed, the other workers publish theirs to it
 (``fleet/cloud/keyframes/<robot>``), and a worker that becomes the merger (the last one died or
-stopped) first takes every robot's keyframes from the store. A lone cloud is the merger.
-"""
+stopped) first takes every robot's keyframes from the store. A lone cloud is the merger."""
 
 from __future__ import annotations
 
@@ -14,19 +13,16 @@ from typing import Callable
 import numpy as np
 
 from fleetslam.camera import Camera
-from fleetslam.cloud.fleet_frames import FleetFrames
-from fleetslam.cloud.merger_service import MergerService
-from fleetslam.cloud.placement import Placement
-from fleetslam.cloud.robot_session import Publish, RobotSession
-from fleetslam.cloud.sessions import SessionTable
+from fleetslam.cloud.coordination.placement import Placement
+from fleetslam.cloud.merge.fleet_frames import FleetFrames
+from fleetslam.cloud.merge.merger_service import MergerService
+from fleetslam.cloud.session.robot_session import Publish, RobotSession
+from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.transport import keys
 from fleetslam.visualisation.live_view import NullView
-from fleetslam.wire.merger_keyframes import (
-    KeyframeSummary,
-    decode_merger_keyframe,
-    encode_merger_keyframe,
-)
+from fleetslam.wire.merger_keyframes import (KeyframeSummary, decode_merger_keyframe,
+                                             encode_merger_keyframe)
 
 log = logging.getLogger("fleetslam.cloud")
 

@@ -1,7 +1,8 @@
 """Which worker owns which robot, decided by etcd (not by who is reachable), with fencing tokens.
 
-Each worker holds one etcd lease of ``placement.lease_s`` seconds, renewed by a process of its
-own (``lease_keeper.py``: no renewal waits for the worker's busy interpreter). A robot's owner is the key ``<prefix>owner/<robot>`` = worker id, attached to that lease:
+Each worker holds one etcd lease of ``placement.lease_s`` seconds, renewed by a process of its own
+(``lease_keeper.py``: no renewal waits for the worker's busy interpreter). A robot's owner is the
+key ``<prefix>owner/<robot>`` = worker id, attached to that lease:
 
 - ``grant(robot)`` is one transaction: it succeeds only if the robot has no owner key (a dead
   worker's key went with its lease), and writes the key. Its **epoch** (the fencing token) is
@@ -29,9 +30,9 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, compare, delete_op, put_op,
-                                          range_op)
-from fleetslam.cloud.lease_keeper import LeaseKeeper
+from fleetslam.cloud.coordination.etcd_gateway import (EtcdClient, EtcdError, compare, delete_op,
+                                                       put_op, range_op)
+from fleetslam.cloud.coordination.lease_keeper import LeaseKeeper
 from fleetslam.config import PlacementConfig
 
 log = logging.getLogger("fleetslam.ownership")
@@ -75,11 +76,6 @@ class Owner:
     worker: str
     epoch: int
     lease: int
-
-
-class NotOwner(PermissionError):
-    """A write by a worker that does not (or no longer) own the robot with that epoch: an
-    OSError, so a checkpoint writer treats it as a write that did not happen."""
 
 
 class Ownership:

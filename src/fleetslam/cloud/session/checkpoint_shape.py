@@ -25,7 +25,7 @@ from fleetslam.backend.pose_graph import PoseEdge
 from fleetslam.backend.state import BackEndState, LoopDetection
 from fleetslam.backend.vocabulary import BowDatabase
 from fleetslam.camera import Camera
-from fleetslam.cloud.session_state import SessionState, TrajectoryRow
+from fleetslam.cloud.session.session_state import SessionState, TrajectoryRow
 from fleetslam.config import Config, check_config
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transport.protocol import Hello

@@ -30,13 +30,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterator
 
-from fleetslam.cloud import session_state
-from fleetslam.cloud.coordination_service import EtcdService
-from fleetslam.cloud.etcd_gateway import (EtcdClient, EtcdError, compare, delete_op, put_op,
-                                          range_op)
-from fleetslam.cloud.ownership import NotOwner, Ownership
-from fleetslam.cloud.session_state import SessionState
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.coordination.coordination_service import EtcdService
+from fleetslam.cloud.coordination.etcd_gateway import (EtcdClient, EtcdError, compare, delete_op,
+                                                       put_op, range_op)
+from fleetslam.cloud.coordination.ownership import Ownership
+from fleetslam.cloud.session import session_state
+from fleetslam.cloud.session.session_state import SessionState
+from fleetslam.cloud.session.store import CloudStore, NotOwner
 from fleetslam.config import TransportConfig
 from fleetslam.wire.data_tree import Capture, CheckpointError
 

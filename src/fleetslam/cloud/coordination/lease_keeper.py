@@ -35,7 +35,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from fleetslam.cloud.etcd_gateway import EtcdClient, EtcdError, EtcdTls, LeaseExpired
+from fleetslam.cloud.coordination.etcd_gateway import EtcdClient, EtcdError, EtcdTls, LeaseExpired
 
 # Renewals sent per lease period, evenly (12 per 2 s lease: one every 0.17 s, ~500 bytes
 # each way), and the connections they take turns on: renewals keep their spacing up to a

@@ -26,8 +26,8 @@ import threading
 import time
 from pathlib import Path
 
-from fleetslam.cloud import checkpoint_shape, session_state
-from fleetslam.cloud.session_state import SessionState
+from fleetslam.cloud.session import checkpoint_shape, session_state
+from fleetslam.cloud.session.session_state import SessionState
 from fleetslam.config import TransportConfig
 from fleetslam.io.files import UnreadableFile, Vet, read_regular
 from fleetslam.wire import npz_reader
@@ -40,6 +40,12 @@ _KEYFRAME_FILE = re.compile(r"^(\d+)\.fskf$")
 CHECKPOINT = "session.ckpt"
 # What earlier versions wrote: a pickle, which can run code when loaded, so it never is.
 OLD_PICKLE_CHECKPOINT = "session.pkl"
+
+
+class NotOwner(PermissionError):
+    """A write refused because the writer does not (or no longer) own the robot (a store
+    with owners: coordination/fenced_store.py): an OSError, so a checkpoint writer treats it
+    as a write that did not happen."""
 
 
 def write_durably(path: Path, data: bytes) -> None:

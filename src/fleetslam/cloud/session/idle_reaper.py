@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 
-from fleetslam.cloud.sessions import SessionTable
+from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import TransportConfig
 
 log = logging.getLogger("fleetslam.cloud")

@@ -5,10 +5,10 @@ logged and counted, never raised into a session. The query (merging/place_search
 asked for and its result taken when it comes: the merger's lock, which status and merges
 take, is held only while the merger changes, never while a search runs.
 
-With several cloud workers, one of them merges (merge_role.py: the holder of the merger's
-grant, or the live worker whose id sorts first); the others publish their robots' keyframes to it (wire/merger_keyframes.py),
-and a worker that becomes the merger takes every robot's keyframes from the store first.
-"""
+With several cloud workers, one of them merges (merge_role.py: the holder of the merger's grant, or
+the live worker whose id sorts first); the others publish their robots' keyframes to it
+(wire/merger_keyframes.py), and a worker that becomes the merger takes every robot's keyframes from
+the store first."""
 
 from __future__ import annotations
 
@@ -21,14 +21,14 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from fleetslam.camera import Camera
-from fleetslam.cloud.fleet_frames import FleetFrames
+from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.config import Config
 from fleetslam.mapping.map_frame import live_map_frame
-from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
 from fleetslam.transforms import invert
 from fleetslam.visualisation.live_view import NullView
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 log = logging.getLogger("fleetslam.merge")
 

@@ -24,7 +24,7 @@ import urllib.request
 from pathlib import Path
 from types import TracebackType
 
-from fleetslam.cloud.etcd_gateway import EtcdTls
+from fleetslam.cloud.coordination.etcd_gateway import EtcdTls
 
 log = logging.getLogger("fleetslam.coordination")
 

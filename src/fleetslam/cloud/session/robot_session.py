@@ -28,16 +28,17 @@ import numpy as np
 
 from fleetslam.backend.back_end import CloudBackEnd, new_state
 from fleetslam.backend.workers import LocalMappingPool
-from fleetslam.cloud import session_state
-from fleetslam.cloud.checkpoint_writer import CheckpointWriter, KeyframeSink
-from fleetslam.cloud.inbox import IDLE, REJECTION_REPLY_INTERVAL_S, Admission, Throttle, WorkQueue
-from fleetslam.cloud.memory_budget import MB, SessionBudget, captured_frame_bytes, held_bytes
-from fleetslam.cloud.session_outputs import FinishedMap, SessionOutputs
-from fleetslam.cloud.session_state import SessionState, TrajectoryRow
-from fleetslam.cloud.store import CloudStore
+from fleetslam.cloud.session import session_state
+from fleetslam.cloud.session.checkpoint_writer import CheckpointWriter, KeyframeSink
+from fleetslam.cloud.session.inbox import (IDLE, REJECTION_REPLY_INTERVAL_S, Admission, Throttle,
+                                           WorkQueue)
+from fleetslam.cloud.session.memory_budget import (MB, SessionBudget, captured_frame_bytes,
+                                                   held_bytes)
+from fleetslam.cloud.session.session_outputs import FinishedMap, SessionOutputs
+from fleetslam.cloud.session.session_state import SessionState, TrajectoryRow
+from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import keyframe_summary
-from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.pipeline.front_end import FrontEndState
 from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, StageTimer
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame, TrackedPose
@@ -48,13 +49,9 @@ from fleetslam.wire.data_tree import Capture
 from fleetslam.wire.envelope import Header, WireError
 from fleetslam.wire.frames import decode_frame_message, state_index_time
 from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
-from fleetslam.wire.messages import (
-    Feedback,
-    KeyframeUpload,
-    decode_keyframe,
-    encode_feedback,
-    encode_keyframe,
-)
+from fleetslam.wire.merger_keyframes import KeyframeSummary
+from fleetslam.wire.messages import (Feedback, KeyframeUpload, decode_keyframe, encode_feedback,
+                                     encode_keyframe)
 
 log = logging.getLogger("fleetslam.cloud")
 
