@@ -196,7 +196,7 @@ class FencedPlacement(Placement):
             # process stood still past its own fence. The newer grant rules.
             log.error("robot %s: granted to %s epoch %d while this worker held epoch %d: "
                       "giving it up", robot, kv.value.decode(), kv.create_revision, mine)
-            self.elections["given_up"] += 1
+            self._count("given_up")
             self.release(robot)  # out of this worker's grants too: serves() says no from now
             self._give_up(robot)
             return
@@ -206,7 +206,7 @@ class FencedPlacement(Placement):
             self.claim(MERGER)
         elif self._wants(robot):
             log.info("robot %s lost its owner: claiming it", robot)
-            self.elections["failovers"] += 1
+            self._count("failovers")
             with self._lock:
                 self._takeovers.add(robot)
             self.claim(robot)
@@ -217,7 +217,7 @@ class FencedPlacement(Placement):
         for robot, _epoch in robots:
             if robot == MERGER:
                 continue  # merges() says no from now on
-            self.elections["fenced"] += 1
+            self._count("fenced")
             self._give_up(robot)
 
     def _on_lost(self, robot: str, epoch: int, why: str) -> None:
@@ -299,12 +299,12 @@ class FencedPlacement(Placement):
                     self._closed.wait(self.cfg.settle_s)
                     continue
                 if epoch is None:
-                    self.elections["lost"] += 1
+                    self._count("lost")
                     return
                 if robot == MERGER:
                     log.info("worker %s merges (epoch %d)", self.worker_id, epoch)
                     return
-                self.elections["won"] += 1
+                self._count("won")
                 log.info("worker %s serves robot %s (epoch %d)", self.worker_id, robot, epoch)
                 self._won(robot)
                 return

@@ -66,6 +66,7 @@ class Placement:
         self._mine: dict[str, Any] = {}  # robot -> this worker's owner token
         self._electing: set[str] = set()
         self.elections = {"won": 0, "lost": 0, "failovers": 0, "given_up": 0}
+        self._counts_lock = threading.Lock()  # counted from the election, watch and lease threads
         self._closed = threading.Event()
         # One election at a time per worker: each bid's load counts the robots this worker
         # won just before, so robots arriving together tend to spread over the workers.
@@ -108,6 +109,10 @@ class Placement:
             token.undeclare()
         self.loads.close()
         self._undiscover()
+
+    def _count(self, what: str) -> None:
+        with self._counts_lock:
+            self.elections[what] = self.elections.get(what, 0) + 1
 
     # -- what the worker asks ---------------------------------------------------------------
 
@@ -183,11 +188,11 @@ class Placement:
         if conflict:
             log.warning("robot %s is also served by worker %s: giving it up", robot, worker)
             self.release(robot)
-            self.elections["given_up"] += 1
+            self._count("given_up")
             self._give_up(robot)
         elif orphaned and sample.kind == zenoh.SampleKind.DELETE and self._wants(robot):
             log.info("robot %s lost its worker %s: bidding to serve it", robot, worker)
-            self.elections["failovers"] += 1
+            self._count("failovers")
             self.claim(robot)
 
     def release(self, robot: str) -> None:
@@ -235,16 +240,16 @@ class Placement:
                             log.warning("robot %s is also served by worker %s: not taking it",
                                         robot, earlier)
                             self.release(robot)
-                            self.elections["given_up"] += 1
+                            self._count("given_up")
                             return
-                        self.elections["won"] += 1
+                        self._count("won")
                         log.info("worker %s serves robot %s (bids: %s)", self.worker_id,
                                  robot, ", ".join(bids))
                         self._won(robot)
                         return
                 finally:
                     token.undeclare()  # after the owner token is up: never a gap
-                self.elections["lost"] += 1
+                self._count("lost")
                 # Another bid won: it must show its owner token soon. If it does not (its
                 # worker died mid-election), bid again.
                 deadline = time.monotonic() + self.cfg.settle_s * 4
