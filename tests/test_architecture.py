@@ -1,6 +1,6 @@
 """The layers hold: the import-linter contracts of pyproject.toml are kept, no module takes
-part in an import cycle (function-level imports count), and the robot loads nothing of the
-cloud side."""
+part in an import cycle (function-level imports count), the robot loads nothing of the
+cloud side, and docs/internals.md names every module."""
 
 from __future__ import annotations
 
@@ -67,6 +67,22 @@ def strongly_connected(graph: dict[str, set[str]]) -> list[list[str]]:
                 if len(component) > 1:
                     cycles.append(sorted(component))
     return cycles
+
+
+def test_every_module_is_named_on_the_internals_page_and_every_path_it_names_exists():
+    """docs/internals.md walks a frame through the code and lays out every package: a module
+    it does not name is one a newcomer cannot find, and a path it names that is gone sends
+    them nowhere."""
+    import re
+
+    page = (ROOT / "docs" / "internals.md").read_text()
+    package = ROOT / "src" / "fleetslam"
+    unnamed = [str(p.relative_to(package)) for p in sorted(package.rglob("*.py"))
+               if p.name != "__init__.py" and p.name not in page]
+    assert not unnamed, f"modules docs/internals.md does not name: {unnamed}"
+    named = set(re.findall(r"`((?:[a-z_0-9]+/)+[a-z_0-9]+\.py)`", page))
+    gone = sorted(p for p in named if not (package / p).is_file() and not (ROOT / p).is_file())
+    assert named and not gone, f"paths docs/internals.md names that do not exist: {gone}"
 
 
 def test_no_module_takes_part_in_an_import_cycle():
