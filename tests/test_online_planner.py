@@ -68,3 +68,29 @@ def test_hello_and_trace_are_checked():
     for bad in ("0:10,0:1", "0:-1", "a:b"):
         with pytest.raises(ValueError, match="link trace"):
             parse_link_trace(bad)
+
+
+def test_the_planners_feature_count_reaches_extract_without_touching_the_config(
+        tmp_path_factory):
+    """An adaptive robot's feature count is the robot's front end's, from the next frame on;
+    the config (one object, read everywhere) is not a channel for it."""
+    from conftest import small_scene
+
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.pipeline.split import run_stages
+    from fleetslam.pipeline.states import CapturedFrame
+
+    folder = small_scene(tmp_path_factory, 2)[0]
+    config = Config()
+    robot = Robot("r1", RgbdSequence(folder), str(folder), 3, config, show_progress=False)
+    frame = RgbdSequence(folder)[0]
+    captured = CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m)
+    extract = robot.encoder.stages[:1]
+    full = run_stages(extract, captured, robot.encoder.sides)
+    assert robot.encoder.features == config.orb.n_features
+    robot.encoder.use_features(200)
+    fewer = run_stages(extract, captured, robot.encoder.sides)
+    assert robot.encoder.features == 200 and len(fewer.keypoints) <= 200 < len(full.keypoints)
+    assert config.orb.n_features == Config().orb.n_features

@@ -61,6 +61,18 @@ class FrameEncoder:
             write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
         return data
 
+    @property
+    def features(self) -> int:
+        """Features per frame the robot's Extract keeps (orb.n_features without one)."""
+        edge = self.sides.edge
+        return edge.features if edge is not None else self.config.orb.n_features
+
+    def use_features(self, n: int) -> None:
+        """From the next frame on, Extract keeps ``n`` features (an adaptive robot's choice;
+        at point 0 the cloud extracts, with its own setting)."""
+        if self.sides.edge is not None:
+            self.sides.edge.n_features = n
+
     # -- what the cloud says about references ---------------------------------------------
 
     def held(self, seq: int) -> None:

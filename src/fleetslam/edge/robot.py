@@ -342,7 +342,7 @@ class Robot:
     def _progress_note(self, k: int, step: int) -> str:
         return (f"kf {self.report.keyframes}"
                 + (f" camera skipped {self.live.skipped}" if self.live is not None else "")
-                + (f" k={k} f={self.config.orb.n_features} step={step}"
+                + (f" k={k} f={self.encoder.features} step={step}"
                    if self.planner is not None else ""))
 
     def _frames(self, start_index: int) -> Iterator[Frame]:
@@ -362,7 +362,7 @@ class Robot:
         if self.planner is not None and i > start_index \
                 and (i - start_index) % self.planner.cfg.replan_frames == 0:
             setting = self.planner.replan(i)
-            self.config.orb.n_features = setting.features  # read by Extract per frame
+            self.encoder.use_features(setting.features)
             return setting.k, setting.frame_step
         return k, step
 

@@ -33,6 +33,14 @@ class FrontEndState:
     last_depth_digest: bytes | None = None
     stale_depth_frames: int = 0
     _orb: cv2.ORB | None = None
+    # Features Extract keeps per frame: orb.n_features, or what an adaptive robot's planner
+    # chose for the frames from now on (0: orb.n_features; a checkpoint older than this
+    # field restores it so).
+    n_features: int = 0
+
+    @property
+    def features(self) -> int:
+        return self.n_features or self.config.orb.n_features
 
     @property
     def orb(self) -> cv2.ORB:
@@ -40,7 +48,7 @@ class FrontEndState:
         if self._orb is None:
             cfg = self.config.orb
             self._orb = cv2.ORB_create(
-                nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,
+                nfeatures=2 * self.features, scaleFactor=cfg.scale_factor,
                 nlevels=cfg.n_levels, fastThreshold=cfg.fast_threshold)
         return self._orb
 
@@ -101,7 +109,8 @@ class Extract:
         kps = session.orb.detect(gray, None)
         table = _keypoints_to_array(kps)
         cfg = session.config.orb
-        table = spread_over_grid(table, cfg.n_features, gray.shape, cfg.grid_cols, cfg.grid_rows)
+        table = spread_over_grid(table, session.features, gray.shape, cfg.grid_cols,
+                                 cfg.grid_rows)
         # One canonical order (pyramid level, then row, then column): neighbours follow each
         # other, so the wire's delta-coded positions are small (OpenCV's order is partly
         # shuffled by its per-level selection), and Describe keeps it (it wants level order).
