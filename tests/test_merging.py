@@ -75,7 +75,7 @@ def test_robots_join_only_when_two_matches_agree():
     assert merger.robots["b"].anchor == "b"
     event = merger._consider(_match(merger, poses, T_a_b, 6, 7))
     assert event is not None and event["anchor"] == "a" and event["matches"] == 2
-    found = invert(merger.T_global_map("a")) @ merger.T_global_map("b")
+    found = invert(merger.solve_T_global_map("a")) @ merger.solve_T_global_map("b")
     assert rotation_angle_deg(found[:3, :3].T @ T_a_b[:3, :3]) < 1e-3
     assert np.linalg.norm(found[:3, 3] - T_a_b[:3, 3]) < 1e-5
     assert merger.status()["robots"]["b"]["joined"]["frames"] == {"b": 6, "a": 7}
@@ -85,10 +85,10 @@ def test_a_wrong_inter_robot_edge_after_the_join_is_rejected_by_gnc():
     merger, poses, T_a_b = _merger_with_two_robots(seed=3)
     merger._consider(_match(merger, poses, T_a_b, 3, 5))
     merger._consider(_match(merger, poses, T_a_b, 6, 7))
-    before = invert(merger.T_global_map("a")) @ merger.T_global_map("b")
+    before = invert(merger.solve_T_global_map("a")) @ merger.solve_T_global_map("b")
     wrong = random_perturbation(np.random.default_rng(4), 25.0, 0.5)
     merger._consider(_match(merger, poses, T_a_b, 9, 2, wrong))
-    after = invert(merger.T_global_map("a")) @ merger.T_global_map("b")
+    after = invert(merger.solve_T_global_map("a")) @ merger.solve_T_global_map("b")
     assert [c.kept for c in merger.constraints] == [True, True, False]
     assert rotation_angle_deg(after[:3, :3].T @ before[:3, :3]) < 0.05
     assert np.linalg.norm(after[:3, 3] - before[:3, 3]) < 0.002

@@ -130,11 +130,12 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
 
     # Every constraint of the group on the keyframes' depth, before the graph places them.
     merger.refine_constraints(cloud_of)
-    graph_poses = merger.global_keyframe_poses()
+    graph_poses = merger.solve_keyframe_poses()
     result = GlobalMap(members, anchor, {}, {}, {}, {},
                        not_merged=_not_merged(merger, list(by_name), members))
     kf_poses = {m: graph_poses[m].copy() for m in members}
-    result.T_global_map_graph = {m: merger.T_global_map(m) for m in members}  # made level below
+    # Made level below.
+    result.T_global_map_graph = {m: merger.solve_T_global_map(m) for m in members}
     correction = {m: np.eye(4) for m in members}
     if config.merge.fshicp_refine and len(members) > 1:
         result.fshicp = _refine_by_fshicp(members, clouds, kf_poses, correction, config)
@@ -148,7 +149,7 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     poses = np.vstack([kf_poses[m] for m in sorted(members, key=lambda m: m != anchor)])
     graph = dict(result.T_global_map_graph)
     T_graph_anchor = correction.get(anchor, np.eye(4)) @ (
-        graph[anchor] if anchor in graph else merger.T_global_map(anchor))
+        graph[anchor] if anchor in graph else merger.solve_T_global_map(anchor))
     grid, T_map_graph, result.map_frame = _fleet_frame(
         list(zip(placed_points, origins)), poses.reshape(-1, 4, 4),
         merger.robots[anchor].camera, T_graph_anchor, config)

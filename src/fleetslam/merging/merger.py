@@ -337,7 +337,7 @@ class MapMerger:
             out.setdefault(r.anchor, []).append(r.name)
         return out
 
-    def global_keyframe_poses(self) -> dict[str, np.ndarray]:
+    def solve_keyframe_poses(self) -> dict[str, np.ndarray]:
         """Every robot's keyframe poses in its component's frame (K x 4 x 4), from the pose
         graph (re-optimised if anything changed since)."""
         if self._global is None:
@@ -390,11 +390,11 @@ class MapMerger:
             self.graph_seconds.append(time.perf_counter() - start)
         return out
 
-    def T_global_map(self, robot: str) -> np.ndarray:
+    def solve_T_global_map(self, robot: str) -> np.ndarray:
         """Where the graph puts the robot's map frame (its first keyframe's camera, as the
         map frame is the first camera) in its component's frame."""
         r = self.robots[robot]
-        poses = self.global_keyframe_poses()[robot]
+        poses = self.solve_keyframe_poses()[robot]
         if not len(poses):
             return r.T_anchor_map.copy()
         return poses[0] @ invert(r.poses[0])

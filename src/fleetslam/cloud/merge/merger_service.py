@@ -207,8 +207,8 @@ class MergerService:
             return
         m = self.merger
         level = self._level(m)
-        transforms = {name: level[name] @ m.T_global_map(name) for name in m.robots}
-        poses = m.global_keyframe_poses()
+        transforms = {name: level[name] @ m.solve_T_global_map(name) for name in m.robots}
+        poses = m.solve_keyframe_poses()
         lines = []
         for c in m.constraints:
             q, p = c.match.query, c.match.place
@@ -224,7 +224,7 @@ class MergerService:
         (map_frame.py: the anchor's mounting, else [grid] up; a merge finds the floor)."""
         out = {}
         for anchor, members in m.components().items():
-            T_graph_map = live_map_frame(m.T_global_map(anchor), m.robots[anchor].camera,
+            T_graph_map = live_map_frame(m.solve_T_global_map(anchor), m.robots[anchor].camera,
                                          self.grid)
             out.update({r: invert(T_graph_map) for r in members})
         return out
@@ -248,7 +248,8 @@ class MergerService:
                 joined = {r: anchor for anchor, members in m.components().items()
                           if len(members) > 1 for r in members}
                 level = self._level(m)
-                return {r: (anchor, level[r] @ m.T_global_map(r)) for r, anchor in joined.items()}
+                return {r: (anchor, level[r] @ m.solve_T_global_map(r))
+                        for r, anchor in joined.items()}
 
             self.frames.update(self.locked(placements))
         self.frames.resend_due()
