@@ -138,7 +138,7 @@ def test_the_merger_gets_a_keyframe_only_once_its_checkpoint_is_on_disk(frames, 
     session = RobotSession(_session_state(frames, 8), Config(), store, lambda k, d: None,
                            sink).start()
     try:
-        keyframe = session.newest_keyframe()
+        keyframe = session.keyframes.newest()
         session.checkpoints.checkpoint(7, keyframe)
         session.checkpoints.checkpoint(7)  # coalesced with the one before: its keyframe still goes
     finally:

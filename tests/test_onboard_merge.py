@@ -149,9 +149,9 @@ def test_the_session_keeps_each_keyframe_and_hands_it_on_after_its_checkpoint(tr
     assert all(on_disk > kf for kf, _, _, on_disk in seen)
     restored = RobotSession(store.load_checkpoint(ROBOT), exact_config(), store,
                             lambda k, d: None)
-    assert [kf.frame_index for kf in restored.all_keyframes()] == \
+    assert [kf.frame_index for kf in restored.keyframes.all()] == \
         [t.index for t in keyframes]
-    np.testing.assert_array_equal(restored.merger_poses(), keyframes[-1].keyframe_poses)
+    np.testing.assert_array_equal(restored.keyframes.poses(), keyframes[-1].keyframe_poses)
 
 
 def _run_robot(robot: Robot, errors: list) -> None:
@@ -208,10 +208,10 @@ def test_a_keyframe_lost_on_the_link_leaves_no_gap_in_the_merger(tracked, tmp_pa
     finally:
         session.close()
     kept = [i for i in keyframes if i != lost]
-    assert [kf.frame_index for kf in session.all_keyframes()] == kept
-    assert [kf.keyframe for kf in session.all_keyframes()] == list(range(len(kept)))
+    assert [kf.frame_index for kf in session.keyframes.all()] == kept
+    assert [kf.keyframe for kf in session.keyframes.all()] == list(range(len(kept)))
     robot_ids = [frames[i].reference_keyframe for i in kept]
-    np.testing.assert_array_equal(session.merger_poses(),
+    np.testing.assert_array_equal(session.keyframes.poses(),
                                   frames[kept[-1]].keyframe_poses[robot_ids])
     rows = [t for i, t in enumerate(frames) if i != lost]
     expected = [-1 if t.reference_keyframe == 1 else

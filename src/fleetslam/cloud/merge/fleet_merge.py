@@ -166,8 +166,8 @@ class FleetMerge:
                                        "checkpoint says so)"
                 continue
             state = session.state
-            self.merger.add_robot(robot_id, state.hello.camera, session.all_keyframes(),
-                                  session.merger_poses())
+            self.merger.add_robot(robot_id, state.hello.camera, session.keyframes.all(),
+                                  session.keyframes.poses())
             found.append(session.outputs.finished_map())
         return found, unfinished
 

@@ -67,8 +67,8 @@ class MergeRole:
             if restored is None:
                 self.merger.add_robot(robot_id, camera)
             else:
-                self.merger.add_robot(robot_id, camera, restored.all_keyframes(),
-                                      restored.merger_poses())
+                self.merger.add_robot(robot_id, camera, restored.keyframes.all(),
+                                      restored.keyframes.poses())
 
     def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
         """A session's new keyframe: to the merger here, or published for the worker that
@@ -92,4 +92,4 @@ class MergeRole:
         session = self.sessions.live(robot_id) or self.sessions.stored(robot_id)
         if session is None:
             return None
-        return (session.state.hello.camera, session.all_keyframes(), session.merger_poses())
+        return (session.state.hello.camera, session.keyframes.all(), session.keyframes.poses())

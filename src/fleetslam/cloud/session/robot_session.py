@@ -24,8 +24,6 @@ import time
 from collections import Counter
 from typing import Any, Callable
 
-import numpy as np
-
 from fleetslam.backend.back_end import CloudBackEnd, new_state
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.cloud.session import session_state
@@ -34,11 +32,11 @@ from fleetslam.cloud.session.inbox import (IDLE, REJECTION_REPLY_INTERVAL_S, Adm
                                            WorkQueue)
 from fleetslam.cloud.session.memory_budget import (MB, SessionBudget, captured_frame_bytes,
                                                    held_bytes)
+from fleetslam.cloud.session.session_keyframes import session_keyframes
 from fleetslam.cloud.session.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session.session_state import SessionState, TrajectoryRow
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.pipeline.front_end import FrontEndState
 from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, StageTimer
 from fleetslam.pipeline.states import CapturedFrame, TrackedFrame, TrackedPose
@@ -87,6 +85,8 @@ class RobotSession:
         # Whether this cloud tracks the robot (else it tracks itself, point 6, and sends its
         # poses); the back-end's state is kept either way (its counts go in the summary).
         self.tracks = state.hello.offload_at in CLOUD_TRACKS
+        # Its keyframes as the merger and the view take them (tracked here, or sent).
+        self.keyframes = session_keyframes(state)
         self.back_end = CloudBackEnd(config, state.hello.camera, state.tracking,
                                      local_mapping if self.tracks else None)
         self.outputs = SessionOutputs(state, config, store, self.back_end,
@@ -532,7 +532,7 @@ class RobotSession:
         if isinstance(state, CapturedFrame):
             # Total offloading: the cloud already has the keyframe's RGB-D.
             self._store_captured_keyframe(state, seq)
-        self.checkpoints.checkpoint(frame_index, self.newest_keyframe() if to_merger else None,
+        self.checkpoints.checkpoint(frame_index, self.keyframes.newest() if to_merger else None,
                                     now=False)
         if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
             lmap = self.state.tracking.map
@@ -615,44 +615,8 @@ class RobotSession:
         """A stored keyframe's points in the live view (nothing when it is off)."""
         if self.view.enabled:
             self.view.keyframe_points(self.robot_id, upload.frame_index,
-                                      self._keyframe_pose(upload.frame_index), upload.rgb,
+                                      self.keyframes.pose(upload.frame_index), upload.rgb,
                                       upload.depth_raw, upload.stride)
-
-    def _keyframe_pose(self, frame_index: int) -> np.ndarray:
-        """A keyframe's current pose: in the tracking map, or as its frame was tracked (a
-        robot that tracks itself)."""
-        if self.tracks:
-            for kf in reversed(list(self.state.tracking.map.keyframes)):
-                if kf.frame_index == frame_index:
-                    return kf.T_world_camera.copy()
-        for row in reversed(list(self.state.rows)):
-            if row.index == frame_index:
-                return row.T_world_camera
-        return np.eye(4)
-
-    def newest_keyframe(self) -> tuple[KeyframeSummary, np.ndarray]:
-        """The newest keyframe as the merger takes it, and every keyframe's current pose."""
-        if not self.tracks:
-            return self.state.robot_keyframes[-1], self.merger_poses()
-        lmap = self.state.tracking.map
-        return keyframe_summary(self.robot_id, lmap.keyframes[-1]), \
-            lmap.keyframe_poses()
-
-    def all_keyframes(self) -> list[KeyframeSummary]:
-        """Every keyframe as the merger takes it (a restored session re-joins the merger):
-        the tracking map's, or those a robot that tracks itself sent."""
-        if not self.tracks:
-            return list(self.state.robot_keyframes)
-        lmap = self.state.tracking.map
-        return [keyframe_summary(self.robot_id, kf) for kf in lmap.keyframes]
-
-    def merger_poses(self) -> np.ndarray:
-        """The current pose of every keyframe of ``all_keyframes`` (K x 4 x 4, in order)."""
-        if self.tracks:
-            return self.state.tracking.map.keyframe_poses()
-        poses = self.state.robot_keyframe_poses
-        return np.array([poses[kf.frame_index] for kf in self.state.robot_keyframes]
-                        ).reshape(-1, 4, 4)
 
     # -- control (the tracking thread, in order with the frames) --------------------------
 
