@@ -21,7 +21,7 @@ from fleetslam.cloud.coordination.placement import Placement
 from fleetslam.cloud.merge.merge_role import MergeRole
 from fleetslam.cloud.session.inbox import REJECTION_REPLY_INTERVAL_S, Throttle
 from fleetslam.cloud.session.memory_budget import sessions_allowed
-from fleetslam.cloud.session.robot_session import Publish
+from fleetslam.cloud.session.replies import Publish
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.transport import keys, protocol

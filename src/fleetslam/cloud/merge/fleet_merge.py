@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from fleetslam.cloud.merge.merger_service import MergerService
-from fleetslam.cloud.session.robot_session import Publish
+from fleetslam.cloud.session.replies import Publish
 from fleetslam.cloud.session.session_outputs import FinishedMap
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config

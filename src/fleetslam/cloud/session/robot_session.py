@@ -30,8 +30,10 @@ from fleetslam.cloud.session import session_state
 from fleetslam.cloud.session.checkpoint_writer import CheckpointWriter, KeyframeSink
 from fleetslam.cloud.session.inbox import (IDLE, REJECTION_REPLY_INTERVAL_S, Admission, Throttle,
                                            WorkQueue)
+from fleetslam.cloud.session.keyframe_uploads import KeyframeUploads
 from fleetslam.cloud.session.memory_budget import (MB, SessionBudget, captured_frame_bytes,
                                                    held_bytes)
+from fleetslam.cloud.session.replies import Publish, Replies
 from fleetslam.cloud.session.session_keyframes import session_keyframes
 from fleetslam.cloud.session.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session.session_state import SessionState, TrajectoryRow
@@ -48,8 +50,7 @@ from fleetslam.wire.envelope import Header, WireError
 from fleetslam.wire.frames import decode_frame_message, state_index_time
 from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
 from fleetslam.wire.merger_keyframes import KeyframeSummary
-from fleetslam.wire.messages import (Feedback, KeyframeUpload, decode_keyframe, encode_feedback,
-                                     encode_keyframe)
+from fleetslam.wire.messages import Feedback, encode_feedback
 
 log = logging.getLogger("fleetslam.cloud")
 
@@ -66,8 +67,6 @@ OVER_BUDGET = {"frame": "frames dropped unread (over memory budget)",
                "keyframe": "keyframes dropped unread (over memory budget)"}
 
 
-Publish = Callable[[str, bytes], None]
-
 
 class RobotSession:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
@@ -79,9 +78,6 @@ class RobotSession:
         self.view = view or NullView()
         self.config = config
         self.store = store
-        self._send = publish
-        # Set when another worker owns the robot now (a fence): nothing more is said to it.
-        self._dropped = threading.Event()
         # Whether this cloud tracks the robot (else it tracks itself, point 6, and sends its
         # poses); the back-end's state is kept either way (its counts go in the summary).
         self.tracks = state.hello.offload_at in CLOUD_TRACKS
@@ -99,9 +95,11 @@ class RobotSession:
         # session refuses references to frames before it, and the robot sends intra).
         self.references = ReferenceRing(config.wire.reference_frames)
         # The frame and keyframe threads both count, and status reads the counts.
-        self._counts_lock = threading.Lock()
-        self.admission = Admission(state.robot_id, config.transport, state.counts,
-                                   self._counts_lock)
+        counts_lock = threading.Lock()
+        self.admission = Admission(state.robot_id, config.transport, state.counts, counts_lock)
+        # What it says to the robot (nothing more once dropped: another worker serves it).
+        self.replies = Replies(state.robot_id, publish, self.admission, state.counts,
+                               counts_lock)
         self.last_heard = self.opened = time.monotonic()
         # Whether a frame has arrived (a hello alone holds a slot only until it is needed).
         self.heard_frame = False
@@ -141,12 +139,14 @@ class RobotSession:
                                             ended=lambda: self.state.ended,
                                             written=self.chunks.confirm,
                                             interval_s=config.transport.checkpoint_interval_s)
+        self.uploads = KeyframeUploads(state, config, store, self.checkpoints, self.budget,
+                                       self.replies, self.keyframes, self.view)
         self._threads = [
             threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
                              daemon=True),
             threading.Thread(target=self._serve_tracking, name=f"cloud-{state.robot_id}",
                              daemon=True),
-            threading.Thread(target=self._serve, args=(self._keyframes, self._on_upload),
+            threading.Thread(target=self._serve, args=(self._keyframes, self.uploads.take),
                              name=f"cloud-{state.robot_id}-keyframes", daemon=True),
         ]
 
@@ -182,20 +182,16 @@ class RobotSession:
                 t.join(timeout)
         if final_checkpoint:
             self.checkpoints.checkpoint(self.state.last_index)
-        elif not self._dropped.is_set():
+        elif not self.replies.dropped.is_set():
             self.checkpoints.capture()  # a keyframe's, waiting for its interval
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
         self.checkpoints.close(timeout)
-
-    def publish(self, key: str, data: bytes) -> None:
-        if not self._dropped.is_set():
-            self._send(key, data)
 
     def drop(self) -> None:
         """Stop at once saying anything to the robot (another worker serves it now), and
         close without a checkpoint (the store would refuse it) on a thread of its own: the
         caller may be the lease's, which must not wait for the work queued."""
-        self._dropped.set()
+        self.replies.dropped.set()
         threading.Thread(target=self.close, name=f"drop-{self.robot_id}", daemon=True).start()
 
     def drain(self, timeout: float = 60.0) -> None:
@@ -228,13 +224,13 @@ class RobotSession:
         refused = self.admission.control_refused()
         if refused is not None:
             if refused != "paused":
-                self._reject("control", refused, protocol.Code.REFUSED)
+                self.replies.reject("control", refused, protocol.Code.REFUSED)
             return False
         if message.get("type") == "end":
             with self._end_lock:
                 if self._end_waiting:
                     self._end_latest = message
-                    self.count("ends while one waits")
+                    self.replies.count("ends while one waits")
                     return True
                 self._end_waiting = True
         self._frames.put(("control", message, arrival))
@@ -244,7 +240,7 @@ class RobotSession:
         """A control message that did not parse: counted against the robot like a bad frame
         (a flood of them pauses it), the reason told at most once per interval."""
         self.last_heard = time.monotonic()
-        self._reject("control", reason, protocol.Code.BAD_MESSAGE)
+        self.replies.reject("control", reason, protocol.Code.BAD_MESSAGE)
 
     def submit_keyframe(self, data: bytes, arrival: float) -> None:
         self.last_heard = time.monotonic()
@@ -257,10 +253,10 @@ class RobotSession:
         dropped unread (counted) and the robot told to slow down, at most once a second."""
         if self.budget.admit(charge):
             return True
-        self.count(OVER_BUDGET[what])
+        self.replies.count(OVER_BUDGET[what])
         if self._over_budget_told.due("over budget"):
             limit = self.config.transport.session_budget_mb
-            self._reply(protocol.error(
+            self.replies.reply(protocol.error(
                 protocol.Code.OVER_BUDGET,
                 f"{what} dropped unread: the session holds its memory budget of {limit:.0f} MB "
                 f"(transport.session_budget_mb); keep to max_frames_in_flight"
@@ -270,13 +266,8 @@ class RobotSession:
 
     # -- counts -------------------------------------------------------------------------
 
-    def count(self, name: str, n: int = 1) -> None:
-        with self._counts_lock:
-            self.state.counts[name] += n
-
     def counts(self) -> Counter:
-        with self._counts_lock:
-            return Counter(self.state.counts)
+        return self.replies.counts()
 
     def _transport_counts(self) -> dict[str, int]:
         """The counts as the summary's ``transport`` has them."""
@@ -287,7 +278,7 @@ class RobotSession:
     def _snapshot(self) -> Capture:
         """The state as a checkpoint now; under the counts lock, since the keyframe thread
         counts while this copies."""
-        with self._counts_lock:
+        with self.replies.counts_lock:
             return session_state.capture(self.state, self.chunks)
 
     # -- threads ------------------------------------------------------------------------
@@ -325,7 +316,7 @@ class RobotSession:
 
     def _failed(self, kind: str, exc: Exception) -> None:
         """Count a failure; its traceback goes to the log once per reason and interval."""
-        self.count("errors")
+        self.replies.count("errors")
         if self._failure_log.due(f"{kind} {type(exc).__name__} {exc}"):
             log.error("robot %s: %s message failed (%d failures so far)", self.robot_id,
                       kind, self.counts()["errors"], exc_info=exc)
@@ -369,17 +360,6 @@ class RobotSession:
         elif kind == "call":
             payload()
 
-    def _reject(self, what: str, reason: str,
-                code: protocol.Code = protocol.Code.REJECTED, **extra: Any) -> None:
-        """Count and log a rejected message; the robot hears why unless it heard a reason
-        less than a second ago (inbox.Admission)."""
-        told = self.admission.rejected(what, reason)
-        if told is not None:
-            self._reply(protocol.error(code, told, rejected=what, **extra))
-
-    def _reply(self, message: dict[str, Any]) -> None:
-        self.publish(keys.reply(self.robot_id), protocol.encode(message))
-
     # -- frames (receive thread: _decode; tracking thread: the rest) ----------------------
 
     def _decode(self, data: bytes, arrival: float) -> tuple | None:
@@ -388,13 +368,13 @@ class RobotSession:
         try:
             header, state = decode_frame_message(data, self.state.hello.camera, self.references)
         except MissingReference as exc:
-            return self._reject("frame", str(exc), protocol.Code.REFERENCE_MISSING,
-                                seq=exc.seq, missing=exc.missing)
+            return self.replies.reject("frame", str(exc), protocol.Code.REFERENCE_MISSING,
+                                       seq=exc.seq, missing=exc.missing)
         except WireError as exc:
-            return self._reject("frame", str(exc))
+            return self.replies.reject("frame", str(exc))
         if header.robot_id != self.robot_id:
-            return self._reject("frame", f"header names robot {header.robot_id!r}, "
-                                         f"sent on {self.robot_id!r}'s key")
+            return self.replies.reject("frame", f"header names robot {header.robot_id!r}, "
+                                                f"sent on {self.robot_id!r}'s key")
         reference = reference_of(state)
         # Only ever newer seqs: a replayed or reordered message must not replace what a
         # later frame was coded against.
@@ -403,7 +383,7 @@ class RobotSession:
             if reference is not None and self.references.size:
                 self.references.put(header.seq, reference)
                 self.budget.references(self.references.nbytes())
-                self._reply(protocol.held(header.seq))
+                self.replies.reply(protocol.held(header.seq))
         return ("frame", (header, state), arrival)
 
     def _on_frame(self, decoded: tuple, arrival: float) -> None:
@@ -413,17 +393,17 @@ class RobotSession:
         switching = st.hello.adaptive and header.split_point in CLOUD_TRACKS
         if header.split_point != st.hello.offload_at and not switching:
             # No session at this point: the robot says hello again (on the code).
-            return self._reject("frame", f"split point {header.split_point}, but the session "
-                                         f"offloads at {st.hello.offload_at} (send a hello)",
-                                protocol.Code.NO_SESSION)
+            return self.replies.reject(
+                "frame", f"split point {header.split_point}, but the session offloads at "
+                         f"{st.hello.offload_at} (send a hello)", protocol.Code.NO_SESSION)
         out_of_sequence = self._out_of_sequence(header, state_index_time(state)[0])
         if out_of_sequence is not None:
-            return self._reject("frame", out_of_sequence)
+            return self.replies.reject("frame", out_of_sequence)
         wrong_keyframe = self._wrong_robot_keyframe(state)
         if wrong_keyframe is not None:
-            return self._reject("frame", wrong_keyframe)
+            return self.replies.reject("frame", wrong_keyframe)
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
-            self.count("frames lost in transit", header.seq - st.last_seq - 1)
+            self.replies.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
         out = self._track(state, header.split_point)
         cloud_ms = 1000.0 * (time.perf_counter() - start)
@@ -433,8 +413,8 @@ class RobotSession:
             self._on_new_keyframe(state, header.seq, out.index, self.tracks or merged)
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
                             out.n_inliers, out.T_world_camera, cloud_ms)
-        self.publish(keys.feedback(self.robot_id), encode_feedback(self.robot_id, header.seq,
-                                                                   feedback))
+        self.replies.publish(keys.feedback(self.robot_id),
+                             encode_feedback(self.robot_id, header.seq, feedback))
         st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
 
     def _out_of_sequence(self, header: Header, index: int) -> str | None:
@@ -510,7 +490,7 @@ class RobotSession:
         st = self.state
         st.last_seq = header.seq
         st.last_index = out.index
-        self.count("frames")
+        self.replies.count("frames")
         st.rows.append(TrajectoryRow(out.index, out.timestamp, out.T_world_camera.copy(),
                                      out.tracked, out.is_keyframe, out.reference_keyframe,
                                      out.T_reference_camera))
@@ -531,7 +511,7 @@ class RobotSession:
         merged keyframe is one a restart or a takeover forgets."""
         if isinstance(state, CapturedFrame):
             # Total offloading: the cloud already has the keyframe's RGB-D.
-            self._store_captured_keyframe(state, seq)
+            self.uploads.store_captured(state, seq)
         self.checkpoints.checkpoint(frame_index, self.keyframes.newest() if to_merger else None,
                                     now=False)
         if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
@@ -539,94 +519,15 @@ class RobotSession:
             self.view.keyframe_poses(self.robot_id, [kf.frame_index for kf in lmap.keyframes],
                                      lmap.keyframe_poses())
 
-    # -- keyframes (the keyframe thread: uploads; the tracking thread: the rest) ----------
-
-    def _on_upload(self, kind: str, data: bytes, arrival: float) -> None:
-        """An upload off the keyframe queue; its bytes leave the budget once handled."""
-        try:
-            self._on_keyframe(kind, data, arrival)
-        finally:
-            self.budget.release(len(data))
-
-    def _on_keyframe(self, kind: str, data: bytes, arrival: float) -> None:
-        """A keyframe's upload: checked, stored, acknowledged once a checkpoint covers it."""
-        try:
-            header, upload = decode_keyframe(data, self.state.hello.camera)
-        except WireError as exc:
-            return self._reject("keyframe", str(exc))
-        if header.robot_id != self.robot_id:
-            return self._reject("keyframe", f"header names robot {header.robot_id!r}")
-        wrong_size = self._wrong_size(upload)
-        if wrong_size is not None:
-            return self._reject("keyframe", wrong_size)
-        if upload.frame_index not in self._keyframe_frames():
-            return self._reject("keyframe", f"frame {upload.frame_index} is not a keyframe of "
-                                            f"this session", protocol.Code.NOT_A_KEYFRAME,
-                                frame_index=upload.frame_index)
-        # Stored only once a checkpoint that knows it as a keyframe is on disk (it may wait
-        # for transport.checkpoint_interval_s), so a keyframe file in the store is one of the
-        # map's after any restart; a crash between the two leaves a keyframe without its
-        # file, which the end asks the robot for again. Acknowledged once both are on disk
-        # (a resent one is acknowledged again).
-        if not self.checkpoints.wait_for_frame(upload.frame_index):
-            return self._reject("keyframe", f"frame {upload.frame_index}: no checkpoint "
-                                            f"covers it yet (not acknowledged; resend)")
-        if self.store.has_keyframe(self.robot_id, upload.frame_index):
-            self.count("duplicate keyframe uploads")
-        elif self.counts()["keyframes stored"] >= self.config.transport.max_keyframes:
-            return self._reject("keyframe", f"the session stores at most "
-                                            f"{self.config.transport.max_keyframes} keyframes "
-                                            f"(transport.max_keyframes)")
-        else:
-            self.store.put_keyframe(self.robot_id, upload.frame_index, data)
-            self.count("keyframes stored")
-            self._show_keyframe(upload)
-        self._reply(protocol.ack(upload.frame_index))
-
-    def _wrong_size(self, upload: KeyframeUpload) -> str | None:
-        """Why an upload's images are not the map's (decimation, size), or None."""
-        if upload.stride not in (1, self.config.map.pixel_stride):
-            return (f"decimated by {upload.stride}, the map samples "
-                    f"every {self.config.map.pixel_stride} pixels")
-        camera = self.state.hello.camera
-        expected = (-(-camera.height // upload.stride), -(-camera.width // upload.stride))
-        if upload.rgb.shape[:2] != expected or upload.depth_raw.shape != expected:
-            return (f"frame {upload.frame_index}: images of "
-                    f"{upload.rgb.shape[:2]} / {upload.depth_raw.shape}, "
-                    f"the camera decimated by {upload.stride} gives {expected}")
-        return None
-
-    def _keyframe_frames(self) -> set[int]:
-        """Frame indices this session took as keyframes (a robot at point 6 says which)."""
-        rows = list(self.state.rows)
-        return {r.index for r in rows if r.is_keyframe}
-
-    def _store_captured_keyframe(self, frame: CapturedFrame, seq: int) -> None:
-        depth_raw = self.state.hello.camera.metres_to_depth(frame.depth_m)
-        if depth_raw is None:  # decoded from sensor units, so this cannot happen
-            raise ValueError(f"frame {frame.index}: depth is not in the camera's sensor units")
-        upload = KeyframeUpload.from_frame(frame.index, frame.timestamp, frame.rgb, depth_raw,
-                                           self.config.map.pixel_stride)
-        self.store.put_keyframe(self.robot_id, frame.index,
-                                encode_keyframe(self.robot_id, seq, upload, self.config.wire))
-        self._show_keyframe(upload)
-
-    def _show_keyframe(self, upload: KeyframeUpload) -> None:
-        """A stored keyframe's points in the live view (nothing when it is off)."""
-        if self.view.enabled:
-            self.view.keyframe_points(self.robot_id, upload.frame_index,
-                                      self.keyframes.pose(upload.frame_index), upload.rgb,
-                                      upload.depth_raw, upload.stride)
-
     # -- control (the tracking thread, in order with the frames) --------------------------
 
     def welcome(self, resumed: bool, taken_over: bool = False) -> None:
         st = self.state
-        self._reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
-                                     len(self.store.keyframe_indices(self.robot_id)),
-                                     self.references.size, taken_over,
-                                     st.rows[-1].timestamp if st.rows else None,
-                                     self.history_lost))
+        self.replies.reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
+                                            len(self.store.keyframe_indices(self.robot_id)),
+                                            self.references.size, taken_over,
+                                            st.rows[-1].timestamp if st.rows else None,
+                                            self.history_lost))
 
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")
@@ -635,8 +536,8 @@ class RobotSession:
         elif kind == "end":
             self._on_end(message, arrival)
         else:
-            self._reject("control", f"unknown control message {str(kind)[:40]!r}",
-                         protocol.Code.UNKNOWN_TYPE)
+            self.replies.reject("control", f"unknown control message {str(kind)[:40]!r}",
+                                protocol.Code.UNKNOWN_TYPE)
 
     def _on_end(self, message: dict[str, Any] | None, arrival: float) -> None:
         """The robot's end: once its last frame is in and every keyframe uploaded, the
@@ -680,11 +581,11 @@ class RobotSession:
             camera = protocol.end_camera(message)
             unavailable = protocol.end_unavailable(message)
         except ValueError as exc:
-            return self._reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc),
-                                              answer_to="end"))
+            return self.replies.reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc),
+                                                     answer_to="end"))
         if not self.state.rows:
             rejected = self.counts()["rejected frame"]
-            return self._reply(protocol.error(
+            return self.replies.reply(protocol.error(
                 protocol.Code.REFUSED,
                 f"nothing to end: the cloud tracked no frame of robot {self.robot_id}"
                 + (f" ({rejected} frames rejected)" if rejected else "")
@@ -698,7 +599,7 @@ class RobotSession:
         missing = [i for i in self.outputs.keyframe_poses()
                    if not self.store.has_keyframe(self.robot_id, i) and i not in unavailable]
         if missing:
-            return self._reply(protocol.need(missing))
+            return self.replies.reply(protocol.need(missing))
         self.finished = self.outputs.finish(camera)
         t2 = time.perf_counter()
         # Durable before the robot hears "ended": another worker restores it finished.
@@ -711,10 +612,10 @@ class RobotSession:
             self.state.ended, self.finished = False, None
             log.error("robot %s: its final checkpoint is not durable (%s): not ended",
                       self.robot_id, why)
-            return self._reply(protocol.error(
+            return self.replies.reply(protocol.error(
                 protocol.Code.FAILED, f"the session's final checkpoint is not durable ({why}): "
                 f"nothing ended; keep what you hold and end again", answer_to="end"))
         log.info("robot %s ended in %.2f s: last loop queries and local BA %.2f s, outputs "
                  "%.2f s, final checkpoint %.2f s", self.robot_id, time.perf_counter() - t0,
                  t1 - t0, t2 - t1, time.perf_counter() - t2)
-        self._reply(protocol.ended(self.finished.summary))
+        self.replies.reply(protocol.ended(self.finished.summary))

@@ -16,7 +16,8 @@ from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.camera import Camera
 from fleetslam.cloud.session.checkpoint_writer import KeyframeSink
 from fleetslam.cloud.session.memory_budget import sessions_allowed
-from fleetslam.cloud.session.robot_session import Publish, RobotSession
+from fleetslam.cloud.session.replies import Publish
+from fleetslam.cloud.session.robot_session import RobotSession
 from fleetslam.cloud.session.session_state import SessionState
 from fleetslam.cloud.session.store import CHECKPOINT, CloudStore
 from fleetslam.config import Config
