@@ -30,6 +30,7 @@ from fleetslam.cloud.session import session_state
 from fleetslam.cloud.session.checkpoint_writer import CheckpointWriter, KeyframeSink
 from fleetslam.cloud.session.inbox import (IDLE, REJECTION_REPLY_INTERVAL_S, Admission, Throttle,
                                            WorkQueue)
+from fleetslam.cloud.session.end_handshake import EndHandshake
 from fleetslam.cloud.session.keyframe_uploads import KeyframeUploads
 from fleetslam.cloud.session.memory_budget import (MB, SessionBudget, captured_frame_bytes,
                                                    held_bytes)
@@ -87,7 +88,6 @@ class RobotSession:
                                      local_mapping if self.tracks else None)
         self.outputs = SessionOutputs(state, config, store, self.back_end,
                                       self._transport_counts)
-        self.finished: FinishedMap | None = None
         # Why the robot's earlier session could not be restored (None: nothing was lost);
         # every welcome of this session says so.
         self.history_lost: str | None = None
@@ -117,15 +117,6 @@ class RobotSession:
                                   lambda item: self.budget.release(item[1][2]))
         self._decoded_seq = state.last_seq  # newest frame put in the reference ring
         self._keyframes: queue.Queue = queue.Queue()
-        # At most one end per session waits (queued or for frames in flight): a robot's
-        # resent ends only replace the waiting one's content, so a flood of ends is one end
-        # (no queue, no timer each). Under _end_lock: a Zenoh callback and the tracking
-        # thread both change them.
-        self._end_lock = threading.Lock()
-        self._end_waiting = False
-        self._end_latest: dict[str, Any] | None = None
-        self._end_message: dict[str, Any] | None = None  # the end the tracking thread holds
-        self._end_since: float | None = None  # when the tracking thread first got to it
         # A failure is logged with its traceback once per reason and interval (a robot
         # repeating the message that fails must not fill the log).
         self._failure_log = Throttle(REJECTION_REPLY_INTERVAL_S)
@@ -139,6 +130,8 @@ class RobotSession:
                                             ended=lambda: self.state.ended,
                                             written=self.chunks.confirm,
                                             interval_s=config.transport.checkpoint_interval_s)
+        self.ends = EndHandshake(state, config, store, self.back_end, self.outputs,
+                                 self.checkpoints, self.replies, self._frames)
         self.uploads = KeyframeUploads(state, config, store, self.checkpoints, self.budget,
                                        self.replies, self.keyframes, self.view)
         self._threads = [
@@ -164,8 +157,8 @@ class RobotSession:
     def start(self) -> "RobotSession":
         """Start the session's threads; a session restored after its robot ended has its
         finished map for the merge (its outputs were written before that checkpoint)."""
-        if self.state.ended and self.finished is None:
-            self.finished = self.outputs.finished_map()
+        if self.state.ended and self.ends.finished is None:
+            self.ends.finished = self.outputs.finished_map()
         for t in self._threads:
             t.start()
         self.checkpoints.start()
@@ -226,13 +219,8 @@ class RobotSession:
             if refused != "paused":
                 self.replies.reject("control", refused, protocol.Code.REFUSED)
             return False
-        if message.get("type") == "end":
-            with self._end_lock:
-                if self._end_waiting:
-                    self._end_latest = message
-                    self.replies.count("ends while one waits")
-                    return True
-                self._end_waiting = True
+        if message.get("type") == "end" and not self.ends.offer(message):
+            return True
         self._frames.put(("control", message, arrival))
         return True
 
@@ -296,14 +284,14 @@ class RobotSession:
         after each frame and every END_RECHECK_S, a keyframe's checkpoint waiting for its
         interval when it is due (this thread's own timers: no thread per end)."""
         while True:
-            waits = [END_RECHECK_S if self._end_since is not None else None,
+            waits = [END_RECHECK_S if self.ends.held_for_frames else None,
                      self.checkpoints.due_in()]
             item = self._decoded.get(min((w for w in waits if w is not None), default=None))
             if item is None:
                 return
             if item is not IDLE:
                 self._handle(self._on_work, item)
-            if self._end_since is not None and (item is IDLE or item[0] == "frame"):
+            if self.ends.held_for_frames and (item is IDLE or item[0] == "frame"):
                 self._handle(self._on_work, ("end again", None, 0.0))
             self._handle(lambda *_: self.checkpoints.capture_due(), ("checkpoint", None, 0.0))
 
@@ -356,7 +344,7 @@ class RobotSession:
         elif kind == "control":
             self._on_control(payload, arrival)
         elif kind == "end again":  # the end held for frames in flight
-            self._on_end(None, arrival)
+            self.ends.take(None, arrival)
         elif kind == "call":
             payload()
 
@@ -534,88 +522,12 @@ class RobotSession:
         if kind == "hello":
             self.welcome(resumed=True)
         elif kind == "end":
-            self._on_end(message, arrival)
+            self.ends.take(message, arrival)
         else:
             self.replies.reject("control", f"unknown control message {str(kind)[:40]!r}",
                                 protocol.Code.UNKNOWN_TYPE)
 
-    def _on_end(self, message: dict[str, Any] | None, arrival: float) -> None:
-        """The robot's end: once its last frame is in and every keyframe uploaded, the
-        robot's outputs are written and a final checkpoint is on disk before it hears
-        "ended" (with its summary); "need" names the uploads still missing. An end before
-        any frame was tracked is refused with the reason: there is no trajectory or map to
-        write, and a finished session without them would enter the merge as a robot
-        without a map; unfinished, the session takes the robot's frames if they come."""
-        with self._end_lock:  # the newest end the robot sent is the one answered
-            if self._end_latest is not None:
-                message, self._end_latest = self._end_latest, None
-        message = message or self._end_message
-        if message is None:
-            return
-        now = time.monotonic()
-        # The grace period runs from when this session first got to the end (behind any
-        # backlog of frames), not from its arrival: a busy session must not give up on
-        # a last frame that arrived while it was still working through earlier ones.
-        if self._end_since is None:
-            self._end_since = now
-        self._end_message = message
-        last_seq = message.get("last_seq")
-        if (isinstance(last_seq, int) and last_seq > self.state.last_seq
-                and now - self._end_since < self.config.transport.end_grace_s):
-            # Frames travel on another key than control messages and may arrive after
-            # the end that follows them: the tracking thread looks again (_serve_tracking).
-            return
-        self._end_since = self._end_message = None
-        try:
-            self._answer_end(message)
-        finally:
-            with self._end_lock:
-                latest, self._end_latest = self._end_latest, None
-                self._end_waiting = latest is not None
-            if latest is not None:  # one more came meanwhile: answered in turn
-                self._frames.put(("control", latest, arrival))
-
-    def _answer_end(self, message: dict[str, Any]) -> None:
-        try:
-            poses = protocol.keyframe_poses(message)
-            camera = protocol.end_camera(message)
-            unavailable = protocol.end_unavailable(message)
-        except ValueError as exc:
-            return self.replies.reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc),
-                                                     answer_to="end"))
-        if not self.state.rows:
-            rejected = self.counts()["rejected frame"]
-            return self.replies.reply(protocol.error(
-                protocol.Code.REFUSED,
-                f"nothing to end: the cloud tracked no frame of robot {self.robot_id}"
-                + (f" ({rejected} frames rejected)" if rejected else "")
-                + "; no trajectory or map is written", answer_to="end"))
-        self.state.robot_keyframe_poses.update(poses)
-        t0 = time.perf_counter()
-        self.back_end.finish()
-        t1 = time.perf_counter()
-        # A keyframe the robot cannot upload (a live camera's, gone) is mapped without its
-        # images rather than asked for again.
-        missing = [i for i in self.outputs.keyframe_poses()
-                   if not self.store.has_keyframe(self.robot_id, i) and i not in unavailable]
-        if missing:
-            return self.replies.reply(protocol.need(missing))
-        self.finished = self.outputs.finish(camera)
-        t2 = time.perf_counter()
-        # Durable before the robot hears "ended": another worker restores it finished.
-        self.state.ended = True
-        number = self.checkpoints.checkpoint(self.state.last_index)
-        why = self.checkpoints.not_durable(number)
-        if why is not None:
-            # "ended" means the finished session is durable and current: not so, the robot
-            # keeps what it holds and ends again (with this worker, or the next owner).
-            self.state.ended, self.finished = False, None
-            log.error("robot %s: its final checkpoint is not durable (%s): not ended",
-                      self.robot_id, why)
-            return self.replies.reply(protocol.error(
-                protocol.Code.FAILED, f"the session's final checkpoint is not durable ({why}): "
-                f"nothing ended; keep what you hold and end again", answer_to="end"))
-        log.info("robot %s ended in %.2f s: last loop queries and local BA %.2f s, outputs "
-                 "%.2f s, final checkpoint %.2f s", self.robot_id, time.perf_counter() - t0,
-                 t1 - t0, t2 - t1, time.perf_counter() - t2)
-        self.replies.reply(protocol.ended(self.finished.summary))
+    @property
+    def finished(self) -> FinishedMap | None:
+        """The robot's finished map once its end is durable (None: not ended)."""
+        return self.ends.finished
