@@ -285,13 +285,13 @@ class FencedPlacement(Placement):
             for attempt in range(self.cfg.max_rounds):
                 with self._lock:
                     held = self._owners.get(robot)
-                    unheard = held if held and self._owner_unheard(robot, held) else None
-                if self._closed.is_set() or (robot != MERGER and self.owner(robot)):
+                    unheard = held is not None and self._owner_unheard(robot, held)
+                if self._closed.is_set() or (robot != MERGER and held and not unheard):
                     return
                 try:
-                    if unheard is not None:
-                        self.ownership.evict(robot, unheard[1], f"its owner {unheard[0]!r} "
-                                             f"is a worker nobody hears: taken over")
+                    if unheard:
+                        self.ownership.evict(robot, held[1], f"its owner {held[0]!r} is a "
+                                             f"worker nobody hears: taken over")
                     epoch = self.ownership.grant(robot)
                 except EtcdError as exc:
                     log.warning("robot %s: etcd not asked (%s); again in %g s (round %d)",

@@ -103,10 +103,6 @@ class Ownership:
     def ttl_s(self) -> float:
         return float(self.lease_s)
 
-    @property
-    def margin_s(self) -> float:
-        return self.ttl_s / 4
-
     # -- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> "Ownership":

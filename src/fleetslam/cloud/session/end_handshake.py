@@ -60,7 +60,7 @@ class EndHandshake:
         """An end waits for frames still in flight (the tracking thread looks again)."""
         return self._since is not None
 
-    def take(self, message: dict[str, Any] | None, arrival: float) -> FinishedMap | None:
+    def take(self, message: dict[str, Any] | None, arrival: float) -> None:
         """The robot's end: once its last frame is in and every keyframe uploaded, the
         robot's outputs are written and a final checkpoint is on disk before it hears
         "ended" (with its summary); "need" names the uploads still missing. An end before
@@ -72,7 +72,7 @@ class EndHandshake:
                 message, self._latest = self._latest, None
         message = message or self._message
         if message is None:
-            return None
+            return
         now = time.monotonic()
         # The grace period runs from when this session first got to the end (behind any
         # backlog of frames), not from its arrival: a busy session must not give up on
@@ -85,10 +85,10 @@ class EndHandshake:
                 and now - self._since < self.config.transport.end_grace_s):
             # Frames travel on another key than control messages and may arrive after
             # the end that follows them: the tracking thread looks again (held_for_frames).
-            return None
+            return
         self._since = self._message = None
         try:
-            return self._answer(message)
+            self._answer(message)
         finally:
             with self._lock:
                 latest, self._latest = self._latest, None
@@ -96,24 +96,22 @@ class EndHandshake:
             if latest is not None:  # one more came meanwhile: answered in turn
                 self.inbox.put(("control", latest, arrival))
 
-    def _answer(self, message: dict[str, Any]) -> FinishedMap | None:
-        """The answer to an end: error, need, or ended (the finished map, durable)."""
+    def _answer(self, message: dict[str, Any]) -> None:
+        """The answer to an end: error, need, or ended (``finished`` set first, durable)."""
         try:
             poses = protocol.keyframe_poses(message)
             camera = protocol.end_camera(message)
             unavailable = protocol.end_unavailable(message)
         except ValueError as exc:
-            self.replies.reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc),
-                                              answer_to="end"))
-            return None
+            return self.replies.reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc),
+                                                     answer_to="end"))
         if not self.state.rows:
             rejected = self.replies.counts()["rejected frame"]
-            self.replies.reply(protocol.error(
+            return self.replies.reply(protocol.error(
                 protocol.Code.REFUSED,
                 f"nothing to end: the cloud tracked no frame of robot {self.robot_id}"
                 + (f" ({rejected} frames rejected)" if rejected else "")
                 + "; no trajectory or map is written", answer_to="end"))
-            return None
         self.state.robot_keyframe_poses.update(poses)
         t0 = time.perf_counter()
         self.back_end.finish()
@@ -123,8 +121,7 @@ class EndHandshake:
         missing = [i for i in self.outputs.keyframe_poses()
                    if not self.store.has_keyframe(self.robot_id, i) and i not in unavailable]
         if missing:
-            self.replies.reply(protocol.need(missing))
-            return None
+            return self.replies.reply(protocol.need(missing))
         finished = self.outputs.finish(camera)
         t2 = time.perf_counter()
         # Durable before the robot hears "ended": another worker restores it finished.
@@ -137,13 +134,11 @@ class EndHandshake:
             self.state.ended = False
             log.error("robot %s: its final checkpoint is not durable (%s): not ended",
                       self.robot_id, why)
-            self.replies.reply(protocol.error(
+            return self.replies.reply(protocol.error(
                 protocol.Code.FAILED, f"the session's final checkpoint is not durable ({why}): "
                 f"nothing ended; keep what you hold and end again", answer_to="end"))
-            return None
         log.info("robot %s ended in %.2f s: last loop queries and local BA %.2f s, outputs "
                  "%.2f s, final checkpoint %.2f s", self.robot_id, time.perf_counter() - t0,
                  t1 - t0, t2 - t1, time.perf_counter() - t2)
         self.finished = finished
         self.replies.reply(protocol.ended(finished.summary))
-        return finished
