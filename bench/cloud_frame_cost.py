@@ -72,7 +72,7 @@ def run(msgs: list[bytes], camera: Camera, pool: LocalMappingPool | None) -> dic
             wall.append(1000.0 * (time.perf_counter() - t0))
         span = time.perf_counter() - start
         cpu = time.process_time() - cpu_start
-        session.back_end.finish()
+        session.tracker.slam.finish()
         st = session.state
         session.close()
     cloud = list(st.cloud_ms)

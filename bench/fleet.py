@@ -35,7 +35,7 @@ from shared_data import SEVEN_SCENES
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.launch import free_endpoint, start_cloud, stop
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.tables import format_table
@@ -52,7 +52,7 @@ K = 3
 def robot_messages(robot_id: str, first: int, frames: int, source: Path = SEQ
                    ) -> tuple[list[bytes], dict]:
     seq = RgbdSequence(source, first=first, last=first + frames - 1)
-    pipeline = TrackingPipeline(Config(), seq.camera)
+    pipeline = RobotSlam.new(Config(), seq.camera)
     stages = pipeline.split(K)[0]
     msgs = []
     for n, f in enumerate(seq):

@@ -50,7 +50,7 @@ from fleetslam.datasets.recording import open_source  # noqa: E402
 from fleetslam.datasets.tum import RgbdSequence  # noqa: E402
 from fleetslam.evaluation.fleet import trajectory_ate  # noqa: E402
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop  # noqa: E402
-from fleetslam.backend.back_end import TrackingPipeline  # noqa: E402
+from fleetslam.backend.robot_slam import RobotSlam  # noqa: E402
 from fleetslam.pipeline.split import run_stages  # noqa: E402
 from fleetslam.pipeline.states import CapturedFrame  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
@@ -70,7 +70,7 @@ def attack_messages(folder: Path) -> list[tuple[str, bytes, str]]:
     """(key, payload, what) the attacker cycles through: made from real frames."""
     seq = RgbdSequence(folder)
     camera, config = seq.camera, Config()
-    pipeline = TrackingPipeline(config, camera)
+    pipeline = RobotSlam.new(config, camera)
     states, frames = [], []
     for i, f in enumerate(seq):
         if i == 4:

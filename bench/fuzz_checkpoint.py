@@ -52,7 +52,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fleetslam.backend.back_end import TrackingPipeline, new_state
+from fleetslam.backend.back_end import new_state
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.session.session_state import SessionState, TrajectoryRow, capture
 from fleetslam.cloud.session.store import CHECKPOINT, CloudStore
 from fleetslam.config import Config
@@ -70,7 +71,7 @@ def seeds(frames: int, data: Path = DATA) -> tuple[list[bytes], Any, CapturedFra
     seq = RgbdSequence(data)
     captured = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
                 for f, _ in zip(seq, range(frames + 1))]
-    pipeline = TrackingPipeline(Config(), seq.camera)
+    pipeline = RobotSlam.new(Config(), seq.camera)
     rows = []
     for frame in captured[:frames]:
         out = pipeline.track(frame)
@@ -276,8 +277,8 @@ def run_case(data: bytes, folder: Path, camera: Any, frame: CapturedFrame) -> st
         if str(folder / "r0" / CHECKPOINT) not in str(exc):
             raise AssertionError(f"refusal without the file: {exc}") from None
         return "refused"
-    pipeline = TrackingPipeline(state.tracking.config, state.hello.camera,
-                                front_end=state.front_end, state=state.tracking)
+    pipeline = RobotSlam(state.tracking.config, state.hello.camera,
+                       front_end=state.front_end, state=state.tracking)
     with np.errstate(all="ignore"):  # a mutated value may be odd yet valid: no noise
         pipeline.track(frame)
     return "restored"

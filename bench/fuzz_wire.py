@@ -62,7 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # shared_data, run as 
 from fleetslam.camera import Camera  # noqa: E402
 from fleetslam.config import Config, WireConfig  # noqa: E402
 from fleetslam.datasets.tum import RgbdSequence  # noqa: E402
-from fleetslam.backend.back_end import TrackingPipeline  # noqa: E402
+from fleetslam.backend.robot_slam import RobotSlam  # noqa: E402
 from fleetslam.pipeline.split import run_stages  # noqa: E402
 from fleetslam.pipeline.states import CapturedFrame  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
@@ -188,7 +188,7 @@ def build_context(n_frames: int = 3, small: bool = False) -> Context:
     variants = {"png+zstd": config.wire, "jpeg": WireConfig(frame_image_codec="jpeg"),
                 "raw": WireConfig(compress=False)}
     for k in range(7):
-        pipeline = TrackingPipeline(config, camera)
+        pipeline = RobotSlam.new(config, camera)
         robot, _ = pipeline.split(k)
         for seq_no, frame in enumerate(frames):
             state = run_stages(robot, frame, pipeline.sides)

@@ -31,7 +31,7 @@ import zstandard
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
@@ -140,7 +140,7 @@ def measure(name: str, folder: Path, last: int | None) -> dict:
     seq = RgbdSequence(folder, last=None if last is None or last >= len(RgbdSequence(folder))
                        else last)
     camera = seq.camera
-    pipeline = TrackingPipeline(Config(), camera)
+    pipeline = RobotSlam.new(Config(), camera)
     robot, _ = pipeline.split(K)
     progress = Progress(f"point-3 states {name}", len(seq))
     states = []

@@ -40,7 +40,7 @@ from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.evaluation.fleet import run_ate
 from fleetslam.backend.loop_closing import verify
 from fleetslam.backend.places import make_database
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.registration.metrics import transform_error
@@ -161,7 +161,7 @@ def summarise_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
 def track_session(folder: Path, config: Config) -> tuple[RgbdSequence, BackEndState]:
     """Run the pipeline over a sequence; return the sequence and the final cloud session."""
     seq = RgbdSequence(folder)
-    pipeline = TrackingPipeline(config, seq.camera)
+    pipeline = RobotSlam.new(config, seq.camera)
     for frame in seq:
         pipeline.track(CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m))
     return seq, pipeline.state

@@ -22,7 +22,7 @@ import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
 from fleetslam.tables import format_table
@@ -44,7 +44,7 @@ def measure(name: str, folder: Path, last: int | None) -> dict:
     wire = config.wire
     jpeg = replace(wire, frame_image_codec="jpeg")
     uncompressed = replace(wire, compress=False)
-    pipeline = TrackingPipeline(config, seq.camera)
+    pipeline = RobotSlam.new(config, seq.camera)
     n_points = len(pipeline.stages) + 1
     zstd: list[list[int]] = [[] for _ in range(n_points)]
     raw: list[list[int]] = [[] for _ in range(n_points)]

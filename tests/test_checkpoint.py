@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import small_scene
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.camera import Camera
 from fleetslam.cloud.session.session_state import (CHECKPOINT_CLASSES, SessionState, TrajectoryRow,
                                                    capture)
@@ -32,7 +32,7 @@ def frames(tmp_path_factory):
 
 def test_a_restored_session_tracks_on_exactly_as_the_original(frames, tmp_path):
     camera, captured = frames
-    original = TrackingPipeline(Config(), camera)
+    original = RobotSlam.new(Config(), camera)
     rows = []
     for frame in captured[:10]:
         out = original.track(frame)
@@ -46,7 +46,7 @@ def test_a_restored_session_tracks_on_exactly_as_the_original(frames, tmp_path):
     assert store.robots_with_checkpoints() == ["r0"]
     restored = store.load_checkpoint("r0")
     assert restored.hello == state.hello and len(restored.rows) == 10
-    again = TrackingPipeline(Config(), camera, front_end=restored.front_end,
+    again = RobotSlam(Config(), camera, front_end=restored.front_end,
                              state=restored.tracking)
     for frame in captured[10:]:
         a, b = original.track(frame), again.track(frame)
@@ -90,7 +90,7 @@ def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp
 
 def _session_state(frames, n: int) -> SessionState:
     camera, captured = frames
-    pipeline = TrackingPipeline(Config(), camera)
+    pipeline = RobotSlam.new(Config(), camera)
     for frame in captured[:n]:
         pipeline.track(frame)
     return SessionState("r0", Hello(3, camera, "test"), pipeline.state,

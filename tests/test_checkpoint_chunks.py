@@ -11,7 +11,7 @@ import shutil
 import pytest
 
 from conftest import small_scene
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.session import session_state
 from fleetslam.cloud.session.session_state import Chunks, SessionState, TrajectoryRow, capture
 from fleetslam.cloud.session.store import CloudStore
@@ -42,7 +42,7 @@ class Run:
 
     def __init__(self, frames) -> None:
         self.camera, self.captured = frames
-        self.pipeline = TrackingPipeline(Config(), self.camera)
+        self.pipeline = RobotSlam.new(Config(), self.camera)
         self.rows: list[TrajectoryRow] = []
 
     def track(self, n: int) -> SessionState:
@@ -92,7 +92,7 @@ def test_only_new_chunks_are_written_and_the_restored_session_tracks_on_exactly(
     for name in ("descriptors", "owner"):
         assert getattr(restored.tracking.places, name).tobytes() == \
             getattr(state.tracking.places, name).tobytes()
-    again = TrackingPipeline(Config(), run.camera, front_end=restored.front_end,
+    again = RobotSlam(Config(), run.camera, front_end=restored.front_end,
                              state=restored.tracking)
     for frame in run.captured[10:]:
         a, b = run.pipeline.track(frame), again.track(frame)

@@ -21,7 +21,7 @@ from conftest import exact_config, small_scene, wait_for
 from fleetslam.cloud.server import CloudServer
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.launch import free_endpoint
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import keys, protocol
@@ -47,8 +47,8 @@ def robot_messages(scene, k: int) -> dict:
     out = {}
     for name, folder in zip(("r0", "r1"), scene):
         seq = RgbdSequence(folder)
-        robot = TrackingPipeline(exact_config(), seq.camera)
-        reference = TrackingPipeline(exact_config(), seq.camera)
+        robot = RobotSlam.new(exact_config(), seq.camera)
+        reference = RobotSlam.new(exact_config(), seq.camera)
         msgs, poses = [], []
         for seq_no, f in enumerate(seq):
             frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
@@ -319,7 +319,7 @@ def test_frames_are_held_as_references_when_decoded_not_when_tracked(messages, t
     session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), exact_config(),
                                 CloudStore(tmp_path), lambda key, data: sent.append((key, data)))
     gate = threading.Event()
-    session._decoded.put(("call", lambda: gate.wait(30), 0.0))  # the tracker is busy
+    session.run_in_order(lambda: gate.wait(30))  # the tracker is busy
     now = time.monotonic()
     for data in msgs0:
         session.submit_frame(data, now)
@@ -346,7 +346,7 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
     server, client = cloud
     seq = RgbdSequence(scene[0])
     camera, config = seq.camera, exact_config()
-    robot_side, reference = TrackingPipeline(config, camera), TrackingPipeline(config, camera)
+    robot_side, reference = RobotSlam.new(config, camera), RobotSlam.new(config, camera)
     states, expected = [], []
     for f in seq:
         frame = CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)
@@ -400,16 +400,17 @@ def test_hostile_frames_that_decode_are_rejected_with_a_reason_and_tracking_goes
 
 
 def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
-    from fleetslam.cloud.session.inbox import WorkQueue
+    from fleetslam.cloud.session.inbox import ControlItem, FrameItem, WorkQueue
 
     q = WorkQueue(max_frames=3)
     for i in range(3):
-        q.put(("frame", i, 0.0))
-    q.put(("control", "end", 0.0))
-    q.put(("frame", 3, 0.0))
-    q.put(("frame", 4, 0.0))
-    got = [q.get()[1] for _ in range(4)]
-    assert got == [2, "end", 3, 4] and q.dropped == 2
+        q.put(FrameItem(bytes([i]), 0.0, 1))
+    q.put(ControlItem({"type": "end"}, 0.0))
+    q.put(FrameItem(b"\x03", 0.0, 1))
+    q.put(FrameItem(b"\x04", 0.0, 1))
+    got = [q.get() for _ in range(4)]
+    assert [getattr(x, "data", None) or x.message["type"] for x in got] == \
+        [b"\x02", "end", b"\x03", b"\x04"] and q.dropped == 2
 
 
 def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scene, messages):
@@ -839,7 +840,7 @@ def test_a_missing_reference_is_refused_and_the_robot_falls_back_to_intra(cloud,
     assert welcome["reference_frames"] == exact_config().wire.reference_frames
     config = exact_config()
     encoder = InterEncoder(config.wire, welcome["reference_frames"])
-    pipeline = TrackingPipeline(config, seq.camera)
+    pipeline = RobotSlam.new(config, seq.camera)
     frames = [CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m) for f in seq]
     kinds, tracked = [], []
     for seq_no, frame in enumerate(frames):
@@ -863,7 +864,7 @@ def test_a_missing_reference_is_refused_and_the_robot_falls_back_to_intra(cloud,
         tracked.append(fb.T_world_camera)
     assert kinds[0] == Kind.FRAME and kinds[6] == Kind.FRAME  # first, and after the refusal
     assert all(k == Kind.FRAME_INTER for k in kinds[1:6] + kinds[7:]), kinds
-    reference = TrackingPipeline(exact_config(), seq.camera)
+    reference = RobotSlam.new(exact_config(), seq.camera)
     expected = [reference.track(f).T_world_camera for i, f in enumerate(frames) if i != 5]
     np.testing.assert_array_equal(np.array(tracked), np.array(expected))
     counts = server.sessions["r0"].state.counts

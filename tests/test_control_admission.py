@@ -134,13 +134,13 @@ def test_a_robot_paused_for_flooding_control_is_dropped_unread(scene, tmp_path):
 
 def _first_frame(folder, robot_id: str) -> bytes:
     """The first frame message a robot at point 3 sends."""
-    from fleetslam.backend.back_end import TrackingPipeline
+    from fleetslam.backend.robot_slam import RobotSlam
     from fleetslam.pipeline.split import run_stages
     from fleetslam.pipeline.states import CapturedFrame
 
     seq = RgbdSequence(folder)
     f = seq[0]
-    pipeline = TrackingPipeline(exact_config(), seq.camera)
+    pipeline = RobotSlam.new(exact_config(), seq.camera)
     state = run_stages(pipeline.split(3)[0], CapturedFrame(f.index, f.timestamp, f.rgb,
                                                            f.depth_m), pipeline.sides)
     return encode_frame_message(state, 3, robot_id, 0, seq.camera, exact_config().wire)
@@ -232,12 +232,12 @@ def test_a_robot_refused_by_a_full_cloud_says_the_cloud_is_full(scene, tmp_path)
 @pytest.fixture(scope="module")
 def point6(scene):
     """The camera and the tracked states of a robot that tracks itself (point 6)."""
-    from fleetslam.backend.back_end import TrackingPipeline
+    from fleetslam.backend.robot_slam import RobotSlam
     from fleetslam.pipeline.split import run_stages
     from fleetslam.pipeline.states import CapturedFrame
 
     seq = RgbdSequence(scene[0])
-    robot = TrackingPipeline(exact_config(), seq.camera)
+    robot = RobotSlam.new(exact_config(), seq.camera)
     return seq.camera, [run_stages(robot.split(6)[0],
                                    CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m),
                                    robot.sides) for f in seq]

@@ -109,8 +109,8 @@ def test_a_third_pass_over_a_mapped_place_adds_few_keyframes():
     for i in range(len(sequence)):
         tracker.step(i)
         if i in (199, 397):
-            counts.append(len(tracker.session.map.keyframes))
-    first, third = counts[0], len(tracker.session.map.keyframes) - counts[1]
+            counts.append(len(tracker.state.map.keyframes))
+    first, third = counts[0], len(tracker.state.map.keyframes) - counts[1]
     run = tracker.finish()
     assert run.lost_frames == 0
     # Measured: 22 keyframes on the first pass, 2 on the third (12 from the newest).

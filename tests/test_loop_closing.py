@@ -135,9 +135,9 @@ def kitchen_run():
     seq = open_source(f"{require(SEVEN_SCENES)}:0-199")
     config = Config()
     config.loop_closing.global_ba = False
-    from fleetslam.backend.back_end import TrackingPipeline
+    from fleetslam.backend.robot_slam import RobotSlam
     from fleetslam.pipeline.states import CapturedFrame
-    pipeline = TrackingPipeline(config, seq.camera)
+    pipeline = RobotSlam.new(config, seq.camera)
     out = [pipeline.track(CapturedFrame(f.index, f.timestamp, f.rgb, f.depth_m)) for f in seq]
     return seq, pipeline.state, out
 

@@ -55,12 +55,8 @@ def _bytes_of(x: object) -> int:
 
 def queued_bytes(session: RobotSession) -> int:
     """Bytes of the frames waiting in the session's two inboxes, measured on the items."""
-    total = 0
-    for q in (session._frames, session._decoded):
-        with q._ready:
-            items = list(q._items)
-        total += sum(_bytes_of(i[1]) for i in items if i is not None and i[0] == "frame")
-    return total
+    return sum(_bytes_of(item.data) + _bytes_of(item.decoded)
+               for item in session.queued_frames())
 
 
 def _session(camera, config: Config, tmp_path, replies: list) -> RobotSession:
@@ -72,7 +68,7 @@ def _session(camera, config: Config, tmp_path, replies: list) -> RobotSession:
 def _hold_tracking(session: RobotSession) -> threading.Event:
     """The tracking thread waits until the returned event is set (a slow map)."""
     gate = threading.Event()
-    session._frames.put(("call", gate.wait, 0.0))
+    session.run_in_order(gate.wait, before_decoding=True)
     return gate
 
 

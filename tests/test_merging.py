@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import SEVEN_SCENES, TUM_RPY, require
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
@@ -149,7 +149,7 @@ def test_two_robots_join_whichever_starts_first():
     joined only when r1's keyframes were searched first. Poses come from the ground truth so
     that the test is about the search alone (tracking is tested elsewhere)."""
     seq = RgbdSequence(require(SEVEN_SCENES), first=0, last=349)
-    pipeline = TrackingPipeline(Config(), seq.camera)
+    pipeline = RobotSlam.new(Config(), seq.camera)
     stages = pipeline.split(3)[0]
     robots: dict[str, list[tuple[KeyframeSummary, np.ndarray]]] = {}
     for name, frames in {"r0": range(0, 200, 6), "r1": range(250, 350, 6)}.items():

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import SEVEN_SCENES, exact_config, require
 
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.server import CloudServer
 from fleetslam.cloud.session.memory_budget import held_bytes
 from fleetslam.cloud.session.robot_session import RobotSession
@@ -35,7 +35,7 @@ ROBOT = "r0"
 def tracked():
     """The camera and the tracked frames of a robot tracking redkitchen 0-29 by itself."""
     sequence = open_source(f"{require(SEVEN_SCENES)}:0-{N_FRAMES - 1}")
-    pipeline = TrackingPipeline(exact_config(), sequence.camera)
+    pipeline = RobotSlam.new(exact_config(), sequence.camera)
     frames = [run_stages(pipeline.stages, CapturedFrame(f.index, f.timestamp, f.rgb,
                                                         f.depth_m), pipeline.sides)
               for f in sequence]
@@ -174,7 +174,7 @@ def test_robots_that_track_themselves_are_merged(tmp_path, points):
         for i, (span, k) in enumerate(zip(("0-59", "30-89"), points)):
             sequence = open_source(f"{folder}:{span}")
             config = Config()
-            onboard = TrackingPipeline(config, sequence.camera) if k == 6 else None
+            onboard = RobotSlam.new(config, sequence.camera) if k == 6 else None
             robots.append(Robot(f"r{i}", sequence, span, k, config, endpoint,
                                 show_progress=False, onboard=onboard))
         threads = [threading.Thread(target=_run_robot, args=(r, errors)) for r in robots]

@@ -321,7 +321,7 @@ def test_ended_only_when_the_final_checkpoint_is_durable(etcd, keys, tmp_path,
 
     from conftest import exact_config, small_scene
 
-    from fleetslam.backend.back_end import TrackingPipeline
+    from fleetslam.backend.robot_slam import RobotSlam
     from fleetslam.cloud.session.robot_session import RobotSession
     from fleetslam.datasets.tum import RgbdSequence
     from fleetslam.pipeline.split import run_stages
@@ -331,7 +331,7 @@ def test_ended_only_when_the_final_checkpoint_is_durable(etcd, keys, tmp_path,
 
     folder = small_scene(tmp_path_factory, 6)[0]
     seq = RgbdSequence(folder)
-    robot = TrackingPipeline(exact_config(), seq.camera)
+    robot = RobotSlam.new(exact_config(), seq.camera)
     messages = []
     for n, f in enumerate(seq):
         state = run_stages(robot.split(3)[0], CapturedFrame(f.index, f.timestamp, f.rgb,

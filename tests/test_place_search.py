@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import SEVEN_SCENES, require
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.merge.merger_service import MergerService
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
@@ -28,7 +28,7 @@ def keyframes():
     """Robot a: redkitchen frames 0, 12, ... 84; robot b: 6, 18, ... 90 (same place, other
     views). Poses are not searched, so identity."""
     seq = RgbdSequence(require(SEVEN_SCENES), first=0, last=90)
-    pipeline = TrackingPipeline(Config(), seq.camera)
+    pipeline = RobotSlam.new(Config(), seq.camera)
     stages = pipeline.split(3)[0]
     out: dict[str, list[KeyframeSummary]] = {"a": [], "b": []}
     for f in seq:

@@ -16,13 +16,11 @@ import numpy as np
 import pytest
 
 from conftest import SEVEN_SCENES, require
-from fleetslam.backend.back_end import CloudBackEnd, TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.edge.robot import Robot
-from fleetslam.pipeline.front_end import FrontEndState
 from fleetslam.pipeline.split import (
-    FRONT_END_LENGTH,
     INTER_POINTS,
     ROBOT_TRACKS,
     SUPPORTED_POINTS,
@@ -52,7 +50,7 @@ def frames():
 def expected(frames):
     """Poses and keyframe decisions of the whole pipeline in one process."""
     sequence, captured = frames
-    reference = TrackingPipeline(Config(), sequence.camera)
+    reference = RobotSlam.new(Config(), sequence.camera)
     assert len(reference.stages) == 6
     out = [reference.track(f) for f in captured]
     poses = np.array([t.T_world_camera for t in out])
@@ -69,7 +67,7 @@ class RobotSide:
     def __init__(self, sequence: RgbdSequence, k: int) -> None:
         config = Config()
         # At point 6 the robot tracks by itself: the command line gives it the pipeline.
-        onboard = TrackingPipeline(config, sequence.camera) if k == ROBOT_TRACKS else None
+        onboard = RobotSlam.new(config, sequence.camera) if k == ROBOT_TRACKS else None
         self.robot = Robot(ROBOT, sequence, "test", k, config, show_progress=False,
                            onboard=onboard)
         self.k, self.camera = k, sequence.camera
@@ -101,9 +99,7 @@ class CloudSide:
         camera = self.hello.camera
         self.k = self.hello.offload_at
         self.tracks = self.k != ROBOT_TRACKS
-        self.back_end = CloudBackEnd(self.config, camera)
-        self.front_end = FrontEndState(self.config, camera) \
-            if self.k < FRONT_END_LENGTH else None
+        self.slam = RobotSlam(self.config, camera)
         self.references = ReferenceRing(self.config.wire.reference_frames)
 
     def track(self, data: bytes) -> tuple[int, object]:
@@ -112,7 +108,7 @@ class CloudSide:
         assert header.robot_id == ROBOT and header.split_point == self.k
         self.references.put(header.seq, reference_of(state))
         # At point 6 the robot tracked: the cloud records the result it sent.
-        out = self.back_end.track(state, self.k, self.front_end) if self.tracks else state
+        out = self.slam.track(state, self.k) if self.tracks else state
         return header.seq, out
 
 
@@ -146,13 +142,15 @@ def test_where_the_robot_holds_what(frames):
     """Each process holds only the state its stages read: at points 0-3 the tracking map
     lives only in the cloud, at point 6 only on the robot; the cloud runs the front end (and
     holds its state) only where the robot does not."""
-    sequence, _ = frames
+    sequence, captured = frames
     holds = {}
     for k in SUPPORTED_POINTS:
         robot = RobotSide(sequence, k)
         cloud = CloudSide(robot.hello())
+        robot.welcomed(cloud.references.size)
+        cloud.track(robot.frame_message(captured[0], 0))
         holds[k] = (robot.sides.edge is not None, robot.sides.cloud is not None,
-                    cloud.front_end is not None)
+                    cloud.slam.front_end is not None)
     assert holds == {0: (False, False, True), 1: (True, False, True), 2: (True, False, True),
                      3: (True, False, False), 6: (True, True, False)}
 
@@ -171,7 +169,7 @@ def test_the_codec_is_exact_where_the_map_would_be_split(frames, expected, k):
     with pytest.raises(ValueError, match="not supported"):
         Hello.parse(json.loads(json.dumps(Hello(k, camera, "test").message(N_FRAMES))))
     config = Config()
-    pipeline = TrackingPipeline(config, camera)
+    pipeline = RobotSlam.new(config, camera)
     robot_stages, cloud_stages = pipeline.split(k)
     cloud_sides = Sides(None, pipeline.state)  # the shared map, no front end
     references = ReferenceRing(config.wire.reference_frames)
@@ -193,4 +191,4 @@ def test_the_codec_is_exact_where_the_map_would_be_split(frames, expected, k):
 def test_split_point_out_of_range(frames):
     sequence, _ = frames
     with pytest.raises(ValueError, match="offloading point"):
-        TrackingPipeline(Config(), sequence.camera).split(7)
+        RobotSlam.new(Config(), sequence.camera).split(7)

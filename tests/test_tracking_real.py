@@ -91,7 +91,7 @@ def _tracked(last: int):
     tracker = RobotTracker("r", str(TUM_RPY), seq, Config())
     for i in range(len(seq)):
         tracker.step(i)
-    return tracker.session
+    return tracker.state
 
 
 def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():

@@ -20,7 +20,7 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config, SyntheticConfig, WireConfig
 from fleetslam.datasets.synthetic import generate_scene
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import (
     CapturedFrame,
@@ -284,7 +284,7 @@ def assert_same_state(original, decoded, k: int, path: str = "state") -> None:
 
 
 def run_reference(camera: Camera, frames: list[CapturedFrame]) -> tuple[np.ndarray, list[bool]]:
-    pipeline = TrackingPipeline(Config(), camera)
+    pipeline = RobotSlam.new(Config(), camera)
     out = [pipeline.track(f) for f in frames]
     return np.array([o.T_world_camera for o in out]), [o.is_keyframe for o in out]
 
@@ -294,7 +294,7 @@ def run_through_wire(camera: Camera, frames: list[CapturedFrame], k: int,
     """Robot stages, then the state at k through encode -> decode, then the cloud stages;
     every decoded state is checked against the one encoded."""
     config = config or Config()
-    pipeline = TrackingPipeline(config, camera)
+    pipeline = RobotSlam.new(config, camera)
     robot, cloud = pipeline.split(k)
     poses, keyframes, sizes = [], [], []
     for seq, frame in enumerate(frames):
@@ -334,7 +334,7 @@ def test_every_split_point_through_the_wire_is_exact(seven_scenes, seven_scenes_
     assert keyframes == expected_kf
     if k == 3:
         # Compact keypoints: ~32 bytes of descriptor plus ~4.5 of the rest per keypoint.
-        pipeline = TrackingPipeline(Config(), camera)
+        pipeline = RobotSlam.new(Config(), camera)
         n = [len(run_stages(pipeline.stages[:3], f, pipeline.sides).keypoints) for f in frames]
         assert all(s < 38 * m + 300 for s, m in zip(sizes, n)), list(zip(sizes, n))
 
@@ -354,7 +354,7 @@ def test_synthetic_scene_through_the_wire_is_exact(tmp_path):
 @pytest.mark.realdata
 def test_jpeg_frames_decode_and_are_smaller(seven_scenes):
     camera, frames = seven_scenes
-    pipeline = TrackingPipeline(Config(), camera)
+    pipeline = RobotSlam.new(Config(), camera)
     detected = run_stages(pipeline.stages[:1], frames[0], pipeline.sides)
     jpeg = WireConfig(frame_image_codec="jpeg")
     for k, state in ((0, frames[0]), (1, detected)):
@@ -596,7 +596,7 @@ def run_inter_through_wire(camera: Camera, frames: list[CapturedFrame], k: int, 
     robot ``ack_lag`` frames after it was sent. Lost frames are not tracked by the cloud,
     so the poses compare with an in-memory run that skips them too."""
     config = config or Config()
-    pipeline = TrackingPipeline(config, camera)
+    pipeline = RobotSlam.new(config, camera)
     robot, cloud = pipeline.split(k)
     encoder = InterEncoder(config.wire, config.wire.reference_frames)
     ring = ReferenceRing(config.wire.reference_frames)

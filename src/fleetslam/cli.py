@@ -314,12 +314,12 @@ def _onboard_pipeline(config: Config, camera: Camera) -> Any:
     """The whole pipeline for a robot that tracks by itself (point 6): its back-end needs
     the cloud's libraries (``pip install 'fleetslam[cloud]'``)."""
     try:
-        from fleetslam.backend.back_end import TrackingPipeline
+        from fleetslam.backend.robot_slam import RobotSlam
     except ImportError as exc:
         raise ValueError(f"a robot that tracks by itself (--offload-at 6) runs the back-end, "
                          f"which needs the cloud extra: pip install 'fleetslam[cloud]' "
                          f"({exc})") from None
-    return TrackingPipeline(config, camera)
+    return RobotSlam.new(config, camera)
 
 
 def _robot_source(args: argparse.Namespace, config: Config) -> tuple[Any, Any]:

@@ -1,9 +1,17 @@
-"""The whole system on recorded data in one process: track every robot (taking turns frame
-by frame, each new keyframe handed to the map merger at once), build each dense map, write
-the global outputs, then score against ground truth where a sequence has it.
+"""The whole system on recorded data in one process, on its two facades: each robot's
+``RobotSlam`` (backend/robot_slam.py) and the fleet's ``FleetMap`` (merging/fleet_map.py).
+
+    fleet = FleetMap(config)
+    for every frame i, robots taking turns:
+        out = slam[robot].track(frame i)               # the robot's pose
+        if out.is_keyframe:
+            fleet.add_keyframe(newest keyframe, poses)  # robots join where they meet
+    slam[robot].finish(); build each robot's dense map
+    fleet.build_outputs(tracks, out_dir)               # global trajectories, PLY, octree
+    score against ground truth, afterwards
 
 The robot/cloud split is an index into the pipeline's stages (pipeline/split.py); the same
-work as separate processes is cloud/ and edge/.
+work as separate processes is cloud/ and edge/, making the same calls.
 """
 
 from __future__ import annotations
@@ -24,16 +32,11 @@ from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid
-from fleetslam.merging.global_map import (
-    GlobalMap,
-    RobotTrack,
-    build_global_map,
-    merge_summary,
-)
+from fleetslam.merging.fleet_map import FleetMap
+from fleetslam.merging.global_map import GlobalMap, RobotTrack
 from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.wire.merger_keyframes import KeyframeSummary
-from fleetslam.merging.merger import MapMerger
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.backend.state import BackEndState
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.pipeline.states import CapturedFrame
@@ -89,7 +92,7 @@ class RobotTracker:
     def __init__(self, name: str, source: str, sequence: RecordedSource, config: Config,
                  workers: LocalMappingPool | None = None) -> None:
         self.name, self.source, self.sequence = name, source, sequence
-        self.pipeline = TrackingPipeline(config, sequence.camera, workers)
+        self.slam = RobotSlam.new(config, sequence.camera, workers)
         self.poses: list[np.ndarray] = []
         self.tracked: list[bool] = []
         self.refs: list[int] = []
@@ -97,15 +100,15 @@ class RobotTracker:
         self.seconds = 0.0
 
     @property
-    def session(self) -> BackEndState:
-        return self.pipeline.state
+    def state(self) -> BackEndState:
+        return self.slam.state
 
     def step(self, i: int) -> KeyframeSummary | None:
         """Track frame ``i``; the new keyframe's summary if it became one."""
         frame = self.sequence[i]
         start = time.perf_counter()
-        out = self.pipeline.track(CapturedFrame(frame.index, frame.timestamp, frame.rgb,
-                                                frame.depth_m))
+        out = self.slam.track(CapturedFrame(frame.index, frame.timestamp, frame.rgb,
+                                            frame.depth_m))
         self.seconds += time.perf_counter() - start
         self.poses.append(out.T_world_camera)
         self.tracked.append(out.tracked)
@@ -113,21 +116,21 @@ class RobotTracker:
         self.T_refs.append(out.T_reference_camera)
         if not out.is_keyframe:
             return None
-        return keyframe_summary(self.name, self.session.map.keyframes[-1])
+        return keyframe_summary(self.name, self.state.map.keyframes[-1])
 
     def finish(self) -> RobotRun:
-        self.pipeline.back_end.finish()
-        session, sequence = self.session, self.sequence
-        kfs = session.map.keyframes
+        self.slam.finish()
+        state, sequence = self.state, self.sequence
+        kfs = state.map.keyframes
         return RobotRun(
             # Only the frames tracked (fewer than the sequence's after a Ctrl-C).
             self.name, self.source, sequence, sequence.timestamps[:len(self.poses)].copy(),
-            session.final_poses(self.refs, self.T_refs, self.poses), np.array(self.tracked),
-            [kf.frame_index for kf in kfs], session.map.keyframe_poses(),
-            self.pipeline.timer.mean_ms(), session.lost_total, session.loss_events,
-            session.repeated_frames, session.resets, self.seconds,
+            state.final_poses(self.refs, self.T_refs, self.poses), np.array(self.tracked),
+            [kf.frame_index for kf in kfs], state.map.keyframe_poses(),
+            self.slam.timer.mean_ms(), state.lost_total, state.loss_events,
+            state.repeated_frames, state.resets, self.seconds,
             references=np.array(self.refs, np.int64), T_reference_camera=list(self.T_refs),
-            online_poses=np.array(self.poses), loop_closing=self.pipeline.back_end.summary())
+            online_poses=np.array(self.poses), loop_closing=self.slam.summary())
 
 
 class Interrupt:
@@ -163,22 +166,22 @@ def track_robot(name: str, source: str, sequence: RecordedSource, config: Config
     progress = Progress(f"robot {name} tracking", len(sequence), enabled=show_progress)
     for i in range(len(sequence)):
         tracker.step(i)
-        progress.update(i + 1, f"kf {len(tracker.session.map.keyframes)} "
-                               f"loops {len(tracker.session.loops.edges)}")
+        progress.update(i + 1, f"kf {len(tracker.state.map.keyframes)} "
+                               f"loops {len(tracker.state.loops.edges)}")
     return tracker.finish()
 
 
 def track_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config,
                 show_progress: bool = True, interrupt: Interrupt | None = None
-                ) -> tuple[list[RobotRun], MapMerger]:
+                ) -> tuple[list[RobotRun], FleetMap]:
     """Every robot tracked, taking turns frame by frame; each new keyframe goes to the
-    merger at once, so robots join as soon as they share a place (as in the cloud). An
+    fleet's map at once, so robots join as soon as they share a place (as in the cloud). An
     ``interrupt`` requested ends it early: each robot's run holds the frames it tracked."""
     interrupt = interrupt or Interrupt()
     trackers = [RobotTracker(name, source, seq, config) for name, source, seq in robots]
-    merger = MapMerger(config)
+    fleet = FleetMap(config)
     for t in trackers:
-        merger.add_robot(t.name, t.sequence.camera.mounted(config.camera.base_link))
+        fleet.add_robot(t.name, t.sequence.camera.mounted(config.camera.base_link))
     total = sum(len(t.sequence) for t in trackers)
     progress = Progress("tracking", total, enabled=show_progress)
     done = 0
@@ -188,12 +191,12 @@ def track_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config,
                 continue
             summary = t.step(i)
             if summary is not None:
-                merger.add_keyframe(summary, t.session.map.keyframe_poses())
+                fleet.add_keyframe(summary, t.state.map.keyframe_poses())
             done += 1
-        progress.update(done, f"groups {len(merger.components())}")
+        progress.update(done, f"groups {len(fleet.groups())}")
         if interrupt.requested:
             break
-    return [t.finish() for t in trackers], merger
+    return [t.finish() for t in trackers], fleet
 
 
 def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -> None:
@@ -226,7 +229,7 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
     out_dir.mkdir(parents=True, exist_ok=False)
     skipped: list[str] = []  # what a Ctrl-C left unbuilt
     with Interrupt() as interrupt:
-        runs, merger = track_fleet(robots, config, show_progress, interrupt)
+        runs, fleet = track_fleet(robots, config, show_progress, interrupt)
         for run in runs:
             # After a Ctrl-C the trajectories are written, the maps are not built.
             if interrupt.requested:
@@ -241,10 +244,9 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
         merged = not interrupt.requested
         if not merged:
             skipped.append("the merge and the global map")
-        global_map = build_global_map(merger, [r.track() for r in runs], config, out_dir) \
-            if merged else None
+        global_map = fleet.build_outputs([r.track() for r in runs], out_dir) if merged else None
         interrupted = interrupt.requested
-    summary = make_summary(runs, merger if merged else None, global_map, config,
+    summary = make_summary(runs, fleet if merged else None, global_map, config,
                            time.perf_counter() - start)
     if interrupted:
         summary["interrupted"] = {
@@ -258,10 +260,10 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
     return summary
 
 
-def make_summary(runs: list[RobotRun], merger: MapMerger | None,
+def make_summary(runs: list[RobotRun], fleet: FleetMap | None,
                  global_map: GlobalMap | None, config: Config, wall_s: float
                  ) -> dict[str, Any]:
-    """The run's summary; ``merger`` None: no merge (an interrupted run)."""
+    """The run's summary; ``fleet`` None: no merge (an interrupted run)."""
     robots = [{
         "name": r.name, "source": r.source, "camera": r.sequence.camera_source,
         "frames": len(r.timestamps), "keyframes": len(r.keyframe_indices),
@@ -272,5 +274,5 @@ def make_summary(runs: list[RobotRun], merger: MapMerger | None,
         "stage_ms": r.stage_ms, "map_points": len(r.map_points),
         "loop_closing": r.loop_closing, **robot_files(r.name),
     } for r in runs]
-    return fleet_summary(robots, merge_summary(merger, global_map) if merger is not None else None,
+    return fleet_summary(robots, fleet.summary(global_map) if fleet is not None else None,
                          config, wall_s)

@@ -10,7 +10,8 @@ process computes the same poses. In a cloud, ``workers`` take local BA and the l
 database query off the tracking thread; their answers land at the start of a later frame
 (``poll``).
 
-``TrackingPipeline`` is the whole list of stages, front end and back-end, in one process.
+``RobotSlam`` (robot_slam.py) puts the front end's stages and these together: one robot's
+SLAM from any offloading point.
 """
 
 from __future__ import annotations
@@ -28,9 +29,8 @@ from fleetslam.backend.tracking import DecideKeyframe, EstimatePose, Match
 from fleetslam.backend.workers import LocalMappingPool, SessionWorkers
 from fleetslam.camera import Camera
 from fleetslam.config import Config
-from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
-from fleetslam.pipeline.split import CLOUD_TRACKS, Sides, Stage, StageTimer, run_stages
-from fleetslam.pipeline.states import CapturedFrame, PosedFrame, TrackedFrame
+from fleetslam.pipeline.split import Stage
+from fleetslam.pipeline.states import PosedFrame
 
 
 def new_state(config: Config, camera: Camera) -> BackEndState:
@@ -69,20 +69,6 @@ class CloudBackEnd:
             self.loop_closer.poll()
             self.local_mapper.poll()
 
-    def stages_from(self, k: int) -> list[Stage]:
-        """The stages a cloud runs for a frame sent at offloading point ``k``."""
-        if k not in CLOUD_TRACKS:
-            raise ValueError(f"the cloud tracks frames sent at points "
-                             f"{', '.join(map(str, CLOUD_TRACKS))}, not {k}")
-        return [*front_end_stages()[k:], *self.stages]
-
-    def track(self, state: Any, k: int, front_end: FrontEndState | None = None,
-              timer: StageTimer | None = None) -> TrackedFrame:
-        """The frame's pose from the state a robot sent at point ``k`` (``front_end``: the
-        state of the front-end stages the cloud runs for it, below point 3)."""
-        self.poll()
-        return run_stages(self.stages_from(k), state, Sides(front_end, self.state), timer)
-
     def finish(self) -> None:
         """The last keyframes' loop queries and local BA belong in the final map."""
         if self.workers is not None:
@@ -114,41 +100,3 @@ class CloudBackEnd:
             return {"mode": "inline"}
         return {"mode": "inline (worker failed)" if self.workers.broken else "async",
                 **self.local_mapper.summary(), "loop_queries": self.loop_closer.summary()}
-
-
-class TrackingPipeline:
-    """One robot's whole tracking pipeline in one process: the front end's stages, then the
-    back-end's, over their two states."""
-
-    def __init__(self, config: Config, camera: Camera,
-                 workers: LocalMappingPool | None = None,
-                 front_end: FrontEndState | None = None,
-                 state: BackEndState | None = None) -> None:
-        # A restored pipeline goes on from its two states (a checkpoint's).
-        self.front_end = front_end if front_end is not None else FrontEndState(config, camera)
-        self.back_end = CloudBackEnd(config, camera, state, workers)
-        self.stages: list[Stage] = [*front_end_stages(), *self.back_end.stages]
-        self.sides = Sides(self.front_end, self.back_end.state)
-        self.timer = StageTimer()
-
-    @property
-    def state(self) -> BackEndState:
-        return self.back_end.state
-
-    @property
-    def stage_names(self) -> list[str]:
-        return [s.name for s in self.stages]
-
-    def split(self, k: int) -> tuple[list[Stage], list[Stage]]:
-        """(robot stages, cloud stages) for offloading point ``k`` in 0..len(stages)."""
-        if not 0 <= k <= len(self.stages):
-            raise ValueError(f"offloading point {k} outside 0..{len(self.stages)}")
-        return self.stages[:k], self.stages[k:]
-
-    def keyframe_poses(self) -> dict[int, np.ndarray]:
-        """Every keyframe's current pose, by frame index."""
-        return {kf.frame_index: kf.T_world_camera for kf in self.state.map.keyframes}
-
-    def track(self, frame: CapturedFrame) -> TrackedFrame:
-        self.back_end.poll()
-        return run_stages(self.stages, frame, self.sides, self.timer)

@@ -84,7 +84,7 @@ class CloudRefused(RuntimeError):
 class OnboardTracker(Protocol):
     """The whole pipeline on the robot, for a robot that tracks by itself (point 6): the
     back-end needs the cloud's libraries, so whoever starts such a robot builds it
-    (``fleetslam.backend.back_end.TrackingPipeline``)."""
+    (``fleetslam.backend.robot_slam.RobotSlam``)."""
 
     stages: list[Stage]
     sides: Sides

@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fleetslam.backend.back_end import TrackingPipeline
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.config import Config
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.pipeline.states import CapturedFrame
@@ -24,7 +24,7 @@ def measure_profile(sequence: RecordedSource, source: str, config: Config, frame
                     progress: Callable[[int], None] | None = None) -> Profile:
     """Run the whole pipeline on the first ``frames`` frames, timing each stage and encoding
     the state at every split point (and each keyframe's upload) as the wire would."""
-    pipeline = TrackingPipeline(config, sequence.camera)
+    pipeline = RobotSlam.new(config, sequence.camera)
     n = min(frames, len(sequence))
     if n < 2:
         raise ValueError(f"{source}: a profile needs at least 2 frames, the source has {n}")

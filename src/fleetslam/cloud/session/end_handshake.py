@@ -12,9 +12,9 @@ import threading
 import time
 from typing import Any
 
-from fleetslam.backend.back_end import CloudBackEnd
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.session.checkpoint_writer import CheckpointWriter
-from fleetslam.cloud.session.inbox import WorkQueue
+from fleetslam.cloud.session.inbox import ControlItem, WorkQueue
 from fleetslam.cloud.session.replies import Replies
 from fleetslam.cloud.session.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session.session_state import SessionState
@@ -27,12 +27,12 @@ log = logging.getLogger("fleetslam.cloud")
 
 class EndHandshake:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
-                 back_end: CloudBackEnd, outputs: SessionOutputs,
+                 slam: RobotSlam, outputs: SessionOutputs,
                  checkpoints: CheckpointWriter, replies: Replies, inbox: WorkQueue) -> None:
         """``inbox``: the session's frames and control in arrival order (an end that came
         while one was answered goes there, in turn)."""
         self.state, self.config, self.store = state, config, store
-        self.back_end, self.outputs, self.checkpoints = back_end, outputs, checkpoints
+        self.slam, self.outputs, self.checkpoints = slam, outputs, checkpoints
         self.replies, self.inbox = replies, inbox
         self.robot_id = state.robot_id
         # Under _lock: a Zenoh callback (offer) and the tracking thread (take) change them.
@@ -94,7 +94,7 @@ class EndHandshake:
                 latest, self._latest = self._latest, None
                 self._waiting = latest is not None
             if latest is not None:  # one more came meanwhile: answered in turn
-                self.inbox.put(("control", latest, arrival))
+                self.inbox.put(ControlItem(latest, arrival))
 
     def _answer(self, message: dict[str, Any]) -> None:
         """The answer to an end: error, need, or ended (``finished`` set first, durable)."""
@@ -114,7 +114,7 @@ class EndHandshake:
                 + "; no trajectory or map is written", answer_to="end"))
         self.state.robot_keyframe_poses.update(poses)
         t0 = time.perf_counter()
-        self.back_end.finish()
+        self.slam.finish()
         t1 = time.perf_counter()
         # A keyframe the robot cannot upload (a live camera's, gone) is mapped without its
         # images rather than asked for again.

@@ -10,8 +10,10 @@ import logging
 import threading
 import time
 from collections import Counter, deque
+from dataclasses import dataclass
 from typing import Any, Callable
 
+from fleetslam.cloud.session.memory_budget import SessionBudget
 from fleetslam.config import TransportConfig
 
 log = logging.getLogger("fleetslam.cloud")
@@ -19,8 +21,42 @@ log = logging.getLogger("fleetslam.cloud")
 # A robot is told why a message was rejected at most this often.
 REJECTION_REPLY_INTERVAL_S = 1.0
 
-# What WorkQueue.get returns when its timeout passed with nothing to take.
-IDLE = ("idle", None, 0.0)
+
+# What a session's inbox holds, in arrival order.
+@dataclass(frozen=True)
+class FrameItem:
+    """A frame message, as it arrived (``data``) or once decoded (``decoded``: its header and
+    state); ``charge``: the bytes it holds in the session's budget until tracked or dropped."""
+
+    data: bytes | None
+    arrival: float
+    charge: int
+    decoded: tuple[Any, Any] | None = None
+
+
+@dataclass(frozen=True)
+class ControlItem:
+    """A control message (hello, end), parsed from JSON."""
+
+    message: dict[str, Any]
+    arrival: float
+
+
+@dataclass(frozen=True)
+class CallItem:
+    """Something to run on the thread that takes it, in order with the frames."""
+
+    call: Callable[[], object]
+
+
+InboxItem = FrameItem | ControlItem | CallItem
+
+
+class Idle:
+    """What WorkQueue.get returns when its timeout passed with nothing to take."""
+
+
+IDLE = Idle()
 
 
 class Throttle:
@@ -51,24 +87,25 @@ class WorkQueue:
     """A session's inbox: frames and control messages in arrival order, at most ``max_frames``
     frames. Frames are best effort, so when a robot sends faster than its session tracks, the
     oldest waiting frame is dropped (and counted); control messages are never dropped.
-    ``on_drop`` is told of each frame dropped (its bytes leave the session's budget)."""
+    A frame dropped gives its bytes back to the session's ``budget``."""
 
-    def __init__(self, max_frames: int, on_drop: Callable[[Any], None] | None = None) -> None:
+    def __init__(self, max_frames: int, budget: SessionBudget | None = None) -> None:
         self.max_frames = max_frames
-        self._on_drop = on_drop
+        self._budget = budget
         self.dropped = 0
-        self._items: deque[Any] = deque()
+        self._items: deque[InboxItem | None] = deque()
         self._frames = 0
         self._ready = threading.Condition()
 
-    def put(self, item: Any) -> None:
+    def put(self, item: InboxItem | None) -> None:
+        """An item to take in order; None: the end (the taker stops)."""
         with self._ready:
-            if item is not None and item[0] == "frame":
+            if isinstance(item, FrameItem):
                 if self._frames >= self.max_frames:
                     oldest = next(i for i, x in enumerate(self._items)
-                                  if x is not None and x[0] == "frame")
-                    if self._on_drop is not None:
-                        self._on_drop(self._items[oldest])
+                                  if isinstance(x, FrameItem))
+                    if self._budget is not None:
+                        self._budget.release(self._items[oldest].charge)
                     del self._items[oldest]
                     self._frames -= 1
                     self.dropped += 1
@@ -76,13 +113,18 @@ class WorkQueue:
             self._items.append(item)
             self._ready.notify()
 
-    def get(self, timeout: float | None = None) -> Any:
+    def waiting_frames(self) -> list[FrameItem]:
+        """The frames waiting now, oldest first."""
+        with self._ready:
+            return [item for item in self._items if isinstance(item, FrameItem)]
+
+    def get(self, timeout: float | None = None) -> InboxItem | Idle | None:
         """The next item; IDLE if ``timeout`` passed with none."""
         with self._ready:
             if not self._ready.wait_for(lambda: bool(self._items), timeout):
                 return IDLE
             item = self._items.popleft()
-            if item is not None and item[0] == "frame":
+            if isinstance(item, FrameItem):
                 self._frames -= 1
             return item
 

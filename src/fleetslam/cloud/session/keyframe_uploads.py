@@ -8,7 +8,7 @@ from __future__ import annotations
 from fleetslam.cloud.session.checkpoint_writer import CheckpointWriter
 from fleetslam.cloud.session.memory_budget import SessionBudget
 from fleetslam.cloud.session.replies import Replies
-from fleetslam.cloud.session.session_keyframes import SessionKeyframes
+from fleetslam.cloud.session.session_tracker import SessionTracker
 from fleetslam.cloud.session.session_state import SessionState
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
@@ -22,20 +22,20 @@ from fleetslam.wire.messages import KeyframeUpload, decode_keyframe, encode_keyf
 class KeyframeUploads:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
                  checkpoints: CheckpointWriter, budget: SessionBudget, replies: Replies,
-                 keyframes: SessionKeyframes, view: NullView) -> None:
+                 keyframes: SessionTracker, view: NullView) -> None:
         self.state, self.config, self.store = state, config, store
         self.checkpoints, self.budget, self.replies = checkpoints, budget, replies
         self.keyframes, self.view = keyframes, view
         self.robot_id = state.robot_id
 
-    def take(self, kind: str, data: bytes, arrival: float) -> None:
+    def take(self, data: bytes) -> None:
         """An upload off the keyframe queue; its bytes leave the budget once handled."""
         try:
-            self._check_and_store(kind, data, arrival)
+            self._check_and_store(data)
         finally:
             self.budget.release(len(data))
 
-    def _check_and_store(self, kind: str, data: bytes, arrival: float) -> None:
+    def _check_and_store(self, data: bytes) -> None:
         """A keyframe's upload: checked, stored, acknowledged once a checkpoint covers it."""
         try:
             header, upload = decode_keyframe(data, self.state.hello.camera)

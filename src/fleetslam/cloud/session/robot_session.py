@@ -24,42 +24,36 @@ import time
 from collections import Counter
 from typing import Any, Callable
 
-from fleetslam.backend.back_end import CloudBackEnd, new_state
+from fleetslam.backend.back_end import new_state
 from fleetslam.backend.workers import LocalMappingPool
-from fleetslam.cloud.session import session_state
+from fleetslam.cloud.session import frame_order, session_state
 from fleetslam.cloud.session.checkpoint_writer import CheckpointWriter, KeyframeSink
-from fleetslam.cloud.session.inbox import (IDLE, REJECTION_REPLY_INTERVAL_S, Admission, Throttle,
+from fleetslam.cloud.session.inbox import (IDLE, REJECTION_REPLY_INTERVAL_S, Admission,
+                                           CallItem, ControlItem, FrameItem, Throttle,
                                            WorkQueue)
 from fleetslam.cloud.session.end_handshake import EndHandshake
 from fleetslam.cloud.session.keyframe_uploads import KeyframeUploads
 from fleetslam.cloud.session.memory_budget import (MB, SessionBudget, captured_frame_bytes,
                                                    held_bytes)
 from fleetslam.cloud.session.replies import Publish, Replies
-from fleetslam.cloud.session.session_keyframes import session_keyframes
 from fleetslam.cloud.session.session_outputs import FinishedMap, SessionOutputs
 from fleetslam.cloud.session.session_state import SessionState, TrajectoryRow
+from fleetslam.cloud.session.session_tracker import session_tracker
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.pipeline.front_end import FrontEndState
-from fleetslam.pipeline.split import CLOUD_TRACKS, FRONT_END_LENGTH, StageTimer
-from fleetslam.pipeline.states import CapturedFrame, TrackedFrame, TrackedPose
+from fleetslam.pipeline.split import CLOUD_TRACKS
+from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
 from fleetslam.wire.data_tree import Capture
-from fleetslam.wire.envelope import Header, WireError
-from fleetslam.wire.frames import decode_frame_message, state_index_time
-from fleetslam.wire.inter import MissingReference, ReferenceRing, reference_of
-from fleetslam.wire.merger_keyframes import KeyframeSummary
+from fleetslam.wire.envelope import Header
+from fleetslam.wire.frames import state_index_time
+from fleetslam.wire.inter import ReferenceRing
 from fleetslam.wire.messages import Feedback, encode_feedback
 
 log = logging.getLogger("fleetslam.cloud")
 
-# A robot's seq may skip frames lost on the link, but not this many at once.
-MAX_SEQ_JUMP = 100_000
-# A frame index jumps at most this far too (a robot's frame step, frames skipped by a live
-# camera): a forged far-future index would make every later real frame "out of order".
-MAX_INDEX_JUMP = 100_000
 # An end waiting for frames still in flight is looked at again this often.
 END_RECHECK_S = 0.05
 
@@ -79,14 +73,11 @@ class RobotSession:
         self.view = view or NullView()
         self.config = config
         self.store = store
-        # Whether this cloud tracks the robot (else it tracks itself, point 6, and sends its
-        # poses); the back-end's state is kept either way (its counts go in the summary).
-        self.tracks = state.hello.offload_at in CLOUD_TRACKS
-        # Its keyframes as the merger and the view take them (tracked here, or sent).
-        self.keyframes = session_keyframes(state)
-        self.back_end = CloudBackEnd(config, state.hello.camera, state.tracking,
-                                     local_mapping if self.tracks else None)
-        self.outputs = SessionOutputs(state, config, store, self.back_end,
+        # Who tracks the robot (this cloud, or the robot itself at point 6), and its
+        # keyframes as the merger and the view take them.
+        self.tracker = session_tracker(state, config, local_mapping)
+        self.keyframes = self.tracker
+        self.outputs = SessionOutputs(state, config, store, self.tracker.slam,
                                       self._transport_counts)
         # Why the robot's earlier session could not be restored (None: nothing was lost);
         # every welcome of this session says so.
@@ -103,20 +94,16 @@ class RobotSession:
         self.last_heard = self.opened = time.monotonic()
         # Whether a frame has arrived (a hello alone holds a slot only until it is needed).
         self.heard_frame = False
-        # The bytes its frames, uploads and references hold (memory_budget.py): a raw frame
-        # in the inbox is ("frame", data, arrival, charge), a decoded one ("frame",
-        # (header, state, charge), arrival); each releases its charge when tracked or dropped.
+        # The bytes its frames, uploads and references hold (memory_budget.py); each frame
+        # and upload releases its charge when handled or dropped.
         self.budget = SessionBudget(int(config.transport.session_budget_mb * MB),
                                     captured_frame_bytes(state.hello.camera))
         # Frames and control in arrival order: the receive thread decodes each frame (and
         # tells the robot it holds it as a reference) and passes it on to the tracking
         # thread, so a busy tracker does not delay what inter-frame coding may refer to.
-        self._frames = WorkQueue(config.transport.max_queued_frames,
-                                 lambda item: self.budget.release(item[3]))
-        self._decoded = WorkQueue(config.transport.max_queued_frames,
-                                  lambda item: self.budget.release(item[1][2]))
-        self._decoded_seq = state.last_seq  # newest frame put in the reference ring
-        self._keyframes: queue.Queue = queue.Queue()
+        self._frames = WorkQueue(config.transport.max_queued_frames, self.budget)
+        self._decoded = WorkQueue(config.transport.max_queued_frames, self.budget)
+        self._keyframes: queue.Queue[FrameItem | None] = queue.Queue()
         # A failure is logged with its traceback once per reason and interval (a robot
         # repeating the message that fails must not fill the log).
         self._failure_log = Throttle(REJECTION_REPLY_INTERVAL_S)
@@ -130,18 +117,17 @@ class RobotSession:
                                             ended=lambda: self.state.ended,
                                             written=self.chunks.confirm,
                                             interval_s=config.transport.checkpoint_interval_s)
-        self.ends = EndHandshake(state, config, store, self.back_end, self.outputs,
+        self.ends = EndHandshake(state, config, store, self.tracker.slam, self.outputs,
                                  self.checkpoints, self.replies, self._frames)
+        self.decoder = frame_order.FrameDecoder(state, self.references, self.replies,
+                                                self.budget)
         self.uploads = KeyframeUploads(state, config, store, self.checkpoints, self.budget,
                                        self.replies, self.keyframes, self.view)
-        self._threads = [
-            threading.Thread(target=self._receive, name=f"cloud-{state.robot_id}-receive",
-                             daemon=True),
-            threading.Thread(target=self._serve_tracking, name=f"cloud-{state.robot_id}",
-                             daemon=True),
-            threading.Thread(target=self._serve, args=(self._keyframes, self.uploads.take),
-                             name=f"cloud-{state.robot_id}-keyframes", daemon=True),
-        ]
+        self._threads = [threading.Thread(target=work, name=f"cloud-{state.robot_id}{name}",
+                                          daemon=True)
+                         for work, name in ((self._receive, "-receive"),
+                                            (self._serve_tracking, ""),
+                                            (self._serve_uploads, "-keyframes"))]
 
     @staticmethod
     def open(robot_id: str, hello: Hello, config: Config, store: CloudStore,
@@ -190,8 +176,17 @@ class RobotSession:
     def drain(self, timeout: float = 60.0) -> None:
         """Wait until everything submitted so far is processed (tests, shutdown)."""
         done = threading.Event()
-        self._frames.put(("call", done.set, 0.0))
+        self.run_in_order(done.set, before_decoding=True)
         done.wait(timeout)
+
+    def run_in_order(self, call: Callable[[], object], before_decoding: bool = False) -> None:
+        """Run ``call`` on the tracking thread after the frames submitted so far (and
+        before later ones); ``before_decoding``: after the frames submitted so far are
+        decoded, too (the receive thread waits for it)."""
+        if before_decoding:
+            self._frames.put(CallItem(call))
+        else:
+            self._decoded.put(CallItem(call))
 
     @property
     def robot_id(self) -> str:
@@ -207,7 +202,7 @@ class RobotSession:
             return
         charge = self.budget.frame_charge(len(data))
         if self._admit("frame", charge):
-            self._frames.put(("frame", data, arrival, charge))
+            self._frames.put(FrameItem(data, arrival, charge))
 
     def submit_control(self, message: dict[str, Any], arrival: float) -> bool:
         """Whether the control message is taken (admission: not while paused, at most
@@ -221,7 +216,7 @@ class RobotSession:
             return False
         if message.get("type") == "end" and not self.ends.offer(message):
             return True
-        self._frames.put(("control", message, arrival))
+        self._frames.put(ControlItem(message, arrival))
         return True
 
     def reject_control(self, reason: str) -> None:
@@ -234,7 +229,7 @@ class RobotSession:
         self.last_heard = time.monotonic()
         self.view.received(self.robot_id, len(data))
         if not self.admission.paused() and self._admit("keyframe", len(data)):
-            self._keyframes.put(("keyframe", data, arrival))
+            self._keyframes.put(FrameItem(data, arrival, len(data)))
 
     def _admit(self, what: str, charge: int) -> bool:
         """Whether a message of ``charge`` bytes fits the session's budget; if not it is
@@ -257,6 +252,10 @@ class RobotSession:
     def counts(self) -> Counter:
         return self.replies.counts()
 
+    def queued_frames(self) -> list[FrameItem]:
+        """The frames waiting in the session's inboxes (to decode, to track)."""
+        return self._frames.waiting_frames() + self._decoded.waiting_frames()
+
     def _transport_counts(self) -> dict[str, int]:
         """The counts as the summary's ``transport`` has them."""
         return {**{name: 0 for name in OVER_BUDGET.values()}, **self.counts(),
@@ -271,13 +270,9 @@ class RobotSession:
 
     # -- threads ------------------------------------------------------------------------
 
-    def _serve(self, q: queue.Queue | WorkQueue, handle: Callable[[str, Any, float], None]
-               ) -> None:
-        while True:
-            item = q.get()
-            if item is None:
-                return
-            self._handle(handle, item)
+    def _serve_uploads(self) -> None:
+        while (item := self._keyframes.get()) is not None:
+            self._guarded("keyframe", self.uploads.take, item.data)
 
     def _serve_tracking(self) -> None:
         """Frames and control in order; an end waiting for frames in flight is looked at
@@ -289,16 +284,19 @@ class RobotSession:
             item = self._decoded.get(min((w for w in waits if w is not None), default=None))
             if item is None:
                 return
-            if item is not IDLE:
-                self._handle(self._on_work, item)
-            if self.ends.held_for_frames and (item is IDLE or item[0] == "frame"):
-                self._handle(self._on_work, ("end again", None, 0.0))
-            self._handle(lambda *_: self.checkpoints.capture_due(), ("checkpoint", None, 0.0))
+            if isinstance(item, FrameItem):
+                self._guarded("frame", self._track_frame, item)
+            elif isinstance(item, ControlItem):
+                self._guarded("control", self._on_control, item.message, item.arrival)
+            elif isinstance(item, CallItem):
+                self._guarded("call", item.call)
+            if self.ends.held_for_frames and (item is IDLE or isinstance(item, FrameItem)):
+                self._guarded("end again", self.ends.take, None, 0.0)
+            self._guarded("checkpoint", self.checkpoints.capture_due)
 
-    def _handle(self, handle: Callable[[str, Any, float], None], item: tuple) -> None:
-        kind, payload, arrival = item
+    def _guarded(self, kind: str, work: Callable[..., object], *args: Any) -> None:
         try:
-            handle(kind, payload, arrival)
+            work(*args)
         except Exception as exc:  # a bug on one message must not end the robot's session
             self._failed(kind, exc)
 
@@ -314,65 +312,35 @@ class RobotSession:
         coded against it comes), say so to the robot, and hand everything on in order."""
         while True:
             item = self._frames.get()
-            if item is not None and item[0] == "frame":
-                _, data, arrival, charge = item
-                try:
-                    item = self._decode(data, arrival)
-                except Exception as exc:  # a bug on one message must not end the session
-                    self.budget.release(charge)
-                    self._failed("frame", exc)
-                    continue
+            if isinstance(item, FrameItem):
+                item = self._decoded_item(item)
                 if item is None:
-                    self.budget.release(charge)
                     continue
-                # Held decoded now: charged at its arrays' size until tracked.
-                header, state = item[1]
-                actual = held_bytes(state)
-                self.budget.decoded(charge, actual)
-                item = ("frame", (header, state, actual), arrival)
-            self._decoded.put(item)
+            self._decoded.put(item)  # type: ignore[arg-type]
             if item is None:
                 return
 
-    def _on_work(self, kind: str, payload: Any, arrival: float) -> None:
-        if kind == "frame":
-            header, state, charge = payload
-            try:
-                self._on_frame((header, state), arrival)
-            finally:
-                self.budget.release(charge)
-        elif kind == "control":
-            self._on_control(payload, arrival)
-        elif kind == "end again":  # the end held for frames in flight
-            self.ends.take(None, arrival)
-        elif kind == "call":
-            payload()
-
-    # -- frames (receive thread: _decode; tracking thread: the rest) ----------------------
-
-    def _decode(self, data: bytes, arrival: float) -> tuple | None:
-        """("frame", (header, state), arrival), or None if rejected. The seq and timestamp
-        checks against the tracked trajectory stay on the tracking thread."""
+    def _decoded_item(self, item: FrameItem) -> FrameItem | None:
+        """The frame decoded, charged at its arrays' size until tracked; None: rejected."""
         try:
-            header, state = decode_frame_message(data, self.state.hello.camera, self.references)
-        except MissingReference as exc:
-            return self.replies.reject("frame", str(exc), protocol.Code.REFERENCE_MISSING,
-                                       seq=exc.seq, missing=exc.missing)
-        except WireError as exc:
-            return self.replies.reject("frame", str(exc))
-        if header.robot_id != self.robot_id:
-            return self.replies.reject("frame", f"header names robot {header.robot_id!r}, "
-                                                f"sent on {self.robot_id!r}'s key")
-        reference = reference_of(state)
-        # Only ever newer seqs: a replayed or reordered message must not replace what a
-        # later frame was coded against.
-        if 0 < header.seq - self._decoded_seq <= MAX_SEQ_JUMP:
-            self._decoded_seq = header.seq
-            if reference is not None and self.references.size:
-                self.references.put(header.seq, reference)
-                self.budget.references(self.references.nbytes())
-                self.replies.reply(protocol.held(header.seq))
-        return ("frame", (header, state), arrival)
+            decoded = self.decoder.decode(item.data or b"")
+        except Exception as exc:  # a bug on one message must not end the session
+            decoded = None
+            self._failed("frame", exc)
+        if decoded is None:
+            self.budget.release(item.charge)
+            return None
+        actual = held_bytes(decoded[1])
+        self.budget.decoded(item.charge, actual)
+        return FrameItem(None, item.arrival, actual, decoded)
+
+    def _track_frame(self, item: FrameItem) -> None:
+        try:
+            self._on_frame(item.decoded, item.arrival)
+        finally:
+            self.budget.release(item.charge)
+
+    # -- frames (the tracking thread; frame_order.py decodes them on arrival) -------------
 
     def _on_frame(self, decoded: tuple, arrival: float) -> None:
         """Track a decoded frame, record it, checkpoint at a keyframe, send the feedback."""
@@ -384,94 +352,25 @@ class RobotSession:
             return self.replies.reject(
                 "frame", f"split point {header.split_point}, but the session offloads at "
                          f"{st.hello.offload_at} (send a hello)", protocol.Code.NO_SESSION)
-        out_of_sequence = self._out_of_sequence(header, state_index_time(state)[0])
+        out_of_sequence = frame_order.out_of_sequence(st, header, state_index_time(state)[0])
         if out_of_sequence is not None:
             return self.replies.reject("frame", out_of_sequence)
-        wrong_keyframe = self._wrong_robot_keyframe(state)
-        if wrong_keyframe is not None:
-            return self.replies.reject("frame", wrong_keyframe)
+        refusal = self.tracker.refusal(state)
+        if refusal is not None:
+            return self.replies.reject("frame", refusal)
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.replies.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
-        out = self._track(state, header.split_point)
+        out, to_merger = self.tracker.track(state, header.split_point)
         cloud_ms = 1000.0 * (time.perf_counter() - start)
         self._record(header, out, cloud_ms)
-        merged = isinstance(out, TrackedPose) and self._take_robot_keyframe(out)
         if out.is_keyframe:
-            self._on_new_keyframe(state, header.seq, out.index, self.tracks or merged)
+            self._on_new_keyframe(state, header.seq, out.index, to_merger)
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
                             out.n_inliers, out.T_world_camera, cloud_ms)
         self.replies.publish(keys.feedback(self.robot_id),
                              encode_feedback(self.robot_id, header.seq, feedback))
         st.latency_ms.append(1000.0 * (time.monotonic() - arrival))
-
-    def _out_of_sequence(self, header: Header, index: int) -> str | None:
-        """Why a frame does not follow the tracked ones (seq, frame index, timestamp), or
-        None. The index is the trajectory's row and a keyframe's name (uploads, the merge):
-        at point 6 the robot's own, recorded as sent, so it is checked like the seq."""
-        st = self.state
-        if header.seq <= st.last_seq:
-            what = "duplicate" if header.seq == st.last_seq else "out of order"
-            return f"{what}: seq {header.seq} after {st.last_seq}"
-        if st.last_seq >= 0 and header.seq > st.last_seq + MAX_SEQ_JUMP:
-            # A forged far-future seq would make every later real frame "out of order".
-            return (f"seq jumps from {st.last_seq} to {header.seq} "
-                    f"(more than {MAX_SEQ_JUMP} frames lost?)")
-        if index < 0 or index <= st.last_index:
-            return f"frame index {index} is not after the last frame's {st.last_index}"
-        if index > max(st.last_index, 0) + MAX_INDEX_JUMP:
-            return (f"frame index jumps from {st.last_index} to {index} "
-                    f"(more than {MAX_INDEX_JUMP})")
-        if st.rows and header.timestamp <= st.rows[-1].timestamp:
-            return (f"timestamp {header.timestamp:.6f} is not after the "
-                    f"last frame's {st.rows[-1].timestamp:.6f}")
-        return None
-
-    def _wrong_robot_keyframe(self, state: Any) -> str | None:
-        """Why a keyframe a robot that tracks itself sent cannot join its keyframes (its id
-        not after the last one's, more than the session keeps), or None."""
-        if self.tracks or not isinstance(state, TrackedPose) or state.features is None:
-            return None
-        ids = self.state.robot_keyframe_ids
-        if ids and state.reference_keyframe <= ids[-1]:
-            return (f"keyframe {state.reference_keyframe} is not after the last keyframe's "
-                    f"{ids[-1]}")
-        limit = self.config.transport.max_keyframes
-        if len(ids) >= limit:
-            return f"the session keeps at most {limit} keyframes (transport.max_keyframes)"
-        return None
-
-    def _take_robot_keyframe(self, out: TrackedPose) -> bool:
-        """A robot that tracks itself sent a keyframe's features: kept (the checkpoint holds
-        it) for the merger, as the next of its keyframes, with the robot's keyframe poses
-        then. Whether it was one."""
-        if out.features is None or out.keyframe_poses is None:
-            return False
-        st = self.state
-        st.robot_keyframes.append(KeyframeSummary(
-            self.robot_id, len(st.robot_keyframes), out.index, out.timestamp, out.features,
-            out.keyframe_poses[-1].copy()))
-        st.robot_keyframe_ids.append(out.reference_keyframe)
-        # The poses by id: those of the keyframes the cloud has (a lost one's is not known
-        # by its frame index, and the merger numbers without it).
-        for kf, robot_id in zip(st.robot_keyframes, st.robot_keyframe_ids):
-            st.robot_keyframe_poses[kf.frame_index] = out.keyframe_poses[robot_id].copy()
-        return True
-
-    def _track(self, state: Any, split_point: int) -> TrackedFrame:
-        """The stages after ``split_point`` (timed per stage), or the robot's own result."""
-        st = self.state
-        if not self.tracks:
-            return state  # the robot tracked (point 6): the cloud records its result
-        timer = StageTimer()
-        if st.front_end is None and split_point < FRONT_END_LENGTH:
-            # The robot offloads before its front end ends (points 0-2, or an adaptive
-            # robot that switched there): the cloud holds the front end's state.
-            st.front_end = FrontEndState(self.config, st.hello.camera)
-        out: TrackedFrame = self.back_end.track(state, split_point, st.front_end, timer)
-        for name, seconds in timer.seconds.items():
-            st.stage_seconds[name] = st.stage_seconds.get(name, 0.0) + sum(seconds)
-        return out
 
     def _record(self, header: Header, out: TrackedFrame, cloud_ms: float) -> None:
         """The tracked frame in the trajectory, the counts and the live view."""
@@ -502,10 +401,9 @@ class RobotSession:
             self.uploads.store_captured(state, seq)
         self.checkpoints.checkpoint(frame_index, self.keyframes.newest() if to_merger else None,
                                     now=False)
-        if self.view.enabled and self.tracks:  # local BA moved the recent keyframes
-            lmap = self.state.tracking.map
-            self.view.keyframe_poses(self.robot_id, [kf.frame_index for kf in lmap.keyframes],
-                                     lmap.keyframe_poses())
+        moved = self.tracker.moved_keyframes() if self.view.enabled else None
+        if moved is not None:
+            self.view.keyframe_poses(self.robot_id, *moved)
 
     # -- control (the tracking thread, in order with the frames) --------------------------
 

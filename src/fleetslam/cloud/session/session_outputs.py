@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fleetslam.backend.back_end import CloudBackEnd
+from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.session.session_state import SessionState
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
@@ -41,12 +41,12 @@ class FinishedMap:
 
 class SessionOutputs:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
-                 back_end: CloudBackEnd, transport: Callable[[], dict[str, int]]) -> None:
+                 slam: RobotSlam, transport: Callable[[], dict[str, int]]) -> None:
         """``transport``: the session's transport counts as they are now (for the summary)."""
         self.state = state
         self.config = config
         self.store = store
-        self.back_end = back_end
+        self.slam = slam
         self._transport = transport
 
     @property
@@ -172,7 +172,7 @@ class SessionOutputs:
             lost_frames=int(sum(not r.tracked for r in st.rows)),
             loss_events=tracking.loss_events, repeated_frames=tracking.repeated_frames,
             map_resets=tracking.resets, map_points=map_points,
-            loop_closing=self.back_end.summary(), stage_seconds=st.stage_seconds,
+            loop_closing=self.slam.summary(), stage_seconds=st.stage_seconds,
             cloud_ms=st.cloud_ms, latency_ms=st.latency_ms,
             span_s=(st.last_frame_time or 0.0) - (st.first_frame_time or 0.0),
             transport=self._transport(), camera=camera,
