@@ -130,7 +130,7 @@ def end_messages(folder: Path) -> list[tuple[str, bytes, str]]:
     hello = protocol.encode({"type": "hello", "protocol": protocol.PROTOCOL,
                              "offload_at": POINT, "camera": camera.to_dict(),
                              "source": "flood"})
-    end = protocol.encode(protocol.end(1000))
+    end = protocol.encode(protocol.End(1000))
     return [(keys.control(ATTACKER), hello, "hello")] + \
         [(keys.control(ATTACKER), end, "end before any frame")] * 499
 

@@ -145,7 +145,7 @@ def cases(camera: dict[str, object]) -> Iterator[Case]:
                                            {"type": kind, **fields}).encode())]
     r = rid()
     yield "ack for unknown frames", [(keys.control(r), hello_bytes())] + [
-        (keys.control(r), json.dumps(protocol.ack(i)).encode()) for i in (0, 7, 2 ** 40)]
+        (keys.control(r), protocol.encode(protocol.Ack(i))) for i in (0, 7, 2 ** 40)]
     for what, data in (("type not a string", b'{"type": 3}'), ("no type", b'{"a": 1}'),
                        ("a list", b"[1, 2]"), ("a number", b"3"), ("not JSON", b"{{{"),
                        ("not UTF-8", b"\xff\xfe{"), ("empty", b""),

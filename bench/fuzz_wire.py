@@ -231,18 +231,19 @@ def build_context(n_frames: int = 3, small: bool = False) -> Context:
 def control_seeds(camera: Camera) -> list[tuple[str, bytes]]:
     """Every control message the builders make (the cloud parses all of them: a robot or a
     client may send any)."""
-    poses = {"3": np.eye(4).tolist(), "17": np.eye(4).tolist()}
+    poses = {3: np.eye(4), 17: np.eye(4)}
     messages = [
         Hello(0, camera, "7scenes", False).message(600),
         Hello(2, camera, "robot.tum", True).message(10),
         Hello(6, Camera(517.3, 516.5, 318.6, 255.3, distortion=(0.26, -0.95, -0.005, 0.003, 1.16)),
               "", False).message(0),
-        protocol.end(599, poses), protocol.end(10), protocol.ending(), protocol.need([3, 17]),
-        protocol.ended({"frames": 600, "ate_m": 0.05}), protocol.ack(17),
-        protocol.welcome(True, 18, 20, 2, 8),
-        protocol.error(protocol.Code.REJECTED, "frame rejected: x", rejected="frame"),
-        protocol.error(protocol.Code.REFERENCE_MISSING, "frame rejected: y", rejected="frame",
-                       seq=12, missing=[9, 10]),
+        *(m.message() for m in (
+            protocol.End(599, poses), protocol.End(10), protocol.Ending(),
+            protocol.Need((3, 17)), protocol.Ended({"frames": 600, "ate_m": 0.05}),
+            protocol.Ack(17), protocol.Welcome(True, 18, 20, 2, 8),
+            protocol.Error.of(protocol.Code.REJECTED, "frame rejected: x", rejected="frame"),
+            protocol.Error.of(protocol.Code.REFERENCE_MISSING, "frame rejected: y",
+                              rejected="frame", seq=12, missing=(9, 10)))),
         protocol.request("status", "a" * 32), protocol.request("merge", "b" * 32),
         protocol.status("c" * 32, {"r1": {"frames": 3, "finished": False}}, {"state": "idle"}),
         protocol.merged("d" * 32, {"robots": 2}),
@@ -743,12 +744,15 @@ GENERATORS: dict[str, Callable[[Context, Rng], tuple[str, bytes]]] = {
 
 def handle_control(data: bytes) -> None:
     """What the cloud does with a control message before acting on it (routing.py and
-    robot_session.py): parse; a hello's fields, an end's keyframe poses, a request's id."""
+    robot_session.py): parse; a hello's fields, an end's, a request's id; and what a robot
+    does with a reply (protocol.parse_reply)."""
     message = protocol.parse_control(data)
     if message["type"] == "hello":
         Hello.parse(message)
     elif message["type"] == "end":
-        protocol.keyframe_poses(message)
+        protocol.End.parse(message)
+    elif message["type"] in protocol.REPLIES:
+        protocol.parse_reply(data)
     protocol.request_id(message)
 
 

@@ -884,15 +884,15 @@ def test_keyframes_a_live_robot_no_longer_holds_are_mapped_without_images(cloud,
         robot.send(data)
     keyframes = [fb.frame_index for fb in robot.poses(N_FRAMES) if fb.is_keyframe]
     assert keyframes
-    robot.z.put(keys.control("r0"), protocol.encode(protocol.end(N_FRAMES - 1)))
+    robot.z.put(keys.control("r0"), protocol.encode(protocol.End(N_FRAMES - 1)))
     assert sorted(robot.reply("need", timeout=30.0)["frames"]) == keyframes
     camera = {"source": "replay of test at 30 fps", "delivered": 40, "taken": N_FRAMES,
               "skipped": 40 - N_FRAMES}
-    bad = protocol.end(N_FRAMES - 1, None, camera, ["x"])
+    bad = {**protocol.End(N_FRAMES - 1, camera=camera).message(), "unavailable": ["x"]}
     robot.z.put(keys.control("r0"), protocol.encode(bad))
     assert "bad unavailable keyframes" in robot.reply("error")["reason"]
     robot.z.put(keys.control("r0"), protocol.encode(
-        protocol.end(N_FRAMES - 1, None, camera, keyframes)))
+        protocol.End(N_FRAMES - 1, camera=camera, unavailable=frozenset(keyframes))))
     summary = robot.reply("ended", timeout=60.0)["summary"]
     assert summary["live_camera"] == camera
     assert summary["keyframes_without_images"] == len(keyframes) == summary["keyframes"]
@@ -960,11 +960,10 @@ def test_a_merge_names_each_robot_it_leaves_out_unfinished(cloud, messages):
     try:
         robots["r1"].poses(6)
         robots["r0"].poses(N_FRAMES)
-        robots["r0"].z.put(keys.control("r0"), protocol.encode(protocol.end(N_FRAMES - 1,
-                                                                             unavailable=None)))
+        robots["r0"].z.put(keys.control("r0"), protocol.encode(protocol.End(N_FRAMES - 1)))
         reply = robots["r0"].reply("need", timeout=30.0)
         robots["r0"].z.put(keys.control("r0"), protocol.encode(
-            protocol.end(N_FRAMES - 1, None, None, reply["frames"])))
+            protocol.End(N_FRAMES - 1, unavailable=frozenset(reply["frames"]))))
         robots["r0"].reply("ended", timeout=60.0)
         summary = server.merge()
     finally:

@@ -3,6 +3,9 @@ not a control message is refused with a reason."""
 
 from __future__ import annotations
 
+import json
+
+import numpy as np
 import pytest
 
 from fleetslam.camera import Camera
@@ -44,7 +47,7 @@ def test_requests_carry_ids_and_errors_carry_codes():
     a, b = protocol.request("status"), protocol.request("status")
     assert a["id"] != b["id"] and protocol.request_id(a) == a["id"]
     assert protocol.request_id({"id": 7}) is None
-    e = protocol.error(protocol.Code.REFUSED, "full", id="x")
+    e = protocol.Error.of(protocol.Code.REFUSED, "full", id="x").message()
     assert (e["code"], e["reason"], e["id"]) == ("refused", "full", "x")
     with pytest.raises(ValueError):
         protocol.request("dance")
@@ -75,10 +78,43 @@ def test_a_hello_camera_with_numbers_no_float_holds_is_refused(field, value, rea
 ])
 def test_bad_keyframe_poses_of_an_end_are_refused(poses, reason):
     with pytest.raises(ValueError, match=reason):
-        protocol.keyframe_poses(protocol.parse_control(protocol.encode(protocol.end(9, poses))))
+        protocol.End.parse(protocol.parse_control(protocol.encode(
+            {**protocol.End(9).message(), "keyframe_poses": poses})))
 
 
-def test_keyframe_poses_of_an_end_parse():
-    poses = protocol.keyframe_poses(protocol.end(9, {"3": [[1.0, 0, 0, 0]] * 4}))
-    assert list(poses) == [3] and poses[3].shape == (4, 4)
-    assert protocol.keyframe_poses(protocol.end(9)) == {}
+def test_an_end_parses_to_what_was_sent():
+    end = protocol.End(9, {3: np.eye(4)}, {"source": "cam", "delivered": 5, "taken": 4,
+                                           "skipped": 1}, frozenset({3}))
+    again = protocol.End.parse(protocol.parse_control(protocol.encode(end)))
+    assert list(again.keyframe_poses) == [3] and again.keyframe_poses[3].shape == (4, 4)
+    assert (again.last_seq, again.camera, again.unavailable) == (9, end.camera, {3})
+    assert protocol.End.parse(protocol.End(9).message()).keyframe_poses == {}
+
+
+@pytest.mark.parametrize("reply", [
+    protocol.Welcome(True, 18, 20, 2, 8, taken_over=True, last_timestamp=1.5,
+                     history_lost="why"),
+    protocol.Ending(), protocol.Need((3, 17)), protocol.Ended({"frames": 600}),
+    protocol.Ack(17), protocol.Held(4),
+    protocol.Error.of(protocol.Code.REFERENCE_MISSING, "y", rejected="frame", seq=5,
+                      missing=(1, 2)),
+    protocol.Error.of(protocol.Code.REFUSED, "full", answer_to="hello", full=True,
+                      max_sessions=4),
+])
+def test_every_reply_a_robot_hears_parses_to_what_the_cloud_sent(reply):
+    assert protocol.parse_reply(protocol.encode(reply)) == reply
+
+
+@pytest.mark.parametrize("message, reason", [
+    ({"type": "held", "seq": -1}, "seq -1 is not a count"),
+    ({"type": "held"}, "seq None is not a count"),
+    ({"type": "ack", "frame_index": True}, "frame_index True is not a count"),
+    ({"type": "need", "frames": "3"}, "not a list of frame indices"),
+    ({"type": "welcome", "resumed": True}, "next_seq None"),
+    ({"type": "welcome", "next_seq": 1, "last_timestamp": "x"}, "not a time"),
+    ({"type": "ended", "summary": []}, "summary is not an object"),
+    ({"type": "dance"}, "unknown reply 'dance'"),
+])
+def test_a_malformed_reply_is_refused_with_what_is_wrong(message, reason):
+    with pytest.raises(protocol.BadReply, match=reason):
+        protocol.parse_reply(json.dumps(message).encode())

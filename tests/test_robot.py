@@ -55,8 +55,6 @@ def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
     """A cloud restarted from a checkpoint older than a keyframe's feedback lost that
     keyframe: it says so (not_a_keyframe) and the robot's upload ends there instead of being
     resent until the robot gives up."""
-    import json
-    from types import SimpleNamespace
 
     from conftest import small_scene
 
@@ -69,15 +67,15 @@ def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
     robot.uploader.queue(14)
 
-    def reply(message: dict) -> None:
-        data = json.dumps(message).encode()
-        robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+    def reply(message: protocol.Reply) -> None:
+        robot.take_reply(protocol.encode(message))
 
-    reply(protocol.error(protocol.Code.REJECTED, "keyframe rejected: too big", frame_index=14))
-    assert not robot.uploader._acks[14].is_set()  # another reason: resending may help
-    reply(protocol.error(protocol.Code.NOT_A_KEYFRAME, "keyframe rejected: frame 14 is not a "
-                         "keyframe of this session", frame_index=14))
-    assert robot.uploader._acks[14].is_set() and robot.report.uploads_not_needed == 1
+    reply(protocol.Error.of(protocol.Code.REJECTED, "keyframe rejected: too big",
+                            frame_index=14))
+    assert not robot.uploader.settled(14)  # another reason: resending may help
+    reply(protocol.Error.of(protocol.Code.NOT_A_KEYFRAME, "keyframe rejected: frame 14 is "
+                            "not a keyframe of this session", frame_index=14))
+    assert robot.uploader.settled(14) and robot.report.uploads_not_needed == 1
 
 
 def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_factory):
@@ -123,8 +121,6 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
 
 def test_the_robot_says_hello_again_on_the_no_session_code_not_on_words(tmp_path_factory):
     """The cloud's error code, not its wording, makes the robot say hello again."""
-    import json
-    from types import SimpleNamespace
 
     from conftest import small_scene
 
@@ -136,22 +132,21 @@ def test_the_robot_says_hello_again_on_the_no_session_code_not_on_words(tmp_path
     folder = small_scene(tmp_path_factory, 2)[0]
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
 
-    def reply(message: dict) -> None:
-        data = json.dumps(message).encode()
-        robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+    def reply(message: protocol.Reply) -> None:
+        robot.take_reply(protocol.encode(message))
 
-    reply(protocol.error(protocol.Code.REJECTED, "frame rejected: send a hello, or not"))
-    assert not robot._need_hello.is_set()
-    reply(protocol.error(protocol.Code.NO_SESSION, "frame rejected: no session"))
-    assert robot._need_hello.is_set()
+    reply(protocol.Error.of(protocol.Code.REJECTED, "frame rejected: send a hello, or not"))
+    assert not robot.needs_hello
+    reply(protocol.Error.of(protocol.Code.NO_SESSION, "frame rejected: no session"))
+    assert robot.needs_hello
     # Both reached whoever awaits a reply (a hello fails on an error).
-    assert [robot._replies.get_nowait()["code"] for _ in range(2)] == ["rejected", "no_session"]
+    assert [robot.await_reply((protocol.Error,), 1.0).code for _ in range(2)] == \
+        ["rejected", "no_session"]
 
 
 def test_a_robot_whose_end_is_refused_says_why_at_once(tmp_path_factory):
     """The cloud refuses an end before any frame (nothing to write): the robot reports the
     cloud's reason at once instead of waiting END_TIMEOUT_S for an 'ended'."""
-    import json
     import threading
     from types import SimpleNamespace
 
@@ -165,22 +160,20 @@ def test_a_robot_whose_end_is_refused_says_why_at_once(tmp_path_factory):
     folder = small_scene(tmp_path_factory, 2)[0]
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
 
-    def reply(message: dict) -> None:
-        data = json.dumps(message).encode()
-        robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+    def reply(message: protocol.Reply) -> None:
+        robot.take_reply(protocol.encode(message))
 
     def control(message: dict) -> None:  # the cloud's answers to the robot's end
-        reply(protocol.ending())
-        reply(protocol.error(protocol.Code.REFUSED, "nothing to end: no frame tracked",
-                             answer_to="end"))
+        reply(protocol.Ending())
+        reply(protocol.Error.of(protocol.Code.REFUSED, "nothing to end: no frame tracked",
+                                answer_to="end"))
 
     robot.sender = SimpleNamespace(control=control)
-    robot._last_seq = -1
     raised: list[BaseException] = []
 
     def finish() -> None:
         try:
-            robot._finish()
+            robot.end_session(-1)
         except BaseException as exc:  # noqa: BLE001 (what the robot raises is the test)
             raised.append(exc)
 

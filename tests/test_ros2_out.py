@@ -13,7 +13,6 @@ import logging
 import struct
 import threading
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -202,7 +201,7 @@ def test_a_late_subscriber_gets_the_transient_local_message(sdk_session):
 
 def test_a_placement_is_checked_before_it_is_used():
     T = _pose(4)
-    message = json.loads(protocol.encode(protocol.placed("r2", T, False)))
+    message = json.loads(protocol.encode(protocol.Placed("r2", T, False)))
     placed = protocol.parse_placed(message)
     assert placed.group == "r2" and not placed.final
     np.testing.assert_array_equal(placed.T_global_map, T)  # JSON carries float64 exactly
@@ -249,7 +248,7 @@ def test_robots_hear_new_moved_and_final_placements_and_again_later():
 
 def _reply(robot, message: dict | bytes) -> None:
     data = message if isinstance(message, bytes) else json.dumps(message).encode()
-    robot._on_reply(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+    robot.take_reply(data)
 
 
 def test_a_malformed_placement_is_said_in_one_line_and_the_robot_goes_on(tmp_path_factory,
@@ -269,7 +268,7 @@ def test_a_malformed_placement_is_said_in_one_line_and_the_robot_goes_on(tmp_pat
                      "not a rigid transform (a rotation and a translation, last row 0 0 0 1)"]
     assert robot.report.placed is None and robot.report.placed_rejected == 1
     T = _pose(6)
-    _reply(robot, protocol.placed("r0", T, True))
+    _reply(robot, protocol.encode(protocol.Placed("r0", T, True)))
     assert robot.report.placed["group"] == "r0" and robot.report.placed["final"]
     np.testing.assert_array_equal(robot.report.placed["T_global_map"], T)
 

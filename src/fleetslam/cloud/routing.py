@@ -204,7 +204,7 @@ class Router:
         # get their answer, not a log line each.
         if self._throttle.due(f"log {reason}"):
             log.warning("%s: %s", key, reason)
-        self.publish(key, protocol.encode(protocol.error(code, reason, **extra)))
+        self.publish(key, protocol.encode(protocol.Error.of(code, reason, **extra)))
 
     # -- control messages -----------------------------------------------------------------
 
@@ -269,7 +269,7 @@ class Router:
             return
         if session.submit_control(message, arrival) and message["type"] == "end":
             # Heard at once; the answer (need / ended) comes when its frames are done.
-            self.publish(reply, protocol.encode(protocol.ending()))
+            self.publish(reply, protocol.encode(protocol.Ending()))
 
     def _on_cloud_control(self, data: bytes) -> None:
         """The operator's request: ``merge`` or ``status``."""

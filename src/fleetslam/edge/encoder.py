@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -17,6 +16,7 @@ from fleetslam.pipeline.split import INTER_POINTS, Sides, Stage, StageTimer, run
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.inter import InterEncoder, InterStats, reference_of
+from fleetslam.transport.protocol import Welcome
 from fleetslam.wire.paper_yaml import write_paper_yaml
 
 
@@ -84,10 +84,10 @@ class FrameEncoder:
         intra frames until a frame sent from now on is acknowledged."""
         self.inter.refused(self.next_seq)
 
-    def restart(self, welcome: dict[str, Any]) -> None:
+    def restart(self, welcome: Welcome) -> None:
         """A new or resumed session: no frame acknowledged before is a reference."""
-        self.inter.set_cloud_ring(int(welcome.get("reference_frames") or 0))
-        self.inter.restart(int(welcome["next_seq"]))
+        self.inter.set_cloud_ring(welcome.reference_frames)
+        self.inter.restart(welcome.next_seq)
 
     def record(self, report: RobotReport) -> None:
         """The run's end: stage and encoding times, the inter-frame coding's counts."""

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
 
 from fleetslam.edge.report import RobotReport
 from fleetslam.edge.ros2_out import RobotRosOut
@@ -26,15 +25,15 @@ class FleetFrame:
         # Ends the hold: a merge's (final) placement, or the robot told to stop.
         self._over = threading.Event()
 
-    def take(self, message: dict[str, Any]) -> None:
-        """A ``placed`` reply (a Zenoh callback); a malformed one is said and dropped."""
+    def rejected(self, reason: str) -> None:
+        """A ``placed`` reply that did not parse: said and dropped."""
         self.report.placed_messages += 1
-        try:
-            placed = protocol.parse_placed(message)
-        except ValueError as exc:
-            self.report.placed_rejected += 1
-            log.warning("robot %s: placement from the cloud rejected: %s", self.robot_id, exc)
-            return
+        self.report.placed_rejected += 1
+        log.warning("robot %s: placement from the cloud rejected: %s", self.robot_id, reason)
+
+    def take(self, placed: protocol.Placed) -> None:
+        """A ``placed`` reply (a Zenoh callback), checked."""
+        self.report.placed_messages += 1
         self.report.placed = {"group": placed.group, "final": placed.final,
                               "T_global_map": placed.T_global_map.tolist()}
         if self.ros_out is not None:

@@ -8,6 +8,8 @@ import logging
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from fleetslam.transport.protocol import Welcome
+
 log = logging.getLogger("fleetslam.robot")
 
 # `fleetslam robot`'s exit status when the cloud kept less than the robot sent (a session
@@ -105,10 +107,10 @@ class RobotReport:
     encode_ms_p95: float | None = None
     inter_coding: dict[str, Any] = field(default_factory=dict)
 
-    def note_welcome(self, welcome: dict[str, Any], at_frame: int | None) -> None:
+    def note_welcome(self, welcome: Welcome, at_frame: int | None) -> None:
         """A welcome to a hello: the robot's first (``at_frame`` None) or one mid-run, after
         the cloud lost the robot; a session the cloud could not keep is said and recorded."""
-        lost = welcome.get("history_lost")
+        lost = welcome.history_lost
         if lost:
             # The cloud could not restore this robot's stored session: it starts afresh.
             log.error("robot %s: the cloud lost this robot's session history and starts a "
@@ -117,8 +119,8 @@ class RobotReport:
             self.incomplete.append(f"the cloud lost the session's history: {lost}")
         if at_frame is None:
             return
-        next_index = int(welcome.get("next_index", 0))
-        if not welcome.get("resumed") and not lost:
+        next_index = welcome.next_index
+        if not welcome.resumed and not lost:
             why = f"the cloud no longer had this robot's session at frame {at_frame}: a " \
                   f"fresh session holds the frames from there on, not those before"
         elif next_index < at_frame:

@@ -26,7 +26,6 @@ never sends faster than its link; each part counts what it did in the ``RobotRep
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import queue
@@ -72,13 +71,12 @@ END_TIMEOUT_S = 900.0
 class CloudRefused(RuntimeError):
     """The cloud answered a hello or an end with a refusal (its reason), not silence."""
 
-    def __init__(self, message: dict[str, Any]) -> None:
-        super().__init__(str(message.get("reason")))
-        self.reason = str(message.get("reason"))
-        self.code = message.get("code")
-        self.full = message.get("full") is True  # no session slot free: may free up
-        self.wait = message.get("wait") is True  # the cloud cannot serve yet: may change
-        self.max_sessions = message.get("max_sessions")
+    def __init__(self, error: protocol.Error) -> None:
+        super().__init__(error.reason)
+        self.reason, self.code = error.reason, error.code
+        self.full = error.full  # no session slot free: may free up
+        self.wait = error.wait  # the cloud cannot serve yet: may change
+        self.max_sessions = error.max_sessions
 
 
 class OnboardTracker(Protocol):
@@ -168,7 +166,7 @@ class Robot:
         self.fleet_frame = FleetFrame(self.robot_id, self.report, self.ros_out,
                                       config.ros2_out.hold_s)
         self.sender: Sender | None = None  # the link, once run() has connected
-        self._replies: queue.Queue = queue.Queue()
+        self._replies: queue.Queue[protocol.Reply] = queue.Queue()
         # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
         self._need_hello = threading.Event()
         self._resume_after: float | None = None  # a resumed live camera: the session's last stamp
@@ -197,35 +195,46 @@ class Robot:
             self.uploader.keyframe(fb.frame_index)
 
     def _on_reply(self, sample: Any) -> None:
+        self.take_reply(sample.payload.to_bytes())
+
+    def take_reply(self, data: bytes) -> None:
+        """A reply from the cloud (the Zenoh callback's); one that does not parse is
+        logged and dropped."""
         try:
-            message = json.loads(sample.payload.to_bytes())
-            kind = message["type"]
-        except (ValueError, KeyError, TypeError) as exc:
+            reply = protocol.parse_reply(data)
+        except protocol.BadReply as exc:
+            if exc.kind == protocol.Placed.TYPE:
+                return self.fleet_frame.rejected(str(exc))
             log.warning("robot %s: reply rejected: %s", self.robot_id, exc)
             return
-        if kind == "held":
-            self.encoder.held(int(message["seq"]))
-        elif kind == "welcome" and message.get("taken_over"):
+        if isinstance(reply, protocol.Held):
+            self.encoder.held(reply.seq)
+        elif isinstance(reply, protocol.Welcome) and reply.taken_over:
             # A worker took the session over from its checkpoint (the one serving it died):
             # the frames in flight went to the dead one, and it holds none as a reference.
             self.window.clear()
             self.encoder.references_lost()
             self.report.takeovers += 1
-            self._replies.put(message)
-        elif kind == "ack":
-            self.uploader.acknowledged(int(message["frame_index"]))
-        elif kind == "error":
-            self._on_error(message)
-        elif kind == "placed":
-            self.fleet_frame.take(message)
+            self._replies.put(reply)
+        elif isinstance(reply, protocol.Ack):
+            self.uploader.acknowledged(reply.frame_index)
+        elif isinstance(reply, protocol.Error):
+            self._on_error(reply)
+        elif isinstance(reply, protocol.Placed):
+            self.fleet_frame.take(reply)
         else:
-            self._replies.put(message)
+            self._replies.put(reply)
 
-    def _on_error(self, message: dict[str, Any]) -> None:
-        log.warning("robot %s: cloud says: %s", self.robot_id, message.get("reason"))
-        code = message.get("code")
+    @property
+    def needs_hello(self) -> bool:
+        """The cloud lost this robot's session: the next frame waits for a hello."""
+        return self._need_hello.is_set()
+
+    def _on_error(self, error: protocol.Error) -> None:
+        log.warning("robot %s: cloud says: %s", self.robot_id, error.reason)
+        code = error.code
         if code == protocol.Code.NOT_A_KEYFRAME.value:
-            return self.uploader.not_needed(message.get("frame_index"))
+            return self.uploader.not_needed(error.frame_index)
         if code == protocol.Code.REFERENCE_MISSING.value:
             return self.encoder.references_lost()
         if code == protocol.Code.OVER_BUDGET.value:
@@ -234,23 +243,24 @@ class Robot:
             return
         if code == protocol.Code.NO_SESSION.value:  # the cloud lost us: hello again
             self._need_hello.set()
-        self._replies.put(message)
+        self._replies.put(error)
 
-    def _await_reply(self, kinds: tuple[str, ...], timeout: float,
-                     answer_to: str | None = None) -> dict[str, Any] | None:
-        """The first reply of one of ``kinds``, None after ``timeout``; CloudRefused if the
-        cloud refused the ``answer_to`` message ("hello", "end") instead."""
+    def await_reply(self, kinds: tuple[type, ...], timeout: float,
+                    answer_to: str | None = None) -> Any:
+        """The first reply of one of ``kinds`` (an error included), None after
+        ``timeout``; CloudRefused if the cloud refused the ``answer_to`` message ("hello",
+        "end") instead."""
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0:
             try:
-                message = self._replies.get(timeout=left)
+                reply = self._replies.get(timeout=left)
             except queue.Empty:
                 return None
-            if message["type"] in kinds:
-                return message
-            if message["type"] == "error" and answer_to is not None \
-                    and message.get("answer_to") == answer_to:
-                raise CloudRefused(message)
+            if isinstance(reply, kinds):
+                return reply
+            if isinstance(reply, protocol.Error) and answer_to is not None \
+                    and reply.answer_to == answer_to:
+                raise CloudRefused(reply)
         return None
 
     # -- the run --------------------------------------------------------------------------
@@ -267,8 +277,7 @@ class Robot:
         if self.ros_out is not None:
             self.ros_out.start()
         try:
-            self._stream()
-            self._finish()
+            self.end_session(self._stream())
             self.fleet_frame.hold()
         finally:
             if self.live is not None:
@@ -289,8 +298,9 @@ class Robot:
         self._stopping.set()
         self.fleet_frame.release()
 
-    def _stream(self) -> None:
-        """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send."""
+    def _stream(self) -> int:
+        """The robot's per-frame loop: adapt, pace, wait for room, encode, keep, send; the
+        last frame's seq."""
         seq, start_index = self._open_session()
         n = None if self.live is not None else len(self.sequence)
         progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
@@ -311,7 +321,7 @@ class Robot:
                 outbox.drain()
                 welcome = self._hello()
                 self.report.note_welcome(welcome, i)
-                seq = max(seq, int(welcome["next_seq"]))
+                seq = max(seq, welcome.next_seq)
             pacer.wait(i, frame.timestamp)
             if not self.window.wait_for_room():
                 # Nobody may be serving this robot any more (a cloud that lost it, a worker
@@ -337,7 +347,7 @@ class Robot:
             self.report.camera_rejected = self.live.rejected
         progress.finish(i + 1 - start_index, self._progress_note(k, step))
         self.report.streaming_s = time.monotonic() - t0
-        self._last_seq = seq - 1
+        return seq - 1
 
     def _progress_note(self, k: int, step: int) -> str:
         return (f"kf {self.report.keyframes}"
@@ -369,27 +379,25 @@ class Robot:
     def _open_session(self) -> tuple[int, int]:
         """Hello: the session's next seq and the frame it starts (or resumes) at."""
         welcome = self._hello()
-        start_index = int(welcome["next_index"])
+        start_index = welcome.next_index
         # A live camera cannot go back to a frame index: it numbers its frames on from the
         # session's next index, and drops those not after the session's last timestamp (a
         # replay restarted from its beginning; a camera's clock has moved on anyway).
-        last = welcome.get("last_timestamp")
-        self._resume_after = float(last) if self.live is not None and last is not None \
-            else None
-        if welcome.get("resumed") and start_index and self.offload_at == ROBOT_TRACKS:
+        self._resume_after = welcome.last_timestamp if self.live is not None else None
+        if welcome.resumed and start_index and self.offload_at == ROBOT_TRACKS:
             raise RuntimeError(
                 f"robot {self.robot_id}: the cloud has {start_index} frames of this session, "
                 f"but a robot that tracks itself (point 6) kept its map on the robot and "
                 f"cannot resume it; start again under a new --id")
         self.report.note_welcome(welcome, None)
-        if welcome.get("resumed"):
+        if welcome.resumed:
             self.report.resumed_at = start_index
             log.info("robot %s: resuming the cloud's session at frame %d", self.robot_id,
                      start_index)
         self.report.first_index = start_index
-        return int(welcome["next_seq"]), start_index
+        return welcome.next_seq, start_index
 
-    def _hello(self) -> dict[str, Any]:
+    def _hello(self) -> protocol.Welcome:
         # A live camera's frame count is unknown (None) until it stops; the cloud reads it
         # nowhere (resume goes by its own next index).
         # The cloud hears the camera's mounting too (the fleet's map frame: map_frame.py).
@@ -409,7 +417,7 @@ class Robot:
                             self._silence(), cfg.max_attempts)
             self.sender.control(message)
             try:
-                welcome = self._await_reply(("welcome",), cfg.connect_timeout_s, "hello")
+                welcome = self.await_reply((protocol.Welcome,), cfg.connect_timeout_s, "hello")
             except CloudRefused as refusal:
                 if refusal.wait:  # e.g. its coordination service out of reach: hello again
                     if waiting != refusal.reason:
@@ -451,13 +459,11 @@ class Robot:
         return no_answer(self.endpoint, self.config.transport.zenoh_config or None,
                          self.robot_id)
 
-    def _finish(self) -> None:
-        """Tell the cloud the stream ended; upload whatever keyframes it still needs; wait
-        for its 'ended' (trajectory and map written)."""
+    def end_session(self, last_seq: int) -> None:
+        """Tell the cloud the stream ended at ``last_seq``; upload whatever keyframes it
+        still needs; wait for its 'ended' (trajectory and map written)."""
         self.uploader.wait()
-        poses = self.onboard.keyframe_poses() if self.onboard is not None else None
-        poses_json = None if poses is None else {
-            str(index): T.tolist() for index, T in poses.items()}
+        poses = self.onboard.keyframe_poses() if self.onboard is not None else {}
         camera = None if self.live is None else {
             "source": self.live.description, "delivered": self.report.camera_delivered,
             "taken": self.report.camera_taken, "skipped": self.report.camera_skipped}
@@ -470,12 +476,13 @@ class Robot:
                                          + self.report.frames)
             # Keyframes the robot cannot upload (a live camera's, gone from its buffer): the
             # cloud builds the map without their images instead of asking again.
-            self.sender.control(protocol.end(self._last_seq, poses_json, camera,
-                                             sorted(self.uploader.unavailable)))
-            if self._await_reply(("ending",), cfg.connect_timeout_s) is None:
+            self.sender.control(protocol.End(last_seq, poses, camera,
+                                             frozenset(self.uploader.unavailable)))
+            if self.await_reply((protocol.Ending,), cfg.connect_timeout_s) is None:
                 continue  # the end message was lost, or the cloud is restarting
             try:
-                answer = self._await_reply(("need", "ended"), END_TIMEOUT_S, "end")
+                answer = self.await_reply((protocol.Need, protocol.Ended), END_TIMEOUT_S,
+                                          "end")
             except CloudRefused as refusal:
                 if refusal.code != protocol.Code.FAILED.value:
                     raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
@@ -488,22 +495,22 @@ class Robot:
             if answer is None:
                 raise RuntimeError(f"robot {self.robot_id}: the cloud did not finish in "
                                    f"{END_TIMEOUT_S:.0f} s")
-            if answer["type"] == "ended":
+            if isinstance(answer, protocol.Ended):
                 self._record_end(answer)
                 return
-            log.info("robot %s: cloud needs keyframes %s", self.robot_id, answer["frames"])
-            for index in answer["frames"]:
-                self.uploader.queue(int(index))
+            log.info("robot %s: cloud needs keyframes %s", self.robot_id, list(answer.frames))
+            for index in answer.frames:
+                self.uploader.queue(index)
             self.uploader.wait()
         raise RuntimeError(f"robot {self.robot_id}: the cloud never confirmed the end")
 
-    def _record_end(self, answer: dict[str, Any]) -> None:
+    def _record_end(self, answer: protocol.Ended) -> None:
         r = self.report
         r.total_s = time.monotonic() - self.sender.t0
         r.link_busy_s = self.sender.link.stats.busy_s
         self.window.record(r, self.sender.t0)
         self.encoder.record(r)
-        r.cloud_summary = answer.get("summary")
+        r.cloud_summary = answer.summary
         r.note_cloud_kept()
         if self.planner is not None:
             r.plan_history = self.planner.history

@@ -93,6 +93,12 @@ class KeyframeUploader:
         if event is not None:
             event.set()
 
+    def settled(self, index: int) -> bool:
+        """Whether a queued keyframe's upload is over (acknowledged, or not needed)."""
+        with self._acks_lock:
+            event = self._acks.get(index)
+        return event is not None and event.is_set()
+
     def not_needed(self, index: Any) -> None:
         """The cloud's session does not hold this frame as a keyframe (a cloud restarted from
         an older checkpoint lost it): resending cannot help, so its upload ends here."""

@@ -13,15 +13,19 @@ Client <-> cloud, on ``fleet/cloud/control`` and ``fleet/cloud/reply``:
     reply repeats; the client resends the same request until the reply comes (a lost request
     costs one resend interval, never a hang), and the cloud answers a repeated merge id from
     the merge already running or done instead of merging again.
+
+Every message is a frozen dataclass: ``message()`` is its JSON object, ``parse`` checks one
+read from JSON before anything uses it (ValueError saying what is wrong); ``parse_reply``
+reads any reply a robot hears.
 """
 
 from __future__ import annotations
 
 import json
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -54,8 +58,9 @@ class Code(str, Enum):
     OVER_BUDGET = "over_budget"
 
 
-def encode(message: dict[str, Any]) -> bytes:
-    return json.dumps(message).encode()
+def encode(message: Any) -> bytes:
+    """A message object's (or a JSON object's) bytes."""
+    return json.dumps(message.message() if hasattr(message, "message") else message).encode()
 
 
 def parse_control(data: bytes) -> dict[str, Any]:
@@ -118,44 +123,103 @@ class Hello:
 
 # -- robot <-> cloud ------------------------------------------------------------------------
 
-def welcome(resumed: bool, next_index: int, next_seq: int, keyframes_stored: int,
-            reference_frames: int = 0, taken_over: bool = False,
-            last_timestamp: float | None = None, history_lost: str | None = None
-            ) -> dict[str, Any]:
-    # reference_frames: the decoded frames the session keeps as references for inter-coded
-    # frames (wire/inter.py); a cloud that says nothing (older) takes intra frames only.
-    # taken_over: unasked, from a worker that restored the session after its worker died.
-    # last_timestamp: of the session's last tracked frame (None: none yet); a resumed live
-    # camera cannot seek to next_index, so it drops frames not after this moment.
-    # history_lost: the robot's stored session could not be restored (why, and where its
-    # checkpoint was kept): this is a fresh session, the frames before are not in it.
-    message = {"type": "welcome", "resumed": resumed, "next_index": next_index,
-               "next_seq": next_seq, "keyframes_stored": keyframes_stored,
-               "reference_frames": reference_frames, "last_timestamp": last_timestamp}
-    if history_lost is not None:
-        message["history_lost"] = history_lost
-    return {**message, "taken_over": True} if taken_over else message
+def _int(message: dict[str, Any], key: str, default: int | None = None) -> int:
+    """A non-negative integer field; ValueError naming it."""
+    value = message.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{message.get('type')}: {key} {value!r} is not a count or index")
+    return value
 
 
-def end(last_seq: int, keyframe_poses: dict[str, list] | None = None,
-        camera: dict[str, Any] | None = None, unavailable: list[int] | None = None
-        ) -> dict[str, Any]:
-    """``camera``: a live source's counts (``source``, ``delivered``, ``taken``, ``skipped``:
-    frames it delivered that the robot, busy, never took), for the summary; ``unavailable``: keyframes
-    the robot cannot upload (a live camera keeps no recording): mapped without images."""
-    message: dict[str, Any] = {"type": "end", "last_seq": last_seq}
-    if keyframe_poses is not None:
-        message["keyframe_poses"] = keyframe_poses
-    if camera is not None:
-        message["camera"] = camera
-    if unavailable:
-        message["unavailable"] = unavailable
-    return message
+def _str(message: dict[str, Any], key: str, limit: int = 4096) -> str | None:
+    value = message.get(key)
+    if value is not None and (not isinstance(value, str) or len(value) > limit):
+        raise ValueError(f"{message.get('type')}: {key} is not a string of at most {limit}")
+    return value
 
 
-def end_camera(message: dict[str, Any]) -> dict[str, Any] | None:
-    """An ``end`` message's live camera counts, or None (a recording); ValueError saying
-    what is wrong."""
+@dataclass(frozen=True)
+class Welcome:
+    """The cloud opened (or resumed) the robot's session."""
+
+    TYPE: ClassVar[str] = "welcome"
+    resumed: bool
+    next_index: int
+    next_seq: int
+    keyframes_stored: int
+    # The decoded frames the session keeps as references for inter-coded frames
+    # (wire/inter.py); a cloud that says nothing (older) takes intra frames only.
+    reference_frames: int = 0
+    # Unasked, from a worker that restored the session after its worker died.
+    taken_over: bool = False
+    # Of the session's last tracked frame (None: none yet); a resumed live camera cannot
+    # seek to next_index, so it drops frames not after this moment.
+    last_timestamp: float | None = None
+    # The robot's stored session could not be restored (why, and where its checkpoint was
+    # kept): this is a fresh session, the frames before are not in it.
+    history_lost: str | None = None
+
+    def message(self) -> dict[str, Any]:
+        message = {"type": self.TYPE, "resumed": self.resumed, "next_index": self.next_index,
+                   "next_seq": self.next_seq, "keyframes_stored": self.keyframes_stored,
+                   "reference_frames": self.reference_frames,
+                   "last_timestamp": self.last_timestamp}
+        if self.history_lost is not None:
+            message["history_lost"] = self.history_lost
+        return {**message, "taken_over": True} if self.taken_over else message
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Welcome:
+        last = message.get("last_timestamp")
+        if last is not None and (isinstance(last, bool) or not isinstance(last, (int, float))
+                                 or not np.isfinite(last)):
+            raise ValueError(f"welcome: last_timestamp {last!r} is not a time")
+        return Welcome(message.get("resumed") is True, _int(message, "next_index", 0),
+                       _int(message, "next_seq"), _int(message, "keyframes_stored", 0),
+                       _int(message, "reference_frames", 0), message.get("taken_over") is True,
+                       None if last is None else float(last), _str(message, "history_lost"))
+
+
+@dataclass(frozen=True)
+class End:
+    """The robot is done: its last seq; at point 6 its keyframes' poses (frame index ->
+    4 x 4, its own map's); a live source's counts (``source``, ``delivered``, ``taken``,
+    ``skipped``: frames it delivered that the robot, busy, never took), for the summary;
+    the keyframes it cannot upload (a live camera keeps no recording): mapped without
+    images."""
+
+    TYPE: ClassVar[str] = "end"
+    last_seq: int
+    keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    camera: dict[str, Any] | None = None
+    unavailable: frozenset[int] = frozenset()
+
+    def message(self) -> dict[str, Any]:
+        message: dict[str, Any] = {"type": self.TYPE, "last_seq": self.last_seq}
+        if self.keyframe_poses:
+            message["keyframe_poses"] = {str(i): np.asarray(T).tolist()
+                                         for i, T in self.keyframe_poses.items()}
+        if self.camera is not None:
+            message["camera"] = self.camera
+        if self.unavailable:
+            message["unavailable"] = sorted(self.unavailable)
+        return message
+
+    @staticmethod
+    def last_seq_of(message: dict[str, Any]) -> int | None:
+        """The end's last seq as sent, if it is one (read before the rest is checked: an
+        end waits for its frames in flight either way)."""
+        seq = message.get("last_seq")
+        return seq if isinstance(seq, int) and not isinstance(seq, bool) else None
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> End:
+        seq = End.last_seq_of(message)
+        return End(-1 if seq is None else seq, _end_keyframe_poses(message),
+                   _end_camera(message), _end_unavailable(message))
+
+
+def _end_camera(message: dict[str, Any]) -> dict[str, Any] | None:
     camera = message.get("camera")
     if camera is None:
         return None
@@ -169,18 +233,15 @@ def end_camera(message: dict[str, Any]) -> dict[str, Any] | None:
     return {name: camera[name] for name in ("source", "delivered", "taken", "skipped")}
 
 
-def end_unavailable(message: dict[str, Any]) -> set[int]:
-    """An ``end`` message's keyframes the robot cannot upload; ValueError if malformed."""
+def _end_unavailable(message: dict[str, Any]) -> frozenset[int]:
     frames = message.get("unavailable") or []
     if not isinstance(frames, list) or not all(
             isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in frames):
         raise ValueError("bad unavailable keyframes: not a list of frame indices")
-    return set(frames)
+    return frozenset(frames)
 
 
-def keyframe_poses(message: dict[str, Any]) -> dict[int, np.ndarray]:
-    """An ``end`` message's keyframe poses (frame index -> 4 x 4); ValueError saying what is
-    wrong."""
+def _end_keyframe_poses(message: dict[str, Any]) -> dict[int, np.ndarray]:
     poses = message.get("keyframe_poses") or {}
     if not isinstance(poses, dict):  # a list has no .items(): AttributeError otherwise
         raise ValueError("bad keyframe poses: not an object of frame index -> pose")
@@ -196,30 +257,135 @@ def keyframe_poses(message: dict[str, Any]) -> dict[int, np.ndarray]:
     return out
 
 
-def ending() -> dict[str, Any]:
-    return {"type": "ending"}
+@dataclass(frozen=True)
+class Ending:
+    """The cloud heard the end; need or ended follows once its frames are done."""
+
+    TYPE: ClassVar[str] = "ending"
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Ending:
+        return Ending()
 
 
-def need(frames: list[int]) -> dict[str, Any]:
-    return {"type": "need", "frames": frames}
+@dataclass(frozen=True)
+class Need:
+    """Resend these keyframes' uploads (frame indices), then end again."""
+
+    TYPE: ClassVar[str] = "need"
+    frames: tuple[int, ...]
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE, "frames": list(self.frames)}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Need:
+        frames = message.get("frames")
+        if not isinstance(frames, list) or not all(
+                isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in frames):
+            raise ValueError("need: frames is not a list of frame indices")
+        return Need(tuple(frames))
 
 
-def ended(summary: dict[str, Any]) -> dict[str, Any]:
-    return {"type": "ended", "summary": summary}
+@dataclass(frozen=True)
+class Ended:
+    """The robot's session is finished and durable; its summary (summary.json's robot)."""
+
+    TYPE: ClassVar[str] = "ended"
+    summary: dict[str, Any]
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE, "summary": self.summary}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Ended:
+        summary = message.get("summary")
+        if not isinstance(summary, dict):
+            raise ValueError("ended: summary is not an object")
+        return Ended(summary)
 
 
-def ack(frame_index: int) -> dict[str, Any]:
-    return {"type": "ack", "frame_index": frame_index}
+@dataclass(frozen=True)
+class Ack:
+    """A keyframe's upload is stored and a checkpoint covers it."""
+
+    TYPE: ClassVar[str] = "ack"
+    frame_index: int
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE, "frame_index": self.frame_index}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Ack:
+        return Ack(_int(message, "frame_index"))
 
 
-def held(seq: int) -> dict[str, Any]:
-    # Frame ``seq`` is decoded and in the session's reference ring: later frames may be
-    # coded against it (sent on arrival, before tracking, which may lag far behind).
-    return {"type": "held", "seq": seq}
+@dataclass(frozen=True)
+class Held:
+    """Frame ``seq`` is decoded and in the session's reference ring: later frames may be
+    coded against it (sent on arrival, before tracking, which may lag far behind)."""
+
+    TYPE: ClassVar[str] = "held"
+    seq: int
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE, "seq": self.seq}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Held:
+        return Held(_int(message, "seq"))
 
 
-def error(code: Code, reason: str, **extra: Any) -> dict[str, Any]:
-    return {"type": "error", "code": code.value, "reason": reason, **extra}
+@dataclass(frozen=True)
+class Error:
+    """Why the cloud said no (``code``) in words (``reason``), and what it answers."""
+
+    TYPE: ClassVar[str] = "error"
+    code: str
+    reason: str
+    answer_to: str | None = None  # "hello" or "end": a refusal of that message
+    rejected: str | None = None  # "frame", "keyframe", "control": what was dropped
+    frame_index: int | None = None  # an upload's frame (not_a_keyframe, over budget)
+    seq: int | None = None  # reference_missing: the frame that named a missing reference
+    missing: tuple[int, ...] | None = None  # ... and the references it named
+    full: bool = False  # no session slot free: may free up
+    wait: bool = False  # the cloud cannot serve yet: may change
+    max_sessions: int | None = None
+    id: str | None = None  # a client request's id
+
+    def message(self) -> dict[str, Any]:
+        message: dict[str, Any] = {"type": self.TYPE, "code": self.code, "reason": self.reason}
+        for name in ("answer_to", "rejected", "frame_index", "seq", "missing", "max_sessions",
+                     "id"):
+            value = getattr(self, name)
+            if value is not None:
+                message[name] = list(value) if name == "missing" else value
+        if self.full:
+            message["full"] = True
+        if self.wait:
+            message["wait"] = True
+        return message
+
+    @staticmethod
+    def of(code: Code, reason: str, **extra: Any) -> Error:
+        return Error(code.value, reason, **extra)
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Error:
+        missing = message.get("missing")
+        if missing is not None and (not isinstance(missing, list) or not all(
+                isinstance(i, int) and not isinstance(i, bool) for i in missing)):
+            raise ValueError("error: missing is not a list of seqs")
+        optional = {k: _int(message, k) if message.get(k) is not None else None
+                    for k in ("frame_index", "seq", "max_sessions")}
+        return Error(_str(message, "code", 64) or "", _str(message, "reason") or "",
+                     _str(message, "answer_to", 16), _str(message, "rejected", 16),
+                     missing=None if missing is None else tuple(missing),
+                     full=message.get("full") is True, wait=message.get("wait") is True,
+                     id=request_id(message), **optional)
 
 
 # A placement's rotation may be this far from orthonormal (JSON carries float64 exactly;
@@ -227,19 +393,25 @@ def error(code: Code, reason: str, **extra: Any) -> dict[str, Any]:
 PLACED_ORTHONORMAL_TOLERANCE = 1e-6
 
 
-def placed(group: str, T_global_map: np.ndarray, final: bool) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Placed:
     """Where the robot's map frame lies in its group's frame (``group``: the robot whose
     first camera that frame is); ``final``: from a merge's written outputs (summary.json's
     T_global_map), not the live graph's."""
-    return {"type": "placed", "group": group,
-            "T_global_map": np.asarray(T_global_map, np.float64).tolist(), "final": final}
 
-
-@dataclass(frozen=True)
-class Placed:
+    TYPE: ClassVar[str] = "placed"
     group: str
     T_global_map: np.ndarray  # 4 x 4, rigid
     final: bool
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE, "group": self.group,
+                "T_global_map": np.asarray(self.T_global_map, np.float64).tolist(),
+                "final": self.final}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Placed:
+        return parse_placed(message)
 
 
 def parse_placed(message: dict[str, Any]) -> Placed:
@@ -295,3 +467,31 @@ def status(request_id: str | None, robots: dict[str, Any], merge: dict[str, Any]
 
 def merged(request_id: str | None, summary: dict[str, Any]) -> dict[str, Any]:
     return {"type": "merged", "id": request_id, "summary": summary}
+
+
+Reply = Welcome | Ending | Need | Ended | Ack | Held | Error | Placed
+REPLIES: dict[str, Any] = {kind.TYPE: kind for kind in
+                           (Welcome, Ending, Need, Ended, Ack, Held, Error, Placed)}
+
+
+class BadReply(ValueError):
+    """A reply that does not parse; ``kind``: its type, if it named a known one."""
+
+    def __init__(self, reason: str, kind: str | None = None) -> None:
+        super().__init__(reason)
+        self.kind = kind
+
+
+def parse_reply(data: bytes) -> Reply:
+    """Any reply a robot hears, checked; BadReply saying what is wrong."""
+    try:
+        message = parse_control(data)
+    except ValueError as exc:
+        raise BadReply(str(exc)) from None
+    kind = REPLIES.get(message["type"])
+    if kind is None:
+        raise BadReply(f"unknown reply {message['type'][:40]!r}")
+    try:
+        return kind.parse(message)
+    except ValueError as exc:
+        raise BadReply(str(exc), kind.TYPE) from None

@@ -230,7 +230,7 @@ class FencedPlacement(Placement):
         reason = (f"worker {self.worker_id} no longer serves robot {robot} (its grant, epoch "
                   f"{epoch}, is gone from the coordination service: {why}); say hello again")
         try:
-            self.z.put(keys.reply(robot), protocol.encode(protocol.error(
+            self.z.put(keys.reply(robot), protocol.encode(protocol.Error.of(
                 protocol.Code.NO_SESSION, reason)))
         except zenoh.ZError as exc:  # the robot waits for answers, then says hello anyway
             log.warning("robot %s: not told it lost its worker (%s)", robot, exc)

@@ -66,4 +66,4 @@ class FleetFrames:
             self._send(robot, group, T, final)
 
     def _send(self, robot: str, group: str, T: np.ndarray, final: bool) -> None:
-        self.publish(keys.reply(robot), protocol.encode(protocol.placed(group, T, final)))
+        self.publish(keys.reply(robot), protocol.encode(protocol.Placed(group, T, final)))

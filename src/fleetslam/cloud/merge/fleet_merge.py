@@ -64,11 +64,11 @@ class MergeRequests:
             reply = protocol.encode(protocol.merged(rid, self._merge()))
         except NothingToMerge as exc:
             log.warning("merge asked for: %s", exc)
-            reply = protocol.encode(protocol.error(protocol.Code.FAILED, str(exc), id=rid))
+            reply = protocol.encode(protocol.Error.of(protocol.Code.FAILED, str(exc), id=rid))
         except Exception as exc:
             log.exception("merge failed")
-            reply = protocol.encode(protocol.error(protocol.Code.FAILED, f"merge failed: {exc}",
-                                                   id=rid))
+            reply = protocol.encode(protocol.Error.of(protocol.Code.FAILED,
+                                                      f"merge failed: {exc}", id=rid))
         if rid is not None:
             with self._lock:
                 self._replies[rid] = reply

@@ -80,8 +80,8 @@ class EndHandshake:
         if self._since is None:
             self._since = now
         self._message = message
-        last_seq = message.get("last_seq")
-        if (isinstance(last_seq, int) and last_seq > self.state.last_seq
+        last_seq = protocol.End.last_seq_of(message)
+        if (last_seq is not None and last_seq > self.state.last_seq
                 and now - self._since < self.config.transport.end_grace_s):
             # Frames travel on another key than control messages and may arrive after
             # the end that follows them: the tracking thread looks again (held_for_frames).
@@ -99,30 +99,28 @@ class EndHandshake:
     def _answer(self, message: dict[str, Any]) -> None:
         """The answer to an end: error, need, or ended (``finished`` set first, durable)."""
         try:
-            poses = protocol.keyframe_poses(message)
-            camera = protocol.end_camera(message)
-            unavailable = protocol.end_unavailable(message)
+            end = protocol.End.parse(message)
         except ValueError as exc:
-            return self.replies.reply(protocol.error(protocol.Code.BAD_MESSAGE, str(exc),
-                                                     answer_to="end"))
+            return self.replies.reply(protocol.Error.of(protocol.Code.BAD_MESSAGE, str(exc),
+                                                        answer_to="end"))
         if not self.state.rows:
             rejected = self.replies.counts()["rejected frame"]
-            return self.replies.reply(protocol.error(
+            return self.replies.reply(protocol.Error.of(
                 protocol.Code.REFUSED,
                 f"nothing to end: the cloud tracked no frame of robot {self.robot_id}"
                 + (f" ({rejected} frames rejected)" if rejected else "")
                 + "; no trajectory or map is written", answer_to="end"))
-        self.state.robot_keyframe_poses.update(poses)
+        self.state.robot_keyframe_poses.update(end.keyframe_poses)
         t0 = time.perf_counter()
         self.slam.finish()
         t1 = time.perf_counter()
         # A keyframe the robot cannot upload (a live camera's, gone) is mapped without its
         # images rather than asked for again.
         missing = [i for i in self.outputs.keyframe_poses()
-                   if not self.store.has_keyframe(self.robot_id, i) and i not in unavailable]
+                   if not self.store.has_keyframe(self.robot_id, i) and i not in end.unavailable]
         if missing:
-            return self.replies.reply(protocol.need(missing))
-        finished = self.outputs.finish(camera)
+            return self.replies.reply(protocol.Need(tuple(missing)))
+        finished = self.outputs.finish(end.camera)
         t2 = time.perf_counter()
         # Durable before the robot hears "ended": another worker restores it finished.
         self.state.ended = True
@@ -134,11 +132,11 @@ class EndHandshake:
             self.state.ended = False
             log.error("robot %s: its final checkpoint is not durable (%s): not ended",
                       self.robot_id, why)
-            return self.replies.reply(protocol.error(
+            return self.replies.reply(protocol.Error.of(
                 protocol.Code.FAILED, f"the session's final checkpoint is not durable ({why}): "
                 f"nothing ended; keep what you hold and end again", answer_to="end"))
         log.info("robot %s ended in %.2f s: last loop queries and local BA %.2f s, outputs "
                  "%.2f s, final checkpoint %.2f s", self.robot_id, time.perf_counter() - t0,
                  t1 - t0, t2 - t1, time.perf_counter() - t2)
         self.finished = finished
-        self.replies.reply(protocol.ended(finished.summary))
+        self.replies.reply(protocol.Ended(finished.summary))

@@ -53,7 +53,7 @@ class FrameDecoder:
             if reference is not None and self.references.size:
                 self.references.put(header.seq, reference)
                 self.budget.references(self.references.nbytes())
-                self.replies.reply(protocol.held(header.seq))
+                self.replies.reply(protocol.Held(header.seq))
         return header, state
 
 

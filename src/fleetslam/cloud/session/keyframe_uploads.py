@@ -68,7 +68,7 @@ class KeyframeUploads:
             self.store.put_keyframe(self.robot_id, upload.frame_index, data)
             self.replies.count("keyframes stored")
             self._show(upload)
-        self.replies.reply(protocol.ack(upload.frame_index))
+        self.replies.reply(protocol.Ack(upload.frame_index))
 
     def _wrong_size(self, upload: KeyframeUpload) -> str | None:
         """Why an upload's images are not the map's (decimation, size), or None."""

@@ -32,7 +32,7 @@ class Replies:
         if not self.dropped.is_set():
             self._send(key, data)
 
-    def reply(self, message: dict[str, Any]) -> None:
+    def reply(self, message: protocol.Reply) -> None:
         self.publish(keys.reply(self.robot_id), protocol.encode(message))
 
     def reject(self, what: str, reason: str, code: protocol.Code = protocol.Code.REJECTED,
@@ -41,7 +41,7 @@ class Replies:
         less than a second ago."""
         told = self.admission.rejected(what, reason)
         if told is not None:
-            self.reply(protocol.error(code, told, rejected=what, **extra))
+            self.reply(protocol.Error.of(code, told, rejected=what, **extra))
 
     def count(self, name: str, n: int = 1) -> None:
         with self.counts_lock:

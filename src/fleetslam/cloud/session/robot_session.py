@@ -239,7 +239,7 @@ class RobotSession:
         self.replies.count(OVER_BUDGET[what])
         if self._over_budget_told.due("over budget"):
             limit = self.config.transport.session_budget_mb
-            self.replies.reply(protocol.error(
+            self.replies.reply(protocol.Error.of(
                 protocol.Code.OVER_BUDGET,
                 f"{what} dropped unread: the session holds its memory budget of {limit:.0f} MB "
                 f"(transport.session_budget_mb); keep to max_frames_in_flight"
@@ -409,7 +409,7 @@ class RobotSession:
 
     def welcome(self, resumed: bool, taken_over: bool = False) -> None:
         st = self.state
-        self.replies.reply(protocol.welcome(resumed, st.last_index + 1, st.last_seq + 1,
+        self.replies.reply(protocol.Welcome(resumed, st.last_index + 1, st.last_seq + 1,
                                             len(self.store.keyframe_indices(self.robot_id)),
                                             self.references.size, taken_over,
                                             st.rows[-1].timestamp if st.rows else None,
