@@ -26,6 +26,7 @@ from fleetslam.config import Config
 from fleetslam.edge.report import RobotReport
 from fleetslam.edge.robot import Robot
 from fleetslam.launch import free_endpoint
+from fleetslam.transport import protocol
 from fleetslam.transport.protocol import Hello
 from fleetslam.wire.data_tree import CheckpointError
 
@@ -250,8 +251,7 @@ def test_a_robot_with_a_damaged_checkpoint_gets_a_fresh_session_and_is_told(tmp_
 
 def test_the_robot_logs_and_reports_a_lost_history(caplog):
     reason = "store/r0/session.ckpt: empty file; kept as store/r0/session.ckpt.damaged-x"
-    welcome = {"type": "welcome", "resumed": False, "next_index": 0, "next_seq": 0,
-               "history_lost": reason}
+    welcome = protocol.Welcome(False, 0, 0, 0, history_lost=reason)
     robot = types.SimpleNamespace(_hello=lambda: welcome, live=None, offload_at=3,
                                   robot_id="r0", report=RobotReport("r0", 3))
     assert Robot._open_session(robot) == (0, 0)

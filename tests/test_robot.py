@@ -68,7 +68,7 @@ def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
     robot.uploader.queue(14)
 
     def reply(message: protocol.Reply) -> None:
-        robot.take_reply(protocol.encode(message))
+        robot.replies.take(protocol.encode(message))
 
     reply(protocol.Error.of(protocol.Code.REJECTED, "keyframe rejected: too big",
                             frame_index=14))
@@ -133,14 +133,14 @@ def test_the_robot_says_hello_again_on_the_no_session_code_not_on_words(tmp_path
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
 
     def reply(message: protocol.Reply) -> None:
-        robot.take_reply(protocol.encode(message))
+        robot.replies.take(protocol.encode(message))
 
     reply(protocol.Error.of(protocol.Code.REJECTED, "frame rejected: send a hello, or not"))
-    assert not robot.needs_hello
+    assert not robot.replies.need_hello.is_set()
     reply(protocol.Error.of(protocol.Code.NO_SESSION, "frame rejected: no session"))
-    assert robot.needs_hello
+    assert robot.replies.need_hello.is_set()
     # Both reached whoever awaits a reply (a hello fails on an error).
-    assert [robot.await_reply((protocol.Error,), 1.0).code for _ in range(2)] == \
+    assert [robot.replies.await_reply((protocol.Error,), 1.0).code for _ in range(2)] == \
         ["rejected", "no_session"]
 
 
@@ -161,7 +161,7 @@ def test_a_robot_whose_end_is_refused_says_why_at_once(tmp_path_factory):
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, Config(), show_progress=False)
 
     def reply(message: protocol.Reply) -> None:
-        robot.take_reply(protocol.encode(message))
+        robot.replies.take(protocol.encode(message))
 
     def control(message: dict) -> None:  # the cloud's answers to the robot's end
         reply(protocol.Ending())

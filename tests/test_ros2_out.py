@@ -248,7 +248,7 @@ def test_robots_hear_new_moved_and_final_placements_and_again_later():
 
 def _reply(robot, message: dict | bytes) -> None:
     data = message if isinstance(message, bytes) else json.dumps(message).encode()
-    robot.take_reply(data)
+    robot.replies.take(data)
 
 
 def test_a_malformed_placement_is_said_in_one_line_and_the_robot_goes_on(tmp_path_factory,

@@ -29,7 +29,7 @@ from fleetslam.pipeline.split import (
     run_stages,
 )
 from fleetslam.pipeline.states import CapturedFrame
-from fleetslam.transport.protocol import Hello
+from fleetslam.transport.protocol import Hello, Welcome
 from fleetslam.wire.frames import decode_frame_message, encode_frame_message
 from fleetslam.wire.inter import InterEncoder, ReferenceRing, reference_of
 
@@ -81,7 +81,7 @@ class RobotSide:
 
     def welcomed(self, reference_frames: int) -> None:
         """The cloud's welcome: how many frames it keeps to decode inter-coded ones."""
-        self.robot.encoder.restart({"reference_frames": reference_frames, "next_seq": 0})
+        self.robot.encoder.restart(Welcome(False, 0, 0, 0, reference_frames))
 
     def frame_message(self, frame: CapturedFrame, seq: int) -> bytes:
         """What the robot sends for a frame (its stages, then the message)."""

@@ -1,13 +1,13 @@
 """A run's outputs, whoever ran it (one process: system.py; separate processes: the cloud's
-robot sessions and its merge, cloud/): the files of each robot and the schema of
-``summary.json``, and the tables printed from it (also the HTML report's).
+robot sessions and its merge, cloud/): the files of each robot, ``summary.json`` (its
+schema: run_summary.py) and the tables printed from it (also the HTML report's).
 
     <out>/<robot>/trajectory.tum   every frame (TUM; evo reads it)
     <out>/<robot>/keyframes.tum    the keyframes
     <out>/<robot>/map.ply          the robot's dense map
     <out>/<robot>/robot.json       the robot's entry of summary.json (the cloud, as it ends)
     <out>/<robot>/robot_report.json  the robot process's own report (a deployed run)
-    <out>/summary.json             SUMMARY_VERSION; robots, merge, config; a deployed run (the
+    <out>/summary.json             run_summary.RunSummary; robots, merge, config; a deployed run (the
                                    demo) adds each robot's report and the deployment; ``mcap``
                                    names run.mcap when the run wrote it
     <out>/run.mcap                 all of it as ROS 2 messages (run_mcap.py)
@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from fleetslam.config import Config, config_to_dict
 from fleetslam.io.files import UnreadableFile, read_regular
 from fleetslam.io.ply import write_ply
 from fleetslam.io.trajectory import write_tum_trajectory
@@ -31,16 +30,10 @@ from fleetslam.tables import _cell, format_table
 
 log = logging.getLogger("fleetslam.outputs")
 
-SUMMARY_VERSION = 3
 ROBOT_SUMMARY = "robot.json"
 # A robot.json is a few kB; a larger file is not one fleetslam wrote.
 MAX_ROBOT_SUMMARY_BYTES = 16 << 20
 ROBOT_REPORT = "robot_report.json"
-
-
-def robot_files(name: str) -> dict[str, str]:
-    """A robot's entries in the summary naming its files (relative to the run folder)."""
-    return {"trajectory": f"{name}/trajectory.tum", "map": f"{name}/map.ply"}
 
 
 def write_robot_files(robot_dir: Path, name: str, source: str, timestamps: np.ndarray,
@@ -69,41 +62,6 @@ def write_robot_files(robot_dir: Path, name: str, source: str, timestamps: np.nd
         write_nav2_map(robot_dir / "map", grid, f"robot {name}'s map")
 
 
-def cloud_robot_summary(name: str, source: str, offload_at: int, *, frames: int,
-                        keyframes: int, lost_frames: int, loss_events: int,
-                        repeated_frames: int, map_resets: int, map_points: int,
-                        loop_closing: dict[str, Any], stage_seconds: dict[str, float],
-                        cloud_ms: list[float], latency_ms: list[float], span_s: float,
-                        transport: dict[str, int], camera: dict[str, Any] | None = None,
-                        keyframes_without_images: int = 0) -> dict[str, Any]:
-    """A robot's entry of the summary as the cloud tracked it: ``stage_seconds`` summed over
-    the frames, the cloud's ms per frame and latency per frame, the seconds from its first
-    frame to its last, the transport's counts; from a live source (``camera``) what it was,
-    the frames the robot took and those it skipped (the camera's newer frame replaced them
-    while the robot was busy), and keyframes mapped without images."""
-    n = max(frames, 1)
-    return {
-        "name": name, "source": source, "offload_at": offload_at,
-        "frames": frames, "keyframes": keyframes, "lost_frames": lost_frames,
-        "loss_events": loss_events, "repeated_frames": repeated_frames,
-        "map_resets": map_resets, "map_points": map_points,
-        "loop_closing": loop_closing,
-        "stage_ms": {k: 1000.0 * v / n for k, v in stage_seconds.items()},
-        "cloud_ms_mean": float(np.mean(cloud_ms)) if cloud_ms else None,
-        "cloud_ms_median": float(np.median(cloud_ms)) if cloud_ms else None,
-        "cloud_ms_p95": float(np.percentile(cloud_ms, 95)) if cloud_ms else None,
-        "cloud_s_total": float(np.sum(cloud_ms)) / 1000.0,
-        "latency_ms_median": float(np.median(latency_ms)) if latency_ms else None,
-        "latency_ms_p95": float(np.percentile(latency_ms, 95)) if latency_ms else None,
-        "tracking_fps": frames / span_s if span_s > 0 else None,
-        "transport": transport,
-        **({"live_camera": camera} if camera is not None else {}),
-        **({"keyframes_without_images": keyframes_without_images}
-           if camera is not None or keyframes_without_images else {}),
-        **robot_files(name),
-    }
-
-
 def write_robot_summary(robot_dir: Path, summary: dict[str, Any]) -> None:
     (robot_dir / ROBOT_SUMMARY).write_text(json.dumps(summary, indent=2))
 
@@ -122,13 +80,6 @@ def read_robot_summary(robot_dir: Path) -> dict[str, Any] | None:
                   path, exc)
         return None
     return entry if isinstance(entry, dict) else None
-
-
-def fleet_summary(robots: list[dict[str, Any]], merge: dict[str, Any] | None, config: Config,
-                  wall_s: float) -> dict[str, Any]:
-    """The summary of a run: one entry per robot, the merge (None: interrupted)."""
-    return {"version": SUMMARY_VERSION, "wall_time_s": wall_s, "robots": robots,
-            "merge": merge, "config": config_to_dict(config)}
 
 
 def add_robot_reports(summary: dict[str, Any], out_dir: Path) -> None:

@@ -41,7 +41,8 @@ from fleetslam.backend.state import BackEndState
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.progress import Progress
-from fleetslam.outputs import fleet_summary, robot_files, write_robot_files, write_summary
+from fleetslam.outputs import write_robot_files, write_summary
+from fleetslam.run_summary import RobotSummary, RunSummary
 from fleetslam.run_mcap import write_run_mcap
 
 @dataclass
@@ -264,15 +265,10 @@ def make_summary(runs: list[RobotRun], fleet: FleetMap | None,
                  global_map: GlobalMap | None, config: Config, wall_s: float
                  ) -> dict[str, Any]:
     """The run's summary; ``fleet`` None: no merge (an interrupted run)."""
-    robots = [{
-        "name": r.name, "source": r.source, "camera": r.sequence.camera_source,
-        "frames": len(r.timestamps), "keyframes": len(r.keyframe_indices),
-        "lost_frames": r.lost_frames, "loss_events": r.loss_events,
-        "repeated_frames": r.repeated_frames, "map_resets": r.resets,
-        "ate": None,
-        "tracking_fps": len(r.timestamps) / r.wall_s if r.wall_s > 0 else None,
-        "stage_ms": r.stage_ms, "map_points": len(r.map_points),
-        "loop_closing": r.loop_closing, **robot_files(r.name),
-    } for r in runs]
-    return fleet_summary(robots, fleet.summary(global_map) if fleet is not None else None,
-                         config, wall_s)
+    robots: list[RobotSummary | dict[str, Any]] = [RobotSummary(
+        r.name, r.source, len(r.timestamps), len(r.keyframe_indices), r.lost_frames,
+        r.loss_events, r.repeated_frames, r.resets, len(r.map_points), r.loop_closing,
+        r.stage_ms, len(r.timestamps) / r.wall_s if r.wall_s > 0 else None,
+        camera=r.sequence.camera_source) for r in runs]
+    merge = fleet.summary(global_map) if fleet is not None else None
+    return RunSummary(robots, merge, config, wall_s).to_dict()

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import math
-import queue
 import threading
 import time
 from collections.abc import Iterator
@@ -40,6 +39,7 @@ import numpy as np
 from fleetslam.config import Config
 from fleetslam.datasets.live import LiveSource
 from fleetslam.datasets.source import Frame, RecordedSource
+from fleetslam.edge.cloud_replies import CloudRefused, CloudReplies
 from fleetslam.edge.encoder import FrameEncoder
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, live_frames, parse_rate, read_ahead
@@ -66,17 +66,6 @@ log = logging.getLogger("fleetslam.robot")
 
 # A robot that sends "end" waits this long for its last frames and map (cloud backlog).
 END_TIMEOUT_S = 900.0
-
-
-class CloudRefused(RuntimeError):
-    """The cloud answered a hello or an end with a refusal (its reason), not silence."""
-
-    def __init__(self, error: protocol.Error) -> None:
-        super().__init__(error.reason)
-        self.reason, self.code = error.reason, error.code
-        self.full = error.full  # no session slot free: may free up
-        self.wait = error.wait  # the cloud cannot serve yet: may change
-        self.max_sessions = error.max_sessions
 
 
 class OnboardTracker(Protocol):
@@ -166,9 +155,9 @@ class Robot:
         self.fleet_frame = FleetFrame(self.robot_id, self.report, self.ros_out,
                                       config.ros2_out.hold_s)
         self.sender: Sender | None = None  # the link, once run() has connected
-        self._replies: queue.Queue[protocol.Reply] = queue.Queue()
-        # The cloud lost this robot (no session, a silent cloud): say hello before the next frame.
-        self._need_hello = threading.Event()
+        # What the cloud says: handled as it comes, or awaited by the run.
+        self.replies = CloudReplies(self.robot_id, self.encoder, self.window, self.uploader,
+                                    self.fleet_frame, self.report)
         self._resume_after: float | None = None  # a resumed live camera: the session's last stamp
         # Set by ``stop`` (the first Ctrl-C): the stream ends before its next frame and the
         # robot finishes with the cloud as at the end of a recording.
@@ -195,73 +184,7 @@ class Robot:
             self.uploader.keyframe(fb.frame_index)
 
     def _on_reply(self, sample: Any) -> None:
-        self.take_reply(sample.payload.to_bytes())
-
-    def take_reply(self, data: bytes) -> None:
-        """A reply from the cloud (the Zenoh callback's); one that does not parse is
-        logged and dropped."""
-        try:
-            reply = protocol.parse_reply(data)
-        except protocol.BadReply as exc:
-            if exc.kind == protocol.Placed.TYPE:
-                return self.fleet_frame.rejected(str(exc))
-            log.warning("robot %s: reply rejected: %s", self.robot_id, exc)
-            return
-        if isinstance(reply, protocol.Held):
-            self.encoder.held(reply.seq)
-        elif isinstance(reply, protocol.Welcome) and reply.taken_over:
-            # A worker took the session over from its checkpoint (the one serving it died):
-            # the frames in flight went to the dead one, and it holds none as a reference.
-            self.window.clear()
-            self.encoder.references_lost()
-            self.report.takeovers += 1
-            self._replies.put(reply)
-        elif isinstance(reply, protocol.Ack):
-            self.uploader.acknowledged(reply.frame_index)
-        elif isinstance(reply, protocol.Error):
-            self._on_error(reply)
-        elif isinstance(reply, protocol.Placed):
-            self.fleet_frame.take(reply)
-        else:
-            self._replies.put(reply)
-
-    @property
-    def needs_hello(self) -> bool:
-        """The cloud lost this robot's session: the next frame waits for a hello."""
-        return self._need_hello.is_set()
-
-    def _on_error(self, error: protocol.Error) -> None:
-        log.warning("robot %s: cloud says: %s", self.robot_id, error.reason)
-        code = error.code
-        if code == protocol.Code.NOT_A_KEYFRAME.value:
-            return self.uploader.not_needed(error.frame_index)
-        if code == protocol.Code.REFERENCE_MISSING.value:
-            return self.encoder.references_lost()
-        if code == protocol.Code.OVER_BUDGET.value:
-            # Dropped unread: the window forgets those frames at the next feedback, and an
-            # upload is resent until acknowledged. Not an answer to a hello.
-            return
-        if code == protocol.Code.NO_SESSION.value:  # the cloud lost us: hello again
-            self._need_hello.set()
-        self._replies.put(error)
-
-    def await_reply(self, kinds: tuple[type, ...], timeout: float,
-                    answer_to: str | None = None) -> Any:
-        """The first reply of one of ``kinds`` (an error included), None after
-        ``timeout``; CloudRefused if the cloud refused the ``answer_to`` message ("hello",
-        "end") instead."""
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                reply = self._replies.get(timeout=left)
-            except queue.Empty:
-                return None
-            if isinstance(reply, kinds):
-                return reply
-            if isinstance(reply, protocol.Error) and answer_to is not None \
-                    and reply.answer_to == answer_to:
-                raise CloudRefused(reply)
-        return None
+        self.replies.take(sample.payload.to_bytes())
 
     # -- the run --------------------------------------------------------------------------
 
@@ -317,7 +240,7 @@ class Robot:
             if step > 1 and (i - start_index) % step and i != (n or 0) - 1:
                 self.report.frames_skipped += 1
                 continue
-            if self._need_hello.is_set():  # the cloud lost us (restart without checkpoint)
+            if self.replies.need_hello.is_set():  # the cloud lost us (no checkpoint)
                 outbox.drain()
                 welcome = self._hello()
                 self.report.note_welcome(welcome, i)
@@ -326,7 +249,7 @@ class Robot:
             if not self.window.wait_for_room():
                 # Nobody may be serving this robot any more (a cloud that lost it, a worker
                 # gone): a hello is heard by every worker and gets it served again.
-                self._need_hello.set()
+                self.replies.need_hello.set()
             if self.ros_out is not None:
                 self.ros_out.taken(frame.index)
             data = self.encoder.encode(frame, k, seq)
@@ -417,7 +340,7 @@ class Robot:
                             self._silence(), cfg.max_attempts)
             self.sender.control(message)
             try:
-                welcome = self.await_reply((protocol.Welcome,), cfg.connect_timeout_s, "hello")
+                welcome = self.replies.await_reply((protocol.Welcome,), cfg.connect_timeout_s, "hello")
             except CloudRefused as refusal:
                 if refusal.wait:  # e.g. its coordination service out of reach: hello again
                     if waiting != refusal.reason:
@@ -446,7 +369,7 @@ class Robot:
                 time.sleep(wait)
                 continue
             if welcome is not None:
-                self._need_hello.clear()
+                self.replies.need_hello.clear()
                 self.encoder.restart(welcome)
                 self.window.clear()  # a new or resumed session answers none of them
                 return welcome
@@ -471,17 +394,17 @@ class Robot:
         for _ in range(cfg.max_attempts):
             if self.uploader.error:
                 raise RuntimeError(self.uploader.error)
-            if self._need_hello.is_set():  # the cloud lost the session meanwhile
+            if self.replies.need_hello.is_set():  # the cloud lost the session meanwhile
                 self.report.note_welcome(self._hello(), self.report.first_index
                                          + self.report.frames)
             # Keyframes the robot cannot upload (a live camera's, gone from its buffer): the
             # cloud builds the map without their images instead of asking again.
             self.sender.control(protocol.End(last_seq, poses, camera,
                                              frozenset(self.uploader.unavailable)))
-            if self.await_reply((protocol.Ending,), cfg.connect_timeout_s) is None:
+            if self.replies.await_reply((protocol.Ending,), cfg.connect_timeout_s) is None:
                 continue  # the end message was lost, or the cloud is restarting
             try:
-                answer = self.await_reply((protocol.Need, protocol.Ended), END_TIMEOUT_S,
+                answer = self.replies.await_reply((protocol.Need, protocol.Ended), END_TIMEOUT_S,
                                           "end")
             except CloudRefused as refusal:
                 if refusal.code != protocol.Code.FAILED.value:

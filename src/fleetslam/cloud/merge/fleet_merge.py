@@ -18,7 +18,8 @@ from fleetslam.cloud.session.session_outputs import FinishedMap
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.merging.global_map import build_global_map, merge_summary
-from fleetslam.outputs import fleet_summary, write_summary
+from fleetslam.outputs import write_summary
+from fleetslam.run_summary import RunSummary
 from fleetslam.run_mcap import write_run_mcap
 from fleetslam.transport import keys, protocol
 
@@ -126,9 +127,8 @@ class FleetMerge:
         merge["not_merged"] = {**unfinished, **merge.get("not_merged", {})}
         for robot, why in unfinished.items():
             log.warning("merge: robot %s left out: %s", robot, why)
-        summary = fleet_summary([f.summary for f in finished],
-                                merge, self.config,
-                                time.perf_counter() - start)
+        summary = RunSummary([f.summary for f in finished], merge, self.config,
+                             time.perf_counter() - start).to_dict()
         self._still_merger("summary.json")
         if self.config.outputs.mcap:
             summary["mcap"] = self._write_mcap(summary)

@@ -79,14 +79,12 @@ class RobotSession:
         self.keyframes = self.tracker
         self.outputs = SessionOutputs(state, config, store, self.tracker.slam,
                                       self._transport_counts)
-        # Why the robot's earlier session could not be restored (None: nothing was lost);
-        # every welcome of this session says so.
+        # Why the robot's earlier session could not be restored (None: nothing was lost).
         self.history_lost: str | None = None
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
         # session refuses references to frames before it, and the robot sends intra).
         self.references = ReferenceRing(config.wire.reference_frames)
-        # The frame and keyframe threads both count, and status reads the counts.
-        counts_lock = threading.Lock()
+        counts_lock = threading.Lock()  # the frame and keyframe threads count, status reads
         self.admission = Admission(state.robot_id, config.transport, state.counts, counts_lock)
         # What it says to the robot (nothing more once dropped: another worker serves it).
         self.replies = Replies(state.robot_id, publish, self.admission, state.counts,
@@ -104,12 +102,10 @@ class RobotSession:
         self._frames = WorkQueue(config.transport.max_queued_frames, self.budget)
         self._decoded = WorkQueue(config.transport.max_queued_frames, self.budget)
         self._keyframes: queue.Queue[FrameItem | None] = queue.Queue()
-        # A failure is logged with its traceback once per reason and interval (a robot
-        # repeating the message that fails must not fill the log).
+        # A failure's traceback is logged, and a robot over its budget told, at most once
+        # per reason and interval (a robot repeating what fails must not fill the log).
         self._failure_log = Throttle(REJECTION_REPLY_INTERVAL_S)
-        # A robot over its memory budget hears so at most once per interval too.
         self._over_budget_told = Throttle(REJECTION_REPLY_INTERVAL_S)
-        # A restored session's checkpoint on disk covers all of it.
         # The checkpoints' parts that never change are written once (session_state.Chunks).
         self.chunks = session_state.Chunks(lambda name: store.has_chunk(state.robot_id, name))
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,

@@ -20,9 +20,9 @@ from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import occupancy_grid
 from fleetslam.merging.global_map import RobotTrack
-from fleetslam.outputs import (cloud_robot_summary, read_robot_summary, write_robot_files,
-                               write_robot_summary)
+from fleetslam.outputs import read_robot_summary, write_robot_files, write_robot_summary
 from fleetslam.pipeline.split import ROBOT_TRACKS
+from fleetslam.run_summary import CloudCounts, RobotSummary
 from fleetslam.wire.data_tree import CheckpointError
 from fleetslam.wire.envelope import WireError
 from fleetslam.wire.messages import KeyframeUpload, decode_keyframe
@@ -166,15 +166,14 @@ class SessionOutputs:
         st = self.state
         tracking = st.tracking
         kf_index = self.keyframe_poses()
-        return cloud_robot_summary(
-            self.robot_id, st.hello.source, st.hello.offload_at,
-            frames=len(st.rows), keyframes=len(kf_index),
-            lost_frames=int(sum(not r.tracked for r in st.rows)),
-            loss_events=tracking.loss_events, repeated_frames=tracking.repeated_frames,
-            map_resets=tracking.resets, map_points=map_points,
-            loop_closing=self.slam.summary(), stage_seconds=st.stage_seconds,
-            cloud_ms=st.cloud_ms, latency_ms=st.latency_ms,
-            span_s=(st.last_frame_time or 0.0) - (st.first_frame_time or 0.0),
-            transport=self._transport(), camera=camera,
-            keyframes_without_images=sum(not self.store.has_keyframe(self.robot_id, i)
-                                         for i in kf_index))
+        frames = len(st.rows)
+        span_s = (st.last_frame_time or 0.0) - (st.first_frame_time or 0.0)
+        cloud = CloudCounts(
+            st.hello.offload_at, tuple(st.cloud_ms), tuple(st.latency_ms), self._transport(),
+            camera, sum(not self.store.has_keyframe(self.robot_id, i) for i in kf_index))
+        return RobotSummary(
+            self.robot_id, st.hello.source, frames, len(kf_index),
+            int(sum(not r.tracked for r in st.rows)), tracking.loss_events,
+            tracking.repeated_frames, tracking.resets, map_points, self.slam.summary(),
+            {k: 1000.0 * v / max(frames, 1) for k, v in st.stage_seconds.items()},
+            frames / span_s if span_s > 0 else None, cloud=cloud).to_dict()
