@@ -2,7 +2,9 @@
 what the setting may be (validation/rules.py: ``Annotated[int, at_least(1)]``).
 
 Load from TOML with :func:`load_config`; unknown keys are an error so typos do not pass
-silently, and a value of the wrong type or out of its range names its key and file.
+silently, and a value of the wrong type or out of its range names its key and file. A
+loaded config is frozen: a variant (a command-line flag's, a test's) is a new config from
+:meth:`Config.with_values`, checked as a file's values are.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import re
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -38,7 +41,7 @@ MEMORY_SIZE = Text(lambda s: None if re.fullmatch(r"\d+(\.\d+)?\s*([KMGT]i?B|B|%
                    "a size such as 1GiB, 512MB or 25%")
 
 
-@dataclass
+@dataclass(frozen=True)
 class OrbConfig:
     """ORB extraction (paper: OpenCV ORB, as in ORB-SLAM)."""
 
@@ -53,7 +56,7 @@ class OrbConfig:
     grid_rows: Annotated[int, between(1, 1000)] = 6
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrackingConfig:
     """Matching, PnP and keyframe decision."""
 
@@ -208,7 +211,7 @@ class TrackingConfig:
     keyframe_redundant_observers: Annotated[int, at_least(1)] = 3
 
 
-@dataclass
+@dataclass(frozen=True)
 class PlaceRecognitionConfig:
     """Keyframe database: binary nearest-neighbour voting over ORB descriptors, or a bag
     of words on a trained vocabulary."""
@@ -237,7 +240,7 @@ class PlaceRecognitionConfig:
     min_score_ratio: Annotated[float, FRACTION] = 0.75
 
 
-@dataclass
+@dataclass(frozen=True)
 class LoopClosingConfig:
     """Loop detection (place recognition), geometric verification and correction."""
 
@@ -285,7 +288,7 @@ class LoopClosingConfig:
     query_in_worker: bool = True
 
 
-@dataclass
+@dataclass(frozen=True)
 class RelocalisationConfig:
     """Finding the pose against the robot's own keyframes after tracking is lost."""
 
@@ -295,7 +298,7 @@ class RelocalisationConfig:
     min_inliers: Annotated[int, at_least(4)] = 40
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapConfig:
     """Per-robot dense map from keyframes."""
 
@@ -305,7 +308,7 @@ class MapConfig:
     pixel_stride: Annotated[int, at_least(1)] = 2
 
 
-@dataclass
+@dataclass(frozen=True)
 class FsHicpConfig:
     """FS-HICP as the paper's section IV.B specifies it (our reading: shared/paper-notes.md
     section 2, outside this repository)."""
@@ -341,7 +344,7 @@ class FsHicpConfig:
     num_threads: Annotated[int, at_least(1)] = 2
 
 
-@dataclass
+@dataclass(frozen=True)
 class MergeConfig:
     """Joining robots into one global map: inter-robot place recognition, consistency, the
     global pose graph, FS-HICP refinement and the global outputs."""
@@ -422,7 +425,7 @@ class MergeConfig:
     placement_resend_s: Annotated[float, above(0.0)] = 10.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class PlannerConfig:
     """The offloading planner: the paper's energy model (eq. 10-16, 31; its Table "Parameter
     values" as defaults), the time model and the objective."""
@@ -465,7 +468,7 @@ class PlannerConfig:
     link_window_s: Annotated[float, above(0.0)] = 3.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class SyntheticConfig:
     """The built-in synthetic multi-robot scene."""
 
@@ -488,7 +491,7 @@ class SyntheticConfig:
     max_depth_m: Annotated[float, above(0.0)] = 5.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class SourceConfig:
     """Where a robot's frames come from besides a sequence folder (datasets/): ROS bags,
     ROS 2 topics, live cameras."""
@@ -521,7 +524,7 @@ class SourceConfig:
     ros_waiting_messages: Annotated[int, at_least(1)] = 4
 
 
-@dataclass
+@dataclass(frozen=True)
 class WireConfig:
     """The binary message between robot and cloud (wire/)."""
 
@@ -558,7 +561,7 @@ class WireConfig:
     reference_frames: Annotated[int, at_least(0)] = 64
 
 
-@dataclass
+@dataclass(frozen=True)
 class LinkConfig:
     """Emulated robot-to-cloud link on the robot's send path (0 = not limited)."""
 
@@ -569,7 +572,7 @@ class LinkConfig:
     seed: Annotated[int, at_least(0)] = 0
 
 
-@dataclass
+@dataclass(frozen=True)
 class TransportConfig:
     """Zenoh endpoints and the reliability of keyframe uploads and the robot's handshake."""
 
@@ -667,7 +670,7 @@ class TransportConfig:
     in_flight_wait_s: Annotated[float, above(0.0)] = 5.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class PlacementConfig:
     """Cloud workers sharing robots (cloud/coordination/placement.py): how bids for a robot are
     settled, and the leases of their coordination service (cloud/coordination/ownership.py)."""
@@ -720,7 +723,7 @@ class PlacementConfig:
     coordination_start_s: Annotated[float, above(0.0)] = 10.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class ViewConfig:
     """The view in rerun: the cloud's live view (``cloud`` / ``demo`` with ``--view`` or
     ``--save``) and a finished run's (``fleetslam view``)."""
@@ -760,7 +763,7 @@ class ViewConfig:
     close_timeout_s: Annotated[float, at_least(0.0)] = 10.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class OutputsConfig:
     """Files every run writes besides its own (trajectories, maps, summary, report): one
     switch per extra output, the same for ``run``, ``demo`` and the cloud's ``merge``."""
@@ -771,7 +774,7 @@ class OutputsConfig:
     mcap: bool = True
 
 
-@dataclass
+@dataclass(frozen=True)
 class GridConfig:
     """The 2D occupancy grid every map also writes for nav2's map_server
     (mapping/occupancy_grid.py): ``global_map.pgm`` / ``.yaml`` and each robot's."""
@@ -796,7 +799,7 @@ class GridConfig:
     margin_cells: Annotated[int, at_least(0)] = 5
 
 
-@dataclass
+@dataclass(frozen=True)
 class CameraConfig:
     """The camera on the robot, beyond what its images and calibration say."""
 
@@ -813,7 +816,7 @@ OPTIONAL_ENDPOINT = Text(lambda s: endpoint_problem(s) if s else None,
                          "empty, or a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Ros2OutConfig:
     """Results as live ROS 2 topics, published as an rmw_zenoh node publishes (ros2_out/):
     a robot's pose, TF, path and status (``fleetslam robot --ros2-out``)."""
@@ -853,7 +856,7 @@ class Ros2OutConfig:
     hold_s: Annotated[float, at_least(0.0)] = 0.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class Config:
     orb: OrbConfig = field(default_factory=OrbConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -876,25 +879,51 @@ class Config:
     grid: GridConfig = field(default_factory=GridConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
 
+    def with_values(self, values: Mapping[str, Any], flag: str | None = None,
+                    where: str = "settings") -> Config:
+        """This config with ``values`` in place of its own (dotted keys:
+        ``{"link.bandwidth_mbps": 5.0}``), each checked as ``load_config`` checks a TOML
+        file's: ValueError naming ``where`` and the key, or ``flag`` when a command-line flag
+        gave the value. The config itself never changes (frozen once loaded)."""
+        return _updated(self, _tables(values), where, flag=flag)
 
-def _update(obj: Any, values: dict[str, Any], path: str, prefix: str = "") -> None:
-    """Set ``values`` (a TOML table) on the section ``obj``, each checked against its
-    field's type and rule; ValueError naming the file and the key."""
-    rules = rules_of(type(obj))
+
+def _updated(section: Any, values: Mapping[str, Any], where: str, prefix: str = "",
+             flag: str | None = None) -> Any:
+    """``section`` with ``values`` (a TOML table) in place of its own, each checked against
+    its field's type and rule; ValueError naming ``where`` and the key (or ``flag``, the
+    command-line flag that gave the value)."""
+    rules = rules_of(type(section))
+    changes: dict[str, Any] = {}
     for key, value in values.items():
         name = f"{prefix}{key}"
         if key not in rules:
-            raise ValueError(f"{path}: unknown setting '{name}' (known: {', '.join(rules)})")
-        current = getattr(obj, key)
+            raise ValueError(f"{where}: unknown setting '{name}' (known: {', '.join(rules)})")
+        current = getattr(section, key)
         if dataclasses.is_dataclass(current):
-            if not isinstance(value, dict):
-                raise ValueError(f"{path}: {name}: expected a table")
-            _update(current, value, path, f"{name}.")
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{where}: {name}: expected a table")
+            changes[key] = _updated(current, value, where, f"{name}.", flag)
             continue
         try:
-            setattr(obj, key, checked(value, *rules[key]))
+            changes[key] = checked(value, *rules[key])
         except ValueError as exc:
-            raise ValueError(f"{path}: {name} = {value!r}: {exc}") from None
+            blame = f"{flag} {value!r}" if flag else f"{where}: {name} = {value!r}"
+            raise ValueError(f"{blame}: {exc}") from None
+    return dataclasses.replace(section, **changes)
+
+
+def _tables(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Dotted keys (``{"link.bandwidth_mbps": 5.0}``) as the nested tables a TOML file
+    gives (``{"link": {"bandwidth_mbps": 5.0}}``)."""
+    tables: dict[str, Any] = {}
+    for dotted, value in values.items():
+        *path, key = dotted.split(".")
+        table = tables
+        for name in path:
+            table = table.setdefault(name, {})
+        table[key] = value
+    return tables
 
 
 def check_config(section: Any, where: str, prefix: str = "") -> None:
@@ -911,15 +940,6 @@ def check_config(section: Any, where: str, prefix: str = "") -> None:
             raise ValueError(f"{where}: {prefix}{key} = {value!r}: {exc}") from None
 
 
-def set_from_flag(section: Any, key: str, value: Any, flag: str) -> None:
-    """A setting a command-line flag gives, checked like the TOML file's; ValueError
-    naming the flag."""
-    try:
-        setattr(section, key, checked(value, *rules_of(type(section))[key]))
-    except ValueError as exc:
-        raise ValueError(f"{flag} {value!r}: {exc}") from None
-
-
 def load_config(path: str | Path | None = None) -> Config:
     """Defaults, overridden by the TOML file at ``path`` if given."""
     config = Config()
@@ -929,7 +949,7 @@ def load_config(path: str | Path | None = None) -> Config:
             values = tomllib.loads(path.read_text())
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise ValueError(f"{path}: cannot read config: {exc}") from exc
-        _update(config, values, str(path))
+        config = _updated(config, values, str(path))
     return config
 
 
