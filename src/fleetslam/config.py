@@ -79,24 +79,9 @@ class TrackingConfig:
     # Keyframe when inliers drop below this fraction of the first frame tracked after the
     # newest keyframe ...
     keyframe_inlier_ratio: Annotated[float, FRACTION] = 0.55
-    # ... that frame taken once the keyframe's local BA has landed ("settled"; in-line: the
-    # next frame), or the next frame in any case ("next"). Through a cloud the next frame
-    # still matches the keyframe's new landmarks before BA and culling judged them: about
-    # 550 inliers where in-line it has 370, so frames ten later fell under 0.55 of it and a
-    # keyframe followed every ~10 frames over mapped places, in bursts that came by chance.
-    keyframe_inlier_reference: Annotated[str, OneOf(("settled", "next"))] = "settled"
     # ... or when the camera moved this far from the reference keyframe.
     keyframe_translation_m: Annotated[float, at_least(0.0)] = 0.15
     keyframe_rotation_deg: Annotated[float, between(0.0, 180.0)] = 12.0
-    # ... measured from the newest keyframe ("newest"); "shared": a frame must be that far
-    # from the newest and from the keyframe sharing most landmarks with it (ORB-SLAM's
-    # reference keyframe; redkitchen forth and back, 5000 frames: 223 keyframes instead of
-    # 595); "live": that far from every keyframe still observing landmarks. Back at a
-    # mapped place the camera is near that place's keyframes and makes few new ones;
-    # "shared" read its keyframe from the landmarks' newest observer, often one culling had
-    # emptied: through a cloud, 183-201 keyframes (57-68 by motion, 84-96 culled) against
-    # 104-106 (0-1 by motion, 18-27 culled) with "live", ATE 3.46-3.48 / 3.41-3.44 cm.
-    keyframe_motion_from: Annotated[str, OneOf(("newest", "shared", "live"))] = "live"
     # Landmarks from this many recent keyframes form the local map matched against when
     # the prediction fails.
     local_map_keyframes: Annotated[int, at_least(1)] = 6
@@ -128,11 +113,8 @@ class TrackingConfig:
     # A repeated image (byte-identical, as 7-Scenes fills dropped frames) is detected by
     # this fraction of keypoints at the same place with the same descriptor.
     repeated_frame_fraction: Annotated[float, Bound(0.0, 1.0, lo_open=True)] = 0.98
-    # After the pose is found, search the unmatched landmarks projected with it and refine
-    # the pose again (ORB-SLAM's TrackLocalMap). Off: it cost ~6 ms a frame for no ATE gain
-    # measured on the TUM fr1_rpy / 7-Scenes segments ...
-    track_local_map: bool = False
-    # ... within this radius in pixels at octave 0 (ORB-SLAM RGB-D: th 3 x 2.5 px).
+    # Landmarks projected with a pose already found (relocalisation, loop verification) are
+    # searched within this radius in pixels at octave 0 (ORB-SLAM RGB-D: th 3 x 2.5 px).
     local_map_radius_px: Annotated[float, above(0.0)] = 7.5
     # Also take a keyframe as ORB-SLAM's RGB-D tracking does (using the observation records):
     # inliers below a fraction of the reference keyframe's established landmarks, or too few
@@ -404,11 +386,6 @@ class MergeConfig:
     dense_max_rotation_deg: Annotated[float, above(0.0)] = 5.0
     dense_max_translation_m: Annotated[float, above(0.0)] = 0.15
     dense_sigma_translation_m: Annotated[float, above(0.0)] = 0.002
-    # The same refinement for each robot's consecutive keyframes in a joined group's graph
-    # (refined once, at the first merge that has their depth). Off: measured on the shared
-    # pairs, it fixes the tracker's rotation scale (rk-2 map-to-map 5.5 -> 0.5 deg) but
-    # raises the joint ATE (rk-2 2.75 -> 3.06, rk-3 2.73 -> 3.20, rpy-2 2.27 -> 2.70 cm).
-    dense_odometry: bool = False
     # FS-HICP refines each joined robot's dense map against the rest of its group.
     fshicp_refine: bool = True
     # The global OctoMap (.bt): leaf size, and how far rays from a keyframe are cast.
