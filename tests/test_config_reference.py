@@ -74,3 +74,16 @@ def test_global_options_are_taken_after_the_command_too(tmp_path):
     assert (done.returncode, done.stderr) == (
         2, "fleetslam: error: missing.json5: no such Zenoh config file\n")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "good.toml"]
+
+
+def test_the_sections_are_grouped_algorithm_apart_from_deployment():
+    """Every section of Config in exactly one group, in Config's order: the printed file and
+    the reference page follow it."""
+    from fleetslam.config import SECTION_GROUPS
+
+    grouped = [name for names in SECTION_GROUPS.values() for name in names]
+    assert grouped == [f.name for f in dataclasses.fields(Config)]
+    page = reference_markdown()
+    assert [page.index(f"## {group}\n") for group in SECTION_GROUPS] == \
+        sorted(page.index(f"## {group}\n") for group in SECTION_GROUPS)
+

@@ -41,6 +41,10 @@ MEMORY_SIZE = Text(lambda s: None if re.fullmatch(r"\d+(\.\d+)?\s*([KMGT]i?B|B|%
                    "a size such as 1GiB, 512MB or 25%")
 
 
+# Algorithm parameters: what tracking, mapping, loop closing, merging and the planner
+# compute from the frames (the paper's and ORB-SLAM's parameters among them).
+
+
 @dataclass(frozen=True)
 class OrbConfig:
     """ORB extraction (paper: OpenCV ORB, as in ORB-SLAM)."""
@@ -403,6 +407,31 @@ class MergeConfig:
 
 
 @dataclass(frozen=True)
+class GridConfig:
+    """The 2D occupancy grid every map also writes for nav2's map_server
+    (mapping/occupancy_grid.py): ``global_map.pgm`` / ``.yaml`` and each robot's."""
+
+    resolution_m: Annotated[float, above(0.0)] = 0.05
+    # Obstacles: map points this high above the floor (the robot's height band).
+    min_height_m: Annotated[float, at_least(0.0)] = 0.1
+    max_height_m: Annotated[float, above(0.0)] = 1.5
+    # Up in the map frame (the robot's first camera: x right, y down, z forward) where the
+    # map shows no floor; a level camera's up is 0 -1 0 (not all zero).
+    up: Annotated[tuple[float, float, float], FINITE] = (0.0, -1.0, 0.0)
+    # The floor: a plane among the lowest points, its normal within this of the cameras'
+    # up, at least this many points within floor_inlier_m of it.
+    floor_max_tilt_deg: Annotated[float, between(0.0, 90.0)] = 30.0
+    floor_inlier_m: Annotated[float, above(0.0)] = 0.03
+    floor_min_points: Annotated[int, at_least(3)] = 200
+    # A cell is occupied with this many map points in the band (one can be noise).
+    occupied_min_points: Annotated[int, at_least(1)] = 2
+    # Depth rays count as free space this far from their camera (the depth sensor's range).
+    max_range_m: Annotated[float, above(0.0)] = 4.0
+    # Unknown cells around what was seen.
+    margin_cells: Annotated[int, at_least(0)] = 5
+
+
+@dataclass(frozen=True)
 class PlannerConfig:
     """The offloading planner: the paper's energy model (eq. 10-16, 31; its Table "Parameter
     values" as defaults), the time model and the objective."""
@@ -445,27 +474,8 @@ class PlannerConfig:
     link_window_s: Annotated[float, above(0.0)] = 3.0
 
 
-@dataclass(frozen=True)
-class SyntheticConfig:
-    """The built-in synthetic multi-robot scene."""
-
-    seed: Annotated[int, at_least(0)] = 1
-    n_robots: Annotated[int, at_least(1)] = 2
-    frames_per_robot: Annotated[int, at_least(1)] = 120
-    width: Annotated[int, at_least(1)] = 640
-    height: Annotated[int, at_least(1)] = 480
-    fx: Annotated[float, above(0.0)] = 525.0
-    fy: Annotated[float, above(0.0)] = 525.0
-    cx: Annotated[float, FINITE] = 319.5
-    cy: Annotated[float, FINITE] = 239.5
-    fps: Annotated[float, above(0.0)] = 30.0
-    room_size_m: Annotated[tuple[float, float, float], above(0.0)] = (6.0, 5.0, 2.8)
-    n_furniture: Annotated[int, at_least(0)] = 8
-    # Kinect-like depth noise: sigma(z) = a + b * (z - 0.4)^2 (Nguyen et al. 2012).
-    depth_noise_a: Annotated[float, at_least(0.0)] = 0.0012
-    depth_noise_b: Annotated[float, at_least(0.0)] = 0.0019
-    depth_dropout: Annotated[float, FRACTION] = 0.02
-    max_depth_m: Annotated[float, above(0.0)] = 5.0
+# Deployment settings: where frames come from, how robot and cloud talk, how the cloud's
+# workers share robots, what a run shows and writes.
 
 
 @dataclass(frozen=True)
@@ -499,6 +509,41 @@ class SourceConfig:
     ros_discovery_settle_s: Annotated[float, at_least(0.0)] = 0.5
     # Messages a live image topic keeps waiting for its partner (colour or depth).
     ros_waiting_messages: Annotated[int, at_least(1)] = 4
+
+
+@dataclass(frozen=True)
+class SyntheticConfig:
+    """The built-in synthetic multi-robot scene."""
+
+    seed: Annotated[int, at_least(0)] = 1
+    n_robots: Annotated[int, at_least(1)] = 2
+    frames_per_robot: Annotated[int, at_least(1)] = 120
+    width: Annotated[int, at_least(1)] = 640
+    height: Annotated[int, at_least(1)] = 480
+    fx: Annotated[float, above(0.0)] = 525.0
+    fy: Annotated[float, above(0.0)] = 525.0
+    cx: Annotated[float, FINITE] = 319.5
+    cy: Annotated[float, FINITE] = 239.5
+    fps: Annotated[float, above(0.0)] = 30.0
+    room_size_m: Annotated[tuple[float, float, float], above(0.0)] = (6.0, 5.0, 2.8)
+    n_furniture: Annotated[int, at_least(0)] = 8
+    # Kinect-like depth noise: sigma(z) = a + b * (z - 0.4)^2 (Nguyen et al. 2012).
+    depth_noise_a: Annotated[float, at_least(0.0)] = 0.0012
+    depth_noise_b: Annotated[float, at_least(0.0)] = 0.0019
+    depth_dropout: Annotated[float, FRACTION] = 0.02
+    max_depth_m: Annotated[float, above(0.0)] = 5.0
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The camera on the robot, beyond what its images and calibration say."""
+
+    # The camera's mounting (REP 105): its optical frame (x right, y down, z forward) in
+    # the robot's base_link (x forward, z up) as x y z qx qy qz qw, the order of ROS's
+    # static_transform_publisher. Unset: not known. Given, the fleet's map frame is the
+    # anchor robot's base_link at its first frame (mapping/map_frame.py).
+    base_link: Annotated[tuple[float, float, float, float, float, float, float] | None,
+                         FINITE] = None
 
 
 @dataclass(frozen=True)
@@ -751,43 +796,6 @@ class OutputsConfig:
     mcap: bool = True
 
 
-@dataclass(frozen=True)
-class GridConfig:
-    """The 2D occupancy grid every map also writes for nav2's map_server
-    (mapping/occupancy_grid.py): ``global_map.pgm`` / ``.yaml`` and each robot's."""
-
-    resolution_m: Annotated[float, above(0.0)] = 0.05
-    # Obstacles: map points this high above the floor (the robot's height band).
-    min_height_m: Annotated[float, at_least(0.0)] = 0.1
-    max_height_m: Annotated[float, above(0.0)] = 1.5
-    # Up in the map frame (the robot's first camera: x right, y down, z forward) where the
-    # map shows no floor; a level camera's up is 0 -1 0 (not all zero).
-    up: Annotated[tuple[float, float, float], FINITE] = (0.0, -1.0, 0.0)
-    # The floor: a plane among the lowest points, its normal within this of the cameras'
-    # up, at least this many points within floor_inlier_m of it.
-    floor_max_tilt_deg: Annotated[float, between(0.0, 90.0)] = 30.0
-    floor_inlier_m: Annotated[float, above(0.0)] = 0.03
-    floor_min_points: Annotated[int, at_least(3)] = 200
-    # A cell is occupied with this many map points in the band (one can be noise).
-    occupied_min_points: Annotated[int, at_least(1)] = 2
-    # Depth rays count as free space this far from their camera (the depth sensor's range).
-    max_range_m: Annotated[float, above(0.0)] = 4.0
-    # Unknown cells around what was seen.
-    margin_cells: Annotated[int, at_least(0)] = 5
-
-
-@dataclass(frozen=True)
-class CameraConfig:
-    """The camera on the robot, beyond what its images and calibration say."""
-
-    # The camera's mounting (REP 105): its optical frame (x right, y down, z forward) in
-    # the robot's base_link (x forward, z up) as x y z qx qy qz qw, the order of ROS's
-    # static_transform_publisher. Unset: not known. Given, the fleet's map frame is the
-    # anchor robot's base_link at its first frame (mapping/map_frame.py).
-    base_link: Annotated[tuple[float, float, float, float, float, float, float] | None,
-                         FINITE] = None
-
-
 # A Zenoh endpoint, or empty (off).
 OPTIONAL_ENDPOINT = Text(lambda s: endpoint_problem(s) if s else None,
                          "empty, or a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
@@ -835,6 +843,12 @@ class Ros2OutConfig:
 
 @dataclass(frozen=True)
 class Config:
+    """Every setting, by section. The algorithm parameters come first (orb, tracking,
+    place_recognition, loop_closing, relocalisation, map, fshicp, merge, grid, planner:
+    what is computed from the frames), then the deployment settings (source, synthetic,
+    camera, wire, link, transport, placement, view, outputs, ros2_out: where frames come
+    from, how robot and cloud talk, what a run shows and writes); ``SECTION_GROUPS``."""
+
     orb: OrbConfig = field(default_factory=OrbConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
@@ -843,9 +857,11 @@ class Config:
     map: MapConfig = field(default_factory=MapConfig)
     fshicp: FsHicpConfig = field(default_factory=FsHicpConfig)
     merge: MergeConfig = field(default_factory=MergeConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
-    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     source: SourceConfig = field(default_factory=SourceConfig)
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
     wire: WireConfig = field(default_factory=WireConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
@@ -853,8 +869,6 @@ class Config:
     view: ViewConfig = field(default_factory=ViewConfig)
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     ros2_out: Ros2OutConfig = field(default_factory=Ros2OutConfig)
-    grid: GridConfig = field(default_factory=GridConfig)
-    camera: CameraConfig = field(default_factory=CameraConfig)
 
     def with_values(self, values: Mapping[str, Any], flag: str | None = None,
                     where: str = "settings") -> Config:
@@ -863,6 +877,16 @@ class Config:
         file's: ValueError naming ``where`` and the key, or ``flag`` when a command-line flag
         gave the value. The config itself never changes (frozen once loaded)."""
         return _updated(self, _tables(values), where, flag=flag)
+
+
+# Config's sections, algorithm parameters apart from deployment settings (the order of
+# ``fleetslam config`` and docs/config.md).
+SECTION_GROUPS: dict[str, tuple[str, ...]] = {
+    "Algorithm parameters": ("orb", "tracking", "place_recognition", "loop_closing",
+                             "relocalisation", "map", "fshicp", "merge", "grid", "planner"),
+    "Deployment settings": ("source", "synthetic", "camera", "wire", "link", "transport",
+                            "placement", "view", "outputs", "ros2_out"),
+}
 
 
 def _updated(section: Any, values: Mapping[str, Any], where: str, prefix: str = "",
