@@ -101,12 +101,7 @@ class TrackingConfig:
     guided_radius_px: Annotated[float, above(0.0)] = 25.0
     # ... searched first within this smaller radius (0: off), the wide one only when it
     # finds fewer than min_guided_matches (ORB-SLAM's motion-model search, widened when it
-    # fails). The candidates a keypoint meets grow with the radius squared and with the
-    # map's density: a room mapped over and over has several landmarks per keypoint
-    # (redkitchen forth and back, in-process, 10 px: match 6.3 -> 2.6 ms a frame after
-    # 4000 frames). ATE moves by chance with the radius (TUM's 150 frames: 2.4-3.2 cm over
-    # 7.5-25 px); 12 px, measured with keyframe_motion_from "shared": 7-Scenes 3.45 -> 3.20
-    # cm, TUM fr1_rpy 2.75 -> 2.61, its JPEG bag 2.52 -> 2.33 (10 px: 3.26 there).
+    # fails): in a densely mapped room the candidates grow with the radius squared.
     guided_narrow_radius_px: Annotated[float, at_least(0.0)] = 12.0
     # Fewer guided matches than this: match against the whole local map instead.
     min_guided_matches: Annotated[int, at_least(0)] = 60
@@ -128,10 +123,8 @@ class TrackingConfig:
     keyframe_reference_ratio: Annotated[float, FRACTION] = 0.75
     # While the local mapper is busy (a local BA still in a worker), ORB-SLAM's reference
     # test makes a keyframe only when tracking is weak: inliers below this fraction of the
-    # reference (ORB-SLAM's c1c, 0.25). Without it a keyframe in a densely mapped place,
-    # whose reference counts what fusion added, was followed by a keyframe at nearly every
-    # frame: 5000 frames through a cloud made 159-309 keyframes, 94-221 by this test.
-    # In-line (one process) the mapper is never busy.
+    # reference (ORB-SLAM's c1c, 0.25); without it a densely mapped place made a keyframe at
+    # nearly every frame. In-line (one process) the mapper is never busy.
     keyframe_wait_for_mapper: bool = True
     keyframe_weak_ratio: Annotated[float, FRACTION] = 0.25
     # "Close" points: depth below this many virtual baselines (ORB-SLAM ThDepth, TUM: 40).
@@ -158,8 +151,7 @@ class TrackingConfig:
     local_mapping_workers: Annotated[int, at_least(1)] = 1
     # ... at this niceness (Linux nice, 0-19): when the cores are short, a robot's next
     # frame goes before a keyframe's local BA, whose requests then supersede each other
-    # (ORB-SLAM's local mapper aborting its BA for new keyframes). Measured (2 cores, 2
-    # workers, 8 robots at once): saturated 55 -> 104 fps with 10 instead of 0.
+    # (ORB-SLAM's local mapper aborting its BA for new keyframes).
     local_mapping_nice: Annotated[int, between(0, 19)] = 10
     # ... and how long a solve may take before it is dropped (the map stays as it was).
     local_ba_timeout_s: Annotated[float, above(0.0)] = 30.0
@@ -185,11 +177,8 @@ class TrackingConfig:
     fuse_max_hamming: Annotated[int, between(0, 256)] = 50
     # Cull redundant keyframes as ORB-SLAM does (KeyFrameCulling): at a keyframe, each of its
     # covisible keyframes whose close landmarks are nearly all seen by enough others at the
-    # same or a finer scale gives up its observations. A place revisited pass after pass
-    # then keeps about one pass's keyframes in local BA, fusion and checkpoints, instead of
-    # one more set per pass. The keyframe itself stays (its pose, its frames' references,
-    # its place-recognition entry, which loop and relocalisation queries skip); only its
-    # landmark observations go.
+    # same or a finer scale gives up its observations (its pose and place-recognition entry
+    # stay), so a place revisited pass after pass keeps about one pass's keyframes.
     cull_keyframes: bool = True
     # ... redundant: more than this fraction of its close landmarks (ORB-SLAM: 0.9) ...
     keyframe_redundant_fraction: Annotated[float, FRACTION] = 0.9
@@ -203,11 +192,8 @@ class PlaceRecognitionConfig:
     of words on a trained vocabulary."""
 
     # "nearest_neighbour": exact Hamming neighbours (faiss) with idf-weighted votes, no
-    # vocabulary; "bag_of_words": DBoW2-style L1 score on ``vocabulary``. Measured
-    # (bench/place_recognition.py, redkitchen frames): recall@1 0.63 / AP 0.45 against 0.28
-    # / 0.04 with a vocabulary trained on other images (0.70 / 0.50 only when trained on
-    # the sequence itself), but 178 ms a query against 13 ms at 250 entries: the exact
-    # index grows with the map, the vocabulary does not.
+    # vocabulary (better recall); "bag_of_words": DBoW2-style L1 score on ``vocabulary``
+    # (faster queries on large maps: the exact index grows with the map).
     method: Annotated[str, OneOf(("nearest_neighbour", "bag_of_words"))] = "nearest_neighbour"
     # A vocabulary file written by `fleetslam vocabulary` (bag_of_words only).
     vocabulary: Annotated[str, ANY_TEXT] = ""
@@ -341,8 +327,7 @@ class MergeConfig:
     # Each robot's keyframes as the merger searches them (nearest_neighbour place
     # recognition): "exact" (every stored descriptor, as the loop closer) or "approximate":
     # exact up to place_index_exact_up_to keyframes, then a graph index grown with each
-    # keyframe (backend/place_recognition.py). A new keyframe asks every other robot's map,
-    # so the exact search grows with robots x map; the graph's query stays about flat.
+    # keyframe (backend/place_recognition.py), whose query stays about flat as maps grow.
     place_index: Annotated[str, OneOf(("exact", "approximate"))] = "approximate"
     place_index_exact_up_to: Annotated[int, at_least(0)] = 100
     # The graph index: neighbours per node, and the breadth of each search.
@@ -352,10 +337,7 @@ class MergeConfig:
     # the search then takes neither the GIL nor a core from the robots tracking in the same
     # worker (merging/place_search.py); off: on the merger's thread. A search not answered
     # within search_timeout_s turns the search in-line for good. Nothing but the merger's
-    # own queue waits for it (status and merges do not: cloud/merge/merger_service.py). On since
-    # the search no longer depends on which robot came first (place_search.py: two-way
-    # check, catch-up, put-off searches): worth about 30 % of a 2-core cloud's saturated
-    # fps (issue 24).
+    # own queue waits for it (status and merges do not: cloud/merge/merger_service.py).
     search_process: bool = True
     search_nice: Annotated[int, between(0, 19)] = 10
     search_timeout_s: Annotated[float, above(0.0)] = 60.0
@@ -560,26 +542,20 @@ class WireConfig:
     # Keyframe uploads for the dense map: colour only feeds the map's point colours.
     keyframe_rgb_codec: Annotated[str, OneOf(IMAGE_CODECS)] = "jpeg"
     # Inter-frame coding (wire/inter.py): a robot codes each descriptor against the nearest
-    # one of frames the cloud acknowledged (points 2-5), lossless; 7-Scenes at point 3: 34
-    # -> ~19 kB a frame (bench/inter_coding.py). Off: every frame is coded alone.
+    # one of frames the cloud acknowledged (points 2-5), lossless, about 40 % fewer bytes.
+    # Off: every frame is coded alone.
     inter_frame: bool = True
-    # An intra frame (coded alone) at least every this many frames. Recovery does not need
-    # them (a frame whose reference the cloud lacks is refused, and intra frames follow),
-    # so they are rare: every 30 cost 2 % of a 1000-frame run's bytes (7-Scenes, point 3).
+    # An intra frame (coded alone) at least every this many frames: rare, as recovery does
+    # not need them (a frame whose reference the cloud lacks is refused, intra ones follow).
     intra_every: Annotated[int, at_least(1)] = 300
     # Acknowledged frames a message is coded against (the newest ones), at most 8.
     inter_references: Annotated[int, between(1, 8)] = 8
     # A descriptor's reference is searched among keypoints at most this many pyramid levels
-    # from its own (the same corner mostly lands on its own level). Against all levels of 4
-    # references, 8 at level 0 cost 2.4 ms of the robot's instead of 4.6 for 1 % fewer
-    # bytes on 7-Scenes, 1 % more on TUM fr1_rpy (1: 4.3 ms, 3 % / 1.5 % fewer). With a CPU
-    # hog beside robot and cloud, 0 gave 26.8-26.9 s for bench/offload's 1000 frames, 1
-    # gave 28.0-28.3; the robot's choice, nothing of it is sent.
+    # from its own (the same corner mostly lands on its own level; wider costs the robot
+    # time for about the same bytes). The robot's choice: nothing of it is sent.
     inter_octaves: Annotated[int, at_least(0)] = 0
-    # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames):
-    # a reference must still be there when a frame coded against it arrives, and a busy
-    # cloud's feedback comes tens of frames late (bench/offload.py: ~1.3 s median round
-    # trip at 10 Mbit/s on 2 cores). ~33 kB each.
+    # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames),
+    # ~33 kB each: a busy cloud's feedback comes tens of frames late.
     reference_frames: Annotated[int, at_least(0)] = 64
 
 
@@ -613,9 +589,7 @@ class TransportConfig:
     # A router (the lone cloud, `fleetslam router`) that has waited this long to hand a
     # message to one receiver whose queue is full (an unreachable worker or robot) drops
     # that receiver's link; it reconnects by itself. The wait holds one of the router's
-    # threads, and with a few such waits (a 2-core machine's router has 2) every robot's
-    # messages stop (measured: the whole fleet silent ~10 s after a worker's machine was cut
-    # off, with Zenoh's default of 5 s).
+    # threads, and a few such waits stop every robot's messages.
     router_block_s: Annotated[float, between(0.1, 60.0)] = 1.0
     # How long `fleetslam status` and `merge` wait for the cloud's first answer, reaching
     # its endpoint included (their --deadline), before saying what to check ...
@@ -632,14 +606,12 @@ class TransportConfig:
     max_queued_frames: Annotated[int, at_least(1)] = 256
     # Bytes a session may hold for its robot (frames waiting, undecoded and decoded, uploads
     # waiting, reference frames); beyond it frames and uploads are dropped unread and the
-    # robot told to slow down (cloud/session/memory_budget.py). A point-0 frame decodes to ~2.2 MB,
-    # so an honest robot's window of max_frames_in_flight = 12 holds ~26 MB, plus an upload
-    # or two (~0.6 MB each) and its references (64 x ~35 KB at point 3): 64 MB is twice that.
+    # robot told to slow down (cloud/session/memory_budget.py). Twice what an honest robot's
+    # window of frames in flight, uploads and references hold.
     session_budget_mb: Annotated[float, above(0.0)] = 64.0
     # Bytes all sessions may hold: each session reserves its budget, so the cloud opens at
-    # most cloud_budget_mb // session_budget_mb sessions (4 GB: 64 sessions, what a 2-core
-    # cloud of 8 GB holds beside its maps). A reservation, not a shared pool: one robot's
-    # flood can never take the room another robot's session needs.
+    # most cloud_budget_mb // session_budget_mb sessions. A reservation, not a shared pool:
+    # one robot's flood can never take the room another robot's session needs.
     cloud_budget_mb: Annotated[float, above(0.0)] = 4096.0
     # An unfinished session that hears nothing from its robot this long is checkpointed and
     # closed (its threads and memory freed); the robot's next message restores it.
@@ -664,16 +636,12 @@ class TransportConfig:
     max_keyframes: Annotated[int, at_least(1)] = 20_000
     # A session checkpoint larger than this (with all the chunks it names) is refused
     # unread, and no more than this is ever read of one (nothing in it is decompressed:
-    # cloud/session/store.py). A session's
-    # checkpoint grows by ~0.19 MB a keyframe (fr1_rpy, 150 frames: 37 keyframes, 7.1 MB),
-    # so a session at max_keyframes needs ~3.8 GB.
+    # cloud/session/store.py); room for a session at max_keyframes.
     max_checkpoint_bytes: Annotated[int, at_least(1 << 20)] = 4 << 30
     # A keyframe's checkpoint is captured at most this often per session: one asked sooner
     # waits, and the capture at the end of the interval covers every keyframe since (each
-    # still acknowledged and handed to the merger only once on disk). A checkpoint costs
-    # the worker's GIL ~20 ms at 150 frames (measured: a third of a worker's GIL time with
-    # 4 robots at 10 fps, a keyframe every ~0.4 s each); 0: one per keyframe. A crash loses
-    # no acknowledged keyframe either way (a robot sends a keyframe until acknowledged).
+    # still acknowledged and handed to the merger only once on disk), as each costs the
+    # worker's GIL; 0: one per keyframe. A crash loses no acknowledged keyframe either way.
     checkpoint_interval_s: Annotated[float, at_least(0.0)] = 1.0
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
@@ -681,11 +649,8 @@ class TransportConfig:
     # Frames a robot keeps (RGB-D) for keyframe uploads the cloud may still ask for.
     keyframe_buffer_frames: Annotated[int, at_least(1)] = 120
     # Frames a robot has sent without their feedback yet, at most (flow control, 0: no
-    # bound): a robot faster than its cloud session waits instead of filling the session's
-    # queue, whose overflow cuts gaps into the trajectory (bench/offload.py, point 3, inter
-    # coding, no bound: 27 frames dropped, a bad relocalisation, ATE 34 cm), and the round
-    # trip stays about this many cloud frame times (8: p95 0.46 s, 16: 0.9 s, 30: 1.1 s,
-    # unbounded: 4-11 s). 12 keeps 0.4 s of frames in flight at 30 fps: a WAN round trip.
+    # bound): a robot faster than its cloud session waits instead of overflowing the
+    # session's queue (gaps in the trajectory); 12 is 0.4 s at 30 fps, a WAN round trip.
     max_frames_in_flight: Annotated[int, at_least(0)] = 12
     # ... waiting at most this long per frame (a cloud that stopped answering must not
     # stop the robot: its hello and resends take over).
@@ -715,7 +680,7 @@ class PlacementConfig:
     active_s: Annotated[float, above(0.0)] = 2.0
     # What a robot counts until its cost is measured (cores): one granted within its worker's
     # measuring window (load_window_s), or at work on a worker that has not had robots at
-    # work for a while. 4 robots at 10 fps at point 3 kept 1.75 cores busy (worker_scaling).
+    # work for a while.
     robot_cost_cores: Annotated[float, above(0.0)] = 0.4
     # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides which
     # worker owns which robot and the merger, with fencing (cloud/coordination/fenced_placement.py)
@@ -737,9 +702,8 @@ class PlacementConfig:
     stall_s: Annotated[float, between(0.5, 600.0)] = 5.0
     # The Zenoh lease a worker announces to its router: the router drops the link of a
     # worker it has not heard from this long. Until then the router may wait on that link
-    # (a reliable message blocks behind a full queue), holding up every robot's messages
-    # (measured: the whole fleet silent ~10 s, Zenoh's default lease, after a worker's
-    # machine was cut off). Keep-alives go 4 times per lease.
+    # (a reliable message blocks behind a full queue), holding up every robot's messages.
+    # Keep-alives go 4 times per lease.
     zenoh_lease_s: Annotated[float, between(0.5, 600.0)] = 2.0
     # The etcd a run starts (cloud/coordination/coordination_service.py): healthy within this.
     coordination_start_s: Annotated[float, above(0.0)] = 10.0

@@ -122,7 +122,8 @@ def reference_markdown() -> str:
              "Every setting has a default; a TOML file given with `--config FILE` (before "
              "or after the command) overrides the keys it names. A key that is unknown, of "
              "the wrong type or out of its range is an error naming the file and the key. "
-             "`fleetslam config` prints all of it as one file to start from.\n"]
+             "`fleetslam config` prints all of it as one file to start from. Why a default "
+             "is what it is, and the variants that lost: [decisions.md](decisions.md).\n"]
     for group, names in SECTION_GROUPS.items():
         parts.append(f"## {group}\n\n{GROUP_TEXT[group]}\n")
         parts += [f"### [{name}]\n\n```toml\n{section_toml(name, getattr(config, name))}```\n"
