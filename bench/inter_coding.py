@@ -81,8 +81,7 @@ def same(a, b) -> bool:
 def run(states: list, camera, config: Config, inter: bool, lag: int, loss: float,
         messages: list[bytes] | None = None) -> dict:
     """One run; ``messages`` collects every message's bytes."""
-    wire = config.wire
-    wire.inter_frame = inter
+    wire = config.with_values({"wire.inter_frame": inter}).wire
     encoder = InterEncoder(wire, wire.reference_frames)
     ring = ReferenceRing(wire.reference_frames)
     rng = np.random.default_rng(0)

@@ -66,10 +66,8 @@ ACCURACY_KEYS = ["ate_rmse_cm", "rpe_rmse_cm", "lost_frames", "keyframes", "loop
 
 
 def config_for(loop_closing: bool) -> Config:
-    config = Config()
-    config.loop_closing.enabled = loop_closing
-    config.relocalisation.enabled = True
-    return config
+    return Config().with_values({"loop_closing.enabled": loop_closing,
+                                 "relocalisation.enabled": True})
 
 
 def evo_errors(poses: np.ndarray, gt: np.ndarray, timestamps: np.ndarray) -> dict[str, float]:

@@ -26,8 +26,7 @@ def small_scene(tmp_path_factory, frames_per_robot: int) -> list[Path]:
     from fleetslam.config import Config
     from fleetslam.datasets.synthetic import ensure_scene
 
-    config = Config()
-    config.synthetic.frames_per_robot = frames_per_robot
+    config = Config().with_values({"synthetic.frames_per_robot": frames_per_robot})
     return ensure_scene(tmp_path_factory.mktemp("scene") / "s", config.synthetic)
 
 
@@ -36,8 +35,7 @@ def synthetic_scene(tmp_path_factory):
     """(config, folders): the synthetic scene, 2 robots of 30 frames."""
     from fleetslam.config import Config
 
-    config = Config()
-    config.synthetic.frames_per_robot = 30
+    config = Config().with_values({"synthetic.frames_per_robot": 30})
     return config, small_scene(tmp_path_factory, 30)
 
 
@@ -70,8 +68,7 @@ def exact_config():
     lands)."""
     from fleetslam.config import Config
 
-    config = Config()
-    config.tracking.local_mapping = "inline"
+    config = Config().with_values({"tracking.local_mapping": "inline"})
     return config
 
 

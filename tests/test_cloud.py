@@ -414,8 +414,7 @@ def test_a_sessions_inbox_drops_its_oldest_frames_never_a_control_message():
 
 
 def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scene, messages):
-    config = exact_config()
-    config.transport.max_sessions = 1
+    config = exact_config().with_values({"transport.max_sessions": 1})
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
@@ -449,8 +448,7 @@ def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(m
     lost: its next frame restores the session from the checkpoint and tracking goes on with
     the same poses as a session that never closed."""
     seq0, msgs0, poses0 = messages["r0"]
-    config = exact_config()
-    config.transport.idle_session_s = 0.4
+    config = exact_config().with_values({"transport.idle_session_s": 0.4})
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
@@ -493,9 +491,8 @@ def test_a_robot_flooding_bad_frames_is_paused_and_then_heard_again(messages, tm
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, poses0 = messages["r0"]
-    config = exact_config()
-    config.transport.max_rejections_per_s = 20
-    config.transport.misbehaving_pause_s = 0.5
+    config = exact_config().with_values({"transport.max_rejections_per_s": 20,
+                                         "transport.misbehaving_pause_s": 0.5})
     replies: list[dict] = []
     session = RobotSession.open("r0", Hello(K, seq0.camera, "test"), config,
                                 CloudStore(tmp_path), lambda k, d: replies.append(json.loads(d))
@@ -565,8 +562,7 @@ def test_a_busy_session_still_waits_for_the_last_frame_after_the_end(messages, t
     from fleetslam.transport.protocol import Hello
 
     seq0, msgs0, _ = messages["r0"]
-    config = exact_config()
-    config.transport.end_grace_s = 0.5
+    config = exact_config().with_values({"transport.end_grace_s": 0.5})
     replies: list[dict] = []
     holder: list[RobotSession] = []
 
@@ -638,8 +634,7 @@ def test_the_cloud_starts_from_a_labs_zenoh_config_file(tmp_path):
 
     router = tmp_path / "cloud.json5"
     router.write_text('{ mode: "router", scouting: { multicast: { enabled: false } } }')
-    config = exact_config()
-    config.transport.zenoh_config = str(router)
+    config = exact_config().with_values({"transport.zenoh_config": str(router)})
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     try:
@@ -672,8 +667,7 @@ def test_a_tls_cloud_refuses_clients_without_the_labs_ca(tmp_path, capsys):
     assert main(["certs", "--out", str(lab), "--robot", "r2"]) == 0  # added with its CA
     assert json.loads((lab / "lab.json").read_text())["robots"] == ["r1", "r2"]
     assert main(["certs", "--out", str(tmp_path / "other")]) == 0
-    config = exact_config()
-    config.transport.zenoh_config = str(lab / "cloud.json5")
+    config = exact_config().with_values({"transport.zenoh_config": str(lab / "cloud.json5")})
     endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     try:
@@ -708,8 +702,7 @@ def test_a_robot_can_use_only_its_own_keys(messages, tmp_path):
 
     seq1, r1_msgs, poses1 = messages["r1"]
     lab = make_lab(tmp_path / "lab", ["localhost"], ["r1", "r2"])
-    config = exact_config()
-    config.transport.zenoh_config = str(lab["cloud"])
+    config = exact_config().with_values({"transport.zenoh_config": str(lab["cloud"])})
     endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     z1 = open_connecting(endpoint, 10.0, str(lab["r1"]))
@@ -801,7 +794,8 @@ def test_the_link_is_encrypted(messages, tmp_path, secure):
     port = int(free_endpoint().rsplit(":", 1)[1])
     if secure:
         lab = make_lab(tmp_path / "lab", ["localhost"], ["r1"])
-        config.transport.zenoh_config, robot_config = str(lab["cloud"]), str(lab["r1"])
+        config = config.with_values({"transport.zenoh_config": str(lab["cloud"])})
+        robot_config = str(lab["r1"])
     scheme = "tls/localhost" if secure else "tcp/127.0.0.1"
     server = CloudServer(config, tmp_path / "cloud", f"{scheme}:{port}").start()
     relay = Relay(port)

@@ -74,3 +74,36 @@ def test_global_options_are_taken_after_the_command_too(tmp_path):
     assert (done.returncode, done.stderr) == (
         2, "fleetslam: error: missing.json5: no such Zenoh config file\n")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "good.toml"]
+
+
+def test_the_sections_are_grouped_algorithm_apart_from_deployment():
+    """Every section of Config in exactly one group, in Config's order: the printed file and
+    the reference page follow it."""
+    from fleetslam.config import SECTION_GROUPS
+
+    grouped = [name for names in SECTION_GROUPS.values() for name in names]
+    assert grouped == [f.name for f in dataclasses.fields(Config)]
+    page = reference_markdown()
+    assert [page.index(f"## {group}\n") for group in SECTION_GROUPS] == \
+        sorted(page.index(f"## {group}\n") for group in SECTION_GROUPS)
+
+
+def test_the_decisions_page_names_settings_that_exist_or_were_removed():
+    """docs/decisions.md, one section per config section: each setting it names in
+    backticks is one of that section's, except those it says were removed (which are not)."""
+    import re
+
+    text = (ROOT / "docs" / "decisions.md").read_text()
+    parts = re.split(r"^## \[(\w+)\]$", text, flags=re.MULTILINE)
+    assert len(parts) > 1
+    for section, body in zip(parts[1::2], parts[2::2]):
+        known = set(rules_of(type(getattr(Config(), section))))
+        removed = set(re.findall(r"\*Removed:\*\s+`(\w+)", body))
+        named = set(re.findall(r"`(\w+)[ `]", body))
+        assert not removed & known, f"[{section}] says these were removed: {removed & known}"
+        # A reason may name a setting of another section (the session budget names the
+        # transport's frames in flight, a merge setting a tracking one).
+        unknown = {n for n in named - known - removed
+                   if not any(n in rules_of(type(getattr(Config(), f.name)))
+                              for f in dataclasses.fields(Config))}
+        assert not unknown, f"[{section}] names settings that do not exist: {unknown}"

@@ -69,8 +69,7 @@ def test_a_flood_of_ends_is_one_end_no_thread_or_traceback_each(scene, tmp_path,
     """7,500 ends at 500/s took the cloud from 27 to 257 threads: here 2,000 ends waiting
     for a last frame that never comes (the grace period) start no thread, and the robot
     hears one answer for them."""
-    config = exact_config()
-    config.transport.end_grace_s = 1.0
+    config = exact_config().with_values({"transport.end_grace_s": 1.0})
     session, replies = _session(tmp_path, RgbdSequence(scene[0]).camera, config)
     before = threading.active_count()
     peak = before
@@ -113,10 +112,9 @@ def test_a_failing_control_message_logs_one_traceback_per_interval(scene, tmp_pa
 
 
 def test_a_robot_paused_for_flooding_control_is_dropped_unread(scene, tmp_path):
-    config = exact_config()
-    config.transport.max_control_per_s = 5
-    config.transport.max_rejections_per_s = 10
-    config.transport.misbehaving_pause_s = 30.0
+    config = exact_config().with_values({"transport.max_control_per_s": 5,
+                                         "transport.max_rejections_per_s": 10,
+                                         "transport.misbehaving_pause_s": 30.0})
     session, _ = _session(tmp_path, RgbdSequence(scene[0]).camera, config)
     try:
         taken = [session.submit_control({"type": "hello"}, time.monotonic())
@@ -152,8 +150,7 @@ def test_hellos_alone_never_keep_a_robot_out_and_a_full_cloud_says_so(scene, tmp
     gives its slot to the next hello of a cloud that is full (oldest first), so a flood of
     them churns among themselves while the robots that sent frames keep theirs. Full of
     robots that sent frames, the cloud refuses and says why."""
-    config = exact_config()
-    config.transport.max_sessions = 2
+    config = exact_config().with_values({"transport.max_sessions": 2})
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
@@ -188,8 +185,7 @@ def test_hellos_alone_never_keep_a_robot_out_and_a_full_cloud_says_so(scene, tmp
 
 
 def test_a_session_that_never_tracks_a_frame_is_closed(scene, tmp_path, caplog):
-    config = exact_config()
-    config.transport.idle_empty_session_s = 0.5
+    config = exact_config().with_values({"transport.idle_empty_session_s": 0.5})
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
@@ -208,15 +204,15 @@ def test_a_session_that_never_tracks_a_frame_is_closed(scene, tmp_path, caplog):
 
 
 def test_a_robot_refused_by_a_full_cloud_says_the_cloud_is_full(scene, tmp_path):
+    # A cloud that admits no robot: below the setting's range, so made past its check.
     config = exact_config()
-    config.transport.max_sessions = 0
+    config = replace(config, transport=replace(config.transport, max_sessions=0))
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
-    robot_config = exact_config()
-    robot_config.transport.connect_timeout_s = 0.5
-    robot_config.transport.max_attempts = 4
-    robot_config.transport.full_retries = 1
-    robot_config.transport.full_retry_s = 0.1
+    robot_config = exact_config().with_values({"transport.connect_timeout_s": 0.5,
+                                               "transport.max_attempts": 4,
+                                               "transport.full_retries": 1,
+                                               "transport.full_retry_s": 0.1})
     robot = Robot("r0", RgbdSequence(scene[0]), str(scene[0]), 3, robot_config, endpoint,
                   show_progress=False)
     try:

@@ -201,8 +201,7 @@ def test_a_robot_slower_than_its_camera_skips_frames_holds_one_and_tracks(tmp_pa
     from fleetslam.launch import CloudClient, free_endpoint
 
     spec = f"{require(SEVEN_SCENES)}:0-149"
-    config = Config()
-    config.link.bandwidth_mbps = 2.0
+    config = Config().with_values({"link.bandwidth_mbps": 2.0})
     endpoint = free_endpoint()
     server = CloudServer(Config(), tmp_path / "cloud", endpoint).start()
     try:
@@ -246,8 +245,7 @@ def test_a_live_robot_keeps_keyframe_uploads_until_acknowledged_and_names_lost_o
     from fleetslam.edge.uploader import KeyframeUploader
     from fleetslam.wire.messages import decode_keyframe
 
-    config = Config()
-    config.transport.keyframe_buffer_frames = 2
+    config = Config().with_values({"transport.keyframe_buffer_frames": 2})
     report = RobotReport("r1", 3)
     uploader = KeyframeUploader("r1", None, 3, config, report)
     sent = []

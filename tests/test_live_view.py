@@ -154,9 +154,7 @@ def test_a_stalled_view_never_holds_up_a_session(scene, tmp_path):
     from fleetslam.visualisation.live_view import LiveView
 
     seq, msgs, poses = robot_messages(scene, K)["r0"]
-    config = exact_config()
-    config.view.queue_size = 4
-    config.view.close_timeout_s = 0.5
+    config = exact_config().with_values({"view.queue_size": 4, "view.close_timeout_s": 0.5})
     recording = StalledRecording()
     view = LiveView(config, recording)
     recording.stall.set()  # the view's thread hangs on its first update from here on
@@ -199,8 +197,8 @@ def test_without_a_display_the_live_view_is_served_for_a_viewer_to_connect(monke
     if viewer_cli is None:
         pytest.skip("rerun's viewer executable is not installed")
     monkeypatch.setattr(recording, "can_spawn_viewer", lambda: False)
-    config = exact_config()
-    config.view.grpc_port = int(free_endpoint().rsplit(":", 1)[1])
+    port = int(free_endpoint().rsplit(":", 1)[1])
+    config = exact_config().with_values({"view.grpc_port": port})
     assert any(recording.grpc_url(config.view) in line
                for line in recording.live_plan(config.view, None, True))
     view = open_view(config, None, live=True)

@@ -133,8 +133,7 @@ def test_pose_graph_keeps_a_true_loop_and_switches_off_a_false_one():
 @pytest.fixture(scope="module")
 def kitchen_run():
     seq = open_source(f"{require(SEVEN_SCENES)}:0-199")
-    config = Config()
-    config.loop_closing.global_ba = False
+    config = Config().with_values({"loop_closing.global_ba": False})
     from fleetslam.backend.robot_slam import RobotSlam
     from fleetslam.pipeline.states import CapturedFrame
     pipeline = RobotSlam.new(config, seq.camera)
@@ -187,8 +186,7 @@ def test_relocalisation_recovers_after_30_frames_cut_out():
 @pytest.mark.realdata
 def test_without_relocalisation_the_cut_is_lost():
     """The bound above fails when relocalisation is switched off (it is what recovers)."""
-    config = Config()
-    config.relocalisation.enabled = False
+    config = Config().with_values({"relocalisation.enabled": False})
     cut = track_robot("cut", "", open_source(f"{require(SEVEN_SCENES)}:0-99,130-199"), config,
                       False)
     assert cut.lost_frames > 0

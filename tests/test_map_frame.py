@@ -60,7 +60,7 @@ def test_a_mounted_lone_robot_maps_in_its_base_link(tmp_path, synthetic_scene):
 
     config, folders = synthetic_scene
     config = Config(synthetic=config.synthetic)
-    config.camera.base_link = _as_setting(MOUNTING)
+    config = config.with_values({"camera.base_link": _as_setting(MOUNTING)})
     summary = run_fleet([("r0", str(folders[0]), RgbdSequence(folders[0]))], config,
                         tmp_path / "run", show_progress=False)
     merge = summary["merge"]
@@ -107,8 +107,7 @@ def test_a_bad_mounting_is_refused_naming_it(tmp_path, synthetic_scene):
         load_config(path)
     # A run is refused before it writes anything.
     _, folders = synthetic_scene
-    config = Config()
-    config.camera.base_link = (0.0,) * 7
+    config = Config().with_values({"camera.base_link": (0.0,) * 7})
     with pytest.raises(ValueError, match=r"\[camera\] base_link quaternion"):
         run_fleet([("r0", str(folders[0]), RgbdSequence(folders[0]))], config,
                   tmp_path / "run", show_progress=False)

@@ -246,8 +246,7 @@ def test_export_names_a_folder_that_is_not_a_run(tmp_path, capsys):
 
 
 def test_outputs_mcap_false_writes_none(synthetic_scene, tmp_path):
-    config = Config()
-    config.outputs.mcap = False
+    config = Config().with_values({"outputs.mcap": False})
     source = f"{synthetic_scene[1][0]}:0-7"
     out = tmp_path / "solo"
     summary = run_fleet([("solo", source, open_source(source))], config, out, False)

@@ -76,8 +76,8 @@ def test_frames_beyond_the_budget_are_dropped_unread_counted_and_the_robot_told(
                                                                                  tmp_path):
     camera, msgs = point0
     decoded = camera.width * camera.height * 7  # a point-0 frame decoded
-    config = exact_config()
-    config.transport.session_budget_mb = 4.5 * decoded / MB  # room for 4 frames
+    room = 4.5 * decoded / MB  # for 4 frames
+    config = exact_config().with_values({"transport.session_budget_mb": room})
     replies: list[dict] = []
     session = _session(camera, config, tmp_path, replies)
     try:
@@ -99,8 +99,8 @@ def test_frames_beyond_the_budget_are_dropped_unread_counted_and_the_robot_told(
 
 def test_under_the_budget_nothing_is_dropped(point0, tmp_path):
     camera, msgs = point0
-    config = exact_config()
-    config.transport.session_budget_mb = 25 * camera.width * camera.height * 7 / MB
+    config = exact_config().with_values(
+        {"transport.session_budget_mb": 25 * camera.width * camera.height * 7 / MB})
     replies: list[dict] = []
     session = _session(camera, config, tmp_path, replies)
     try:
@@ -128,8 +128,7 @@ def test_a_hostile_flood_of_valid_frames_keeps_the_sessions_bytes_within_budget(
     from fleetslam.transport.zenoh_session import open_connecting
 
     camera, msgs = point0
-    config = exact_config()
-    config.transport.session_budget_mb = 16.0
+    config = exact_config().with_values({"transport.session_budget_mb": 16.0})
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
@@ -197,9 +196,8 @@ def test_hellos_beyond_the_cloud_budget_are_refused_with_the_reason(point0, tmp_
     from fleetslam.transport.zenoh_session import open_connecting
 
     camera, messages = point0
-    config = exact_config()
-    config.transport.session_budget_mb = 16.0
-    config.transport.cloud_budget_mb = 32.0
+    config = exact_config().with_values({"transport.session_budget_mb": 16.0,
+                                         "transport.cloud_budget_mb": 32.0})
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
@@ -230,8 +228,7 @@ def test_uploads_beyond_the_budget_are_dropped_unread_under_it_read(point0, tmp_
     """An upload larger than the room left is dropped before decoding (the robot resends
     it); one that fits is read (here: rejected as garbage, after decoding)."""
     camera, _ = point0
-    config = exact_config()
-    config.transport.session_budget_mb = 1.0
+    config = exact_config().with_values({"transport.session_budget_mb": 1.0})
     replies: list[dict] = []
     session = _session(camera, config, tmp_path, replies)
     try:

@@ -511,8 +511,7 @@ def test_a_robot_hears_that_the_workers_cannot_reach_etcd(tmp_path):
     from fleetslam.transport.zenoh_session import open_connecting
 
     with EtcdService(tmp_path / "etcd") as etcd:
-        config = Config()
-        config.placement.coordination = etcd.endpoint
+        config = Config().with_values({"placement.coordination": etcd.endpoint})
         endpoint = free_endpoint()
         server = CloudServer(config, tmp_path / "cloud", endpoint).start()
         client = open_connecting(endpoint)

@@ -174,8 +174,7 @@ def test_a_stopped_search_process_holds_up_neither_status_nor_keyframes(keyframe
     keyframe, and status answers at once; once the process runs again, the searches land
     and a drain waits for them."""
     camera, kfs = keyframes
-    config = Config()
-    config.merge.search_process = True
+    config = Config().with_values({"merge.search_process": True})
     service = MergerService(config)
     try:
         for name in kfs:

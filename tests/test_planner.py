@@ -20,9 +20,7 @@ PAPER_T_TR = [5.04, 5.04, 3.04, 2.32, 2.96, 3.20, 3.36]
 
 
 def _paper_config() -> PlannerConfig:
-    cfg = PlannerConfig()
-    cfg.c_total_g = 1.0
-    return cfg
+    return PlannerConfig(c_total_g=1.0)
 
 
 def test_the_papers_numbers_choose_eta_0484_with_the_papers_energies():

@@ -58,8 +58,7 @@ def check_page(page: Path) -> list[str]:
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
-    config = Config()
-    config.synthetic.frames_per_robot = FRAMES
+    config = Config().with_values({"synthetic.frames_per_robot": FRAMES})
     folders = small_scene(tmp_path_factory, FRAMES)
     out = tmp_path_factory.mktemp("runs") / "run"
     robots = [(f"r{i}", str(f), RgbdSequence(f)) for i, f in enumerate(folders)]

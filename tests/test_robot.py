@@ -95,8 +95,8 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
     from fleetslam.wire.messages import Feedback, encode_feedback
 
     folder = small_scene(tmp_path_factory, 2)[0]
-    config = Config()
-    config.transport.max_frames_in_flight, config.transport.in_flight_wait_s = 4, 30.0
+    config = Config().with_values({"transport.max_frames_in_flight": 4,
+                                   "transport.in_flight_wait_s": 30.0})
     robot = Robot("r1", RgbdSequence(folder), str(folder), 3, config, show_progress=False)
     for seq in range(4):
         robot.window.sent(seq)
@@ -110,7 +110,8 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
     assert not waiter.is_alive() and robot.window.in_flight() == [3]
     assert robot.report.flow_timeouts == 0
 
-    config.transport.in_flight_wait_s = 0.2  # now the cloud goes silent
+    # Now the cloud goes silent, and the robot waits for it less.
+    robot.window.config = config.with_values({"transport.in_flight_wait_s": 0.2})
     for seq in range(4, 7):
         robot.window.sent(seq)
     start = time.monotonic()

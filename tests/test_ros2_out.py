@@ -279,9 +279,8 @@ def test_an_unreachable_ros2_router_is_said_once_and_tracking_goes_on(caplog):
     from fleetslam.launch import free_endpoint
     from fleetslam.wire.messages import Feedback
 
-    config = Config()
-    config.ros2_out.endpoint = free_endpoint()
-    config.ros2_out.connect_timeout_s = 0.3
+    config = Config().with_values({"ros2_out.endpoint": free_endpoint(),
+                                   "ros2_out.connect_timeout_s": 0.3})
     out = RobotRosOut("r1", config.ros2_out, RobotReport("r1", 3)).start()
     caplog.set_level(logging.WARNING, logger="fleetslam.ros2_out")
     try:
@@ -351,12 +350,10 @@ def ros_robot(robot_id: str, spec: str, cloud: str, ros_router: str | None = Non
     from fleetslam.datasets.recording import open_source
     from fleetslam.edge.robot import Robot
 
-    config = Config()
-    config.transport.endpoint = cloud
     if ros_router is not None:
-        config.ros2_out.endpoint = ros_router
-    for key, value in ros2_out.items():
-        setattr(config.ros2_out, key, value)
+        ros2_out = {"endpoint": ros_router, **ros2_out}
+    config = Config().with_values({"transport.endpoint": cloud,
+                                   **{f"ros2_out.{k}": v for k, v in ros2_out.items()}})
     return Robot(robot_id, open_source(spec), robot_id, 3, config, show_progress=False)
 
 
@@ -573,8 +570,7 @@ def test_the_cloud_publishes_poses_and_each_merges_maps_for_late_subscribers(
 
     _, folders = synthetic_scene
     cloud = free_endpoint()
-    config = Config()
-    config.ros2_out.endpoint = sdk_session
+    config = Config().with_values({"ros2_out.endpoint": sdk_session})
     view = open_view(config, None, False)
     assert view.sink.wait_connected(10.0)
     robots = [ros_robot(f"r{i}", str(f), cloud) for i, f in enumerate(folders)]
@@ -649,8 +645,8 @@ def test_a_tf_tree_with_a_loop_or_a_gap_costs_the_tf_not_the_pose(caplog):
     from fleetslam.launch import free_endpoint
     from fleetslam.wire.messages import Feedback
 
-    config = Config()
-    config.ros2_out.endpoint = free_endpoint()  # nobody there: nothing is sent anyway
+    nobody = free_endpoint()  # nothing is sent anyway
+    config = Config().with_values({"ros2_out.endpoint": nobody})
     out = RobotRosOut("r1", config.ros2_out, RobotReport("r1", 3))
     caplog.set_level(logging.INFO, logger="fleetslam.ros2_out")
     out.tf.add([(0, "base_link", "r1/camera", _pose(1)), (0, "r1/camera", "odom", _pose(2))],

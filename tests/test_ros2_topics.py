@@ -200,12 +200,8 @@ class CameraNode:
 
 
 def ros2_config(**source) -> Config:
-    config = Config()
-    config.source.ros_domain_id = 0
-    config.source.ros_discovery_settle_s = 0.3
-    for name, value in source.items():
-        setattr(config.source, name, value)
-    return config
+    return Config().with_values({"source.ros_domain_id": 0, "source.ros_discovery_settle_s": 0.3,
+                                 **{f"source.{k}": v for k, v in source.items()}})
 
 
 def take_all(source: Ros2TopicSource, node: CameraNode, every_s: float = 0.0,

@@ -64,10 +64,9 @@ def test_guided_matching_searches_narrow_then_wide(monkeypatch, min_matches, rad
         return original(*args, **kwargs)
 
     monkeypatch.setattr(tracking, "guided_match", recording)
-    config = Config()
-    config.tracking.guided_narrow_radius_px = 10.0
-    config.tracking.guided_radius_px = 25.0
-    config.tracking.min_guided_matches = min_matches
+    config = Config().with_values({"tracking.guided_narrow_radius_px": 10.0,
+                                   "tracking.guided_radius_px": 25.0,
+                                   "tracking.min_guided_matches": min_matches})
     seq = RgbdSequence(require(TUM_RPY), last=20)
     run = track_robot("r", str(TUM_RPY), seq, config, show_progress=False)
     assert run.tracked.all()
@@ -117,7 +116,7 @@ def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
     assert reason(200, busy=True) is None           # not below 0.25 x 400
     assert reason(50, busy=True) == "reference"
     assert reason(350, busy=False) is None
-    session.config.tracking.keyframe_wait_for_mapper = False
+    session.config = session.config.with_values({"tracking.keyframe_wait_for_mapper": False})
     assert reason(200, busy=True) == "reference"
 
 

@@ -60,8 +60,7 @@ def tls_cloud(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("tls")
     lab = make_lab(tmp / "lab", ["localhost"], ["r1", "r2"])
     other = make_lab(tmp / "other", ["localhost"], [])
-    config = exact_config()
-    config.transport.zenoh_config = str(lab["cloud"])
+    config = exact_config().with_values({"transport.zenoh_config": str(lab["cloud"])})
     endpoint = free_endpoint().replace("tcp/127.0.0.1", "tls/localhost")
     server = CloudServer(config, tmp / "cloud", endpoint).start()
     yield endpoint, lab, other

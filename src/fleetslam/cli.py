@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetslam.camera import Camera
-from fleetslam.config import Config, load_config, set_from_flag
+from fleetslam.config import Config, load_config
 from fleetslam.datasets.live_sources import live_specs
 from fleetslam.planner.model import OBJECTIVES, SWEEP_MBPS
 from fleetslam.transport.keys import check_robot_id as keys_check
@@ -101,10 +101,11 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.progress import Progress
 
     if args.robots is not None:
-        set_from_flag(config.synthetic, "n_robots", args.robots, "--robots")
+        config = config.with_values({"synthetic.n_robots": args.robots}, flag="--robots")
     if args.frames is not None:
-        set_from_flag(config.synthetic, "frames_per_robot", args.frames, "--frames")
-    _apply_link(args, config)  # checked here: the demo's robot processes are given them
+        config = config.with_values({"synthetic.frames_per_robot": args.frames},
+                                    flag="--frames")
+    config = _apply_link(args, config)  # checked here: the demo's robot processes get them
     if config.synthetic.n_robots < 2:
         raise ValueError("the demo needs at least 2 robots (--robots)")
     _check_offload_at(args.offload_at)  # before the scene, the cloud and the run folder
@@ -158,12 +159,20 @@ def _link_args(args: argparse.Namespace) -> list[str]:
     return out
 
 
-def _apply_link(args: argparse.Namespace, config: Config) -> None:
-    """--bandwidth-mbps, --latency-ms, --loss into config.link, checked."""
-    for name in ("bandwidth_mbps", "latency_ms", "loss"):
-        value = getattr(args, name, None)
+def _with_flags(config: Config, section: str, given: dict[str, Any]) -> Config:
+    """``config`` with ``section``'s settings NAME that a flag ``--NAME`` gave (None: not
+    given), each checked and named by its flag."""
+    for name, value in given.items():
         if value is not None:
-            set_from_flag(config.link, name, value, f"--{name.replace('_', '-')}")
+            config = config.with_values({f"{section}.{name}": value},
+                                        flag=f"--{name.replace('_', '-')}")
+    return config
+
+
+def _apply_link(args: argparse.Namespace, config: Config) -> Config:
+    """``config`` with --bandwidth-mbps, --latency-ms, --loss in its link, checked."""
+    return _with_flags(config, "link", {name: getattr(args, name, None) for name in
+                                        ("bandwidth_mbps", "latency_ms", "loss")})
 
 
 def _add_link_options(parser: argparse.ArgumentParser) -> None:
@@ -183,12 +192,10 @@ def _add_topic_options(parser: argparse.ArgumentParser) -> None:
                         "(default: camera_info beside the colour topic, else the only one)")
 
 
-def _apply_topics(args: argparse.Namespace, config: Config) -> None:
-    """--rgb-topic, --depth-topic, --camera-info-topic into config.source."""
-    for name in ("rgb_topic", "depth_topic", "camera_info_topic"):
-        value = getattr(args, name, None)
-        if value:
-            set_from_flag(config.source, name, value, f"--{name.replace('_', '-')}")
+def _apply_topics(args: argparse.Namespace, config: Config) -> Config:
+    """``config`` with --rgb-topic, --depth-topic, --camera-info-topic in its source."""
+    return _with_flags(config, "source", {name: getattr(args, name, None) or None for name in
+                                          ("rgb_topic", "depth_topic", "camera_info_topic")})
 
 
 def _add_view_options(parser: argparse.ArgumentParser) -> None:
@@ -235,15 +242,11 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.visualisation.recording import live_plan
 
     _setup_logging(args.quiet)
-    if args.worker_id:
-        set_from_flag(config.placement, "worker_id", args.worker_id, "--worker-id")
-    if args.coordination:
-        set_from_flag(config.placement, "coordination", args.coordination, "--coordination")
-    if args.coordination_certs:
-        set_from_flag(config.placement, "coordination_certs", args.coordination_certs,
-                      "--coordination-certs")
+    config = _with_flags(config, "placement", {name: getattr(args, name) or None for name in
+                                               ("worker_id", "coordination",
+                                                "coordination_certs")})
     if args.ros2_out:  # before the views: the ROS 2 graph's is one of them
-        set_from_flag(config.ros2_out, "endpoint", args.ros2_out, "--ros2-out")
+        config = config.with_values({"ros2_out.endpoint": args.ros2_out}, flag="--ros2-out")
     view = open_view(config, args.save, args.view, args.foxglove)
     for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
@@ -286,14 +289,12 @@ def cmd_router(args: argparse.Namespace, config: Config) -> int:
 def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> Any:
     """The adaptive robot's planner, from a saved profile or one measured on its own first
     frames (this machine's stage times, the bytes of every point)."""
-    import copy
-
     from fleetslam.planner.online import OnlinePlanner, Setting
     from fleetslam.planner.profile import Profile
 
-    cfg = config.planner
     n = config.orb.n_features
-    cfg.feature_options = (n, *[f for f in cfg.feature_options if f < n])
+    options = (n, *[f for f in config.planner.feature_options if f < n])
+    cfg = config.with_values({"planner.feature_options": options}).planner
     if args.plan_profile:
         profile = Profile.load(Path(args.plan_profile))
     else:
@@ -305,8 +306,7 @@ def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> 
         frames = min(cfg.profile_frames, len(sequence))
         progress = Progress(f"profile {args.source} (for --offload-at auto)", frames,
                             enabled=not args.quiet)
-        profile = measure_profile(sequence, args.source, copy.deepcopy(config), frames,
-                                  progress.update)
+        profile = measure_profile(sequence, args.source, config, frames, progress.update)
     return OnlinePlanner(profile, cfg, Setting(3, n, 1))
 
 
@@ -341,7 +341,7 @@ def _robot_source(args: argparse.Namespace, config: Config) -> tuple[Any, Any]:
                              f"device; --camera is for recordings")
         return live, None
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
-    _apply_topics(args, config)
+    config = _apply_topics(args, config)
     recording = open_source(args.source, camera, config.source)
     if not args.live:
         return recording, recording
@@ -398,11 +398,11 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     _setup_logging(args.quiet)
     point = _check_offload_at(args.offload_at)  # before a camera starts
     _warn_of_another_identity(args.id, config)
-    _apply_link(args, config)
+    config = _apply_link(args, config)
     if args.link_seed is not None:
-        set_from_flag(config.link, "seed", args.link_seed, "--link-seed")
+        config = config.with_values({"link.seed": args.link_seed}, flag="--link-seed")
     if args.ros2_out:
-        set_from_flag(config.ros2_out, "endpoint", args.ros2_out, "--ros2-out")
+        config = config.with_values({"ros2_out.endpoint": args.ros2_out}, flag="--ros2-out")
     sequence, recording = _robot_source(args, config)
     live = sequence is not recording
     if live:  # its camera model (the device's, or the recording's image size) builds stages
@@ -411,7 +411,7 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     if trace:
         if trace[0][0] != 0:
             raise ValueError("--link-trace must start at frame 0")
-        config.link.bandwidth_mbps = trace[0][1]
+        config = config.with_values({"link.bandwidth_mbps": trace[0][1]}, flag="--link-trace")
     planner = None
     if point is None:
         k = 3
@@ -447,9 +447,10 @@ def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[s
     saying what to check; a merge, once the cloud answered, within merge_timeout_s."""
     from fleetslam.launch import CloudClient
 
-    cfg = config.transport
     if args.deadline is not None:
-        set_from_flag(cfg, "ask_deadline_s", args.deadline, "--deadline")
+        config = config.with_values({"transport.ask_deadline_s": args.deadline},
+                                    flag="--deadline")
+    cfg = config.transport
     deadline = time.monotonic() + cfg.ask_deadline_s
     client = CloudClient(args.connect or cfg.endpoint, cfg.ask_deadline_s, cfg.zenoh_config or None,
                          silence_hint_s=cfg.silence_hint_s)
@@ -516,7 +517,7 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.system import run_fleet
 
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
-    _apply_topics(args, config)
+    config = _apply_topics(args, config)
     names = args.name or []
     if names and len(names) != len(args.robot):
         raise ValueError(f"{len(names)} --name for {len(args.robot)} --robot")
@@ -586,19 +587,18 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.progress import Progress
     from fleetslam.pipeline.split import SUPPORTED_POINTS
 
-    cfg = config.planner
-    for name in ("bandwidth_mbps", "latency_ms"):
-        if getattr(args, name) is not None:
-            set_from_flag(cfg, name, getattr(args, name), f"--{name.replace('_', '-')}")
+    config = _with_flags(config, "planner", {name: getattr(args, name) for name in
+                                             ("bandwidth_mbps", "latency_ms")})
     if args.frames is not None:
-        set_from_flag(cfg, "profile_frames", args.frames, "--frames")
+        config = config.with_values({"planner.profile_frames": args.frames}, flag="--frames")
     offered: tuple[int, ...] | None = SUPPORTED_POINTS
     measured = ""  # a profile measured here on part of a sequence: which part
     if args.paper:
         if args.profile or args.source:
             raise ValueError("--paper plans with the paper's numbers: no --profile / --source")
         profile = paper_profile()
-        cfg.c_total_g = 1.0  # the paper's Table "Parameter values"
+        # The paper's Table "Parameter values".
+        config = config.with_values({"planner.c_total_g": 1.0})
         offered = None  # the paper's seven candidates
     elif args.profile:
         profile = Profile.load(Path(args.profile))
@@ -606,7 +606,7 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
         from fleetslam.datasets.synthetic import ensure_scene
         from fleetslam.datasets.recording import open_source
 
-        _apply_topics(args, config)
+        config = _apply_topics(args, config)
         if args.source:
             source = args.source
         else:
@@ -619,7 +619,7 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
                                  progress=lambda d, t: scene_progress.update(d))
             source = str(scene[0])
         sequence = open_source(source, None, config.source)
-        frames = min(cfg.profile_frames, len(sequence))
+        frames = min(config.planner.profile_frames, len(sequence))
         if not args.quiet:
             print(f"profile: measuring the first {frames} of the {len(sequence)} frames of "
                   f"{source} (--frames N, or [planner] profile_frames)", file=sys.stderr)
@@ -629,6 +629,7 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
             measured = f"measured on the first {frames} of its {len(sequence)} frames: --frames"
         if args.save_profile:
             profile.save(Path(args.save_profile))
+    cfg = config.planner
     bandwidths = SWEEP_MBPS if args.sweep else (cfg.bandwidth_mbps,)
     result = plan(profile, [Link(b, cfg.latency_ms) for b in bandwidths], cfg, offered,
                   args.objective)
@@ -929,7 +930,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.zenoh_config:
             if not Path(args.zenoh_config).is_file():
                 raise ValueError(f"{args.zenoh_config}: no such Zenoh config file")
-            config.transport.zenoh_config = args.zenoh_config
+            config = config.with_values({"transport.zenoh_config": args.zenoh_config},
+                                        flag="--zenoh-config")
         _check_endpoints(args, config)
         return args.func(args, config)
     except (ValueError, FileExistsError, RuntimeError, TimeoutError) as exc:

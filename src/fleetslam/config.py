@@ -2,7 +2,9 @@
 what the setting may be (validation/rules.py: ``Annotated[int, at_least(1)]``).
 
 Load from TOML with :func:`load_config`; unknown keys are an error so typos do not pass
-silently, and a value of the wrong type or out of its range names its key and file.
+silently, and a value of the wrong type or out of its range names its key and file. A
+loaded config is frozen: a variant (a command-line flag's, a test's) is a new config from
+:meth:`Config.with_values`, checked as a file's values are.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import re
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -38,7 +41,11 @@ MEMORY_SIZE = Text(lambda s: None if re.fullmatch(r"\d+(\.\d+)?\s*([KMGT]i?B|B|%
                    "a size such as 1GiB, 512MB or 25%")
 
 
-@dataclass
+# Algorithm parameters: what tracking, mapping, loop closing, merging and the planner
+# compute from the frames (the paper's and ORB-SLAM's parameters among them).
+
+
+@dataclass(frozen=True)
 class OrbConfig:
     """ORB extraction (paper: OpenCV ORB, as in ORB-SLAM)."""
 
@@ -53,7 +60,7 @@ class OrbConfig:
     grid_rows: Annotated[int, between(1, 1000)] = 6
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrackingConfig:
     """Matching, PnP and keyframe decision."""
 
@@ -76,24 +83,9 @@ class TrackingConfig:
     # Keyframe when inliers drop below this fraction of the first frame tracked after the
     # newest keyframe ...
     keyframe_inlier_ratio: Annotated[float, FRACTION] = 0.55
-    # ... that frame taken once the keyframe's local BA has landed ("settled"; in-line: the
-    # next frame), or the next frame in any case ("next"). Through a cloud the next frame
-    # still matches the keyframe's new landmarks before BA and culling judged them: about
-    # 550 inliers where in-line it has 370, so frames ten later fell under 0.55 of it and a
-    # keyframe followed every ~10 frames over mapped places, in bursts that came by chance.
-    keyframe_inlier_reference: Annotated[str, OneOf(("settled", "next"))] = "settled"
     # ... or when the camera moved this far from the reference keyframe.
     keyframe_translation_m: Annotated[float, at_least(0.0)] = 0.15
     keyframe_rotation_deg: Annotated[float, between(0.0, 180.0)] = 12.0
-    # ... measured from the newest keyframe ("newest"); "shared": a frame must be that far
-    # from the newest and from the keyframe sharing most landmarks with it (ORB-SLAM's
-    # reference keyframe; redkitchen forth and back, 5000 frames: 223 keyframes instead of
-    # 595); "live": that far from every keyframe still observing landmarks. Back at a
-    # mapped place the camera is near that place's keyframes and makes few new ones;
-    # "shared" read its keyframe from the landmarks' newest observer, often one culling had
-    # emptied: through a cloud, 183-201 keyframes (57-68 by motion, 84-96 culled) against
-    # 104-106 (0-1 by motion, 18-27 culled) with "live", ATE 3.46-3.48 / 3.41-3.44 cm.
-    keyframe_motion_from: Annotated[str, OneOf(("newest", "shared", "live"))] = "live"
     # Landmarks from this many recent keyframes form the local map matched against when
     # the prediction fails.
     local_map_keyframes: Annotated[int, at_least(1)] = 6
@@ -109,12 +101,7 @@ class TrackingConfig:
     guided_radius_px: Annotated[float, above(0.0)] = 25.0
     # ... searched first within this smaller radius (0: off), the wide one only when it
     # finds fewer than min_guided_matches (ORB-SLAM's motion-model search, widened when it
-    # fails). The candidates a keypoint meets grow with the radius squared and with the
-    # map's density: a room mapped over and over has several landmarks per keypoint
-    # (redkitchen forth and back, in-process, 10 px: match 6.3 -> 2.6 ms a frame after
-    # 4000 frames). ATE moves by chance with the radius (TUM's 150 frames: 2.4-3.2 cm over
-    # 7.5-25 px); 12 px, measured with keyframe_motion_from "shared": 7-Scenes 3.45 -> 3.20
-    # cm, TUM fr1_rpy 2.75 -> 2.61, its JPEG bag 2.52 -> 2.33 (10 px: 3.26 there).
+    # fails): in a densely mapped room the candidates grow with the radius squared.
     guided_narrow_radius_px: Annotated[float, at_least(0.0)] = 12.0
     # Fewer guided matches than this: match against the whole local map instead.
     min_guided_matches: Annotated[int, at_least(0)] = 60
@@ -125,11 +112,8 @@ class TrackingConfig:
     # A repeated image (byte-identical, as 7-Scenes fills dropped frames) is detected by
     # this fraction of keypoints at the same place with the same descriptor.
     repeated_frame_fraction: Annotated[float, Bound(0.0, 1.0, lo_open=True)] = 0.98
-    # After the pose is found, search the unmatched landmarks projected with it and refine
-    # the pose again (ORB-SLAM's TrackLocalMap). Off: it cost ~6 ms a frame for no ATE gain
-    # measured on the TUM fr1_rpy / 7-Scenes segments ...
-    track_local_map: bool = False
-    # ... within this radius in pixels at octave 0 (ORB-SLAM RGB-D: th 3 x 2.5 px).
+    # Landmarks projected with a pose already found (relocalisation, loop verification) are
+    # searched within this radius in pixels at octave 0 (ORB-SLAM RGB-D: th 3 x 2.5 px).
     local_map_radius_px: Annotated[float, above(0.0)] = 7.5
     # Also take a keyframe as ORB-SLAM's RGB-D tracking does (using the observation records):
     # inliers below a fraction of the reference keyframe's established landmarks, or too few
@@ -139,10 +123,8 @@ class TrackingConfig:
     keyframe_reference_ratio: Annotated[float, FRACTION] = 0.75
     # While the local mapper is busy (a local BA still in a worker), ORB-SLAM's reference
     # test makes a keyframe only when tracking is weak: inliers below this fraction of the
-    # reference (ORB-SLAM's c1c, 0.25). Without it a keyframe in a densely mapped place,
-    # whose reference counts what fusion added, was followed by a keyframe at nearly every
-    # frame: 5000 frames through a cloud made 159-309 keyframes, 94-221 by this test.
-    # In-line (one process) the mapper is never busy.
+    # reference (ORB-SLAM's c1c, 0.25); without it a densely mapped place made a keyframe at
+    # nearly every frame. In-line (one process) the mapper is never busy.
     keyframe_wait_for_mapper: bool = True
     keyframe_weak_ratio: Annotated[float, FRACTION] = 0.25
     # "Close" points: depth below this many virtual baselines (ORB-SLAM ThDepth, TUM: 40).
@@ -169,8 +151,7 @@ class TrackingConfig:
     local_mapping_workers: Annotated[int, at_least(1)] = 1
     # ... at this niceness (Linux nice, 0-19): when the cores are short, a robot's next
     # frame goes before a keyframe's local BA, whose requests then supersede each other
-    # (ORB-SLAM's local mapper aborting its BA for new keyframes). Measured (2 cores, 2
-    # workers, 8 robots at once): saturated 55 -> 104 fps with 10 instead of 0.
+    # (ORB-SLAM's local mapper aborting its BA for new keyframes).
     local_mapping_nice: Annotated[int, between(0, 19)] = 10
     # ... and how long a solve may take before it is dropped (the map stays as it was).
     local_ba_timeout_s: Annotated[float, above(0.0)] = 30.0
@@ -196,11 +177,8 @@ class TrackingConfig:
     fuse_max_hamming: Annotated[int, between(0, 256)] = 50
     # Cull redundant keyframes as ORB-SLAM does (KeyFrameCulling): at a keyframe, each of its
     # covisible keyframes whose close landmarks are nearly all seen by enough others at the
-    # same or a finer scale gives up its observations. A place revisited pass after pass
-    # then keeps about one pass's keyframes in local BA, fusion and checkpoints, instead of
-    # one more set per pass. The keyframe itself stays (its pose, its frames' references,
-    # its place-recognition entry, which loop and relocalisation queries skip); only its
-    # landmark observations go.
+    # same or a finer scale gives up its observations (its pose and place-recognition entry
+    # stay), so a place revisited pass after pass keeps about one pass's keyframes.
     cull_keyframes: bool = True
     # ... redundant: more than this fraction of its close landmarks (ORB-SLAM: 0.9) ...
     keyframe_redundant_fraction: Annotated[float, FRACTION] = 0.9
@@ -208,17 +186,14 @@ class TrackingConfig:
     keyframe_redundant_observers: Annotated[int, at_least(1)] = 3
 
 
-@dataclass
+@dataclass(frozen=True)
 class PlaceRecognitionConfig:
     """Keyframe database: binary nearest-neighbour voting over ORB descriptors, or a bag
     of words on a trained vocabulary."""
 
     # "nearest_neighbour": exact Hamming neighbours (faiss) with idf-weighted votes, no
-    # vocabulary; "bag_of_words": DBoW2-style L1 score on ``vocabulary``. Measured
-    # (bench/place_recognition.py, redkitchen frames): recall@1 0.63 / AP 0.45 against 0.28
-    # / 0.04 with a vocabulary trained on other images (0.70 / 0.50 only when trained on
-    # the sequence itself), but 178 ms a query against 13 ms at 250 entries: the exact
-    # index grows with the map, the vocabulary does not.
+    # vocabulary (better recall); "bag_of_words": DBoW2-style L1 score on ``vocabulary``
+    # (faster queries on large maps: the exact index grows with the map).
     method: Annotated[str, OneOf(("nearest_neighbour", "bag_of_words"))] = "nearest_neighbour"
     # A vocabulary file written by `fleetslam vocabulary` (bag_of_words only).
     vocabulary: Annotated[str, ANY_TEXT] = ""
@@ -237,7 +212,7 @@ class PlaceRecognitionConfig:
     min_score_ratio: Annotated[float, FRACTION] = 0.75
 
 
-@dataclass
+@dataclass(frozen=True)
 class LoopClosingConfig:
     """Loop detection (place recognition), geometric verification and correction."""
 
@@ -285,7 +260,7 @@ class LoopClosingConfig:
     query_in_worker: bool = True
 
 
-@dataclass
+@dataclass(frozen=True)
 class RelocalisationConfig:
     """Finding the pose against the robot's own keyframes after tracking is lost."""
 
@@ -295,7 +270,7 @@ class RelocalisationConfig:
     min_inliers: Annotated[int, at_least(4)] = 40
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapConfig:
     """Per-robot dense map from keyframes."""
 
@@ -305,7 +280,7 @@ class MapConfig:
     pixel_stride: Annotated[int, at_least(1)] = 2
 
 
-@dataclass
+@dataclass(frozen=True)
 class FsHicpConfig:
     """FS-HICP as the paper's section IV.B specifies it (our reading: shared/paper-notes.md
     section 2, outside this repository)."""
@@ -341,7 +316,7 @@ class FsHicpConfig:
     num_threads: Annotated[int, at_least(1)] = 2
 
 
-@dataclass
+@dataclass(frozen=True)
 class MergeConfig:
     """Joining robots into one global map: inter-robot place recognition, consistency, the
     global pose graph, FS-HICP refinement and the global outputs."""
@@ -352,8 +327,7 @@ class MergeConfig:
     # Each robot's keyframes as the merger searches them (nearest_neighbour place
     # recognition): "exact" (every stored descriptor, as the loop closer) or "approximate":
     # exact up to place_index_exact_up_to keyframes, then a graph index grown with each
-    # keyframe (backend/place_recognition.py). A new keyframe asks every other robot's map,
-    # so the exact search grows with robots x map; the graph's query stays about flat.
+    # keyframe (backend/place_recognition.py), whose query stays about flat as maps grow.
     place_index: Annotated[str, OneOf(("exact", "approximate"))] = "approximate"
     place_index_exact_up_to: Annotated[int, at_least(0)] = 100
     # The graph index: neighbours per node, and the breadth of each search.
@@ -363,10 +337,7 @@ class MergeConfig:
     # the search then takes neither the GIL nor a core from the robots tracking in the same
     # worker (merging/place_search.py); off: on the merger's thread. A search not answered
     # within search_timeout_s turns the search in-line for good. Nothing but the merger's
-    # own queue waits for it (status and merges do not: cloud/merge/merger_service.py). On since
-    # the search no longer depends on which robot came first (place_search.py: two-way
-    # check, catch-up, put-off searches): worth about 30 % of a 2-core cloud's saturated
-    # fps (issue 24).
+    # own queue waits for it (status and merges do not: cloud/merge/merger_service.py).
     search_process: bool = True
     search_nice: Annotated[int, between(0, 19)] = 10
     search_timeout_s: Annotated[float, above(0.0)] = 60.0
@@ -401,11 +372,6 @@ class MergeConfig:
     dense_max_rotation_deg: Annotated[float, above(0.0)] = 5.0
     dense_max_translation_m: Annotated[float, above(0.0)] = 0.15
     dense_sigma_translation_m: Annotated[float, above(0.0)] = 0.002
-    # The same refinement for each robot's consecutive keyframes in a joined group's graph
-    # (refined once, at the first merge that has their depth). Off: measured on the shared
-    # pairs, it fixes the tracker's rotation scale (rk-2 map-to-map 5.5 -> 0.5 deg) but
-    # raises the joint ATE (rk-2 2.75 -> 3.06, rk-3 2.73 -> 3.20, rpy-2 2.27 -> 2.70 cm).
-    dense_odometry: bool = False
     # FS-HICP refines each joined robot's dense map against the rest of its group.
     fshicp_refine: bool = True
     # The global OctoMap (.bt): leaf size, and how far rays from a keyframe are cast.
@@ -422,7 +388,32 @@ class MergeConfig:
     placement_resend_s: Annotated[float, above(0.0)] = 10.0
 
 
-@dataclass
+@dataclass(frozen=True)
+class GridConfig:
+    """The 2D occupancy grid every map also writes for nav2's map_server
+    (mapping/occupancy_grid.py): ``global_map.pgm`` / ``.yaml`` and each robot's."""
+
+    resolution_m: Annotated[float, above(0.0)] = 0.05
+    # Obstacles: map points this high above the floor (the robot's height band).
+    min_height_m: Annotated[float, at_least(0.0)] = 0.1
+    max_height_m: Annotated[float, above(0.0)] = 1.5
+    # Up in the map frame (the robot's first camera: x right, y down, z forward) where the
+    # map shows no floor; a level camera's up is 0 -1 0 (not all zero).
+    up: Annotated[tuple[float, float, float], FINITE] = (0.0, -1.0, 0.0)
+    # The floor: a plane among the lowest points, its normal within this of the cameras'
+    # up, at least this many points within floor_inlier_m of it.
+    floor_max_tilt_deg: Annotated[float, between(0.0, 90.0)] = 30.0
+    floor_inlier_m: Annotated[float, above(0.0)] = 0.03
+    floor_min_points: Annotated[int, at_least(3)] = 200
+    # A cell is occupied with this many map points in the band (one can be noise).
+    occupied_min_points: Annotated[int, at_least(1)] = 2
+    # Depth rays count as free space this far from their camera (the depth sensor's range).
+    max_range_m: Annotated[float, above(0.0)] = 4.0
+    # Unknown cells around what was seen.
+    margin_cells: Annotated[int, at_least(0)] = 5
+
+
+@dataclass(frozen=True)
 class PlannerConfig:
     """The offloading planner: the paper's energy model (eq. 10-16, 31; its Table "Parameter
     values" as defaults), the time model and the objective."""
@@ -465,30 +456,11 @@ class PlannerConfig:
     link_window_s: Annotated[float, above(0.0)] = 3.0
 
 
-@dataclass
-class SyntheticConfig:
-    """The built-in synthetic multi-robot scene."""
-
-    seed: Annotated[int, at_least(0)] = 1
-    n_robots: Annotated[int, at_least(1)] = 2
-    frames_per_robot: Annotated[int, at_least(1)] = 120
-    width: Annotated[int, at_least(1)] = 640
-    height: Annotated[int, at_least(1)] = 480
-    fx: Annotated[float, above(0.0)] = 525.0
-    fy: Annotated[float, above(0.0)] = 525.0
-    cx: Annotated[float, FINITE] = 319.5
-    cy: Annotated[float, FINITE] = 239.5
-    fps: Annotated[float, above(0.0)] = 30.0
-    room_size_m: Annotated[tuple[float, float, float], above(0.0)] = (6.0, 5.0, 2.8)
-    n_furniture: Annotated[int, at_least(0)] = 8
-    # Kinect-like depth noise: sigma(z) = a + b * (z - 0.4)^2 (Nguyen et al. 2012).
-    depth_noise_a: Annotated[float, at_least(0.0)] = 0.0012
-    depth_noise_b: Annotated[float, at_least(0.0)] = 0.0019
-    depth_dropout: Annotated[float, FRACTION] = 0.02
-    max_depth_m: Annotated[float, above(0.0)] = 5.0
+# Deployment settings: where frames come from, how robot and cloud talk, how the cloud's
+# workers share robots, what a run shows and writes.
 
 
-@dataclass
+@dataclass(frozen=True)
 class SourceConfig:
     """Where a robot's frames come from besides a sequence folder (datasets/): ROS bags,
     ROS 2 topics, live cameras."""
@@ -521,7 +493,42 @@ class SourceConfig:
     ros_waiting_messages: Annotated[int, at_least(1)] = 4
 
 
-@dataclass
+@dataclass(frozen=True)
+class SyntheticConfig:
+    """The built-in synthetic multi-robot scene."""
+
+    seed: Annotated[int, at_least(0)] = 1
+    n_robots: Annotated[int, at_least(1)] = 2
+    frames_per_robot: Annotated[int, at_least(1)] = 120
+    width: Annotated[int, at_least(1)] = 640
+    height: Annotated[int, at_least(1)] = 480
+    fx: Annotated[float, above(0.0)] = 525.0
+    fy: Annotated[float, above(0.0)] = 525.0
+    cx: Annotated[float, FINITE] = 319.5
+    cy: Annotated[float, FINITE] = 239.5
+    fps: Annotated[float, above(0.0)] = 30.0
+    room_size_m: Annotated[tuple[float, float, float], above(0.0)] = (6.0, 5.0, 2.8)
+    n_furniture: Annotated[int, at_least(0)] = 8
+    # Kinect-like depth noise: sigma(z) = a + b * (z - 0.4)^2 (Nguyen et al. 2012).
+    depth_noise_a: Annotated[float, at_least(0.0)] = 0.0012
+    depth_noise_b: Annotated[float, at_least(0.0)] = 0.0019
+    depth_dropout: Annotated[float, FRACTION] = 0.02
+    max_depth_m: Annotated[float, above(0.0)] = 5.0
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The camera on the robot, beyond what its images and calibration say."""
+
+    # The camera's mounting (REP 105): its optical frame (x right, y down, z forward) in
+    # the robot's base_link (x forward, z up) as x y z qx qy qz qw, the order of ROS's
+    # static_transform_publisher. Unset: not known. Given, the fleet's map frame is the
+    # anchor robot's base_link at its first frame (mapping/map_frame.py).
+    base_link: Annotated[tuple[float, float, float, float, float, float, float] | None,
+                         FINITE] = None
+
+
+@dataclass(frozen=True)
 class WireConfig:
     """The binary message between robot and cloud (wire/)."""
 
@@ -535,30 +542,24 @@ class WireConfig:
     # Keyframe uploads for the dense map: colour only feeds the map's point colours.
     keyframe_rgb_codec: Annotated[str, OneOf(IMAGE_CODECS)] = "jpeg"
     # Inter-frame coding (wire/inter.py): a robot codes each descriptor against the nearest
-    # one of frames the cloud acknowledged (points 2-5), lossless; 7-Scenes at point 3: 34
-    # -> ~19 kB a frame (bench/inter_coding.py). Off: every frame is coded alone.
+    # one of frames the cloud acknowledged (points 2-5), lossless, about 40 % fewer bytes.
+    # Off: every frame is coded alone.
     inter_frame: bool = True
-    # An intra frame (coded alone) at least every this many frames. Recovery does not need
-    # them (a frame whose reference the cloud lacks is refused, and intra frames follow),
-    # so they are rare: every 30 cost 2 % of a 1000-frame run's bytes (7-Scenes, point 3).
+    # An intra frame (coded alone) at least every this many frames: rare, as recovery does
+    # not need them (a frame whose reference the cloud lacks is refused, intra ones follow).
     intra_every: Annotated[int, at_least(1)] = 300
     # Acknowledged frames a message is coded against (the newest ones), at most 8.
     inter_references: Annotated[int, between(1, 8)] = 8
     # A descriptor's reference is searched among keypoints at most this many pyramid levels
-    # from its own (the same corner mostly lands on its own level). Against all levels of 4
-    # references, 8 at level 0 cost 2.4 ms of the robot's instead of 4.6 for 1 % fewer
-    # bytes on 7-Scenes, 1 % more on TUM fr1_rpy (1: 4.3 ms, 3 % / 1.5 % fewer). With a CPU
-    # hog beside robot and cloud, 0 gave 26.8-26.9 s for bench/offload's 1000 frames, 1
-    # gave 28.0-28.3; the robot's choice, nothing of it is sent.
+    # from its own (the same corner mostly lands on its own level; wider costs the robot
+    # time for about the same bytes). The robot's choice: nothing of it is sent.
     inter_octaves: Annotated[int, at_least(0)] = 0
-    # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames):
-    # a reference must still be there when a frame coded against it arrives, and a busy
-    # cloud's feedback comes tens of frames late (bench/offload.py: ~1.3 s median round
-    # trip at 10 Mbit/s on 2 cores). ~33 kB each.
+    # Decoded frames the cloud keeps per robot as references (0: it refuses inter frames),
+    # ~33 kB each: a busy cloud's feedback comes tens of frames late.
     reference_frames: Annotated[int, at_least(0)] = 64
 
 
-@dataclass
+@dataclass(frozen=True)
 class LinkConfig:
     """Emulated robot-to-cloud link on the robot's send path (0 = not limited)."""
 
@@ -569,7 +570,7 @@ class LinkConfig:
     seed: Annotated[int, at_least(0)] = 0
 
 
-@dataclass
+@dataclass(frozen=True)
 class TransportConfig:
     """Zenoh endpoints and the reliability of keyframe uploads and the robot's handshake."""
 
@@ -588,9 +589,7 @@ class TransportConfig:
     # A router (the lone cloud, `fleetslam router`) that has waited this long to hand a
     # message to one receiver whose queue is full (an unreachable worker or robot) drops
     # that receiver's link; it reconnects by itself. The wait holds one of the router's
-    # threads, and with a few such waits (a 2-core machine's router has 2) every robot's
-    # messages stop (measured: the whole fleet silent ~10 s after a worker's machine was cut
-    # off, with Zenoh's default of 5 s).
+    # threads, and a few such waits stop every robot's messages.
     router_block_s: Annotated[float, between(0.1, 60.0)] = 1.0
     # How long `fleetslam status` and `merge` wait for the cloud's first answer, reaching
     # its endpoint included (their --deadline), before saying what to check ...
@@ -607,14 +606,12 @@ class TransportConfig:
     max_queued_frames: Annotated[int, at_least(1)] = 256
     # Bytes a session may hold for its robot (frames waiting, undecoded and decoded, uploads
     # waiting, reference frames); beyond it frames and uploads are dropped unread and the
-    # robot told to slow down (cloud/session/memory_budget.py). A point-0 frame decodes to ~2.2 MB,
-    # so an honest robot's window of max_frames_in_flight = 12 holds ~26 MB, plus an upload
-    # or two (~0.6 MB each) and its references (64 x ~35 KB at point 3): 64 MB is twice that.
+    # robot told to slow down (cloud/session/memory_budget.py). Twice what an honest robot's
+    # window of frames in flight, uploads and references hold.
     session_budget_mb: Annotated[float, above(0.0)] = 64.0
     # Bytes all sessions may hold: each session reserves its budget, so the cloud opens at
-    # most cloud_budget_mb // session_budget_mb sessions (4 GB: 64 sessions, what a 2-core
-    # cloud of 8 GB holds beside its maps). A reservation, not a shared pool: one robot's
-    # flood can never take the room another robot's session needs.
+    # most cloud_budget_mb // session_budget_mb sessions. A reservation, not a shared pool:
+    # one robot's flood can never take the room another robot's session needs.
     cloud_budget_mb: Annotated[float, above(0.0)] = 4096.0
     # An unfinished session that hears nothing from its robot this long is checkpointed and
     # closed (its threads and memory freed); the robot's next message restores it.
@@ -639,16 +636,12 @@ class TransportConfig:
     max_keyframes: Annotated[int, at_least(1)] = 20_000
     # A session checkpoint larger than this (with all the chunks it names) is refused
     # unread, and no more than this is ever read of one (nothing in it is decompressed:
-    # cloud/session/store.py). A session's
-    # checkpoint grows by ~0.19 MB a keyframe (fr1_rpy, 150 frames: 37 keyframes, 7.1 MB),
-    # so a session at max_keyframes needs ~3.8 GB.
+    # cloud/session/store.py); room for a session at max_keyframes.
     max_checkpoint_bytes: Annotated[int, at_least(1 << 20)] = 4 << 30
     # A keyframe's checkpoint is captured at most this often per session: one asked sooner
     # waits, and the capture at the end of the interval covers every keyframe since (each
-    # still acknowledged and handed to the merger only once on disk). A checkpoint costs
-    # the worker's GIL ~20 ms at 150 frames (measured: a third of a worker's GIL time with
-    # 4 robots at 10 fps, a keyframe every ~0.4 s each); 0: one per keyframe. A crash loses
-    # no acknowledged keyframe either way (a robot sends a keyframe until acknowledged).
+    # still acknowledged and handed to the merger only once on disk), as each costs the
+    # worker's GIL; 0: one per keyframe. A crash loses no acknowledged keyframe either way.
     checkpoint_interval_s: Annotated[float, at_least(0.0)] = 1.0
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
@@ -656,18 +649,15 @@ class TransportConfig:
     # Frames a robot keeps (RGB-D) for keyframe uploads the cloud may still ask for.
     keyframe_buffer_frames: Annotated[int, at_least(1)] = 120
     # Frames a robot has sent without their feedback yet, at most (flow control, 0: no
-    # bound): a robot faster than its cloud session waits instead of filling the session's
-    # queue, whose overflow cuts gaps into the trajectory (bench/offload.py, point 3, inter
-    # coding, no bound: 27 frames dropped, a bad relocalisation, ATE 34 cm), and the round
-    # trip stays about this many cloud frame times (8: p95 0.46 s, 16: 0.9 s, 30: 1.1 s,
-    # unbounded: 4-11 s). 12 keeps 0.4 s of frames in flight at 30 fps: a WAN round trip.
+    # bound): a robot faster than its cloud session waits instead of overflowing the
+    # session's queue (gaps in the trajectory); 12 is 0.4 s at 30 fps, a WAN round trip.
     max_frames_in_flight: Annotated[int, at_least(0)] = 12
     # ... waiting at most this long per frame (a cloud that stopped answering must not
     # stop the robot: its hello and resends take over).
     in_flight_wait_s: Annotated[float, above(0.0)] = 5.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class PlacementConfig:
     """Cloud workers sharing robots (cloud/coordination/placement.py): how bids for a robot are
     settled, and the leases of their coordination service (cloud/coordination/ownership.py)."""
@@ -690,7 +680,7 @@ class PlacementConfig:
     active_s: Annotated[float, above(0.0)] = 2.0
     # What a robot counts until its cost is measured (cores): one granted within its worker's
     # measuring window (load_window_s), or at work on a worker that has not had robots at
-    # work for a while. 4 robots at 10 fps at point 3 kept 1.75 cores busy (worker_scaling).
+    # work for a while.
     robot_cost_cores: Annotated[float, above(0.0)] = 0.4
     # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides which
     # worker owns which robot and the merger, with fencing (cloud/coordination/fenced_placement.py)
@@ -712,15 +702,14 @@ class PlacementConfig:
     stall_s: Annotated[float, between(0.5, 600.0)] = 5.0
     # The Zenoh lease a worker announces to its router: the router drops the link of a
     # worker it has not heard from this long. Until then the router may wait on that link
-    # (a reliable message blocks behind a full queue), holding up every robot's messages
-    # (measured: the whole fleet silent ~10 s, Zenoh's default lease, after a worker's
-    # machine was cut off). Keep-alives go 4 times per lease.
+    # (a reliable message blocks behind a full queue), holding up every robot's messages.
+    # Keep-alives go 4 times per lease.
     zenoh_lease_s: Annotated[float, between(0.5, 600.0)] = 2.0
     # The etcd a run starts (cloud/coordination/coordination_service.py): healthy within this.
     coordination_start_s: Annotated[float, above(0.0)] = 10.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class ViewConfig:
     """The view in rerun: the cloud's live view (``cloud`` / ``demo`` with ``--view`` or
     ``--save``) and a finished run's (``fleetslam view``)."""
@@ -760,7 +749,7 @@ class ViewConfig:
     close_timeout_s: Annotated[float, at_least(0.0)] = 10.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class OutputsConfig:
     """Files every run writes besides its own (trajectories, maps, summary, report): one
     switch per extra output, the same for ``run``, ``demo`` and the cloud's ``merge``."""
@@ -771,49 +760,12 @@ class OutputsConfig:
     mcap: bool = True
 
 
-@dataclass
-class GridConfig:
-    """The 2D occupancy grid every map also writes for nav2's map_server
-    (mapping/occupancy_grid.py): ``global_map.pgm`` / ``.yaml`` and each robot's."""
-
-    resolution_m: Annotated[float, above(0.0)] = 0.05
-    # Obstacles: map points this high above the floor (the robot's height band).
-    min_height_m: Annotated[float, at_least(0.0)] = 0.1
-    max_height_m: Annotated[float, above(0.0)] = 1.5
-    # Up in the map frame (the robot's first camera: x right, y down, z forward) where the
-    # map shows no floor; a level camera's up is 0 -1 0 (not all zero).
-    up: Annotated[tuple[float, float, float], FINITE] = (0.0, -1.0, 0.0)
-    # The floor: a plane among the lowest points, its normal within this of the cameras'
-    # up, at least this many points within floor_inlier_m of it.
-    floor_max_tilt_deg: Annotated[float, between(0.0, 90.0)] = 30.0
-    floor_inlier_m: Annotated[float, above(0.0)] = 0.03
-    floor_min_points: Annotated[int, at_least(3)] = 200
-    # A cell is occupied with this many map points in the band (one can be noise).
-    occupied_min_points: Annotated[int, at_least(1)] = 2
-    # Depth rays count as free space this far from their camera (the depth sensor's range).
-    max_range_m: Annotated[float, above(0.0)] = 4.0
-    # Unknown cells around what was seen.
-    margin_cells: Annotated[int, at_least(0)] = 5
-
-
-@dataclass
-class CameraConfig:
-    """The camera on the robot, beyond what its images and calibration say."""
-
-    # The camera's mounting (REP 105): its optical frame (x right, y down, z forward) in
-    # the robot's base_link (x forward, z up) as x y z qx qy qz qw, the order of ROS's
-    # static_transform_publisher. Unset: not known. Given, the fleet's map frame is the
-    # anchor robot's base_link at its first frame (mapping/map_frame.py).
-    base_link: Annotated[tuple[float, float, float, float, float, float, float] | None,
-                         FINITE] = None
-
-
 # A Zenoh endpoint, or empty (off).
 OPTIONAL_ENDPOINT = Text(lambda s: endpoint_problem(s) if s else None,
                          "empty, or a Zenoh endpoint PROTOCOL/ADDRESS, e.g. tcp/HOST:PORT")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Ros2OutConfig:
     """Results as live ROS 2 topics, published as an rmw_zenoh node publishes (ros2_out/):
     a robot's pose, TF, path and status (``fleetslam robot --ros2-out``)."""
@@ -853,8 +805,14 @@ class Ros2OutConfig:
     hold_s: Annotated[float, at_least(0.0)] = 0.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class Config:
+    """Every setting, by section. The algorithm parameters come first (orb, tracking,
+    place_recognition, loop_closing, relocalisation, map, fshicp, merge, grid, planner:
+    what is computed from the frames), then the deployment settings (source, synthetic,
+    camera, wire, link, transport, placement, view, outputs, ros2_out: where frames come
+    from, how robot and cloud talk, what a run shows and writes); ``SECTION_GROUPS``."""
+
     orb: OrbConfig = field(default_factory=OrbConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
@@ -863,9 +821,11 @@ class Config:
     map: MapConfig = field(default_factory=MapConfig)
     fshicp: FsHicpConfig = field(default_factory=FsHicpConfig)
     merge: MergeConfig = field(default_factory=MergeConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
-    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
     source: SourceConfig = field(default_factory=SourceConfig)
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
     wire: WireConfig = field(default_factory=WireConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
@@ -873,28 +833,62 @@ class Config:
     view: ViewConfig = field(default_factory=ViewConfig)
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     ros2_out: Ros2OutConfig = field(default_factory=Ros2OutConfig)
-    grid: GridConfig = field(default_factory=GridConfig)
-    camera: CameraConfig = field(default_factory=CameraConfig)
+
+    def with_values(self, values: Mapping[str, Any], flag: str | None = None,
+                    where: str = "settings") -> Config:
+        """This config with ``values`` in place of its own (dotted keys:
+        ``{"link.bandwidth_mbps": 5.0}``), each checked as ``load_config`` checks a TOML
+        file's: ValueError naming ``where`` and the key, or ``flag`` when a command-line flag
+        gave the value. The config itself never changes (frozen once loaded)."""
+        return _updated(self, _tables(values), where, flag=flag)
 
 
-def _update(obj: Any, values: dict[str, Any], path: str, prefix: str = "") -> None:
-    """Set ``values`` (a TOML table) on the section ``obj``, each checked against its
-    field's type and rule; ValueError naming the file and the key."""
-    rules = rules_of(type(obj))
+# Config's sections, algorithm parameters apart from deployment settings (the order of
+# ``fleetslam config`` and docs/config.md).
+SECTION_GROUPS: dict[str, tuple[str, ...]] = {
+    "Algorithm parameters": ("orb", "tracking", "place_recognition", "loop_closing",
+                             "relocalisation", "map", "fshicp", "merge", "grid", "planner"),
+    "Deployment settings": ("source", "synthetic", "camera", "wire", "link", "transport",
+                            "placement", "view", "outputs", "ros2_out"),
+}
+
+
+def _updated(section: Any, values: Mapping[str, Any], where: str, prefix: str = "",
+             flag: str | None = None) -> Any:
+    """``section`` with ``values`` (a TOML table) in place of its own, each checked against
+    its field's type and rule; ValueError naming ``where`` and the key (or ``flag``, the
+    command-line flag that gave the value)."""
+    rules = rules_of(type(section))
+    changes: dict[str, Any] = {}
     for key, value in values.items():
         name = f"{prefix}{key}"
         if key not in rules:
-            raise ValueError(f"{path}: unknown setting '{name}' (known: {', '.join(rules)})")
-        current = getattr(obj, key)
+            raise ValueError(f"{where}: unknown setting '{name}' (known: {', '.join(rules)})")
+        current = getattr(section, key)
         if dataclasses.is_dataclass(current):
-            if not isinstance(value, dict):
-                raise ValueError(f"{path}: {name}: expected a table")
-            _update(current, value, path, f"{name}.")
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{where}: {name}: expected a table")
+            changes[key] = _updated(current, value, where, f"{name}.", flag)
             continue
         try:
-            setattr(obj, key, checked(value, *rules[key]))
+            changes[key] = checked(value, *rules[key])
         except ValueError as exc:
-            raise ValueError(f"{path}: {name} = {value!r}: {exc}") from None
+            blame = f"{flag} {value!r}" if flag else f"{where}: {name} = {value!r}"
+            raise ValueError(f"{blame}: {exc}") from None
+    return dataclasses.replace(section, **changes)
+
+
+def _tables(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Dotted keys (``{"link.bandwidth_mbps": 5.0}``) as the nested tables a TOML file
+    gives (``{"link": {"bandwidth_mbps": 5.0}}``)."""
+    tables: dict[str, Any] = {}
+    for dotted, value in values.items():
+        *path, key = dotted.split(".")
+        table = tables
+        for name in path:
+            table = table.setdefault(name, {})
+        table[key] = value
+    return tables
 
 
 def check_config(section: Any, where: str, prefix: str = "") -> None:
@@ -911,15 +905,6 @@ def check_config(section: Any, where: str, prefix: str = "") -> None:
             raise ValueError(f"{where}: {prefix}{key} = {value!r}: {exc}") from None
 
 
-def set_from_flag(section: Any, key: str, value: Any, flag: str) -> None:
-    """A setting a command-line flag gives, checked like the TOML file's; ValueError
-    naming the flag."""
-    try:
-        setattr(section, key, checked(value, *rules_of(type(section))[key]))
-    except ValueError as exc:
-        raise ValueError(f"{flag} {value!r}: {exc}") from None
-
-
 def load_config(path: str | Path | None = None) -> Config:
     """Defaults, overridden by the TOML file at ``path`` if given."""
     config = Config()
@@ -929,7 +914,7 @@ def load_config(path: str | Path | None = None) -> Config:
             values = tomllib.loads(path.read_text())
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise ValueError(f"{path}: cannot read config: {exc}") from exc
-        _update(config, values, str(path))
+        config = _updated(config, values, str(path))
     return config
 
 

@@ -4,18 +4,25 @@ reference page docs/config.md: every key with its value, the comment config.py g
 
 from __future__ import annotations
 
-import dataclasses
 import inspect
 import json
 import re
+import textwrap
 import types
 import typing
 from typing import Any
 
-from fleetslam.config import Config
+from fleetslam.config import SECTION_GROUPS, Config
 from fleetslam.validation.rules import Bound, OneOf, Rule, Text, rules_of
 
 REGENERATE = "fleetslam config --markdown > docs/config.md"
+# What each group of sections is, said once above them (config.py: SECTION_GROUPS).
+GROUP_TEXT = {
+    "Algorithm parameters": "What tracking, mapping, loop closing, merging and the planner "
+                            "compute from the frames.",
+    "Deployment settings": "Where frames come from, how robot and cloud talk, how the "
+                           "cloud's workers share robots, what a run shows and writes.",
+}
 _FIELD = re.compile(r"^    (\w+): ")
 
 
@@ -98,8 +105,12 @@ def config_toml(config: Config | None = None) -> str:
     config = config or Config()
     head = ("# fleetslam settings: every key, its default and what it may be. Keep the keys "
             "you change\n# and pass the file with --config FILE.\n")
-    return head + "".join(f"\n{section_toml(f.name, getattr(config, f.name))}"
-                          for f in dataclasses.fields(config))
+    parts = [head]
+    for group, names in SECTION_GROUPS.items():
+        parts.append(f"\n# ==== {group} ====\n"
+                     + "".join(f"# {line}\n" for line in textwrap.wrap(GROUP_TEXT[group], 86)))
+        parts += [f"\n{section_toml(name, getattr(config, name))}" for name in names]
+    return "".join(parts)
 
 
 def reference_markdown() -> str:
@@ -111,8 +122,10 @@ def reference_markdown() -> str:
              "Every setting has a default; a TOML file given with `--config FILE` (before "
              "or after the command) overrides the keys it names. A key that is unknown, of "
              "the wrong type or out of its range is an error naming the file and the key. "
-             "`fleetslam config` prints all of it as one file to start from.\n"]
-    for f in dataclasses.fields(config):
-        parts.append(f"## [{f.name}]\n\n```toml\n{section_toml(f.name, getattr(config, f.name))}"
-                     f"```\n")
+             "`fleetslam config` prints all of it as one file to start from. Why a default "
+             "is what it is, and the variants that lost: [decisions.md](decisions.md).\n"]
+    for group, names in SECTION_GROUPS.items():
+        parts.append(f"## {group}\n\n{GROUP_TEXT[group]}\n")
+        parts += [f"### [{name}]\n\n```toml\n{section_toml(name, getattr(config, name))}```\n"
+                  for name in names]
     return "\n".join(parts)

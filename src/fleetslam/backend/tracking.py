@@ -15,18 +15,12 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from fleetslam.backend.local_map import Keyframe
-from fleetslam.backend.matching import (
-    descriptor_match,
-    guided_match,
-    in_scale_range,
-    match_free_keypoints,
-)
+from fleetslam.backend.matching import descriptor_match, guided_match, in_scale_range
 from fleetslam.backend.pose_optimizer import optimize_pose, pnp_pose
 from fleetslam.backend.relocaliser import relocalise
 from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import FeatureFrame, MatchedFrame, PosedFrame, TrackedFrame
-from fleetslam.transforms import invert, rotation_angle_deg, rotation_angles_deg
+from fleetslam.transforms import rotation_angles_deg
 
 
 class Match:
@@ -137,35 +131,8 @@ class EstimatePose:
         T_wc, good = solved
         inliers[matched[good]] = True
         tracked = int(good.sum()) >= cfg.min_inliers
-        if tracked and cfg.track_local_map:
-            state, T_wc, inliers = track_local_map(session, state, T_wc, inliers)
-            tracked = int(inliers.sum()) >= cfg.min_inliers
         return PosedFrame(state, T_wc if tracked else state.T_world_camera_predicted, inliers,
                           tracked)
-
-
-def track_local_map(session: BackEndState, state: MatchedFrame, T_world_camera: np.ndarray,
-                    inliers: np.ndarray) -> tuple[MatchedFrame, np.ndarray, np.ndarray]:
-    """ORB-SLAM's TrackLocalMap: with the pose now known, project the live landmarks not yet
-    matched into the frame and search the keypoints left free within a few pixels, then
-    refine the pose on all matches. Returns (matched frame with the new associations, pose,
-    inlier mask)."""
-    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
-    f = state.features
-    ids = match_free_keypoints(session, f, T_world_camera,
-                               np.where(inliers, state.landmark_ids, -1),
-                               cfg.local_map_radius_px, cfg.max_hamming, cfg.match_ratio,
-                               scale_check=True)
-    matched = np.flatnonzero(ids >= 0)
-    xyz = np.full((len(ids), 3), np.nan)
-    xyz[matched] = lmap.xyz[ids[matched]]
-    scale = orb.scale_factor ** f.keypoints[matched, 5]
-    T_wc, good = optimize_pose(session.camera, T_world_camera, xyz[matched], f.uv[matched],
-                               f.depth[matched].astype(np.float64), scale,
-                               cfg.virtual_baseline_m)
-    out = np.zeros(len(ids), bool)
-    out[matched[good]] = True
-    return replace(state, landmark_ids=ids, landmark_xyz=xyz), T_wc, out
 
 
 # What the back-end does with a new keyframe (local mapping, then loop closing); returns
@@ -219,10 +186,8 @@ class DecideKeyframe:
             # left it.
             state = replace(state, T_world_camera=self.new_keyframe(state))
         reference, T_reference_camera = session.reference_pose(state.T_world_camera)
-        # The inlier test's reference waits for local mapping's (keyframe_inlier_reference).
-        settled = (session.config.tracking.keyframe_inlier_reference == "next"
-                   or not self.mapper.settling())
-        session.record(state, f, is_kf, settled)
+        # The inlier test's reference waits for local mapping's.
+        session.record(state, f, is_kf, not self.mapper.settling())
         # A keyframe carries the map's keyframe poses as they are now: a robot that tracks
         # itself sends them to the cloud's merger with the keyframe's features.
         return TrackedFrame(state, is_kf, reference, T_reference_camera,
@@ -233,7 +198,7 @@ def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool 
                     ) -> str | None:
     """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
     of the first frame after the newest keyframe, once its local BA landed: none before),
-    "motion" (far from the keyframes ``tracking.keyframe_motion_from`` names), "reference" /
+    "motion" (far from every keyframe still observing landmarks), "reference" /
     "close" (ORB-SLAM's tests), "reset" (lost too long; counted as a map reset)."""
     cfg = session.config.tracking
     if not session.map.keyframes:
@@ -246,11 +211,7 @@ def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool 
         reference = session.inliers_after_keyframe or n_in
         if n_in < cfg.keyframe_inlier_ratio * reference:
             return "inliers"
-        if cfg.keyframe_motion_from == "live":
-            if far_from_live_keyframes(session, state):
-                return "motion"
-        elif all(moved_from(kf, state, cfg.keyframe_translation_m, cfg.keyframe_rotation_deg)
-                 for kf in motion_references(session, state)):
+        if far_from_live_keyframes(session, state):
             return "motion"
         return orb_slam_keyframe_reason(session, state, mapper_busy) \
             if cfg.orb_slam_keyframe_policy else None
@@ -275,34 +236,6 @@ def far_from_live_keyframes(session: BackEndState, state: PosedFrame) -> bool:
         return True
     turned = rotation_angles_deg(np.transpose(poses[near, :3, :3], (0, 2, 1)) @ T[:3, :3])
     return not bool((turned <= cfg.keyframe_rotation_deg).any())
-
-
-def motion_references(session: BackEndState, state: PosedFrame) -> list[Keyframe]:
-    """The keyframes the keyframe test measures the camera's motion from: the newest, and
-    with ``tracking.keyframe_motion_from`` = "shared" also the one that last observed most
-    of the frame's inliers (ORB-SLAM's reference keyframe, the one sharing most landmarks
-    with the frame, read from each landmark's newest observer). A frame is far only when
-    far from all of them: back at a mapped place the camera is near that place's
-    keyframes, and a pass over it makes few new ones."""
-    lmap = session.map
-    newest = lmap.keyframes[-1]
-    if session.config.tracking.keyframe_motion_from == "shared":
-        ids = state.matched.landmark_ids[state.inliers]
-        ids = ids[ids >= 0]
-        if len(ids):
-            shared = lmap.keyframes[int(np.bincount(lmap.last_keyframe[ids]).argmax())]
-            if shared is not newest:
-                return [newest, shared]
-    return [newest]
-
-
-def moved_from(kf: Keyframe, state: PosedFrame, translation_m: float, rotation_deg: float
-               ) -> bool:
-    """Whether the camera moved more than ``translation_m`` or turned more than
-    ``rotation_deg`` from keyframe ``kf``."""
-    T_rel = invert(kf.T_world_camera) @ state.T_world_camera
-    return bool(np.linalg.norm(T_rel[:3, 3]) > translation_m
-                or rotation_angle_deg(T_rel[:3, :3]) > rotation_deg)
 
 
 def orb_slam_keyframe_reason(session: BackEndState, state: PosedFrame,

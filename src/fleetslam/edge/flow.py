@@ -25,7 +25,7 @@ class FlowWindow:
 
     def __init__(self, robot_id: str, config: Config, report: RobotReport) -> None:
         self.robot_id = robot_id
-        self.config = config  # read at every wait: the limits may change while it runs
+        self.config = config
         self.report = report
         self._sent_at: OrderedDict[int, float] = OrderedDict()  # seq -> when
         self._changed = threading.Condition()

@@ -85,11 +85,6 @@ def fuse(T_feature: np.ndarray, info_feature: np.ndarray, T_dense: np.ndarray,
     return fused.matrix(), info
 
 
-def odometry_information(cfg: MergeConfig) -> np.ndarray:
-    """The information of a robot's own keyframe-to-keyframe edge in the global graph."""
-    return information(cfg.odometry_sigma_rotation_deg, cfg.odometry_sigma_translation_m)
-
-
 @dataclass
 class DenseCloud:
     """A keyframe's depth cloud made ready for GICP once (downsampled, covariances, tree),
@@ -109,11 +104,10 @@ def prepare(points: np.ndarray, cfg: MergeConfig) -> DenseCloud:
 
 
 def refine(place: np.ndarray | DenseCloud, query: np.ndarray | DenseCloud,
-           T_place_query: np.ndarray, cfg: MergeConfig, prior: np.ndarray | None = None
-           ) -> DenseRefinement:
+           T_place_query: np.ndarray, cfg: MergeConfig) -> DenseRefinement:
     """Refine a constraint between two keyframes from their clouds, each in its own camera
-    frame (N x 3, or prepared). The feature estimate ``T_place_query`` starts GICP;
-    ``prior`` is its information (default: an inter-robot feature constraint's)."""
+    frame (N x 3, or prepared). The feature estimate ``T_place_query`` (an inter-robot
+    feature constraint, of that information) starts GICP."""
     start = time.perf_counter()
 
     def refused(reason: str, moved: tuple[float, float] = (0.0, 0.0), overlap: float = 0.0,
@@ -150,7 +144,7 @@ def refine(place: np.ndarray | DenseCloud, query: np.ndarray | DenseCloud,
     if not np.isfinite(H).all() or np.linalg.eigvalsh(0.5 * (H + H.T))[-1] <= 0:
         return refused("GICP's Hessian is degenerate", how_far, overlap, result.iterations)
     info_dense = _scaled_hessian(H, cfg.dense_sigma_translation_m)
-    T, info = fuse(T_place_query, feature_information(cfg) if prior is None else prior,
+    T, info = fuse(T_place_query, feature_information(cfg),
                    result.T_target_source, info_dense)
     return DenseRefinement(True, "", T, info, how_far[0], how_far[1], overlap,
                            result.iterations, time.perf_counter() - start,

@@ -29,8 +29,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
-from fleetslam.merging.dense_constraint import (DenseCloud, DenseRefinement, odometry_information,
-                                                prepare, refine)
+from fleetslam.merging.dense_constraint import DenseCloud, DenseRefinement, prepare, refine
 from fleetslam.merging.inter_robot import PlaceMatch
 from fleetslam.merging.place_search import PlaceSearch, Searched, Searcher, pair_key
 from fleetslam.wire.merger_keyframes import KeyframeSummary
@@ -103,7 +102,6 @@ class MapMerger:
         self.searched_late = 0
         self.graph_seconds: list[float] = []
         self.dense_seconds: list[float] = []
-        self.dense_odometry: dict[tuple[str, int], DenseRefinement] = {}
         # Global keyframe poses per robot from the last optimisation (None: stale).
         self._global: dict[str, np.ndarray] | None = None
 
@@ -308,22 +306,6 @@ class MapMerger:
                 log.info("dense refinement of %s frame %d ~ %s frame %d refused: %s",
                          m.query.robot, m.query.frame_index, m.place.robot,
                          m.place.frame_index, c.dense.reason)
-        if self.config.merge.dense_odometry:
-            for anchor, members in self.components().items():
-                if len(members) < 2:
-                    continue
-                for name in members:
-                    r = self.robots[name]
-                    for k in range(1, len(r.poses)):
-                        if (name, k) in self.dense_odometry:
-                            continue
-                        a, b = cloud(name, k - 1), cloud(name, k)
-                        if a is None or b is None:
-                            continue
-                        self.dense_odometry[(name, k)] = refine(
-                            a, b, invert(r.poses[k - 1]) @ r.poses[k], self.config.merge,
-                            odometry_information(self.config.merge))
-                        tried += 1
         if tried:
             self._global = None
         return tried
@@ -361,15 +343,9 @@ class MapMerger:
                 for k in range(len(T)):
                     values[_node(r, k)] = T[k]
                     if k:
-                        d = self.dense_odometry.get((r.name, k))
-                        if d is not None and d.accepted:
-                            edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
-                                                  d.T_place_query, "odometry",
-                                                  information=d.information))
-                        else:
-                            edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
-                                                  invert(r.poses[k - 1]) @ r.poses[k],
-                                                  "odometry", odometry))
+                        edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
+                                              invert(r.poses[k - 1]) @ r.poses[k],
+                                              "odometry", odometry))
             inter = (np.deg2rad(cfg.inter_sigma_rotation_deg), cfg.inter_sigma_translation_m)
             used = [c for c in self.constraints
                     if self.robots[c.match.query.robot].anchor == anchor]
