@@ -528,14 +528,14 @@ def test_a_resent_merge_request_merges_once_and_replies_carry_its_id(cloud):
 
     server, _ = cloud
     calls = []
-    real_merge = server.merge
+    real_merge = server.fleet_merge.merge
 
     def slow_merge():
         calls.append(time.monotonic())
         time.sleep(0.5)
         return real_merge()
 
-    server.merge = slow_merge
+    server.fleet_merge.merge = slow_merge
     client = CloudClient(server.endpoint, reach_deadline_s=10.0)
     try:
         # No robot has finished here: the merge's answer is that one-line refusal, and a
@@ -972,13 +972,13 @@ def test_a_merge_names_each_robot_it_leaves_out_unfinished(cloud, messages):
 def test_a_flood_of_status_requests_costs_one_build_per_interval(cloud):
     """Each request is answered with its own id; the answer is built at most every
     STATUS_EVERY_S (it was built for every request)."""
-    from fleetslam.cloud.server import STATUS_EVERY_S
+    from fleetslam.cloud.operator_requests import STATUS_EVERY_S
 
     server, _ = cloud
-    before = server.status_builds
+    before = server.operator.status_builds
     started = time.monotonic()
-    answers = [server._status(f"q{i}") for i in range(200)]
+    answers = [server.operator.status(f"q{i}") for i in range(200)]
     took = time.monotonic() - started
     assert [a["id"] for a in answers] == [f"q{i}" for i in range(200)]
     assert all(a["type"] == "status" and a["robots"] == answers[0]["robots"] for a in answers)
-    assert server.status_builds - before <= 1 + int(took / STATUS_EVERY_S)
+    assert server.operator.status_builds - before <= 1 + int(took / STATUS_EVERY_S)

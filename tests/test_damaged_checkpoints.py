@@ -272,8 +272,7 @@ def test_a_session_that_fails_to_start_from_its_checkpoint_starts_afresh(tmp_pat
     (tmp_path / "r0").mkdir()
     (tmp_path / "r0" / CHECKPOINT).write_bytes(_checkpoint())
     table = SessionTable(exact_config(), CloudStore(tmp_path), lambda key, data: None,
-                         NullView(), lambda summary, poses: None,
-                         lambda robot, camera, restored: None)
+                         NullView())
     started = RobotSession.start
 
     def start(self):

@@ -30,17 +30,29 @@ CFG = PlacementConfig(settle_s=0.1)
 
 
 class Worker:
-    """A FencedPlacement on its own Zenoh session, recording when it won and gave up."""
+    """A FencedPlacement on its own Zenoh session, recording when it won and gave up (its
+    meter and the worker it serves for)."""
 
     def __init__(self, router: str, etcd: str, name: str, keys: Keys, busy: float = 0.0,
                  cfg: PlacementConfig = CFG) -> None:
         self.z = open_connecting(router, 20.0)
         self.events: list[tuple[float, str, str]] = []
         self.lock = threading.Lock()
+        self.cores = busy
         ownership = Ownership(EtcdClient(etcd), name, cfg.lease_s, keys=keys)
-        self.placement = FencedPlacement(
-            self.z, name, cfg, lambda: busy, lambda r: self._note("won", r),
-            lambda r: self._note("gave up", r), lambda r: True, ownership).start()
+        self.placement = FencedPlacement(name, cfg, self, ownership).start(self.z, self)
+
+    def busy(self) -> float:
+        return self.cores
+
+    def take(self, robot: str) -> None:
+        self._note("won", robot)
+
+    def give_up(self, robot: str) -> None:
+        self._note("gave up", robot)
+
+    def worth_serving(self, robot: str) -> bool:
+        return True
 
     def _note(self, what: str, robot: str) -> None:
         with self.lock:
@@ -206,7 +218,8 @@ def test_robots_arriving_together_go_by_measured_load(etcd, request, busy):
     b = Worker(endpoint, etcd.endpoint, "wb", keys, 0.0, cfg)
     robots = [f"r{i}" for i in range(8)]
     try:
-        wait_for(lambda: all(o in w.placement.live_workers() and o in w.placement.loads.reports
+        wait_for(lambda: all(o in w.placement.live_workers()
+                             and o in w.placement.directory.loads.reports
                              for w, o in ((a, "wb"), (b, "wa"))), 10,
                  "the workers to hear each other's load")
         for robot in robots:

@@ -26,9 +26,25 @@ def test_a_report_is_checked_before_it_is_used():
             parse_report(data)
 
 
+class Counts:
+    """A meter, a placement's holdings and a session table's robots at work, as set."""
+
+    def __init__(self, busy: float = 0.0, held: int = 0, at_work: int = 0) -> None:
+        self.cores, self.robots_held, self.robots_at_work = busy, held, at_work
+
+    def busy(self) -> float:
+        return self.cores
+
+    def held(self) -> int:
+        return self.robots_held
+
+    def at_work(self) -> int:
+        return self.robots_at_work
+
+
 def test_robots_granted_since_a_report_weigh_the_configured_cost():
     cfg = PlacementConfig(robot_cost_cores=0.4)
-    loads = WorkerLoads(None, "w0", cfg, lambda: 0.0, lambda: 0)  # type: ignore[arg-type]
+    loads = WorkerLoads("w0", cfg, Counts(), Counts())
     loads.reports = {"w0": LoadReport(1.0, 2), "w1": LoadReport(0.2, 0)}
     assert loads.score("w0", 2) == pytest.approx(1.0)
     assert loads.score("w0", 4) == pytest.approx(1.8)  # two granted since it measured
@@ -48,13 +64,13 @@ def test_a_robot_counts_its_cost_until_held_through_a_whole_window(monkeypatch):
     import fleetslam.cloud.coordination.worker_load as worker_load
 
     cfg = PlacementConfig(load_window_s=5.0)
-    held = [0]
-    loads = WorkerLoads(None, "w0", cfg, lambda: 0.0, lambda: held[0])  # type: ignore[arg-type]
+    held = Counts()
+    loads = WorkerLoads("w0", cfg, Counts(), held)
     monkeypatch.setattr(worker_load, "put", lambda *a, **k: None)
     clock = [100.0]
     monkeypatch.setattr(worker_load.time, "monotonic", lambda: clock[0])
     loads.report()
-    held[0] = 2
+    held.robots_held = 2
     clock[0] += 0.5
     assert loads.report().owned == 0  # granted within the window: not measured yet
     assert loads.score("w0", 2) == pytest.approx(0.8)
@@ -64,17 +80,17 @@ def test_a_robot_counts_its_cost_until_held_through_a_whole_window(monkeypatch):
 
 
 def test_the_meter_sees_a_busy_process_and_robots_gone_quiet_at_once():
-    robots = [1]
-    meter = CpuMeter(os.getpid(), window_s=0.2, active=lambda: robots[0], robot_cost=0.4)
+    robots = Counts(at_work=1)
+    meter = CpuMeter(os.getpid(), window_s=0.2, robots=robots, robot_cost=0.4)
     assert meter.busy() >= 0.4  # a robot too new to be measured: its configured cost
     end = time.monotonic() + 1.0
     while time.monotonic() < end:
         sum(i * i for i in range(10_000))
     busy = meter.busy()
     assert busy > 0.2  # one core busy, less what a loaded machine takes of it
-    robots[0] = 0
+    robots.robots_at_work = 0
     assert meter.busy() < 0.05 * busy  # its robot went quiet: nothing left to weigh
-    robots[0] = 1
+    robots.robots_at_work = 1
     time.sleep(1.2)
     assert meter.busy() < 0.2  # idle for six windows
 

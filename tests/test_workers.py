@@ -18,7 +18,7 @@ from fleetslam.cloud.coordination.coordination_service import EtcdService, etcd_
 from fleetslam.cloud.coordination.etcd_gateway import EtcdClient
 from fleetslam.cloud.coordination.fenced_store import FencedStore
 from fleetslam.cloud.coordination.ownership import Ownership
-from fleetslam.cloud.coordination.placement import Placement, rank
+from fleetslam.cloud.coordination.placement import LivelinessPlacement, rank
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import PlacementConfig
 from fleetslam.datasets.tum import RgbdSequence
@@ -33,7 +33,8 @@ N_FRAMES = 60
 
 
 class Worker:
-    """A Placement on its own Zenoh session, recording what it won."""
+    """A LivelinessPlacement on its own Zenoh session, recording what it won (its meter and
+    the worker it serves for)."""
 
     def __init__(self, endpoint: str, name: str, load: int) -> None:
         self.z = open_connecting(endpoint, 20.0)
@@ -41,13 +42,22 @@ class Worker:
         self.won: list[str] = []
         self.event = threading.Event()
         self.closed = False
-        self.placement = Placement(self.z, name, PlacementConfig(settle_s=0.3), lambda: self.load,
-                                   self._won, lambda robot: None, lambda robot: True).start()
+        self.placement = LivelinessPlacement(name, PlacementConfig(settle_s=0.3), self).start(
+            self.z, self)
 
-    def _won(self, robot: str) -> None:
+    def busy(self) -> float:
+        return self.load
+
+    def take(self, robot: str) -> None:
         self.won.append(robot)
         self.load += 1
         self.event.set()
+
+    def give_up(self, robot: str) -> None:
+        pass
+
+    def worth_serving(self, robot: str) -> bool:
+        return True
 
     def close(self) -> None:
         if not self.closed:

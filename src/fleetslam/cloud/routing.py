@@ -1,8 +1,10 @@
 """Where each message a cloud worker hears goes. A robot's frames and keyframe uploads go
 to its session; its control messages too, or are kept while the workers bid for the robot
 (placement.py); a hello opens a session; the operator's requests go to the status and the
-merge. Zenoh calls back on several threads: nothing here works on a message, it checks the
-key and enqueues, and says why when it cannot (at most once a second per reason and key).
+merge (operator_requests.py). Zenoh calls back on several threads: nothing here works on a
+message, it checks the key and enqueues, and says why when it cannot (at most once a second
+per reason and key). The placement hands this worker its robots through the router
+(``take``, ``give_up``, ``worth_serving``: placement_protocol.Served).
 
 Alone, the cloud is the Zenoh router and hears every robot; as a worker it hears a robot's
 frames and uploads only while it serves that robot (``take``).
@@ -13,17 +15,16 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Callable
+from typing import Any
 
 import zenoh
 
-from fleetslam.cloud.coordination.placement import Placement
+from fleetslam.cloud.coordination.placement_protocol import Placement
 from fleetslam.cloud.merge.merge_role import MergeRole
+from fleetslam.cloud.operator_requests import OperatorRequests
 from fleetslam.cloud.session.inbox import REJECTION_REPLY_INTERVAL_S, Throttle
-from fleetslam.cloud.session.memory_budget import sessions_allowed
 from fleetslam.cloud.session.replies import Publish
 from fleetslam.cloud.session.sessions import SessionTable
-from fleetslam.config import Config
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import Hello
 
@@ -42,27 +43,25 @@ def _is_hello(data: bytes) -> bool:
 
 
 class Router:
-    def __init__(self, config: Config, sessions: SessionTable, merging: MergeRole,
-                 publish: Publish, placement: Callable[[], Placement | None],
-                 stopped: threading.Event, merge: Callable[[str | None], None],
-                 status: Callable[[str | None], dict[str, Any]]) -> None:
-        """``placement``: the worker's, once it has one (None: serve every robot);
-        ``merge`` and ``status``: the operator's two requests, by request id."""
-        self.config = config
+    def __init__(self, sessions: SessionTable, placement: Placement, merging: MergeRole,
+                 operator: OperatorRequests, publish: Publish,
+                 stopped: threading.Event) -> None:
+        """``operator``: answers the operator's requests; ``stopped``: the worker is
+        stopping (it takes no robot)."""
         self.sessions = sessions
+        self.placement = placement
         self.merging = merging
+        self.operator = operator
         self.publish = publish
-        self._placement = placement
         self.stopped = stopped
-        self._merge = merge
-        self._status = status
         self.unrouted = 0  # messages on keys that name no valid robot
         self._throttle = Throttle(REJECTION_REPLY_INTERVAL_S)
         self._zenoh: zenoh.Session | None = None
         self._every_robot = False
         self._subscribers: list[Any] = []
-        # Under the session table's lock, with the table: the subscribers of each robot this
-        # worker serves, and the control message of each robot nobody serves yet.
+        # Zenoh calls back on several threads. Under it: the subscribers of each robot this
+        # worker serves, the control message of each robot nobody serves yet, ``unrouted``.
+        self._lock = threading.Lock()
         self._robot_subscribers: dict[str, list[Any]] = {}
         self._pending: dict[str, tuple[bytes, float]] = {}
 
@@ -74,7 +73,7 @@ class Router:
         self._zenoh = z
         self._every_robot = every_robot
         self._subscribers = [
-            z.declare_subscriber(keys.ALL_CONTROL, lambda s: self.route(s, "control")),
+            z.declare_subscriber(keys.ALL_CONTROL, self._route_control),
             z.declare_subscriber(f"{keys.MERGE_KEYFRAMES}/*", self.remote_keyframe),
         ]
         if every_robot:
@@ -82,8 +81,8 @@ class Router:
             # pass through it): it serves its own and tells a robot nobody serves to say
             # hello. A worker behind a router hears only the robots it serves (take).
             self._subscribers += [
-                z.declare_subscriber(keys.ALL_FRAMES, lambda s: self.route(s, "frame")),
-                z.declare_subscriber(keys.ALL_KEYFRAMES, lambda s: self.route(s, "keyframe")),
+                z.declare_subscriber(keys.ALL_FRAMES, self._route_frame),
+                z.declare_subscriber(keys.ALL_KEYFRAMES, self._route_keyframe),
             ]
 
     def worth_serving(self, robot_id: str) -> bool:
@@ -96,17 +95,13 @@ class Router:
         if the store has one, and answer what it said meanwhile."""
         z = self._zenoh
         if z is None or self.stopped.is_set():
-            placement = self._placement()
-            if placement is not None:
-                placement.release(robot_id)  # stopping: another worker takes it
+            self.placement.release(robot_id)  # stopping: another worker takes it
             return
-        with self.sessions.lock:
+        with self._lock:
             if not self._every_robot and robot_id not in self._robot_subscribers:
                 self._robot_subscribers[robot_id] = [
-                    z.declare_subscriber(keys.frame(robot_id),
-                                         lambda s: self.route(s, "frame")),
-                    z.declare_subscriber(keys.keyframe(robot_id),
-                                         lambda s: self.route(s, "keyframe")),
+                    z.declare_subscriber(keys.frame(robot_id), self._route_frame),
+                    z.declare_subscriber(keys.keyframe(robot_id), self._route_keyframe),
                 ]
             pending = self._pending.pop(robot_id, None)
             existed = robot_id in self.sessions
@@ -124,7 +119,7 @@ class Router:
     def give_up(self, robot_id: str) -> None:
         """Another worker serves ``robot_id`` (a partition healed, or this worker was
         fenced): drop ours unsaved, silent at once."""
-        with self.sessions.lock:
+        with self._lock:  # against a take of the robot meanwhile (the table's lock inside)
             subs = self._robot_subscribers.pop(robot_id, [])
             session = self.sessions.remove(robot_id)
         for sub in subs:
@@ -145,6 +140,15 @@ class Router:
 
     # -- routing ------------------------------------------------------------------------
 
+    def _route_control(self, sample: zenoh.Sample) -> None:
+        self.route(sample, "control")
+
+    def _route_frame(self, sample: zenoh.Sample) -> None:
+        self.route(sample, "frame")
+
+    def _route_keyframe(self, sample: zenoh.Sample) -> None:
+        self.route(sample, "keyframe")
+
     def route(self, sample: zenoh.Sample, kind: str) -> None:
         arrival = time.monotonic()
         key = str(sample.key_expr)
@@ -155,12 +159,11 @@ class Router:
             robot_id = keys.check_robot_id(keys.robot_of(key))
             if kind == "control":
                 return self._on_control_of(robot_id, data, arrival)
-            placement = self._placement()
-            if placement is not None and not placement.serves(robot_id):
-                if placement.owner(robot_id) is not None:
+            if not self.placement.serves(robot_id):
+                if self.placement.owner(robot_id) is not None:
                     return  # another worker's robot (a router-worker hears every robot)
                 if self.worth_serving(robot_id):
-                    return placement.claim(robot_id)  # a restart: restore, then serve
+                    return self.placement.claim(robot_id)  # a restart: restore, then serve
             session = self.sessions.session(robot_id)
             if session is None:
                 self.error(keys.reply(robot_id), protocol.Code.NO_SESSION,
@@ -191,7 +194,7 @@ class Router:
                 log.warning("keyframe on %s rejected: %s", sample.key_expr, exc)
 
     def _count_unrouted(self) -> None:
-        with self.sessions.lock:  # Zenoh calls back on several threads
+        with self._lock:
             self.unrouted += 1
 
     def error(self, key: str, code: protocol.Code, reason: str, **extra: Any) -> None:
@@ -211,8 +214,8 @@ class Router:
     def _on_control_of(self, robot_id: str, data: bytes, arrival: float) -> None:
         """A robot's control message: handled if this worker serves the robot, ignored if
         another one does, else kept while the workers bid for the robot."""
-        placement = self._placement()
-        if placement is None or placement.serves(robot_id):
+        placement = self.placement
+        if placement.serves(robot_id):
             return self._on_robot_control(robot_id, data, arrival)
         waiting = placement.unavailable()
         if waiting is not None and _is_hello(data):
@@ -220,15 +223,15 @@ class Router:
             return self.error(keys.reply(robot_id), protocol.Code.REFUSED, waiting,
                               answer_to="hello", wait=True)
         if placement.owner(robot_id) is not None:
-            with self.sessions.lock:  # another worker's robot: nothing of it to keep here
+            with self._lock:  # another worker's robot: nothing of it to keep here
                 self._pending.pop(robot_id, None)
             return
-        with self.sessions.lock:
+        with self._lock:
             if robot_id not in self._pending and len(self._pending) >= PENDING_ROBOTS:
                 self.unrouted += 1
                 return
             self._pending[robot_id] = (data, arrival)
-            full = self.sessions.full()
+        full = self.sessions.full()
         if not full:  # a full worker does not bid; a robot nobody can take hears it below
             placement.claim(robot_id)
         elif len(placement.live_workers()) == 1:
@@ -262,7 +265,7 @@ class Router:
             if session is None:
                 return self.error(reply, protocol.Code.REFUSED, self.sessions.refusal(),
                                   answer_to="hello", full=True,
-                                  max_sessions=sessions_allowed(self.config.transport))
+                                  max_sessions=self.sessions.allowed())
             log.info("robot %s: new session, offloading at %d, source %s", robot_id,
                      hello.offload_at, hello.source)
             session.welcome(resumed=False)
@@ -280,9 +283,9 @@ class Router:
                               f"control message rejected: {exc}")
         rid = protocol.request_id(message)
         if message["type"] == "merge":
-            self._merge(rid)
+            self.operator.merge(rid)
         elif message["type"] == "status":
-            self.publish(keys.CLOUD_REPLY, protocol.encode(self._status(rid)))
+            self.publish(keys.CLOUD_REPLY, protocol.encode(self.operator.status(rid)))
         else:
             self.error(keys.CLOUD_REPLY, protocol.Code.UNKNOWN_TYPE,
                        f"unknown request {message['type']!r}", id=rid)

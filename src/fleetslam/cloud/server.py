@@ -9,16 +9,22 @@ the key and enqueue; each robot's work happens on its session's own threads. A w
 starts (a restart, a new worker) or sees a worker die bids for the robots nobody serves and
 restores the winner's sessions from their checkpoints in the store.
 
-The server composes its parts and runs their lifecycle:
+The server is the composition root: it builds its parts in dependency order, each given
+the objects it uses, and runs their lifecycle:
 
     sessions.py     SessionTable: the robots' sessions (open, restore, read from the store)
-    routing.py      Router: each message to its session, the status or the merge
-    placement.py    Placement: which worker serves which robot (Zenoh liveliness)
-    fenced_placement.py  FencedPlacement: the same, decided by etcd with fencing
+    worker_load.py  CpuMeter: this worker's load, as placement weighs it
+    placement_protocol.py  Placement: which worker serves which robot, one of
+      placement.py        LivelinessPlacement: decided by Zenoh liveliness bids
+      fenced_placement.py FencedPlacement: decided by etcd with fencing
                     (``placement.coordination``; its store is fenced_store.py)
-    idle_reaper.py  IdleReaper: checkpoint and close the sessions of quiet robots
-    merge_role.py   MergeRole: which worker merges; the keyframes its merger gets
+    merge_role.py   MergeRole: which worker merges; the keyframes its merger gets (the table
+                    hands them over: SessionTable.hand_to)
     fleet_merge.py  FleetMerge, MergeRequests: the merge a client asks for, once per request
+    operator_requests.py  OperatorRequests: the status and merge requests
+    routing.py      Router: each message to its session, the status or the merge; the
+                    robots the placement hands this worker (its Served)
+    idle_reaper.py  IdleReaper: checkpoint and close the sessions of quiet robots
 """
 
 from __future__ import annotations
@@ -28,7 +34,6 @@ import logging
 import os
 import socket
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -39,25 +44,23 @@ from fleetslam.cloud.coordination.etcd_gateway import EtcdClient, EtcdTls
 from fleetslam.cloud.coordination.fenced_placement import FencedPlacement, wait_for_etcd
 from fleetslam.cloud.coordination.fenced_store import FencedStore
 from fleetslam.cloud.coordination.ownership import Ownership
-from fleetslam.cloud.coordination.placement import Placement
+from fleetslam.cloud.coordination.placement import LivelinessPlacement
+from fleetslam.cloud.coordination.placement_protocol import Placement
 from fleetslam.cloud.coordination.worker_load import CpuMeter
 from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.cloud.merge.fleet_merge import FleetMerge, MergeRequests
 from fleetslam.cloud.merge.merge_role import MergeRole
+from fleetslam.cloud.operator_requests import OperatorRequests
 from fleetslam.cloud.routing import Router
 from fleetslam.cloud.session.idle_reaper import IdleReaper
-from fleetslam.cloud.session.memory_budget import MB
-from fleetslam.cloud.session.robot_session import OVER_BUDGET
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.transport import keys, protocol
+from fleetslam.transport import keys
 from fleetslam.transport.zenoh_session import open_connecting, open_listening, put
 from fleetslam.visualisation.live_view import NullView
 
 log = logging.getLogger("fleetslam.cloud")
-# A status answer is built at most this often; requests in between get the last one.
-STATUS_EVERY_S = 0.2
 
 
 def default_worker_id() -> str:
@@ -78,7 +81,10 @@ class CloudServer:
         self.connect = connect
         self.endpoint = connect or endpoint or config.transport.endpoint
         self.worker_id = keys.check_worker_id(config.placement.worker_id or default_worker_id())
-        self.placement: Placement | None = None
+        self.stopped = threading.Event()
+        self._zenoh: zenoh.Session | None = None
+        self._placing = False  # the placement started (it takes part on the Zenoh session)
+        self.local_mapping: LocalMappingPool | None = None
         # With a coordination service, etcd decides ownership and whose checkpoint is
         # current (fenced); without, the store is plain and liveliness decides.
         self.ownership: Ownership | None = None
@@ -92,33 +98,28 @@ class CloudServer:
                                                  config.transport.max_checkpoint_bytes)
         else:
             self.store = CloudStore(self.out_dir, config.transport.max_checkpoint_bytes)
-        self.stopped = threading.Event()
-        self._status_lock = threading.Lock()
-        self._status_cache: tuple[float, dict[str, Any]] | None = None
-        self.status_builds = 0
+        self.sessions = SessionTable(config, self.store, self.publish, self.view)
         # This worker's load as placement weighs it: the cores it keeps busy for the robots
         # at work, at its own priority (its niced local BA and place search yield).
-        self._cpu = CpuMeter(os.getpid(), config.placement.load_window_s, self._at_work,
-                             config.placement.robot_cost_cores)
-        self._zenoh: zenoh.Session | None = None
-        self.local_mapping: LocalMappingPool | None = None
-        # The table hands the merge role each new keyframe and robot; the role reads the table.
-        self.sessions = SessionTable(
-            config, self.store, self.publish, self.view,
-            keyframe_sink=lambda summary, poses: self.merging.keyframe_sink(summary, poses),
-            joined=lambda robot, camera, restored: self.merging.joined(robot, camera, restored))
+        cpu = CpuMeter(os.getpid(), config.placement.load_window_s, self.sessions,
+                       config.placement.robot_cost_cores)
+        self.placement: Placement = (
+            FencedPlacement(self.worker_id, config.placement, cpu, self.ownership)
+            if self.ownership is not None
+            else LivelinessPlacement(self.worker_id, config.placement, cpu))
         self.merging = MergeRole(config, self.view, self.worker_id, self.sessions,
-                                 self.publish_droppable, lambda: self.placement,
+                                 self.publish_droppable, self.placement,
                                  FleetFrames(config.merge, self.publish))
+        # The table hands the merge role each new keyframe and robot; the role reads the table.
+        self.sessions.hand_to(self.merging)
         self.merger = self.merging.merger
         self.fleet_merge = FleetMerge(config, self.out_dir, self.sessions, self.merger,
-                                      lambda: self.placement is None
-                                      or self.placement.merges())
-        # Through self.merge, whatever it is when a request comes (a test slows it down).
-        self.merge_requests = MergeRequests(lambda: self.merge(), self.publish)
-        self.router = Router(config, self.sessions, self.merging, self.publish,
-                             lambda: self.placement, self.stopped, self._merge_request,
-                             self._status)
+                                      self.placement)
+        self.operator = OperatorRequests(self.worker_id, self.sessions, self.placement,
+                                         self.merging,
+                                         MergeRequests(self.fleet_merge, self.publish))
+        self.router = Router(self.sessions, self.placement, self.merging, self.operator,
+                             self.publish, self.stopped)
         self._reaper = IdleReaper(self.sessions, config.transport, self.stopped)
 
     @property
@@ -149,15 +150,10 @@ class CloudServer:
         # Placement first: a hello heard before it existed was served at once, unowned, and
         # the robot's next frames were dropped while this worker then bid for it (seen in
         # test_processes when a robot's hello met a cloud starting).
-        callbacks = (self._cpu.busy, self.router.take, self.router.give_up,
-                     self.router.worth_serving)
         if self.ownership is not None:
             wait_for_etcd(self.ownership, self.config.placement.coordination_start_s)
-            self.placement = FencedPlacement(z, self.worker_id, self.config.placement,
-                                             *callbacks, self.ownership).start()
-        else:
-            self.placement = Placement(z, self.worker_id, self.config.placement,
-                                       *callbacks).start()
+        self.placement.start(z, self.router)
+        self._placing = True
         if isinstance(self.store, FencedStore) and (old := self.store.unfenced_checkpoints()):
             log.warning("the store %s holds checkpoints written without a coordination service "
                         "(robots %s): they are not read with one; run those robots' workers "
@@ -182,7 +178,7 @@ class CloudServer:
         self._reaper.join(30.0)
         for _, session in self.sessions.now():
             session.close(final_checkpoint=True)
-        if self.placement is not None:
+        if self._placing:
             self.placement.close()
         self.router.close_robots()
         self.merger.close()
@@ -208,13 +204,6 @@ class CloudServer:
 
     # -- placement (which worker serves which robot) ----------------------------------------
 
-    def _at_work(self) -> int:
-        """Robots this worker is working for: unfinished sessions heard from lately."""
-        now = time.monotonic()
-        active_s = self.config.placement.active_s
-        return sum(1 for _, s in self.sessions.now()
-                   if s.finished is None and now - s.last_heard < active_s)
-
     def _claim_orphans(self) -> None:
         """Bid for every robot of the store that nobody serves: a restarted (or a new)
         worker takes over the sessions a dead worker left, finished ones too (the merge
@@ -222,7 +211,7 @@ class CloudServer:
         if self.stopped.wait(self.config.placement.settle_s):
             return
         for robot_id in self.store.robots_with_checkpoints():
-            if self.placement is not None and self.placement.owner(robot_id) is None:
+            if self.placement.owner(robot_id) is None:
                 self.placement.claim(robot_id)
 
     # -- the operator's requests ------------------------------------------------------------
@@ -231,33 +220,3 @@ class CloudServer:
         """Write the global outputs of the finished robots (global trajectories, map, OctoMap)
         and summary.json; return the summary."""
         return self.fleet_merge.merge(timeout_s)
-
-    def _merge_request(self, rid: str | None) -> None:
-        if not self.merging.is_merger():
-            return  # one worker merges (merge_role.py)
-        self.merge_requests.request(rid)
-
-    def _status(self, rid: str | None) -> dict[str, Any]:
-        """The status answer; built at most every STATUS_EVERY_S (a flood of requests costs
-        one build per interval, each still answered with its own id)."""
-        now = time.monotonic()
-        with self._status_lock:
-            if self._status_cache is None or now - self._status_cache[0] >= STATUS_EVERY_S:
-                self._status_cache = (now, self._build_status())
-                self.status_builds += 1
-            return {**self._status_cache[1], "id": rid}
-
-    def _build_status(self) -> dict[str, Any]:
-        robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
-                      "worker": self.worker_id,
-                      # Its memory budget: held now, and what it dropped unread.
-                      "held_mb": round(s.budget.used / MB, 1),
-                      "held_peak_mb": round(s.budget.peak / MB, 1),
-                      "dropped_over_budget": sum(s.counts()[c] for c in OVER_BUDGET.values())}
-                  for r, s in self.sessions.now()}
-        placement = self.placement
-        return protocol.status(
-            None, robots, self.merger.status(), worker=self.worker_id,
-            workers=placement.live_workers() if placement else [self.worker_id],
-            placement=placement.table() if placement else {},
-            elections=dict(placement.elections) if placement else {})

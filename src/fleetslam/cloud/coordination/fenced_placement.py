@@ -18,23 +18,26 @@ with two owners:
   owner went (a takeover) is asked for at once.
 - Every worker watches the owner keys: a key gone (its worker's lease expired, a release)
   is a robot to take over if the store has its checkpoint, and the merger's key gone is a
-  merger to become. Zenoh liveliness still says which workers are up (the status), never
-  who owns.
+  merger to become. Zenoh liveliness still says which workers are up (the status; the
+  WorkerDirectory of worker_directory.py, as placement.py has one), never who owns.
 """
 
 from __future__ import annotations
 
 import logging
 import queue
+import threading
 import time
-from typing import Any, Callable
+from typing import Any
 
 import zenoh
 
 from fleetslam.cloud.coordination.coordination_service import CoordinationServiceError
 from fleetslam.cloud.coordination.etcd_gateway import EtcdError, Event, Watch
 from fleetslam.cloud.coordination.ownership import MERGER, Ownership
-from fleetslam.cloud.coordination.placement import Placement
+from fleetslam.cloud.coordination.placement_protocol import Placement, Served
+from fleetslam.cloud.coordination.worker_directory import WorkerDirectory
+from fleetslam.cloud.coordination.worker_load import LoadMeter
 from fleetslam.config import PlacementConfig
 from fleetslam.transport import keys, protocol
 
@@ -45,21 +48,31 @@ log = logging.getLogger("fleetslam.placement")
 # round trip; a worker starting up is heard before it is granted anything.
 UNHEARD_OWNER_LEASES = 2
 
+OUTCOMES = ("won", "lost", "failovers", "given_up", "fenced")
+
 
 class FencedPlacement(Placement):
-    def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
-                 load: Callable[[], float], won: Callable[[str], None],
-                 give_up: Callable[[str], None], wants: Callable[[str], bool],
+    def __init__(self, worker_id: str, cfg: PlacementConfig, meter: LoadMeter,
                  ownership: Ownership) -> None:
-        """As Placement's, and ``ownership``: this worker's lease and grants (not started:
-        ``start`` starts it)."""
-        super().__init__(z, worker_id, cfg, load, won, give_up, wants)
+        """``meter``: this worker's load now (cores busy, measured: worker_load.CpuMeter);
+        ``ownership``: this worker's lease and grants (not started: ``start`` starts it)."""
+        self.worker_id = keys.check_worker_id(worker_id)
+        self.cfg = cfg
+        self.directory = WorkerDirectory(self.worker_id, cfg, meter, self, OUTCOMES)
         self.ownership = ownership
         ownership.on_fenced = self._on_fenced
         ownership.on_lost = self._on_lost
+        self._z: zenoh.Session | None = None  # set by start
+        self._served: Served | None = None  # set by start
+        self._lock = threading.Lock()
         # robot -> (worker, epoch, mod revision) as etcd last said; the merger under MERGER.
         self._owners: dict[str, tuple[str, int, int]] = {}
-        self.elections = {"won": 0, "lost": 0, "failovers": 0, "given_up": 0, "fenced": 0}
+        self._electing: set[str] = set()
+        self._closed = threading.Event()
+        # Robots asked for, one election at a time (ranked in _run_elections).
+        self._bids: queue.Queue = queue.Queue()
+        self._elector = threading.Thread(target=self._run_elections, name="placement",
+                                         daemon=True)
         self._watch: Watch | None = None
         # Robots claimed because their owner went (a takeover): claimed at once, not after
         # the load's wait (failover time counts; a new robot's placement does not).
@@ -69,9 +82,10 @@ class FencedPlacement(Placement):
 
     # -- lifecycle ------------------------------------------------------------------------
 
-    def start(self) -> "FencedPlacement":
+    def start(self, z: zenoh.Session, served: Served) -> "FencedPlacement":
+        self._z, self._served = z, served
         self.ownership.start()
-        self.loads.start()
+        self.directory.start_loads(z)
         prefix = self.ownership.keys.owner("")
         client = self.ownership.client
         self._watch = Watch(client.endpoint, prefix, self._on_events, tls=client.tls,
@@ -80,7 +94,7 @@ class FencedPlacement(Placement):
             log.warning("the etcd watch of owners at %s is not open yet; retrying",
                         self.ownership.client.endpoint)
         self._reread(clear=False)
-        self._discover()
+        self.directory.announce(z)
         self._elector.start()
         self.claim(MERGER)
         return self
@@ -92,10 +106,24 @@ class FencedPlacement(Placement):
         self.ownership.close()
         if self._watch is not None:
             self._watch.close()
-        self.loads.close()
-        self._undiscover()
+        self.directory.close()
+
+    def _started(self) -> tuple[zenoh.Session, Served]:
+        if self._z is None or self._served is None:
+            raise RuntimeError("the placement is not started")
+        return self._z, self._served
 
     # -- what the worker asks ---------------------------------------------------------------
+
+    @property
+    def elections(self) -> dict[str, int]:
+        return self.directory.elections()
+
+    def live_workers(self) -> list[str]:
+        return self.directory.live_workers()
+
+    def load_scores(self, workers: list[str]) -> dict[str, float]:
+        return self.directory.load_scores(workers)
 
     def serves(self, robot: str) -> bool:
         # The local lease clock, not the table: a worker cut off stops serving on time.
@@ -125,7 +153,7 @@ class FencedPlacement(Placement):
         worker cut off from the robots. It serves nobody, so it counts as no owner and the
         robot's hello is claimed (``_elect`` deletes that grant first). Called with the lock."""
         worker, epoch, _ = held
-        if robot == MERGER or worker == self.worker_id or worker in self.workers:
+        if robot == MERGER or self.directory.hears(worker):
             self._unheard.pop(robot, None)
             return False
         now = time.monotonic()
@@ -176,6 +204,7 @@ class FencedPlacement(Placement):
             self._apply(event.kv.key.decode()[len(prefix):], event.deleted, event.kv)
 
     def _apply(self, robot: str, deleted: bool, kv: Any) -> None:
+        _, served = self._started()
         if not deleted and kv.lease == 0:
             # No grant is without a lease (ownership.py): not an owner; the next grant of
             # the robot removes the key.
@@ -196,17 +225,17 @@ class FencedPlacement(Placement):
             # process stood still past its own fence. The newer grant rules.
             log.error("robot %s: granted to %s epoch %d while this worker held epoch %d: "
                       "giving it up", robot, kv.value.decode(), kv.create_revision, mine)
-            self._count("given_up")
+            self.directory.count("given_up")
             self.release(robot)  # out of this worker's grants too: serves() says no from now
-            self._give_up(robot)
+            served.give_up(robot)
             return
         if not deleted or self._closed.is_set() or mine is not None:
             return
         if robot == MERGER:
             self.claim(MERGER)
-        elif self._wants(robot):
+        elif served.worth_serving(robot):
             log.info("robot %s lost its owner: claiming it", robot)
-            self._count("failovers")
+            self.directory.count("failovers")
             with self._lock:
                 self._takeovers.add(robot)
             self.claim(robot)
@@ -214,11 +243,12 @@ class FencedPlacement(Placement):
     def _on_fenced(self, robots: list[tuple[str, int]]) -> None:
         """The lease was not renewed in time: stop serving every robot at once (their
         sessions go unsaved: the store would refuse their writes anyway)."""
+        _, served = self._started()
         for robot, _epoch in robots:
             if robot == MERGER:
                 continue  # merges() says no from now on
-            self._count("fenced")
-            self._give_up(robot)
+            self.directory.count("fenced")
+            served.give_up(robot)
 
     def _on_lost(self, robot: str, epoch: int, why: str) -> None:
         """etcd no longer has this worker's grant (its key changed or went; this worker is
@@ -229,8 +259,9 @@ class FencedPlacement(Placement):
             return
         reason = (f"worker {self.worker_id} no longer serves robot {robot} (its grant, epoch "
                   f"{epoch}, is gone from the coordination service: {why}); say hello again")
+        z, _ = self._started()
         try:
-            self.z.put(keys.reply(robot), protocol.encode(protocol.Error.of(
+            z.put(keys.reply(robot), protocol.encode(protocol.Error.of(
                 protocol.Code.NO_SESSION, reason)))
         except zenoh.ZError as exc:  # the robot waits for answers, then says hello anyway
             log.warning("robot %s: not told it lost its worker (%s)", robot, exc)
@@ -272,7 +303,7 @@ class FencedPlacement(Placement):
             takeover = robot in self._takeovers
         if robot == MERGER or takeover:
             return True
-        order = self.loads.ranking(robot, self.load_scores(self.live_workers()))
+        order = self.directory.loads.ranking(robot, self.load_scores(self.live_workers()))
         return time.monotonic() - since >= self.cfg.settle_s * order.index(self.worker_id)
 
     def _done(self, robot: str) -> None:
@@ -282,6 +313,7 @@ class FencedPlacement(Placement):
 
     def _elect(self, robot: str) -> None:
         try:
+            _, served = self._started()
             for attempt in range(self.cfg.max_rounds):
                 with self._lock:
                     held = self._owners.get(robot)
@@ -299,14 +331,14 @@ class FencedPlacement(Placement):
                     self._closed.wait(self.cfg.settle_s)
                     continue
                 if epoch is None:
-                    self._count("lost")
+                    self.directory.count("lost")
                     return
                 if robot == MERGER:
                     log.info("worker %s merges (epoch %d)", self.worker_id, epoch)
                     return
-                self._count("won")
+                self.directory.count("won")
                 log.info("worker %s serves robot %s (epoch %d)", self.worker_id, robot, epoch)
-                self._won(robot)
+                served.take(robot)
                 return
         except Exception:
             log.exception("robot %s: claim failed", robot)

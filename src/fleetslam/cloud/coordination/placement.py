@@ -17,7 +17,8 @@ knows which one serves it. A robot's session lives on exactly one worker at a ti
   partition healing), the worker with the larger id gives the robot up.
 
 No state of its own is shared: every worker sees the same tokens, and the sessions'
-durable state lives in the shared store (``cloud/session/store.py``).
+durable state lives in the shared store (``cloud/session/store.py``). Which workers are up and
+their loads are the WorkerDirectory's (worker_directory.py), which fenced_placement.py shares.
 """
 
 from __future__ import annotations
@@ -26,16 +27,19 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
-from typing import Any, Callable
+from typing import Any
 
 import zenoh
 
-from fleetslam.cloud.coordination.worker_load import WorkerLoads, spread
+from fleetslam.cloud.coordination.placement_protocol import Placement, Served
+from fleetslam.cloud.coordination.worker_directory import WorkerDirectory
+from fleetslam.cloud.coordination.worker_load import LoadMeter, spread
 from fleetslam.config import PlacementConfig
 from fleetslam.transport import keys
 
 log = logging.getLogger("fleetslam.placement")
+
+OUTCOMES = ("won", "lost", "failovers", "given_up")
 
 
 def rank(load: float, robot_id: str, worker_id: str) -> str:
@@ -46,58 +50,36 @@ def rank(load: float, robot_id: str, worker_id: str) -> str:
     return f"{millicores:06d}.{spread(robot_id, worker_id)}.{worker_id}"
 
 
-class Placement:
-    def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
-                 load: Callable[[], float], won: Callable[[str], None],
-                 give_up: Callable[[str], None], wants: Callable[[str], bool]) -> None:
-        """``load``: this worker's load now (cores busy, measured: worker_load.CpuMeter);
-        ``won``: take the robot (called once per win, on an election thread); ``give_up``:
-        drop a robot another worker also serves; ``wants``: whether a robot whose owner
-        vanished is worth serving (it has a checkpoint in the store)."""
-        self.z = z
+class LivelinessPlacement(Placement):
+    def __init__(self, worker_id: str, cfg: PlacementConfig, meter: LoadMeter) -> None:
+        """``meter``: this worker's load now (cores busy, measured: worker_load.CpuMeter)."""
         self.worker_id = keys.check_worker_id(worker_id)
         self.cfg = cfg
-        self._won, self._give_up, self._wants = won, give_up, wants
-        # Every worker's measured load, this one's published (worker_load.py).
-        self.loads = WorkerLoads(z, self.worker_id, cfg, load, self.held)
+        self.directory = WorkerDirectory(self.worker_id, cfg, meter, self, OUTCOMES)
+        self._z: zenoh.Session | None = None  # set by start
+        self._served: Served | None = None  # set by start
         self._lock = threading.Lock()
         self.owners: dict[str, set[str]] = {}  # robot -> workers holding its owner token
-        self.workers: set[str] = set()
         self._mine: dict[str, Any] = {}  # robot -> this worker's owner token
         self._electing: set[str] = set()
-        self.elections = {"won": 0, "lost": 0, "failovers": 0, "given_up": 0}
-        self._counts_lock = threading.Lock()  # counted from the election, watch and lease threads
         self._closed = threading.Event()
         # One election at a time per worker: each bid's load counts the robots this worker
         # won just before, so robots arriving together tend to spread over the workers.
         self._bids: queue.Queue = queue.Queue()
         self._elector = threading.Thread(target=self._run_elections, name="placement",
                                          daemon=True)
-        self._token = None
-        self._subscribers: list[Any] = []
+        self._subscriber: Any = None
 
     # -- lifecycle ------------------------------------------------------------------------
 
-    def start(self) -> "Placement":
+    def start(self, z: zenoh.Session, served: Served) -> "LivelinessPlacement":
+        self._z, self._served = z, served
         self._elector.start()
-        self.loads.start()
-        self._discover()
-        self._subscribers.append(self.z.liveliness().declare_subscriber(
-            f"{keys.OWNERS}/**", self._on_owner, history=True))
+        self.directory.start_loads(z)
+        self.directory.announce(z)
+        self._subscriber = z.liveliness().declare_subscriber(
+            f"{keys.OWNERS}/**", self._on_owner, history=True)
         return self
-
-    def _discover(self) -> None:
-        """This worker's token, and the other workers' (which workers are up)."""
-        live = self.z.liveliness()
-        self._token = live.declare_token(keys.worker(self.worker_id))
-        self._subscribers.append(
-            live.declare_subscriber(f"{keys.WORKERS}/*", self._on_worker, history=True))
-
-    def _undiscover(self) -> None:
-        for sub in self._subscribers:
-            sub.undeclare()
-        if self._token is not None:
-            self._token.undeclare()
 
     def close(self) -> None:
         """Give every robot back (the other workers take them from their checkpoints)."""
@@ -107,14 +89,20 @@ class Placement:
             tokens, self._mine = list(self._mine.values()), {}
         for token in tokens:
             token.undeclare()
-        self.loads.close()
-        self._undiscover()
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+        self.directory.close()
 
-    def _count(self, what: str) -> None:
-        with self._counts_lock:
-            self.elections[what] = self.elections.get(what, 0) + 1
+    def _started(self) -> tuple[zenoh.Session, Served]:
+        if self._z is None or self._served is None:
+            raise RuntimeError("the placement is not started")
+        return self._z, self._served
 
     # -- what the worker asks ---------------------------------------------------------------
+
+    @property
+    def elections(self) -> dict[str, int]:
+        return self.directory.elections()
 
     def serves(self, robot: str) -> bool:
         with self._lock:
@@ -126,11 +114,7 @@ class Placement:
             return len(self._mine)
 
     def load_scores(self, workers: list[str]) -> dict[str, float]:
-        """Cores each of ``workers`` has busy as measured, plus the robots granted to it
-        since (as the owner table says, read once; this worker's own as it holds them)."""
-        owned = Counter(self.table().values())
-        owned[self.worker_id] = max(owned[self.worker_id], self.held())
-        return {w: self.loads.score(w, owned[w]) for w in workers}
+        return self.directory.load_scores(workers)
 
     def merges(self) -> bool:
         """Whether this worker runs the fleet's merger: the live worker whose id sorts first."""
@@ -152,8 +136,7 @@ class Placement:
         return None
 
     def live_workers(self) -> list[str]:
-        with self._lock:
-            return sorted(self.workers | {self.worker_id})
+        return self.directory.live_workers()
 
     def claim(self, robot: str) -> None:
         """Bid for ``robot`` unless it is served or a bid of ours is queued or running
@@ -166,15 +149,8 @@ class Placement:
 
     # -- liveliness events -------------------------------------------------------------------
 
-    def _on_worker(self, sample: zenoh.Sample) -> None:
-        (worker,) = keys.last_chunks(sample.key_expr, 1)
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self.workers.add(worker)
-            else:
-                self.workers.discard(worker)
-
     def _on_owner(self, sample: zenoh.Sample) -> None:
+        _, served = self._started()
         robot, worker = keys.last_chunks(sample.key_expr, 2)
         with self._lock:
             owners = self.owners.setdefault(robot, set())
@@ -188,11 +164,12 @@ class Placement:
         if conflict:
             log.warning("robot %s is also served by worker %s: giving it up", robot, worker)
             self.release(robot)
-            self._count("given_up")
-            self._give_up(robot)
-        elif orphaned and sample.kind == zenoh.SampleKind.DELETE and self._wants(robot):
+            self.directory.count("given_up")
+            served.give_up(robot)
+        elif orphaned and sample.kind == zenoh.SampleKind.DELETE \
+                and served.worth_serving(robot):
             log.info("robot %s lost its worker %s: bidding to serve it", robot, worker)
-            self._count("failovers")
+            self.directory.count("failovers")
             self.claim(robot)
 
     def release(self, robot: str) -> None:
@@ -205,7 +182,8 @@ class Placement:
 
     def _listed(self, key: str) -> list[str]:
         """The tokens under ``key`` now, asked of the routers (not the cached table)."""
-        replies = self.z.liveliness().get(key, timeout=self.cfg.query_timeout_s)
+        z, _ = self._started()
+        replies = z.liveliness().get(key, timeout=self.cfg.query_timeout_s)
         return [str(r.ok.key_expr) for r in replies if r.ok is not None]
 
     def _run_elections(self) -> None:
@@ -214,22 +192,23 @@ class Placement:
 
     def _elect(self, robot: str) -> None:
         try:
+            z, served = self._started()
             for attempt in range(self.cfg.max_rounds):
                 if self._closed.is_set() or self._listed(f"{keys.OWNERS}/{robot}/*"):
                     return
                 load = self.load_scores([self.worker_id])[self.worker_id]
                 bid = rank(load, robot, self.worker_id)
-                token = self.z.liveliness().declare_token(keys.claim(robot, bid))
+                token = z.liveliness().declare_token(keys.claim(robot, bid))
                 try:
                     time.sleep(self.cfg.settle_s)
                     bids = sorted({keys.last_chunks(k, 1)[0]
                                    for k in self._listed(f"{keys.CLAIMS}/{robot}/*")})
                     # Asked of the routers, and as this worker's subscription heard it: a
                     # winner's owner token may reach one before the other on a loaded host.
-                    served = self._listed(f"{keys.OWNERS}/{robot}/*") or self.owner(robot)
-                    if not served and bids and bids[0] == bid:
+                    taken = self._listed(f"{keys.OWNERS}/{robot}/*") or self.owner(robot)
+                    if not taken and bids and bids[0] == bid:
                         with self._lock:
-                            self._mine[robot] = self.z.liveliness().declare_token(
+                            self._mine[robot] = z.liveliness().declare_token(
                                 keys.owner(robot, self.worker_id))
                             owners = self.owners.setdefault(robot, set())
                             owners.add(self.worker_id)
@@ -240,16 +219,16 @@ class Placement:
                             log.warning("robot %s is also served by worker %s: not taking it",
                                         robot, earlier)
                             self.release(robot)
-                            self._count("given_up")
+                            self.directory.count("given_up")
                             return
-                        self._count("won")
+                        self.directory.count("won")
                         log.info("worker %s serves robot %s (bids: %s)", self.worker_id,
                                  robot, ", ".join(bids))
-                        self._won(robot)
+                        served.take(robot)
                         return
                 finally:
                     token.undeclare()  # after the owner token is up: never a gap
-                self._count("lost")
+                self.directory.count("lost")
                 # Another bid won: it must show its owner token soon. If it does not (its
                 # worker died mid-election), bid again.
                 deadline = time.monotonic() + self.cfg.settle_s * 4

@@ -24,7 +24,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Protocol
 
 import zenoh
 
@@ -39,6 +39,24 @@ TICK = os.sysconf("SC_CLK_TCK")
 EQUAL_CORES = 0.05
 # A report is at most this large (bytes); anything else on the key is ignored.
 MAX_REPORT_BYTES = 256
+
+
+class RobotsAtWork(Protocol):
+    """The robots a worker is working for now (its session table)."""
+
+    def at_work(self) -> int: ...
+
+
+class LoadMeter(Protocol):
+    """A worker's load now, in cores busy (CpuMeter)."""
+
+    def busy(self) -> float: ...
+
+
+class Holdings(Protocol):
+    """The robots a worker serves now (its placement)."""
+
+    def held(self) -> int: ...
 
 
 def tree_cpu_seconds(pid: int, unniced_only: bool = False) -> float:
@@ -72,7 +90,7 @@ class CpuMeter:
     """Cores a process tree keeps busy for its robots now, at its own priority (its niced
     background work yields to a new robot's tracking, so it does not count). It measures
     the cores used and
-    the robots at work (``active``), each smoothed over ``window_s`` (exponential averages
+    the robots at work (``robots``), each smoothed over ``window_s`` (exponential averages
     updated at each call), and weighs the robots at work now at the measured cost per
     robot: a robot gone quiet stops counting at once, not a window later (measured: a fleet
     that stopped together made its worker look busiest for the next robots, 4 + 1 and
@@ -81,9 +99,9 @@ class CpuMeter:
     nothing until its frames show in the average: two robots started a second apart both
     went to one worker)."""
 
-    def __init__(self, pid: int, window_s: float, active: Callable[[], int],
+    def __init__(self, pid: int, window_s: float, robots: RobotsAtWork,
                  robot_cost: float) -> None:
-        self.pid, self.window_s, self._active = pid, window_s, active
+        self.pid, self.window_s, self._robots = pid, window_s, robots
         self.robot_cost = robot_cost
         self._last = (time.monotonic(), tree_cpu_seconds(pid, unniced_only=True))
         self._busy = 0.0
@@ -93,7 +111,7 @@ class CpuMeter:
     def busy(self) -> float:
         with self._lock:
             now, cpu, active = (time.monotonic(), tree_cpu_seconds(self.pid, unniced_only=True),
-                                self._active())
+                                self._robots.at_work())
             dt = now - self._last[0]
             if dt > 0.05:
                 rate = max(cpu - self._last[1], 0.0) / dt
@@ -141,13 +159,14 @@ def spread(robot: str, worker: str) -> str:
 
 
 class WorkerLoads:
-    """This worker's reports (``measure``: its cores busy now; ``owned``: its robots) and
-    the other workers' as heard."""
+    """This worker's reports (``meter``: its cores busy now; ``holdings``: its robots) and
+    the other workers' as heard, once started on a Zenoh session."""
 
-    def __init__(self, z: zenoh.Session, worker_id: str, cfg: PlacementConfig,
-                 measure: Callable[[], float], owned: Callable[[], int]) -> None:
-        self.z, self.worker_id, self.cfg = z, worker_id, cfg
-        self._measure, self._owned = measure, owned
+    def __init__(self, worker_id: str, cfg: PlacementConfig, meter: LoadMeter,
+                 holdings: Holdings) -> None:
+        self.worker_id, self.cfg = worker_id, cfg
+        self._meter, self._holdings = meter, holdings
+        self.z: zenoh.Session | None = None
         self._lock = threading.Lock()
         self.reports: dict[str, LoadReport] = {}
         self._rejected: set[str] = set()  # workers whose bad report was logged
@@ -156,8 +175,9 @@ class WorkerLoads:
         self._thread = threading.Thread(target=self._run, name="worker-load", daemon=True)
         self._subscriber: Any = None
 
-    def start(self) -> "WorkerLoads":
-        self._subscriber = self.z.declare_subscriber(f"{keys.LOADS}/*", self._on_report)
+    def start(self, z: zenoh.Session) -> "WorkerLoads":
+        self.z = z
+        self._subscriber = z.declare_subscriber(f"{keys.LOADS}/*", self._on_report)
         self.report()
         self._thread.start()
         return self
@@ -171,16 +191,17 @@ class WorkerLoads:
         """Measure this worker now, keep it as its own report and publish it."""
         now = time.monotonic()
         with self._lock:
-            self._held.append((now, int(self._owned())))
+            self._held.append((now, int(self._holdings.held())))
             while self._held[0][0] < now - self.cfg.load_window_s:
                 self._held.popleft()
             measured = min(n for _, n in self._held)
-        mine = LoadReport(round(float(self._measure()), 3), measured)
+        mine = LoadReport(round(float(self._meter.busy()), 3), measured)
         with self._lock:
             self.reports[self.worker_id] = mine
-        # Droppable: the next report replaces it; never waited for behind a full queue.
-        put(self.z, keys.load(self.worker_id),
-            json.dumps({"busy": mine.busy, "owned": mine.owned}).encode(), droppable=True)
+        if self.z is not None:  # started
+            # Droppable: the next report replaces it; never waited for behind a full queue.
+            put(self.z, keys.load(self.worker_id),
+                json.dumps({"busy": mine.busy, "owned": mine.owned}).encode(), droppable=True)
         return mine
 
     def _run(self) -> None:

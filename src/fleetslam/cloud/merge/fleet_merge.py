@@ -10,8 +10,9 @@ import logging
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
+from fleetslam.cloud.coordination.placement_protocol import Placement
 from fleetslam.cloud.merge.merger_service import MergerService
 from fleetslam.cloud.session.replies import Publish
 from fleetslam.cloud.session.session_outputs import FinishedMap
@@ -36,9 +37,9 @@ class NothingToMerge(RuntimeError):
 
 
 class MergeRequests:
-    def __init__(self, merge: Callable[[], dict[str, Any]], publish: Publish) -> None:
-        """``merge``: merges and returns the summary (raises if it cannot)."""
-        self._merge = merge
+    def __init__(self, fleet_merge: FleetMerge, publish: Publish) -> None:
+        """``fleet_merge``: merges and returns the summary (raises if it cannot)."""
+        self.fleet_merge = fleet_merge
         self.publish = publish
         self._replies: dict[str, bytes] = {}
         self._lock = threading.Lock()
@@ -62,7 +63,7 @@ class MergeRequests:
 
     def _merge_and_reply(self, rid: str | None) -> None:
         try:
-            reply = protocol.encode(protocol.merged(rid, self._merge()))
+            reply = protocol.encode(protocol.merged(rid, self.fleet_merge.merge()))
         except NothingToMerge as exc:
             log.warning("merge asked for: %s", exc)
             reply = protocol.encode(protocol.Error.of(protocol.Code.FAILED, str(exc), id=rid))
@@ -78,18 +79,18 @@ class MergeRequests:
 
 class FleetMerge:
     def __init__(self, config: Config, out_dir: Path, sessions: SessionTable,
-                 merger: MergerService, merges: Callable[[], bool] = lambda: True) -> None:
-        """``merges``: whether this worker still holds the merger's role (with a
+                 merger: MergerService, placement: Placement) -> None:
+        """``placement``: whether this worker still holds the merger's role (with a
         coordination service, its fenced grant): asked before each output is written."""
         self.config = config
         self.out_dir = out_dir
         self.sessions = sessions
         self.merger = merger
-        self._merges = merges
+        self.placement = placement
 
     def _still_merger(self, what: str) -> None:
         # A worker fenced mid-merge stops before its next output: another worker merges now.
-        if not self._merges():
+        if not self.placement.merges():
             raise RuntimeError(f"this worker is no longer the fleet's merger (fenced): "
                                f"{what} not written; ask again")
 

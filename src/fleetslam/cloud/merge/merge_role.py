@@ -8,12 +8,11 @@ stopped) first takes every robot's keyframes from the store. A lone cloud is the
 from __future__ import annotations
 
 import logging
-from typing import Callable
 
 import numpy as np
 
 from fleetslam.camera import Camera
-from fleetslam.cloud.coordination.placement import Placement
+from fleetslam.cloud.coordination.placement_protocol import Placement
 from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.cloud.merge.merger_service import MergerService
 from fleetslam.cloud.session.robot_session import Publish, RobotSession
@@ -29,16 +28,17 @@ log = logging.getLogger("fleetslam.cloud")
 
 class MergeRole:
     def __init__(self, config: Config, view: NullView, worker_id: str, sessions: SessionTable,
-                 publish: Publish, placement: Callable[[], Placement | None],
+                 publish: Publish, placement: Placement,
                  frames: FleetFrames | None = None) -> None:
         """``publish``: to the merging worker (droppable: a gap is filled from the store);
-        ``placement``: the worker's placement once it has one (None: a lone cloud);
-        ``frames``: tells robots where the merger placed their maps."""
+        ``placement``: says whether this worker merges; ``frames``: tells robots where the
+        merger placed their maps. The table hands this role its robots and keyframes
+        (``joined``, ``keyframe_sink``: SessionTable.hand_to)."""
         self.worker_id = worker_id
         self.sessions = sessions
         self.store = sessions.store
         self.publish = publish
-        self._placement = placement
+        self.placement = placement
         self.merger = MergerService(config, view, self.keyframes_in_store, frames)
         self._merging = False  # this worker runs the fleet's merger (see is_merger)
 
@@ -47,8 +47,7 @@ class MergeRole:
         the holder of the merger's grant with a coordination service); a worker that
         becomes it (the last one died or stopped, or was fenced) first takes every other
         robot's keyframes from the store."""
-        placement = self._placement()
-        merging = placement is None or placement.merges()
+        merging = self.placement.merges()
         if merging and not self._merging:
             # Its own robots' keyframes went to the merger that was; all robots are taken
             # (its own from their sessions here). No lock: callers may hold it.
@@ -75,7 +74,7 @@ class MergeRole:
         merges."""
         if self.is_merger():
             self.merger.submit(summary, poses)
-        elif self._placement() is not None:
+        else:
             session = self.sessions.get(summary.robot)
             if session is not None:
                 self.publish(keys.merge_keyframe(summary.robot), encode_merger_keyframe(

@@ -1,7 +1,8 @@
 """The robot sessions one cloud worker serves, by robot id: opened on a robot's hello,
 restored from its checkpoint in the store (a restart, a takeover, a session closed while
 idle), or read from the store without serving it (another worker's robot, for the merge).
-Read it as a mapping; every change goes through its methods, under its lock.
+Read it as a mapping; every change goes through its methods, under its lock. It tells the
+merge hand-off (the merge role) of every session opened or restored and of each new keyframe.
 """
 
 from __future__ import annotations
@@ -10,11 +11,12 @@ import logging
 import threading
 import time
 from collections.abc import Iterator, Mapping
-from typing import Callable
+from typing import Protocol
+
+import numpy as np
 
 from fleetslam.backend.workers import LocalMappingPool
 from fleetslam.camera import Camera
-from fleetslam.cloud.session.checkpoint_writer import KeyframeSink
 from fleetslam.cloud.session.memory_budget import sessions_allowed
 from fleetslam.cloud.session.replies import Publish
 from fleetslam.cloud.session.robot_session import RobotSession
@@ -24,23 +26,40 @@ from fleetslam.config import Config
 from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
 from fleetslam.wire.data_tree import CheckpointError
+from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 log = logging.getLogger("fleetslam.cloud")
 
-# Told of every session opened or restored here: (robot, camera, the restored session or
-# None for a new one). The merge role: a restored session brings the keyframes it has.
-Joined = Callable[[str, Camera, "RobotSession | None"], None]
+
+class MergeHandoff(Protocol):
+    """Who the table hands each robot and keyframe to for the fleet's merge (merge_role.py)."""
+
+    def joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
+        """A session opened (``restored`` None) or restored here, with the keyframes it has."""
+
+    def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
+        """A session's new keyframe, once a checkpoint covers it."""
+
+
+class NoMerge:
+    """The hand-off of a table nobody merges from: robots and keyframes go nowhere."""
+
+    def joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
+        pass
+
+    def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
+        pass
 
 
 class SessionTable(Mapping[str, RobotSession]):
-    def __init__(self, config: Config, store: CloudStore, publish: Publish, view: NullView,
-                 keyframe_sink: KeyframeSink, joined: Joined) -> None:
+    def __init__(self, config: Config, store: CloudStore, publish: Publish,
+                 view: NullView) -> None:
         self.config = config
         self.store = store
         self.publish = publish
         self.view = view
-        self.keyframe_sink = keyframe_sink
-        self._joined = joined
+        # The merge role reads this table, so it comes after it: ``hand_to``.
+        self._merge: MergeHandoff = NoMerge()
         # The local-mapping workers sessions opened from now on use (None: in-line).
         self.local_mapping: LocalMappingPool | None = None
         self._live: dict[str, RobotSession] = {}
@@ -51,6 +70,10 @@ class SessionTable(Mapping[str, RobotSession]):
         # subscribers and pending messages, the idle reaper's final checkpoint) holds it
         # around them all (re-entrant: the table's methods take it again).
         self.lock = threading.RLock()
+
+    def hand_to(self, merge: MergeHandoff) -> None:
+        """Every session opened or restored from now on, and its keyframes, go to ``merge``."""
+        self._merge = merge
 
     # -- reading (a Zenoh callback, the merge or status may read while another changes it) --
 
@@ -72,10 +95,22 @@ class SessionTable(Mapping[str, RobotSession]):
         with self.lock:
             return self._live.get(robot_id)
 
+    def at_work(self) -> int:
+        """Robots this worker is working for: unfinished sessions heard from lately (the
+        load placement weighs: worker_load.CpuMeter)."""
+        now = time.monotonic()
+        active_s = self.config.placement.active_s
+        return sum(1 for _, s in self.now()
+                   if s.finished is None and now - s.last_heard < active_s)
+
+    def allowed(self) -> int:
+        """Sessions this worker holds at most (transport.max_sessions, or fewer: each
+        reserves transport.session_budget_mb of transport.cloud_budget_mb)."""
+        return sessions_allowed(self.config.transport)
+
     def full(self) -> bool:
-        """Whether a new session would pass transport.max_sessions, or its budget the cloud's
-        (each session reserves transport.session_budget_mb of transport.cloud_budget_mb)."""
-        return len(self._live) >= sessions_allowed(self.config.transport)
+        """Whether a new session would pass ``allowed``."""
+        return len(self._live) >= self.allowed()
 
     def refusal(self) -> str:
         """Why a hello is refused when the table is full."""
@@ -100,12 +135,12 @@ class SessionTable(Mapping[str, RobotSession]):
             session = self._live.get(robot_id)
             if session is None:
                 session = RobotSession.open(robot_id, hello, self.config, self.store,
-                                            self.publish, self.keyframe_sink, self.view,
+                                            self.publish, self._merge.keyframe_sink, self.view,
                                             self.local_mapping)
                 session.history_lost = self._lost.pop(robot_id, None)
             self._live[robot_id] = session
             self.view.robot(robot_id, hello.camera)
-            self._joined(robot_id, hello.camera, None)
+            self._merge.joined(robot_id, hello.camera, None)
             return session
 
     def _make_room(self, robot_id: str) -> bool:
@@ -138,7 +173,7 @@ class SessionTable(Mapping[str, RobotSession]):
                     return None
                 try:
                     session = RobotSession(state, self.config, self.store, self.publish,
-                                           self.keyframe_sink, self.view,
+                                           self._merge.keyframe_sink, self.view,
                                            self.local_mapping).start()
                 except Exception as exc:  # a state that passed the checks and still fails
                     log.exception("robot %s: restoring its session failed", robot_id)
@@ -150,7 +185,7 @@ class SessionTable(Mapping[str, RobotSession]):
                 self.view.robot(robot_id, state.hello.camera)
                 # The merger is rebuilt from the keyframes the session already has (none for
                 # a robot that tracks itself).
-                self._joined(robot_id, state.hello.camera, session)
+                self._merge.joined(robot_id, state.hello.camera, session)
                 log.info("robot %s: session restored from its checkpoint (frame %d)",
                          robot_id, state.last_index)
             return session
