@@ -55,8 +55,8 @@ class LocalMapper:
     """One robot's local mapping: keyframe insertion in-line, local BA in-line or in the
     cloud's workers (``workers``; None: always in-line)."""
 
-    def __init__(self, session: BackEndState, workers: SessionWorkers | None = None) -> None:
-        self.session = session
+    def __init__(self, backend: BackEndState, workers: SessionWorkers | None = None) -> None:
+        self.backend = backend
         self.workers = workers
         # "empty": a keyframe whose window had nothing to adjust (no solve asked).
         # "taken_back": solved here at a flush, the worker being late.
@@ -64,37 +64,37 @@ class LocalMapper:
                                        "stale": 0, "abandoned": 0, "failed": 0, "inline": 0,
                                        "empty": 0, "taken_back": 0}
         # The solve in flight and the newest keyframe whose solve waits for it.
-        self.jobs = LatestOnly("local BA", session.config.tracking.local_ba_timeout_s,
+        self.jobs = LatestOnly("local BA", backend.config.tracking.local_ba_timeout_s,
                                self.counts, overdue="abandoned",
-                               wait_s=session.config.tracking.worker_wait_s)
+                               wait_s=backend.config.tracking.worker_wait_s)
 
     def insert_keyframe(self, state: PosedFrame) -> InsertedKeyframe:
         """Add the frame as a keyframe: its inlier matches become observations (plus those
         fusion finds), its other keypoints with depth become landmarks; then cull recent
         landmarks and bundle-adjust the keyframe's neighbourhood (or ask a worker to)."""
-        session = self.session
-        cfg = session.config.tracking
-        lmap = session.map
+        backend = self.backend
+        cfg = backend.config.tracking
+        lmap = backend.map
         f = state.matched.features
         matched_ids = np.where(state.inliers, state.matched.landmark_ids, -1)
         if cfg.fuse_at_keyframe and lmap.keyframes and state.tracked:
-            matched_ids = fuse_search(session, f, state.T_world_camera, matched_ids)
-        kf = lmap.add_keyframe(session.camera, f, state.T_world_camera, matched_ids)
+            matched_ids = fuse_search(backend, f, state.T_world_camera, matched_ids)
+        kf = lmap.add_keyframe(backend.camera, f, state.T_world_camera, matched_ids)
         if cfg.cull_landmarks:
-            session.culled_landmarks += lmap.cull_recent(
+            backend.culled_landmarks += lmap.cull_recent(
                 kf.id, cfg.cull_min_found_ratio, cfg.cull_min_observation_weight,
                 cfg.cull_probation_keyframes)
         if cfg.cull_keyframes:
-            session.culled_keyframes += len(cull_keyframes(session, kf.id))
+            backend.culled_keyframes += len(cull_keyframes(backend, kf.id))
         correction = np.eye(4)
         if cfg.local_ba and kf.id > 0:
             if self.workers is not None:
                 self.request(kf.id)
             else:
-                problem = build_problem(session, kf.id)
+                problem = build_problem(backend, kf.id)
                 if problem is not None:
-                    correction = apply_solution(session, problem, solve_local_ba(problem))
-        update_reference(session)
+                    correction = apply_solution(backend, problem, solve_local_ba(problem))
+        update_reference(backend)
         return InsertedKeyframe(kf, correction)
 
     def busy(self) -> bool:
@@ -103,7 +103,7 @@ class LocalMapper:
 
     def settling(self) -> bool:
         """The newest keyframe's local BA is in a worker or waits for one (never in-line)."""
-        keyframes = self.session.map.keyframes
+        keyframes = self.backend.map.keyframes
         return bool(keyframes) and self.jobs.pending(keyframes[-1].id)
 
     # -- in the workers ------------------------------------------------------------------
@@ -133,7 +133,7 @@ class LocalMapper:
         self.jobs.settle(solve_local_ba, self.poll, timeout_s)
 
     def _submit(self, kf_id: int) -> None:
-        problem = build_problem(self.session, kf_id)
+        problem = build_problem(self.backend, kf_id)
         if problem is None:
             self.counts["empty"] += 1
             return
@@ -159,7 +159,7 @@ class LocalMapper:
             log.error("local BA of keyframe %d failed: %r", problem.kf_id, exc)
             self.counts["failed"] += 1
             return
-        if problem.epoch != self.session.map.epoch:
+        if problem.epoch != self.backend.map.epoch:
             self.counts["stale"] += 1
             return
         self.land(problem, solution)
@@ -169,80 +169,80 @@ class LocalMapper:
     def land(self, problem: LocalBAProblem, solution: LocalBASolution | None) -> None:
         """Write a solution into the map. The frames tracked since moved with the map: so
         does the motion model; and the keyframe test's reference is counted again."""
-        self.session.correct_motion(apply_solution(self.session, problem, solution))
-        update_reference(self.session)
+        self.backend.correct_motion(apply_solution(self.backend, problem, solution))
+        update_reference(self.backend)
 
     def summary(self) -> dict[str, Any]:
         return {**self.counts, "request_to_applied": duration_stats(self.jobs.lag_seconds)}
 
 
-def build_problem(session: BackEndState, kf_id: int) -> LocalBAProblem | None:
+def build_problem(backend: BackEndState, kf_id: int) -> LocalBAProblem | None:
     """The local BA problem around keyframe ``kf_id``, as the config asks."""
-    cfg = session.config.tracking
+    cfg = backend.config.tracking
     return local_ba_problem(
-        session.map, session.camera, kf_id, baseline_m=cfg.virtual_baseline_m,
-        scale_factor=session.config.orb.scale_factor, window_size=cfg.local_ba_window,
+        backend.map, backend.camera, kf_id, baseline_m=cfg.virtual_baseline_m,
+        scale_factor=backend.config.orb.scale_factor, window_size=cfg.local_ba_window,
         min_shared=cfg.covisibility_min_shared, iterations=tuple(cfg.local_ba_iterations))
 
 
-def apply_solution(session: BackEndState, problem: LocalBAProblem,
+def apply_solution(backend: BackEndState, problem: LocalBAProblem,
                    solution: LocalBASolution | None) -> np.ndarray:
     """Write a local BA solution into the session's map (None: the solve failed, nothing
     changes). Returns the world-frame correction of the problem's keyframe."""
     if solution is None:
         return np.eye(4)
-    result = apply_local_ba(session.map, problem, solution)
-    session.local_ba_seconds.append(result.seconds)
-    session.local_ba_outliers += result.n_outliers
+    result = apply_local_ba(backend.map, problem, solution)
+    backend.local_ba_seconds.append(result.seconds)
+    backend.local_ba_outliers += result.n_outliers
     return result.correction
 
 
-def cull_keyframes(session: BackEndState, kf_id: int) -> np.ndarray:
+def cull_keyframes(backend: BackEndState, kf_id: int) -> np.ndarray:
     """ORB-SLAM's KeyFrameCulling around new keyframe ``kf_id``: its covisible keyframes
     (never the first, never itself) that are redundant lose their observations. Returns
     their ids."""
-    cfg, lmap = session.config.tracking, session.map
+    cfg, lmap = backend.config.tracking, backend.map
     neighbours, _ = lmap.covisible(kf_id)
     neighbours = neighbours[neighbours > 0]
     culled = lmap.redundant_keyframes(
         neighbours, cfg.close_depth_baselines * cfg.virtual_baseline_m,
-        session.config.orb.n_levels, cfg.keyframe_redundant_observers,
+        backend.config.orb.n_levels, cfg.keyframe_redundant_observers,
         cfg.keyframe_redundant_fraction)
     if len(culled):
         lmap.drop_keyframe_observations(culled)
     return culled
 
 
-def update_reference(session: BackEndState) -> None:
+def update_reference(backend: BackEndState) -> None:
     """ORB-SLAM's reference for the keyframe test: the newest keyframe's landmarks with
     enough observations (3, or 2 while the map has at most two keyframes; with depth
     counts 2)."""
-    lmap = session.map
+    lmap = backend.map
     min_weight = 3 if len(lmap.keyframes) > 2 else 2
-    session.reference_tracked = lmap.tracked_by_keyframe(lmap.keyframes[-1].id, min_weight)
+    backend.reference_tracked = lmap.tracked_by_keyframe(lmap.keyframes[-1].id, min_weight)
 
 
-def fuse_search(session: BackEndState, f: FeatureFrame, T_world_camera: np.ndarray,
+def fuse_search(backend: BackEndState, f: FeatureFrame, T_world_camera: np.ndarray,
                 matched_ids: np.ndarray) -> np.ndarray:
     """At a keyframe, search the keypoints tracking left unmatched against the live landmarks
     projected from the keyframe's pose, within a few pixels (ORB-SLAM's Fuse): a match that
     is also consistent with the keypoint's depth becomes an observation of the old landmark
     instead of a duplicate landmark. Returns the updated ``matched_ids``."""
-    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    cfg, orb, lmap = backend.config.tracking, backend.config.orb, backend.map
     if not (matched_ids < 0).any():
         return matched_ids
-    ids = match_free_keypoints(session, f, T_world_camera, matched_ids, cfg.fuse_radius_px,
+    ids = match_free_keypoints(backend, f, T_world_camera, matched_ids, cfg.fuse_radius_px,
                                cfg.fuse_max_hamming, 1.0, scale_check=False)
     kp = np.flatnonzero((ids >= 0) & (matched_ids < 0))
     if not len(kp):
         return matched_ids
     lm = ids[kp]
     depth = f.depth[kp].astype(np.float64)
-    chi2, z = reprojection_chi2(session.camera, session.camera.fx * cfg.virtual_baseline_m,
+    chi2, z = reprojection_chi2(backend.camera, backend.camera.fx * cfg.virtual_baseline_m,
                                 np.broadcast_to(T_world_camera, (len(kp), 4, 4)), lmap.xyz[lm],
                                 f.uv[kp], depth, orb.scale_factor ** f.keypoints[kp, 5])
     ok = (chi2 <= np.where(depth > 0, CHI2_STEREO, CHI2_MONO)) & (z > 0)
     out = matched_ids.copy()
     out[kp[ok]] = lm[ok]
-    session.fused_observations += int(ok.sum())
+    backend.fused_observations += int(ok.sum())
     return out

@@ -44,9 +44,9 @@ class LoopCloser:
     """One robot's loop closing (see the module's docstring). ``settle_map`` runs before a
     correction moves the whole map: local BA in flight lands first."""
 
-    def __init__(self, session: BackEndState, settle_map: Callable[[], None],
+    def __init__(self, backend: BackEndState, settle_map: Callable[[], None],
                  workers: SessionWorkers | None = None) -> None:
-        self.session = session
+        self.backend = backend
         self.settle_map = settle_map
         self.workers = workers
         # "taken_back": queried here at a flush, the worker being late.
@@ -54,20 +54,20 @@ class LoopCloser:
                                        "stale": 0, "failed": 0, "taken_back": 0}
         # The database query in flight and the newest keyframe whose query waits for it
         # (with the database as it was then).
-        self.jobs = LatestOnly("loop query", session.config.tracking.local_ba_timeout_s,
+        self.jobs = LatestOnly("loop query", backend.config.tracking.local_ba_timeout_s,
                                self.counts, overdue="failed",
-                               wait_s=session.config.tracking.worker_wait_s)
+                               wait_s=backend.config.tracking.worker_wait_s)
 
     def close_loops(self, kf: Keyframe) -> np.ndarray | None:
         """Loop closing for the newest keyframe. Returns the world-frame correction applied
         to it when a loop was closed (the tracker moves its motion model with it), else
         None. With workers the database query goes to them instead, and its candidates are
         verified at the start of a later frame (``poll``)."""
-        session = self.session
-        cfg = session.config.loop_closing
+        backend = self.backend
+        cfg = backend.config.loop_closing
         candidates = None
         if cfg.enabled and kf.id >= cfg.min_keyframes:
-            allowed = allowed_candidates(session, kf)
+            allowed = allowed_candidates(backend, kf)
             asynchronous = (cfg.query_in_worker and self.workers is not None
                             and not self.workers.broken)
             if asynchronous and allowed.any():
@@ -75,9 +75,9 @@ class LoopCloser:
                 self.request(kf.id, allowed)
             else:
                 start = time.perf_counter()
-                candidates = session.places.query(kf.features.descriptors, allowed)
+                candidates = backend.places.query(kf.features.descriptors, allowed)
                 query_s = time.perf_counter() - start
-        session.places.add(kf.id, kf.features.descriptors)
+        backend.places.add(kf.id, kf.features.descriptors)
         if candidates is None:
             return None
         return self.on_candidates(kf.id, candidates, query_s)
@@ -88,15 +88,15 @@ class LoopCloser:
         first that passes), check consistency with the detections of the keyframes before
         it, and correct. ``query_s``: how long the database query took. Returns the
         world-frame correction of that keyframe when a loop was closed."""
-        session = self.session
-        cfg = session.config.loop_closing
-        state = session.loops
-        kf = session.map.keyframes[kf_id]
+        backend = self.backend
+        cfg = backend.config.loop_closing
+        state = backend.loops
+        kf = backend.map.keyframes[kf_id]
         detection = None
         start = time.perf_counter()
         for candidate in candidates:
             state.candidates_verified += 1
-            detection = verify(session, kf, candidate.key, candidate.score)
+            detection = verify(backend, kf, candidate.key, candidate.score)
             if detection is not None:
                 break
         state.queries += 1
@@ -116,7 +116,7 @@ class LoopCloser:
         start = time.perf_counter()
         self.settle_map()
         T_before = kf.T_world_camera.copy()
-        accepted = correct(session, agreeing + [detection])
+        accepted = correct(backend, agreeing + [detection])
         state.correction_seconds.append(time.perf_counter() - start)
         state.detections = []
         if not accepted:
@@ -129,7 +129,7 @@ class LoopCloser:
         """Place recognition for keyframe ``kf_id`` in a worker, against the database as it
         is now; the answer is verified at the frame it lands (``poll``)."""
         # The live database grows while the query waits.
-        frozen = snapshot(self.session.places)
+        frozen = snapshot(self.backend.places)
         if self.jobs.idle:
             self._submit(kf_id, frozen, allowed)
         else:
@@ -152,7 +152,7 @@ class LoopCloser:
             candidates, query_s = None, 0.0
         if candidates is None:
             self.counts["failed"] += 1
-        elif job.epoch != self.session.map.epoch:
+        elif job.epoch != self.backend.map.epoch:
             # A loop was corrected meanwhile: the candidates' place may be merged already.
             self.counts["stale"] += 1
         else:
@@ -160,7 +160,7 @@ class LoopCloser:
             self.jobs.landed(job)
             correction = self.on_candidates(job.request, candidates, query_s)
             if correction is not None:
-                self.session.correct_motion(correction)
+                self.backend.correct_motion(correction)
         if self.jobs.waiting is not None and not (self.workers is not None
                                                   and self.workers.broken):
             self._submit(*self.jobs.take_waiting())
@@ -172,14 +172,14 @@ class LoopCloser:
         self.jobs.settle(_query, self.poll, timeout_s)
 
     def _submit(self, kf_id: int, frozen: Any, allowed: np.ndarray) -> None:
-        query = (frozen, self.session.map.keyframes[kf_id].features.descriptors, allowed)
+        query = (frozen, self.backend.map.keyframes[kf_id].features.descriptors, allowed)
         future = self.jobs.here_if_late(_query, query)
         if future is None and self.workers is not None:
             future = self.workers.submit_query(*query)
         if future is None:
             self.counts["failed"] += 1
             return
-        self.jobs.started(future, kf_id, query, self.session.map.epoch)
+        self.jobs.started(future, kf_id, query, self.backend.map.epoch)
 
     def summary(self) -> dict[str, Any]:
         return {**self.counts,
@@ -190,27 +190,27 @@ def _query(query: tuple[Any, np.ndarray, np.ndarray]) -> tuple[list, float]:
     return query_places(*query)
 
 
-def allowed_candidates(session: BackEndState, kf: Keyframe) -> np.ndarray:
+def allowed_candidates(backend: BackEndState, kf: Keyframe) -> np.ndarray:
     """Keyframes a loop may close on: old enough, not culled, and not already tied to the
     query by shared landmarks (tracking handles those)."""
-    cfg = session.config.loop_closing
-    allowed = np.zeros(len(session.places), bool)
+    cfg = backend.config.loop_closing
+    allowed = np.zeros(len(backend.places), bool)
     allowed[: max(kf.id - cfg.min_keyframe_gap + 1, 0)] = True
-    allowed &= session.map.observing()[: len(allowed)]
-    ids, shared = session.map.covisible(kf.id)
-    near = ids[shared >= session.config.tracking.covisibility_min_shared]
+    allowed &= backend.map.observing()[: len(allowed)]
+    ids, shared = backend.map.covisible(kf.id)
+    near = ids[shared >= backend.config.tracking.covisibility_min_shared]
     allowed[near[near < len(allowed)]] = False
     return allowed
 
 
-def verify(session: BackEndState, kf: Keyframe, candidate: int, score: float
+def verify(backend: BackEndState, kf: Keyframe, candidate: int, score: float
            ) -> LoopDetection | None:
     """Geometric check of ``kf`` against the place around keyframe ``candidate``: depth-backed
     descriptor matches give a 3D-3D RANSAC pose; the place's landmarks projected from it are
     searched and the pose refined (reprojection with depth). None if either step has too few
     inliers."""
-    cfg, tcfg = session.config.loop_closing, session.config.tracking
-    orb, lmap, cam = session.config.orb, session.map, session.camera
+    cfg, tcfg = backend.config.loop_closing, backend.config.tracking
+    orb, lmap, cam = backend.config.orb, backend.map, backend.camera
     f = kf.features
     pool = lmap.place_landmarks(candidate, cfg.candidate_neighbours)
     # Landmarks the query already observes are not evidence of a loop.
@@ -259,32 +259,32 @@ def verify(session: BackEndState, kf: Keyframe, candidate: int, score: float
                          rigid.n_inliers, int(good.sum()), (place_lm[same], query_lm[same]))
 
 
-def map_edges(session: BackEndState) -> list[PoseEdge]:
+def map_edges(backend: BackEndState) -> list[PoseEdge]:
     """The map's own edges: consecutive keyframes (odometry) and keyframes sharing many
     landmarks (covisibility), each measured by the current poses."""
-    lmap = session.map
+    lmap = backend.map
     T = lmap.keyframe_poses()
     edges = [PoseEdge(i - 1, i, invert(T[i - 1]) @ T[i], "odometry")
              for i in range(1, len(T))]
     counts = lmap.covisibility_counts()
-    a, b = np.nonzero(np.triu(counts >= session.config.loop_closing.pose_graph_min_shared, 2))
+    a, b = np.nonzero(np.triu(counts >= backend.config.loop_closing.pose_graph_min_shared, 2))
     edges += [PoseEdge(int(i), int(j), invert(T[i]) @ T[j], "covisibility")
               for i, j in zip(a, b)]
     return edges
 
 
-def correct(session: BackEndState, detections: list[LoopDetection]) -> bool:
+def correct(backend: BackEndState, detections: list[LoopDetection]) -> bool:
     """Optimise the pose graph with the detections' loop edges; if the graph keeps them,
     move keyframes and landmarks, merge the landmarks seen again and (optionally) run a
     global bundle adjustment. Returns whether the loop was accepted."""
-    cfg = session.config.loop_closing
-    lmap, state = session.map, session.loops
+    cfg = backend.config.loop_closing
+    lmap, state = backend.map, backend.loops
     T_old = lmap.keyframe_poses()
     new_edges = [PoseEdge(d.candidate, d.query,
                           invert(T_old[d.candidate]) @ d.T_world_query, "loop")
                  for d in detections]
     result = optimise_pose_graph(
-        {k: T_old[k] for k in range(len(T_old))}, map_edges(session) + state.edges + new_edges,
+        {k: T_old[k] for k in range(len(T_old))}, map_edges(backend) + state.edges + new_edges,
         fixed=0, sigma_rotation_rad=np.deg2rad(cfg.edge_sigma_rotation_deg),
         sigma_translation_m=cfg.edge_sigma_translation_m)
     kept = result.loop_inliers[len(state.edges):]
@@ -319,10 +319,10 @@ def correct(session: BackEndState, detections: list[LoopDetection]) -> bool:
             state.edges.append(edge)
     ba_seconds = None
     if cfg.global_ba:
-        tcfg = session.config.tracking
+        tcfg = backend.config.tracking
         ba = local_bundle_adjustment(
-            lmap, session.camera, newest.query, baseline_m=tcfg.virtual_baseline_m,
-            scale_factor=session.config.orb.scale_factor,
+            lmap, backend.camera, newest.query, baseline_m=tcfg.virtual_baseline_m,
+            scale_factor=backend.config.orb.scale_factor,
             iterations=tuple(cfg.global_ba_iterations),
             window=np.arange(len(lmap.keyframes)))
         ba_seconds = ba.seconds

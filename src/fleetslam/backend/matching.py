@@ -169,32 +169,32 @@ def guided_match(state: FeatureFrame, descriptors: np.ndarray, candidates: np.nd
     return ids
 
 
-def in_scale_range(session: BackEndState, ids: np.ndarray, P: np.ndarray) -> np.ndarray:
+def in_scale_range(backend: BackEndState, ids: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Landmarks ``ids`` at camera-frame points ``P`` whose distance lies within their
     scale-invariance range, ORB-SLAM's [0.8 d_min, 1.2 d_max] with d_max = d * s^octave,
     d_min = d_max / s^(levels - 1) (d, octave: of the landmark's reference view)."""
-    orb, lmap = session.config.orb, session.map
+    orb, lmap = backend.config.orb, backend.map
     dist = np.linalg.norm(P, axis=1)
     d_max = lmap.distance[ids] * orb.scale_factor ** lmap.octave[ids]
     d_min = d_max / orb.scale_factor ** (orb.n_levels - 1)
     return (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
 
 
-def match_free_keypoints(session: BackEndState, f: FeatureFrame, T_world_camera: np.ndarray,
+def match_free_keypoints(backend: BackEndState, f: FeatureFrame, T_world_camera: np.ndarray,
                          matched_ids: np.ndarray, radius_px: float, max_hamming: int,
                          ratio: float, scale_check: bool) -> np.ndarray:
     """``matched_ids`` plus matches of its free keypoints (-1) to the live landmarks not yet
     matched, projected from ``T_world_camera`` and searched within ``radius_px``;
     ``scale_check`` also requires each landmark's scale-invariance distance range."""
-    cfg, orb, lmap = session.config.tracking, session.config.orb, session.map
+    cfg, orb, lmap = backend.config.tracking, backend.config.orb, backend.map
     free_kp = np.flatnonzero(matched_ids < 0)
-    cand, proj, P = lmap.in_view(session.camera, T_world_camera, cfg.min_depth_m,
-                                 cfg.max_depth_m, ids=session.tracking_landmarks())
+    cand, proj, P = lmap.in_view(backend.camera, T_world_camera, cfg.min_depth_m,
+                                 cfg.max_depth_m, ids=backend.tracking_landmarks())
     unmatched = np.ones(lmap.n_landmarks, bool)
     unmatched[matched_ids[matched_ids >= 0]] = False
     keep = unmatched[cand]
     if scale_check:
-        keep[keep] = in_scale_range(session, cand[keep], P[keep])
+        keep[keep] = in_scale_range(backend, cand[keep], P[keep])
     cand, proj, P = cand[keep], proj[keep], P[keep]
     ids = matched_ids.copy()
     if len(free_kp) and len(cand):

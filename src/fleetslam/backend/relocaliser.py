@@ -16,25 +16,25 @@ from fleetslam.backend.state import BackEndState
 from fleetslam.pipeline.states import FeatureFrame
 
 
-def relocalise(session: BackEndState, f: FeatureFrame
+def relocalise(backend: BackEndState, f: FeatureFrame
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(T_world_camera, landmark id per keypoint, inlier mask), or None if no candidate
     keyframe gives enough inliers."""
-    cfg = session.config.relocalisation
-    tcfg, orb, lmap = session.config.tracking, session.config.orb, session.map
-    if not len(session.places) or not len(f.keypoints):
+    cfg = backend.config.relocalisation
+    tcfg, orb, lmap = backend.config.tracking, backend.config.orb, backend.map
+    if not len(backend.places) or not len(f.keypoints):
         return None
     scale = orb.scale_factor ** f.keypoints[:, 5]
     depth = f.depth.astype(np.float64)
     # Culled keyframes observe nothing: no candidates.
-    allowed = lmap.observing()[: len(session.places)]
-    for candidate in session.places.query(f.descriptors, allowed, top_k=cfg.candidates):
+    allowed = lmap.observing()[: len(backend.places)]
+    for candidate in backend.places.query(f.descriptors, allowed, top_k=cfg.candidates):
         kf = lmap.keyframes[candidate.key]
-        pool = lmap.place_landmarks(kf.id, session.config.loop_closing.candidate_neighbours)
+        pool = lmap.place_landmarks(kf.id, backend.config.loop_closing.candidate_neighbours)
         ids = descriptor_match(f.descriptors, lmap.descriptors[pool], pool, tcfg.max_hamming,
                                tcfg.match_ratio)
         matched = np.flatnonzero(ids >= 0)
-        solved = pnp_pose(session.camera, lmap.xyz[ids[matched]], f.uv[matched],
+        solved = pnp_pose(backend.camera, lmap.xyz[ids[matched]], f.uv[matched],
                           depth[matched], scale[matched], tcfg.virtual_baseline_m,
                           kf.T_world_camera, tcfg.ransac_iterations, tcfg.ransac_reproj_px,
                           tcfg.ransac_confidence, tcfg.min_inliers, refine_all=False)
@@ -46,10 +46,10 @@ def relocalise(session: BackEndState, f: FeatureFrame
         # With a pose, every landmark in view can be searched near its projection.
         kept = np.full(len(ids), -1, np.int64)
         kept[matched[good]] = ids[matched[good]]
-        ids = match_free_keypoints(session, f, T_wc, kept, tcfg.local_map_radius_px,
+        ids = match_free_keypoints(backend, f, T_wc, kept, tcfg.local_map_radius_px,
                                    tcfg.max_hamming, tcfg.match_ratio, scale_check=True)
         matched = np.flatnonzero(ids >= 0)
-        T_wc, good = optimize_pose(session.camera, T_wc, lmap.xyz[ids[matched]], f.uv[matched],
+        T_wc, good = optimize_pose(backend.camera, T_wc, lmap.xyz[ids[matched]], f.uv[matched],
                                    depth[matched], scale[matched], tcfg.virtual_baseline_m)
         if good.sum() >= cfg.min_inliers:
             inliers = np.zeros(len(ids), bool)

@@ -30,42 +30,42 @@ class Match:
     name = "match"
     side = "cloud"
 
-    def __call__(self, state: FeatureFrame, session: BackEndState) -> MatchedFrame:
+    def __call__(self, state: FeatureFrame, backend: BackEndState) -> MatchedFrame:
         n = len(state.keypoints)
         ids = np.full(n, -1, np.int64)
-        T_pred = session.predict_pose()
-        repeated = session.is_repeat_of_last(state)
-        if not repeated and session.map.keyframes and n:
-            ids = self._match(state, session, T_pred)
+        T_pred = backend.predict_pose()
+        repeated = backend.is_repeat_of_last(state)
+        if not repeated and backend.map.keyframes and n:
+            ids = self._match(state, backend, T_pred)
         xyz = np.full((n, 3), np.nan)
-        xyz[ids >= 0] = session.map.xyz[ids[ids >= 0]]
+        xyz[ids >= 0] = backend.map.xyz[ids[ids >= 0]]
         return MatchedFrame(state, ids, xyz, T_pred, repeated)
 
-    def _match(self, state: FeatureFrame, session: BackEndState, T_pred: np.ndarray
+    def _match(self, state: FeatureFrame, backend: BackEndState, T_pred: np.ndarray
                ) -> np.ndarray:
-        cfg = session.config.tracking
-        cam = session.camera
+        cfg = backend.config.tracking
+        cam = backend.camera
         ids = np.full(len(state.keypoints), -1, np.int64)
-        if not session.lost_frames:
+        if not backend.lost_frames:
             # Every live landmark of the map that falls in the predicted view is a candidate:
             # returning to a place matches the old landmarks, which bounds the drift.
-            visible, proj, P = session.map.in_view(cam, T_pred, cfg.min_depth_m, cfg.max_depth_m,
-                                                   ids=session.tracking_landmarks())
-            level = session.map.predicted_octave(visible, np.linalg.norm(P, axis=1),
-                                                 session.config.orb.scale_factor,
-                                                 session.config.orb.n_levels)
+            visible, proj, P = backend.map.in_view(cam, T_pred, cfg.min_depth_m, cfg.max_depth_m,
+                                                   ids=backend.tracking_landmarks())
+            level = backend.map.predicted_octave(visible, np.linalg.norm(P, axis=1),
+                                                 backend.config.orb.scale_factor,
+                                                 backend.config.orb.n_levels)
             radii = [r for r in (cfg.guided_narrow_radius_px, cfg.guided_radius_px) if r > 0]
             for radius in sorted(set(radii)):
-                ids = guided_match(state, session.map.descriptors, visible, proj, level,
-                                   radius, session.config.orb.scale_factor,
+                ids = guided_match(state, backend.map.descriptors, visible, proj, level,
+                                   radius, backend.config.orb.scale_factor,
                                    cfg.max_hamming, cfg.match_ratio)
                 if (ids >= 0).sum() >= cfg.min_guided_matches:
                     break
         if (ids >= 0).sum() < cfg.min_guided_matches:
             # Prediction too far off (fast rotation, after a loss): search the landmarks of
             # the newest keyframes by descriptor alone.
-            pool = session.map.local_landmarks(cfg.local_map_keyframes)
-            ids = descriptor_match(state.descriptors, session.map.descriptors[pool], pool,
+            pool = backend.map.local_landmarks(cfg.local_map_keyframes)
+            ids = descriptor_match(state.descriptors, backend.map.descriptors[pool], pool,
                                    cfg.max_hamming, cfg.match_ratio)
         return ids
 
@@ -80,33 +80,33 @@ class EstimatePose:
     name = "estimate_pose"
     side = "cloud"
 
-    def __call__(self, state: MatchedFrame, session: BackEndState) -> PosedFrame:
-        cfg = session.config.tracking
+    def __call__(self, state: MatchedFrame, backend: BackEndState) -> PosedFrame:
+        cfg = backend.config.tracking
         f = state.features
         n = len(f.keypoints)
         inliers = np.zeros(n, bool)
-        if not session.map.keyframes:
+        if not backend.map.keyframes:
             # First frame: it defines the robot's map frame.
             return PosedFrame(state, np.eye(4), inliers, tracked=bool((f.depth > 0).sum()
                                                                         >= cfg.min_inliers))
         if state.repeated:
             # A repeated image carries no new observation: keep the motion prediction.
             return PosedFrame(state, state.T_world_camera_predicted, inliers,
-                              tracked=session.last_tracked)
-        posed = self._track(state, session)
-        if posed.tracked or not session.config.relocalisation.enabled:
+                              tracked=backend.last_tracked)
+        posed = self._track(state, backend)
+        if posed.tracked or not backend.config.relocalisation.enabled:
             return posed
-        found = relocalise(session, f)
+        found = relocalise(backend, f)
         if found is None:
             return posed
-        session.relocalisations += 1
+        backend.relocalisations += 1
         T_wc, ids, good = found
         xyz = np.full((n, 3), np.nan)
-        xyz[ids >= 0] = session.map.xyz[ids[ids >= 0]]
+        xyz[ids >= 0] = backend.map.xyz[ids[ids >= 0]]
         return PosedFrame(replace(state, landmark_ids=ids, landmark_xyz=xyz), T_wc, good, True)
 
-    def _track(self, state: MatchedFrame, session: BackEndState) -> PosedFrame:
-        cfg = session.config.tracking
+    def _track(self, state: MatchedFrame, backend: BackEndState) -> PosedFrame:
+        cfg = backend.config.tracking
         f = state.features
         inliers = np.zeros(len(f.keypoints), bool)
         matched = np.flatnonzero(state.landmark_ids >= 0)
@@ -115,15 +115,15 @@ class EstimatePose:
             return lost
         xyz, uv = state.landmark_xyz[matched], f.uv[matched]
         depth = f.depth[matched].astype(np.float64)
-        scale = session.config.orb.scale_factor ** f.keypoints[matched, 5]
+        scale = backend.config.orb.scale_factor ** f.keypoints[matched, 5]
         solved = None
         if cfg.prediction_min_inlier_ratio > 0:
-            T_wc, good = optimize_pose(session.camera, state.T_world_camera_predicted, xyz, uv,
+            T_wc, good = optimize_pose(backend.camera, state.T_world_camera_predicted, xyz, uv,
                                        depth, scale, cfg.virtual_baseline_m)
             if good.sum() >= max(cfg.min_inliers, cfg.prediction_min_inlier_ratio * len(good)):
                 solved = T_wc, good
         if solved is None:
-            solved = pnp_pose(session.camera, xyz, uv, depth, scale, cfg.virtual_baseline_m,
+            solved = pnp_pose(backend.camera, xyz, uv, depth, scale, cfg.virtual_baseline_m,
                               state.T_world_camera_predicted, cfg.ransac_iterations,
                               cfg.ransac_reproj_px, cfg.ransac_confidence, cfg.min_inliers)
         if solved is None:
@@ -173,59 +173,59 @@ class DecideKeyframe:
         self.new_keyframe = new_keyframe
         self.mapper = mapper if mapper is not None else InlineMapper()
 
-    def __call__(self, state: PosedFrame, session: BackEndState) -> TrackedFrame:
+    def __call__(self, state: PosedFrame, backend: BackEndState) -> TrackedFrame:
         f = state.matched.features
-        reason = keyframe_reason(session, state, self.mapper.busy())
+        reason = keyframe_reason(backend, state, self.mapper.busy())
         is_kf = reason is not None
         if is_kf:
-            session.keyframe_reasons[reason] = session.keyframe_reasons.get(reason, 0) + 1
-        if state.tracked and not state.matched.repeated and session.map.keyframes:
-            count_views(session, state)
+            backend.keyframe_reasons[reason] = backend.keyframe_reasons.get(reason, 0) + 1
+        if state.tracked and not state.matched.repeated and backend.map.keyframes:
+            count_views(backend, state)
         if is_kf:
             # The frame is the keyframe: report its pose as local mapping and loop closing
             # left it.
             state = replace(state, T_world_camera=self.new_keyframe(state))
-        reference, T_reference_camera = session.reference_pose(state.T_world_camera)
+        reference, T_reference_camera = backend.reference_pose(state.T_world_camera)
         # The inlier test's reference waits for local mapping's.
-        session.record(state, f, is_kf, not self.mapper.settling())
+        backend.record(state, f, is_kf, not self.mapper.settling())
         # A keyframe carries the map's keyframe poses as they are now: a robot that tracks
         # itself sends them to the cloud's merger with the keyframe's features.
         return TrackedFrame(state, is_kf, reference, T_reference_camera,
-                            session.map.keyframe_poses() if is_kf else None)
+                            backend.map.keyframe_poses() if is_kf else None)
 
 
-def keyframe_reason(session: BackEndState, state: PosedFrame, mapper_busy: bool = False
+def keyframe_reason(backend: BackEndState, state: PosedFrame, mapper_busy: bool = False
                     ) -> str | None:
     """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
     of the first frame after the newest keyframe, once its local BA landed: none before),
     "motion" (far from every keyframe still observing landmarks), "reference" /
     "close" (ORB-SLAM's tests), "reset" (lost too long; counted as a map reset)."""
-    cfg = session.config.tracking
-    if not session.map.keyframes:
+    cfg = backend.config.tracking
+    if not backend.map.keyframes:
         return "first" if state.tracked else None
     if state.tracked and not state.matched.repeated:
         n_in = int(state.inliers.sum())
         # Inliers fall against the first frame tracked after the keyframe: the view has
         # moved on. (The keyframe's own landmark count is no reference: many of its
         # keypoints are never matched again.)
-        reference = session.inliers_after_keyframe or n_in
+        reference = backend.inliers_after_keyframe or n_in
         if n_in < cfg.keyframe_inlier_ratio * reference:
             return "inliers"
-        if far_from_live_keyframes(session, state):
+        if far_from_live_keyframes(backend, state):
             return "motion"
-        return orb_slam_keyframe_reason(session, state, mapper_busy) \
+        return orb_slam_keyframe_reason(backend, state, mapper_busy) \
             if cfg.orb_slam_keyframe_policy else None
-    if not state.tracked and session.lost_frames + 1 >= cfg.lost_frames_before_reset:
+    if not state.tracked and backend.lost_frames + 1 >= cfg.lost_frames_before_reset:
         # Lost for too long: continue from the prediction with fresh landmarks.
-        session.resets += 1
+        backend.resets += 1
         return "reset"
     return None
 
 
-def far_from_live_keyframes(session: BackEndState, state: PosedFrame) -> bool:
+def far_from_live_keyframes(backend: BackEndState, state: PosedFrame) -> bool:
     """Whether the camera moved more than ``keyframe_translation_m`` or turned more than
     ``keyframe_rotation_deg`` from every keyframe that still observes landmarks."""
-    cfg, lmap = session.config.tracking, session.map
+    cfg, lmap = backend.config.tracking, backend.map
     live = np.flatnonzero(lmap.observing())
     if not len(live):
         return True
@@ -238,7 +238,7 @@ def far_from_live_keyframes(session: BackEndState, state: PosedFrame) -> bool:
     return not bool((turned <= cfg.keyframe_rotation_deg).any())
 
 
-def orb_slam_keyframe_reason(session: BackEndState, state: PosedFrame,
+def orb_slam_keyframe_reason(backend: BackEndState, state: PosedFrame,
                              mapper_busy: bool = False) -> str | None:
     """ORB-SLAM's keyframe test for RGB-D: "reference" when the frame tracks fewer than a
     fraction of the landmarks the reference keyframe tracks (those with enough observations
@@ -246,7 +246,7 @@ def orb_slam_keyframe_reason(session: BackEndState, state: PosedFrame,
     could be created. While the local mapper is busy (``mapper_busy``: a local BA still in
     a worker), "reference" needs weak tracking (``tracking.keyframe_weak_ratio``), as
     ORB-SLAM's tracking asks a busy mapper for a keyframe only then."""
-    cfg = session.config.tracking
+    cfg = backend.config.tracking
     inliers = state.inliers
     n_in = int(inliers.sum())
     depth = state.matched.features.depth
@@ -254,7 +254,7 @@ def orb_slam_keyframe_reason(session: BackEndState, state: PosedFrame,
     ratio = cfg.keyframe_reference_ratio
     if mapper_busy and cfg.keyframe_wait_for_mapper:
         ratio = min(ratio, cfg.keyframe_weak_ratio)
-    if n_in < ratio * session.reference_tracked:
+    if n_in < ratio * backend.reference_tracked:
         return "reference"
     if (int((close & inliers).sum()) < cfg.keyframe_close_tracked
             and int((close & ~inliers).sum()) > cfg.keyframe_close_untracked):
@@ -262,13 +262,13 @@ def orb_slam_keyframe_reason(session: BackEndState, state: PosedFrame,
     return None
 
 
-def count_views(session: BackEndState, state: PosedFrame) -> None:
+def count_views(backend: BackEndState, state: PosedFrame) -> None:
     """ORB-SLAM's visible/found counters for one tracked frame: landmarks predicted in view
     at the estimated pose (inside the image, within their scale-invariance distance range)
     and the landmarks matched as pose inliers."""
-    cfg, lmap = session.config.tracking, session.map
-    ids, _, P = lmap.in_view(session.camera, state.T_world_camera, cfg.min_depth_m,
+    cfg, lmap = backend.config.tracking, backend.map
+    ids, _, P = lmap.in_view(backend.camera, state.T_world_camera, cfg.min_depth_m,
                              cfg.max_depth_m)
-    ids = ids[in_scale_range(session, ids, P)]
+    ids = ids[in_scale_range(backend, ids, P)]
     found = state.matched.landmark_ids[state.inliers]
     lmap.count_views(ids, found[found >= 0])
