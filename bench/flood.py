@@ -117,7 +117,7 @@ def attack_messages(folder: Path) -> list[tuple[str, bytes, str]]:
         (keys.keyframe(VICTIM), encode_keyframe(VICTIM, 0, upload, config.wire),
          "forged upload"),
         (keys.feedback(VICTIM), rng.bytes(200), "forged feedback"),
-        (keys.CLOUD_CONTROL, protocol.encode(protocol.request("merge")), "merge request"),
+        (keys.CLOUD_CONTROL, protocol.encode(protocol.Request("merge")), "merge request"),
         (keys.control("x{:04d}"), hello, "hello for a new id"),
     ]
     return out

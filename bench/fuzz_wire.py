@@ -244,9 +244,11 @@ def control_seeds(camera: Camera) -> list[tuple[str, bytes]]:
             protocol.Error.of(protocol.Code.REJECTED, "frame rejected: x", rejected="frame"),
             protocol.Error.of(protocol.Code.REFERENCE_MISSING, "frame rejected: y",
                               rejected="frame", seq=12, missing=(9, 10)))),
-        protocol.request("status", "a" * 32), protocol.request("merge", "b" * 32),
-        protocol.status("c" * 32, {"r1": {"frames": 3, "finished": False}}, {"state": "idle"}),
-        protocol.merged("d" * 32, {"robots": 2}),
+        *(m.message() for m in (
+            protocol.Request("status", "a" * 32), protocol.Request("merge", "b" * 32),
+            protocol.StatusReply("c" * 32, {"r1": {"frames": 3, "finished": False}},
+                                 {"state": "idle"}),
+            protocol.Merged("d" * 32, {"robots": 2}))),
     ]
     return [(m["type"], protocol.encode(m)) for m in messages]
 
@@ -753,6 +755,8 @@ def handle_control(data: bytes) -> None:
         protocol.End.parse(message)
     elif message["type"] in protocol.REPLIES:
         protocol.parse_reply(data)
+    elif message["type"] in protocol.OPERATOR_REPLIES:
+        protocol.parse_operator_reply(data)
     protocol.request_id(message)
 
 

@@ -13,6 +13,7 @@ import struct
 import threading
 import time
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -540,15 +541,16 @@ def test_a_resent_merge_request_merges_once_and_replies_carry_its_id(cloud):
     try:
         # No robot has finished here: the merge's answer is that one-line refusal, and a
         # resend of the same request gets it again from memory, without merging again.
-        request = protocol.request("merge")
+        request = protocol.Request("merge")
         for _ in range(2):
             with pytest.raises(RuntimeError, match="no robot has finished yet"):
-                client.request(request, "merged", timeout=30.0, resend_s=0.1)
+                client.request(request, protocol.Merged, timeout=30.0, resend_s=0.1)
         assert len(calls) == 1
         assert client.status(timeout=10.0)["type"] == "status"
         # An unknown request is an error naming it, with the request's id.
         with pytest.raises(RuntimeError, match="unknown request 'dance'"):
-            client.request({"type": "dance", "id": "x1"}, "danced", timeout=10.0)
+            dance = SimpleNamespace(id="x1", message=lambda: {"type": "dance", "id": "x1"})
+            client.request(dance, protocol.Merged, timeout=10.0)
     finally:
         client.close()
 
@@ -979,6 +981,6 @@ def test_a_flood_of_status_requests_costs_one_build_per_interval(cloud):
     started = time.monotonic()
     answers = [server.operator.status(f"q{i}") for i in range(200)]
     took = time.monotonic() - started
-    assert [a["id"] for a in answers] == [f"q{i}" for i in range(200)]
-    assert all(a["type"] == "status" and a["robots"] == answers[0]["robots"] for a in answers)
+    assert [a.id for a in answers] == [f"q{i}" for i in range(200)]
+    assert all(a.robots == answers[0].robots for a in answers)
     assert server.operator.status_builds - before <= 1 + int(took / STATUS_EVERY_S)

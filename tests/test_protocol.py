@@ -44,13 +44,13 @@ def test_a_bad_hello_names_what_is_wrong(change, reason):
 
 
 def test_requests_carry_ids_and_errors_carry_codes():
-    a, b = protocol.request("status"), protocol.request("status")
-    assert a["id"] != b["id"] and protocol.request_id(a) == a["id"]
+    a, b = protocol.Request("status"), protocol.Request("status")
+    assert a.id != b.id and protocol.Request.parse(a.message()) == a
     assert protocol.request_id({"id": 7}) is None
     e = protocol.Error.of(protocol.Code.REFUSED, "full", id="x").message()
     assert (e["code"], e["reason"], e["id"]) == ("refused", "full", "x")
     with pytest.raises(ValueError):
-        protocol.request("dance")
+        protocol.Request("dance")
 
 
 

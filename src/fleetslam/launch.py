@@ -3,7 +3,6 @@ what ``fleetslam demo``, the tests and the benchmarks share."""
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -128,12 +127,12 @@ class CloudClient:
         self._sub = self._session.declare_subscriber(
             keys.CLOUD_REPLY, lambda s: self._replies.put(s.payload.to_bytes()))
 
-    def request(self, message: dict[str, Any], reply_type: str, timeout: float,
-                resend_s: float = 1.0, answered: bool = False) -> dict[str, Any]:
-        """Send ``message`` (a protocol request with an id) until the cloud's reply to that
-        id arrives; replies to other requests (other clients') are ignored. ``answered``:
-        the cloud answered this client before, so its silence is work, not a refusal."""
-        rid = message["id"]
+    def request(self, message: protocol.Request, reply_type: type, timeout: float,
+                resend_s: float = 1.0, answered: bool = False) -> Any:
+        """Send ``message`` until the cloud's reply to its id arrives; replies to other
+        requests (other clients') are ignored. ``answered``: the cloud answered this client
+        before, so its silence is work, not a refusal."""
+        rid = message.id
         start = time.monotonic()
         deadline = start + timeout
         sent = -math.inf
@@ -148,43 +147,48 @@ class CloudClient:
                 log.warning("no answer from the cloud at %s yet (%.0f s): %s; waiting up to "
                             "%.0f s", self.endpoint, time.monotonic() - start,
                             no_answer(self.endpoint, self.zenoh_config), timeout)
-            try:
-                reply = json.loads(self._replies.get(timeout=0.2))
-            except queue.Empty:
+            reply = self._next_reply(0.2)
+            if reply is None or reply.id != rid:
                 continue
-            if reply.get("id") != rid:
-                continue
-            if reply.get("type") == reply_type:
+            if isinstance(reply, reply_type):
                 return reply
-            if reply.get("type") == "error":
-                raise RuntimeError(f"cloud: {reply.get('reason')}")
+            if isinstance(reply, protocol.Error):
+                raise RuntimeError(f"cloud: {reply.reason}")
         if answered:
             raise TimeoutError(f"the cloud at {self.endpoint} answered but sent no "
-                               f"'{reply_type}' within {timeout:.0f} s")
+                               f"'{reply_type.TYPE}' within {timeout:.0f} s")
         raise TimeoutError(f"no answer from the cloud at {self.endpoint} within "
                            f"{timeout:.0f} s: {no_answer(self.endpoint, self.zenoh_config)}")
 
+    def _next_reply(self, timeout: float) -> protocol.OperatorReply | None:
+        """The next reply heard within ``timeout`` (one that does not parse is said)."""
+        try:
+            return protocol.parse_operator_reply(self._replies.get(timeout=timeout))
+        except queue.Empty:
+            return None
+        except ValueError as exc:
+            log.warning("a reply from the cloud at %s rejected: %s", self.endpoint, exc)
+            return None
+
     def ping(self, timeout: float) -> dict[str, Any]:
         """The first cloud worker's status answer: the cloud is there and answers us."""
-        return self.request(protocol.request("status"), "status", timeout)
+        return self.request(protocol.Request("status"), protocol.StatusReply,
+                            timeout).message()
 
     def status(self, timeout: float = 30.0, gather_s: float = 2.0) -> dict[str, Any]:
         """Every cloud worker's answer in one: all robots (each with the worker serving it),
         the live workers and the placement. Waits for the answers of the workers the first
         answer lists, at most ``gather_s`` more."""
-        rid = protocol.request("status")
-        first = self.request(rid, "status", timeout)
+        request = protocol.Request("status")
+        first = self.request(request, protocol.StatusReply, timeout).message()
         answers = {first.get("worker"): first}
         expected = set(first.get("workers") or [first.get("worker")])
         deadline = time.monotonic() + gather_s
         while not expected <= set(answers) and time.monotonic() < deadline:
-            try:
-                reply = json.loads(self._replies.get(timeout=0.1))
-            except queue.Empty:
-                continue
-            if reply.get("id") == rid["id"] and reply.get("type") == "status":
-                answers[reply.get("worker")] = reply
-                expected |= set(reply.get("workers") or [])
+            reply = self._next_reply(0.1)
+            if isinstance(reply, protocol.StatusReply) and reply.id == request.id:
+                answers[reply.worker] = reply.message()
+                expected |= set(reply.workers)
         # The merger's view of the global map: the worker whose id sorts first merges.
         merged = dict(answers[min(answers, key=str)])
         merged["robots"] = {r: v for a in answers.values() for r, v in a["robots"].items()}
@@ -193,8 +197,8 @@ class CloudClient:
 
     def merge(self, timeout: float = 600.0, answered: bool = False) -> dict[str, Any]:
         # Resent with the same id until answered: the cloud merges once per id.
-        return self.request(protocol.request("merge"), "merged", timeout,
-                            resend_s=2.0, answered=answered)["summary"]
+        return self.request(protocol.Request("merge"), protocol.Merged, timeout,
+                            resend_s=2.0, answered=answered).summary
 
     def close(self) -> None:
         self._sub.undeclare()

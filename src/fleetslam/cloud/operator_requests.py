@@ -6,9 +6,9 @@ worker that merges (merge_role.py), once per request (fleet_merge.py's MergeRequ
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
-from typing import Any
 
 from fleetslam.cloud.coordination.placement_protocol import Placement
 from fleetslam.cloud.merge.fleet_merge import MergeRequests
@@ -31,7 +31,7 @@ class OperatorRequests:
         self.merging = merging
         self.merge_requests = merge_requests
         self._lock = threading.Lock()
-        self._cache: tuple[float, dict[str, Any]] | None = None
+        self._cache: tuple[float, protocol.StatusReply] | None = None
         self.status_builds = 0
 
     def merge(self, rid: str | None) -> None:
@@ -39,16 +39,16 @@ class OperatorRequests:
             return  # one worker merges (merge_role.py)
         self.merge_requests.request(rid)
 
-    def status(self, rid: str | None) -> dict[str, Any]:
+    def status(self, rid: str | None) -> protocol.StatusReply:
         """The status answer to request ``rid``."""
         now = time.monotonic()
         with self._lock:
             if self._cache is None or now - self._cache[0] >= STATUS_EVERY_S:
                 self._cache = (now, self._build())
                 self.status_builds += 1
-            return {**self._cache[1], "id": rid}
+            return dataclasses.replace(self._cache[1], id=rid)
 
-    def _build(self) -> dict[str, Any]:
+    def _build(self) -> protocol.StatusReply:
         robots = {r: {"frames": s.counts()["frames"], "finished": s.finished is not None,
                       "worker": self.worker_id,
                       # Its memory budget: held now, and what it dropped unread.
@@ -57,7 +57,6 @@ class OperatorRequests:
                       "dropped_over_budget": sum(s.counts()[c] for c in OVER_BUDGET.values())}
                   for r, s in self.sessions.now()}
         placement = self.placement
-        return protocol.status(
-            None, robots, self.merging.merger.status(), worker=self.worker_id,
-            workers=placement.live_workers(), placement=placement.table(),
-            elections=placement.elections)
+        return protocol.StatusReply(
+            None, robots, self.merging.merger.status(), self.worker_id,
+            placement.live_workers(), placement.table(), placement.elections)

@@ -281,11 +281,12 @@ class Router:
         except ValueError as exc:
             return self.error(keys.CLOUD_REPLY, protocol.Code.BAD_MESSAGE,
                               f"control message rejected: {exc}")
-        rid = protocol.request_id(message)
-        if message["type"] == "merge":
-            self.operator.merge(rid)
-        elif message["type"] == "status":
-            self.publish(keys.CLOUD_REPLY, protocol.encode(self.operator.status(rid)))
+        try:
+            request = protocol.Request.parse(message)
+        except ValueError as exc:
+            return self.error(keys.CLOUD_REPLY, protocol.Code.UNKNOWN_TYPE, str(exc),
+                              id=protocol.request_id(message))
+        if request.kind == "merge":
+            self.operator.merge(request.id)
         else:
-            self.error(keys.CLOUD_REPLY, protocol.Code.UNKNOWN_TYPE,
-                       f"unknown request {message['type']!r}", id=rid)
+            self.publish(keys.CLOUD_REPLY, protocol.encode(self.operator.status(request.id)))

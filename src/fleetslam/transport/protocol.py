@@ -446,11 +446,26 @@ def parse_placed(message: dict[str, Any]) -> Placed:
 
 # -- client <-> cloud -----------------------------------------------------------------------
 
-def request(kind: str, request_id: str | None = None) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Request:
     """A client's ``status`` or ``merge`` request, with a fresh id unless one is given."""
-    if kind not in ("status", "merge"):
-        raise ValueError(f"unknown request {kind!r}")
-    return {"type": kind, "id": request_id or uuid.uuid4().hex}
+
+    KINDS: ClassVar[tuple[str, ...]] = ("status", "merge")
+    kind: str
+    id: str | None = field(default_factory=lambda: uuid.uuid4().hex)
+
+    def __post_init__(self) -> None:
+        if self.kind not in self.KINDS:
+            raise ValueError(f"unknown request {self.kind!r}")
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.kind, "id": self.id}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Request:
+        """ValueError for a type that is no request; an id that is no id is None (the
+        reply cannot carry it)."""
+        return Request(message["type"], request_id(message))
 
 
 def request_id(message: dict[str, Any]) -> str | None:
@@ -458,15 +473,68 @@ def request_id(message: dict[str, Any]) -> str | None:
     return rid if isinstance(rid, str) and 0 < len(rid) <= 64 else None
 
 
-def status(request_id: str | None, robots: dict[str, Any], merge: dict[str, Any],
-           **worker: Any) -> dict[str, Any]:
-    """One worker's answer: its robots and merger, and (``worker``) its id, the live
-    workers and the placement table it knows; a client gathers every worker's answer."""
-    return {"type": "status", "id": request_id, "robots": robots, "merge": merge, **worker}
+@dataclass(frozen=True)
+class StatusReply:
+    """One worker's answer: its robots and merger, its id, the live workers and the
+    placement table it knows; a client gathers every worker's answer."""
+
+    TYPE: ClassVar[str] = "status"
+    id: str | None
+    robots: dict[str, Any]
+    merge: dict[str, Any]
+    worker: str | None = None
+    workers: list[str] = field(default_factory=list)
+    placement: dict[str, str] = field(default_factory=dict)
+    elections: dict[str, int] = field(default_factory=dict)
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE, "id": self.id, "robots": self.robots, "merge": self.merge,
+                "worker": self.worker, "workers": self.workers, "placement": self.placement,
+                "elections": self.elections}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> StatusReply:
+        parts = {k: message.get(k) for k in ("robots", "merge", "placement", "elections")}
+        if not all(isinstance(v, dict) for v in parts.values()):
+            raise ValueError("status: robots, merge, placement and elections must be objects")
+        workers = message.get("workers")
+        if not isinstance(workers, list) or not all(isinstance(w, str) for w in workers):
+            raise ValueError("status: workers is not a list of worker ids")
+        return StatusReply(request_id(message), parts["robots"], parts["merge"],
+                           _str(message, "worker", 256), workers, parts["placement"],
+                           parts["elections"])
 
 
-def merged(request_id: str | None, summary: dict[str, Any]) -> dict[str, Any]:
-    return {"type": "merged", "id": request_id, "summary": summary}
+@dataclass(frozen=True)
+class Merged:
+    """The merge a client asked for is written: summary.json's content."""
+
+    TYPE: ClassVar[str] = "merged"
+    id: str | None
+    summary: dict[str, Any]
+
+    def message(self) -> dict[str, Any]:
+        return {"type": self.TYPE, "id": self.id, "summary": self.summary}
+
+    @staticmethod
+    def parse(message: dict[str, Any]) -> Merged:
+        summary = message.get("summary")
+        if not isinstance(summary, dict):
+            raise ValueError("merged: summary is not an object")
+        return Merged(request_id(message), summary)
+
+
+OperatorReply = StatusReply | Merged | Error
+OPERATOR_REPLIES: dict[str, Any] = {kind.TYPE: kind for kind in (StatusReply, Merged, Error)}
+
+
+def parse_operator_reply(data: bytes) -> OperatorReply:
+    """A cloud's answer to a client's request, checked; ValueError saying what is wrong."""
+    message = parse_control(data)
+    kind = OPERATOR_REPLIES.get(message["type"])
+    if kind is None:
+        raise ValueError(f"unknown reply {message['type'][:40]!r}")
+    return kind.parse(message)
 
 
 Reply = Welcome | Ending | Need | Ended | Ack | Held | Error | Placed

@@ -63,7 +63,7 @@ class MergeRequests:
 
     def _merge_and_reply(self, rid: str | None) -> None:
         try:
-            reply = protocol.encode(protocol.merged(rid, self.fleet_merge.merge()))
+            reply = protocol.encode(protocol.Merged(rid, self.fleet_merge.merge()))
         except NothingToMerge as exc:
             log.warning("merge asked for: %s", exc)
             reply = protocol.encode(protocol.Error.of(protocol.Code.FAILED, str(exc), id=rid))
