@@ -52,6 +52,10 @@ class FleetMap:
         keyframes or constraints changed since the last solve)."""
         return self.merger.solve_keyframe_poses()
 
+    def solve_T_global_map(self, robot: str) -> np.ndarray:
+        """Where the robot's map frame lies in its group's frame (solves as above)."""
+        return self.merger.solve_T_global_map(robot)
+
     def build_outputs(self, tracks: list[RobotTrack], out_dir: Path) -> GlobalMap:
         """The largest group's global trajectories, point cloud, octree and grid, written
         under ``out_dir`` (global_map.py)."""

@@ -18,7 +18,6 @@ from fleetslam.cloud.session.replies import Publish
 from fleetslam.cloud.session.session_outputs import FinishedMap
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
-from fleetslam.merging.global_map import build_global_map, merge_summary
 from fleetslam.outputs import write_summary
 from fleetslam.run_summary import RunSummary
 from fleetslam.run_mcap import write_run_mcap
@@ -116,13 +115,13 @@ class FleetMerge:
                                  "robot finishes at the end of its stream; `fleetslam status` "
                                  "lists the robots this cloud serves)")
         self._still_merger("the global map")
-        global_map = self.merger.locked(lambda m: build_global_map(
-            m, [f.track for f in finished], self.config, self.out_dir))
+        global_map = self.merger.locked(lambda fleet: fleet.build_outputs(
+            [f.track for f in finished], self.out_dir))
         if self.merger.frames is not None:
             # Each member robot still connected hears summary.json's transform.
             self.merger.frames.update({m: (global_map.anchor, T) for m, T in
                                        global_map.T_global_map.items()}, final=True)
-        merge = self.merger.locked(lambda m: merge_summary(m, global_map))
+        merge = self.merger.locked(lambda fleet: fleet.summary(global_map))
         merge["robots"] = {k: v for k, v in merge["robots"].items()
                            if k in {f.robot_id for f in finished}}
         merge["not_merged"] = {**unfinished, **merge.get("not_merged", {})}

@@ -24,6 +24,7 @@ from fleetslam.camera import Camera
 from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.config import Config
 from fleetslam.mapping.map_frame import live_map_frame
+from fleetslam.merging.fleet_map import FleetMap
 from fleetslam.merging.merger import MapMerger
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
 from fleetslam.transforms import invert
@@ -54,7 +55,10 @@ class MergerService:
             if cfg.search_process else PlaceSearch(config)
         # Started with the cloud: its imports, niced, are done before the first keyframe.
         search.start()
-        self.merger = MapMerger(config, search)
+        # The fleet's map; its merger taken apart here (a search is asked without holding
+        # the lock, its matches taken when they land).
+        self.fleet = FleetMap(config, search)
+        self.merger = self.fleet.merger
         self._from_store = from_store
         self.remote_gaps = 0  # keyframes that came after a gap, filled from the store
         self.errors = 0
@@ -243,12 +247,12 @@ class MergerService:
             self._placing_due = False
             self._placed_at = time.monotonic()
 
-            def placements(m: MapMerger) -> dict[str, tuple[str, np.ndarray]]:
+            def placements(fleet: FleetMap) -> dict[str, tuple[str, np.ndarray]]:
                 # A lone robot's map is its group's frame: nothing to tell, no graph to solve.
-                joined = {r: anchor for anchor, members in m.components().items()
+                joined = {r: anchor for anchor, members in fleet.groups().items()
                           if len(members) > 1 for r in members}
-                level = self._level(m)
-                return {r: (anchor, level[r] @ m.solve_T_global_map(r))
+                level = self._level(fleet.merger)
+                return {r: (anchor, level[r] @ fleet.solve_T_global_map(r))
                         for r, anchor in joined.items()}
 
             self.frames.update(self.locked(placements))
@@ -256,7 +260,7 @@ class MergerService:
 
     def show(self) -> None:
         """Hand the view the merger's state now (after a merge)."""
-        self.locked(lambda m: self._show())
+        self.locked(lambda _: self._show())
 
     def drain(self, timeout: float) -> bool:
         """Wait until everything submitted so far is merged, its searches too; False on
@@ -273,17 +277,18 @@ class MergerService:
                 return False
             time.sleep(DRAIN_POLL_S)
 
-    def locked(self, work: Callable[[MapMerger], T]) -> T:
-        """Run ``work`` on the merger while no keyframe is being added."""
+    def locked(self, work: Callable[[FleetMap], T]) -> T:
+        """Run ``work`` on the fleet's map while no keyframe is being added."""
         with self._lock:
-            return work(self.merger)
+            return work(self.fleet)
 
     def status(self) -> dict[str, Any]:
         # Groups, keyframes not yet merged (queued or in hand) and searches not yet landed,
         # read under one hold of the lock: what is still to merge shows until its matches
         # have landed, so groups without it are final (the operator is told so).
-        status = self.locked(lambda m: {**m.status(), "queued": self._queue.unfinished_tasks,
-                                        "searches_waiting": m.search.pending})
+        status = self.locked(lambda fleet: {**fleet.merger.status(),
+                                            "queued": self._queue.unfinished_tasks,
+                                            "searches_waiting": fleet.merger.search.pending})
         status["errors"] = self.errors
         status["remote_gaps"] = self.remote_gaps
         return status
