@@ -236,14 +236,19 @@ def test_robots_hear_new_moved_and_final_placements_and_again_later():
     assert frames.update({"r1": ("r0", nudge)}) == 0
     moved = T @ make_T(np.eye(3), [0.05, 0, 0])
     assert frames.update({"r1": ("r0", moved)}) == 1
-    assert frames.update({"r1": ("r0", moved)}, final=True) == 1
-    assert frames.update({"r1": ("r0", moved)}) == 0  # the merge's stays
+    refined = moved @ make_T(np.eye(3), [0.04, 0, 0])  # FS-HICP moved it from the graph's
+    assert frames.update({"r1": ("r0", refined)}, final=True) == 1
+    # The graph has not moved since: the merge's stays, though it differs from the graph's.
+    assert frames.update({"r1": ("r0", moved)}) == 0
+    assert frames.update({"r1": ("r0", moved @ make_T(np.eye(3), [0.001, 0, 0]))}) == 0
     assert [k for k, _ in sent] == ["fleet/r0/reply", "fleet/r1/reply", "fleet/r1/reply",
                                     "fleet/r1/reply"]
     assert sent[-1][1]["final"] is True
     time.sleep(0.06)
     frames.resend_due()
     assert {k for k, _ in sent[4:]} == {"fleet/r0/reply", "fleet/r1/reply"}
+    # The graph moves on (new keyframes after the merge): the live placement replaces it.
+    assert frames.update({"r1": ("r0", moved @ make_T(np.eye(3), [0.05, 0, 0]))}) == 1
 
 
 def _reply(robot, message: dict | bytes) -> None:

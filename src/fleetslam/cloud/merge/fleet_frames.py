@@ -28,14 +28,20 @@ class FleetFrames:
         self._lock = threading.Lock()
         # robot -> (group, T_global_map, final) as last sent
         self._sent: dict[str, tuple[str, np.ndarray, bool]] = {}
+        # robot -> the live graph's T_global_map when last sent or last weighed against a
+        # final one (a live update after a merge is measured against the graph, not the
+        # merge's refined transform, which differs from it by the FS-HICP refinement)
+        self._live: dict[str, np.ndarray] = {}
         self._resent_at = time.monotonic()
 
     def _worth_sending(self, robot: str, group: str, T: np.ndarray, final: bool) -> bool:
-        """New, in another group, a merge's (final), or moved beyond placement_move_*."""
+        """New, in another group, a merge's (final), or moved beyond placement_move_*: after
+        a final one, the live graph itself moved since (new keyframes or joins)."""
         known = self._sent.get(robot)
         if known is None or known[0] != group or final:
             return True
-        delta = invert(known[1]) @ T
+        reference = self._live.setdefault(robot, T) if known[2] else known[1]
+        delta = invert(reference) @ T
         return bool(np.linalg.norm(delta[:3, 3]) > self.cfg.placement_move_m
                     or rotation_angle_deg(delta[:3, :3]) > self.cfg.placement_move_deg)
 
@@ -50,6 +56,8 @@ class FleetFrames:
                 if not self._worth_sending(robot, group, T, final):
                     continue
                 self._sent[robot] = (group, np.array(T, np.float64), final)
+                if not final:
+                    self._live[robot] = self._sent[robot][1]
             self._send(robot, group, T, final)
             sent += 1
         return sent
