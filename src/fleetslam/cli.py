@@ -82,23 +82,27 @@ def cmd_export(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
-def cmd_generate(args: argparse.Namespace, config: Config) -> int:
+def _synthetic_scene(folder: Path, config: Config, quiet: bool) -> list[Path]:
+    """The built-in scene's robot folders, made once in ``folder`` (then reused; making it
+    takes a minute or more, so it shows progress)."""
     from fleetslam.datasets.synthetic import ensure_scene
     from fleetslam.progress import Progress
 
+    synthetic = config.synthetic
+    progress = Progress(f"synthetic scene {folder}",
+                        synthetic.n_robots * synthetic.frames_per_robot, enabled=not quiet)
+    return ensure_scene(folder, synthetic, progress=lambda done, _: progress.update(done))
+
+
+def cmd_generate(args: argparse.Namespace, config: Config) -> int:
     out = Path(args.out) if args.out else _scene_dir(config)
-    progress = Progress("synthetic scene", config.synthetic.n_robots * config.synthetic.frames_per_robot,
-                        enabled=not args.quiet)
-    folders = ensure_scene(out, config.synthetic, progress=lambda d, t: progress.update(d))
-    for folder in folders:
+    for folder in _synthetic_scene(out, config, args.quiet):
         print(folder)
     return 0
 
 
 def cmd_demo(args: argparse.Namespace, config: Config) -> int:
-    from fleetslam.datasets.synthetic import ensure_scene
     from fleetslam.demo import run_demo
-    from fleetslam.progress import Progress
 
     if args.robots is not None:
         config = config.with_values({"synthetic.n_robots": args.robots}, flag="--robots")
@@ -111,11 +115,8 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     _check_offload_at(args.offload_at)  # before the scene, the cloud and the run folder
     out = Path(args.out) if args.out else _default_out("demo")
     scene = Path(args.scene) if args.scene else _scene_dir(config)
-    total = config.synthetic.n_robots * config.synthetic.frames_per_robot
-    progress = Progress(f"synthetic scene {scene}", total, enabled=not args.quiet)
     # Absolute, so `fleetslam report` finds the scene's ground truth from any directory.
-    folders = [f.resolve() for f in
-               ensure_scene(scene, config.synthetic, progress=lambda d, t: progress.update(d))]
+    folders = [f.resolve() for f in _synthetic_scene(scene, config, args.quiet)]
     view_args = _view_args(args, config)
     if view_args and args.in_process:
         raise ValueError("--view / --save show the cloud process: not with --in-process")
@@ -603,21 +604,11 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     elif args.profile:
         profile = Profile.load(Path(args.profile))
     else:
-        from fleetslam.datasets.synthetic import ensure_scene
         from fleetslam.datasets.recording import open_source
 
         config = _apply_topics(args, config)
-        if args.source:
-            source = args.source
-        else:
-            # Made once (then cached): a minute or more, so it shows progress.
-            scene_progress = Progress(f"synthetic scene {_scene_dir(config)}",
-                                      config.synthetic.n_robots
-                                      * config.synthetic.frames_per_robot,
-                                      enabled=not args.quiet)
-            scene = ensure_scene(_scene_dir(config), config.synthetic,
-                                 progress=lambda d, t: scene_progress.update(d))
-            source = str(scene[0])
+        source = args.source or str(_synthetic_scene(_scene_dir(config), config,
+                                                     args.quiet)[0])
         sequence = open_source(source, None, config.source)
         frames = min(config.planner.profile_frames, len(sequence))
         if not args.quiet:
@@ -688,18 +679,7 @@ def _add_cloud_request_options(parser: argparse.ArgumentParser) -> None:
                         f"{defaults.ask_deadline_s:g} s)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
-        "FS-HICP map merging.")
-    _add_global_options(parser, None)
-    sub = parser.add_subparsers(dest="command", required=True)
-    # The same options after the command too: `fleetslam run --config f.toml` as well as
-    # `fleetslam --config f.toml run` (there, unset ones keep what was given before it).
-    common = argparse.ArgumentParser(add_help=False)
-    _add_global_options(common, argparse.SUPPRESS)
-    sub.add_parser = functools.partial(sub.add_parser, parents=[common])  # type: ignore
-
+def _add_demo_command(sub: Any) -> None:
     demo = sub.add_parser("demo", help="run >= 2 robots on the built-in synthetic scene")
     demo.add_argument("--out", help="run folder to create (default runs/demo-<time>)")
     demo.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
@@ -722,6 +702,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view_options(demo)
     demo.set_defaults(func=cmd_demo)
 
+
+def _add_run_command(sub: Any) -> None:
     run = sub.add_parser("run", help="run robots on TUM-layout folders or ROS bags")
     run.add_argument("--robot", action="append", required=True, metavar="SOURCE[:FIRST-LAST]",
                      help="a TUM-layout folder or a ROS bag (.bag, ROS 2 bag folder, .mcap), "
@@ -734,6 +716,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "earlier run folder (an interrupted one, say)")
     run.set_defaults(func=cmd_run)
 
+
+def _add_cloud_command(sub: Any) -> None:
     cloud = sub.add_parser("cloud", help="serve robots over Zenoh: track, map, merge")
     where = cloud.add_mutually_exclusive_group()
     where.add_argument("--listen", default=None, metavar="ENDPOINT",
@@ -765,6 +749,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view_options(cloud)
     cloud.set_defaults(func=cmd_cloud)
 
+
+def _add_router_command(sub: Any) -> None:
     router = sub.add_parser("router", help="a Zenoh router that cloud workers and robots "
                             "connect to")
     router.add_argument("--listen", default=None, metavar="ENDPOINT",
@@ -773,6 +759,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="another router to join (repeatable)")
     router.set_defaults(func=cmd_router)
 
+
+def _add_robot_command(sub: Any) -> None:
     robot = sub.add_parser("robot", help="stream a recorded sequence or a camera to the cloud")
     robot.add_argument("--connect", default=None, metavar="ENDPOINT",
                        help="the cloud's Zenoh endpoint (default tcp/127.0.0.1:7447)")
@@ -810,15 +798,21 @@ def build_parser() -> argparse.ArgumentParser:
                        "(rmw_zenohd) is there, e.g. tcp/localhost:7447 ([ros2_out])")
     robot.set_defaults(func=cmd_robot)
 
+
+def _add_merge_command(sub: Any) -> None:
     merge = sub.add_parser("merge", help="ask a running cloud to merge the finished maps")
     _add_cloud_request_options(merge)
     merge.set_defaults(func=cmd_merge)
 
+
+def _add_status_command(sub: Any) -> None:
     status = sub.add_parser("status", help="ask a running cloud which robots it serves and "
                             "how their maps are joined")
     _add_cloud_request_options(status)
     status.set_defaults(func=cmd_status)
 
+
+def _add_plan_command(sub: Any) -> None:
     planner = sub.add_parser("plan", help="choose the offloading point: the paper's energy "
                              "model and a time model on measured (or the paper's) costs")
     planner.add_argument("--paper", action="store_true",
@@ -842,6 +836,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "runs/plan-<time>)")
     planner.set_defaults(func=cmd_plan)
 
+
+def _add_certs_command(sub: Any) -> None:
     certs = sub.add_parser("certs", help="make a lab's TLS material: a CA, the cloud's and "
                            "each robot's certificate, and the Zenoh config files using them")
     certs.add_argument("--out", required=True, help="folder to create (keep ca.key safe)")
@@ -853,11 +849,15 @@ def build_parser() -> argparse.ArgumentParser:
                        "restart the cloud: its access control admits the lab's robots)")
     certs.set_defaults(func=cmd_certs)
 
+
+def _add_report_command(sub: Any) -> None:
     report = sub.add_parser("report", help="(re)build a finished run's report/ (PNG plots "
                             "and report.html); prints the page's path")
     report.add_argument("run_dir", metavar="RUN_DIR", help="a run folder with summary.json")
     report.set_defaults(func=cmd_report)
 
+
+def _add_export_command(sub: Any) -> None:
     export = sub.add_parser("export", help="write a finished run's results as ROS 2 messages "
                             "in an MCAP file (Foxglove, ros2 bag play); a run writes "
                             "run.mcap itself unless [outputs] mcap = false")
@@ -865,10 +865,14 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--mcap", required=True, metavar="FILE", help="the MCAP file to write")
     export.set_defaults(func=cmd_export)
 
+
+def _add_generate_command(sub: Any) -> None:
     gen = sub.add_parser("generate", help="write the synthetic scene in TUM layout")
     gen.add_argument("--out", help="scene folder (default: the demo's cache folder)")
     gen.set_defaults(func=cmd_generate)
 
+
+def _add_vocabulary_command(sub: Any) -> None:
     vocab = sub.add_parser("vocabulary", help="train a bag-of-words vocabulary on ORB "
                            "descriptors of your own images (for [place_recognition] method = "
                            "\"bag_of_words\")")
@@ -879,6 +883,8 @@ def build_parser() -> argparse.ArgumentParser:
     vocab.add_argument("--out", required=True, metavar="FILE.npz")
     vocab.set_defaults(func=cmd_vocabulary)
 
+
+def _add_view_command(sub: Any) -> None:
     view = sub.add_parser("view", help="open a finished run's maps and trajectories in rerun "
                           "(needs pip install 'fleetslam[view]')")
     view.add_argument("run_dir", metavar="RUN_DIR", help="a run folder (runs/<command>-<time>)")
@@ -886,12 +892,34 @@ def build_parser() -> argparse.ArgumentParser:
                       "rerun FILE.rrd) instead of spawning a viewer")
     view.set_defaults(func=cmd_view)
 
+
+def _add_config_command(sub: Any) -> None:
     settings = sub.add_parser("config", help="print every setting as a TOML file to start "
                               "from: its value (the defaults, or with --config those in "
                               "effect), what it means and what it may be")
     settings.add_argument("--markdown", action="store_true", help="the defaults as the "
                           "reference page docs/config.md instead")
     settings.set_defaults(func=cmd_config)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
+        "FS-HICP map merging.")
+    _add_global_options(parser, None)
+    sub = parser.add_subparsers(dest="command", required=True)
+    # The same options after the command too: `fleetslam run --config f.toml` as well as
+    # `fleetslam --config f.toml run` (there, unset ones keep what was given before it).
+    common = argparse.ArgumentParser(add_help=False)
+    _add_global_options(common, argparse.SUPPRESS)
+    sub.add_parser = functools.partial(sub.add_parser, parents=[common])  # type: ignore
+    # In the order `fleetslam --help` lists them.
+    for add in (_add_demo_command, _add_run_command, _add_cloud_command, _add_router_command,
+                _add_robot_command, _add_merge_command, _add_status_command,
+                _add_plan_command, _add_certs_command, _add_report_command,
+                _add_export_command, _add_generate_command, _add_vocabulary_command,
+                _add_view_command, _add_config_command):
+        add(sub)
     return parser
 
 

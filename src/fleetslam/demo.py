@@ -70,12 +70,86 @@ def _check_robots(robots: dict[str, subprocess.Popen], logs: Path, out: Path) ->
                   f"(`incomplete` in {out / name / ROBOT_REPORT})", file=sys.stderr)
 
 
+# Called with each status while the robots run, and the worker processes (a benchmark kills
+# one).
+Watch = Callable[[dict[str, Any], list[subprocess.Popen]], None]
+
+
+def _connections(out: Path, names: list[str], secure: bool, zenoh_config: str | None
+                 ) -> tuple[str, dict[str, str | None], Path | None]:
+    """The endpoint, each process's Zenoh config and the etcd's TLS folder: over TLS, a lab
+    made for this run in ``out/tls`` (unless a Zenoh config file says how to connect)."""
+    endpoint = free_endpoint()
+    configs: dict[str, str | None] = {name: zenoh_config
+                                      for name in ["cloud", "client", "worker", *names]}
+    if not secure or zenoh_config is not None:
+        return endpoint, configs, None
+    lab = make_lab(out / "tls", ["localhost", "127.0.0.1"], names)
+    etcd_certs = lab.pop("etcd")
+    return (endpoint.replace("tcp/127.0.0.1", "tls/localhost"),
+            {name: str(path) for name, path in lab.items()}, etcd_certs)
+
+
+def _start_cloud_side(endpoint: str, out: Path, config_path: str | None,
+                      cloud_args: list[str] | None, configs: dict[str, str | None],
+                      workers: int, etcd: Any) -> tuple[subprocess.Popen, list[subprocess.Popen]]:
+    """One cloud process; or, with ``workers`` > 1, a Zenoh router and that many workers
+    (placed by ``etcd`` if given)."""
+    logs = out / "logs"
+    if workers <= 1:
+        return start_cloud(endpoint, out, logs / "cloud.log", config_path, extra=cloud_args,
+                           zenoh_config=configs["cloud"]), []
+    worker_args = list(cloud_args or [])
+    if etcd is not None:
+        worker_args += ["--coordination", etcd.endpoint]
+        if etcd.certs is not None:
+            worker_args += ["--coordination-certs", str(etcd.certs)]
+    router = start_router(endpoint, logs / "router.log", configs["cloud"])
+    return router, [start_worker(endpoint, f"w{i}", out, logs / f"w{i}.log", config_path,
+                                 extra=worker_args, zenoh_config=configs["worker"])
+                    for i in range(workers)]
+
+
+def _follow_robots(client: CloudClient, robots: dict[str, subprocess.Popen], logs: Path,
+                   timeout_s: float, progress: Progress, watch: Watch | None,
+                   cloud_workers: list[subprocess.Popen]) -> None:
+    """Until every robot process ends: the cloud's status as progress (and to ``watch``);
+    a robot that failed, or robots past ``timeout_s``, raise."""
+    deadline = time.monotonic() + timeout_s
+    while any(p.poll() is None for p in robots.values()):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"robots still running after {timeout_s:.0f} s")
+        for name, p in robots.items():
+            if p.poll() not in (None, 0, EXIT_INCOMPLETE):
+                raise RuntimeError(f"robot {name} failed (exit {p.returncode}):\n"
+                                   + _tail(logs / f"{name}.log"))
+        try:
+            status = client.status(timeout=5.0)
+            groups = (status.get("merge") or {}).get("components", {})
+            progress.update(sum(r["frames"] for r in status["robots"].values()),
+                            "groups " + " | ".join("+".join(m) for m in groups.values()))
+            if watch is not None:
+                watch(status, cloud_workers)
+        except TimeoutError:
+            pass
+        time.sleep(0.5)
+
+
+def _say_cloud_exits(cloud: subprocess.Popen, cloud_workers: list[subprocess.Popen],
+                     logs: Path) -> None:
+    """After a failure: each cloud process that exited, with its log's tail."""
+    for name, p in [("cloud", cloud)] + [(f"w{i}", w) for i, w in enumerate(cloud_workers)]:
+        if p.poll() is not None:
+            log = logs / ("router.log" if name == "cloud" and cloud_workers else f"{name}.log")
+            print(f"{name} exited ({p.returncode}):\n" + _tail(log), file=sys.stderr)
+
+
 def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | None,
              link_args: list[str] | None = None, show_progress: bool = True,
              timeout_s: float = 1800.0, zenoh_config: str | None = None,
              secure: bool = True, cloud_args: list[str] | None = None,
              workers: int = 1,
-             watch: Callable[[dict[str, Any], list[subprocess.Popen]], None] | None = None,
+             watch: Watch | None = None,
              coordination: bool = True) -> dict[str, Any]:
     """Cloud and robots as processes on loopback. ``secure``: over TLS, with a lab made for
     this run in ``out/tls`` (unless a Zenoh config file says how to connect).
@@ -87,32 +161,13 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
     liveliness alone: benchmarks compare the two)."""
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=False)
-    endpoint = free_endpoint()
     names = [f"r{i}" for i in range(len(sources))]
-    configs = {name: zenoh_config for name in ["cloud", "client", "worker", *names]}
-    etcd_certs = None
-    if secure and zenoh_config is None:
-        lab = make_lab(out / "tls", ["localhost", "127.0.0.1"], names)
-        endpoint = endpoint.replace("tcp/127.0.0.1", "tls/localhost")
-        etcd_certs = lab.pop("etcd")
-        configs = {name: str(path) for name, path in lab.items()}
+    endpoint, configs, etcd_certs = _connections(out, names, secure, zenoh_config)
     logs = out / "logs"
-    etcd = None
-    if workers > 1:
-        etcd = _start_coordination(out, config_path, etcd_certs) if coordination else None
-        worker_args = list(cloud_args or [])
-        if etcd is not None:
-            worker_args += ["--coordination", etcd.endpoint]
-            if etcd.certs is not None:
-                worker_args += ["--coordination-certs", str(etcd.certs)]
-        cloud = start_router(endpoint, logs / "router.log", configs["cloud"])
-        cloud_workers = [start_worker(endpoint, f"w{i}", out, logs / f"w{i}.log", config_path,
-                                      extra=worker_args, zenoh_config=configs["worker"])
-                         for i in range(workers)]
-    else:
-        cloud = start_cloud(endpoint, out, logs / "cloud.log", config_path, extra=cloud_args,
-                            zenoh_config=configs["cloud"])
-        cloud_workers = []
+    etcd = _start_coordination(out, config_path, etcd_certs) \
+        if workers > 1 and coordination else None
+    cloud, cloud_workers = _start_cloud_side(endpoint, out, config_path, cloud_args, configs,
+                                             workers, etcd)
     robots: dict[str, Any] = {}
     client = None
     try:
@@ -126,35 +181,14 @@ def run_demo(sources: list[str], out: Path, offload_at: str, config_path: str | 
         total = sum(len(s) for s in sequences.values())
         progress = Progress(f"cloud tracking {len(names)} robots ({endpoint})", total,
                             enabled=show_progress)
-        deadline = time.monotonic() + timeout_s
-        while any(p.poll() is None for p in robots.values()):
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"robots still running after {timeout_s:.0f} s")
-            for name, p in robots.items():
-                if p.poll() not in (None, 0, EXIT_INCOMPLETE):
-                    raise RuntimeError(f"robot {name} failed (exit {p.returncode}):\n"
-                                       + _tail(logs / f"{name}.log"))
-            try:
-                status = client.status(timeout=5.0)
-                groups = (status.get("merge") or {}).get("components", {})
-                progress.update(sum(r["frames"] for r in status["robots"].values()),
-                                "groups " + " | ".join("+".join(m) for m in groups.values()))
-                if watch is not None:
-                    watch(status, cloud_workers)
-            except TimeoutError:
-                pass
-            time.sleep(0.5)
+        _follow_robots(client, robots, logs, timeout_s, progress, watch, cloud_workers)
         _check_robots(robots, logs, out)
         progress.update(total)
         summary = client.merge()
     except BaseException:
         for p in robots.values():
             stop(p, 5.0)
-        for name, p in [("cloud", cloud)] + [(f"w{i}", w) for i, w in enumerate(cloud_workers)]:
-            if p.poll() is not None:
-                log = logs / ("router.log" if name == "cloud" and cloud_workers
-                              else f"{name}.log")
-                print(f"{name} exited ({p.returncode}):\n" + _tail(log), file=sys.stderr)
+        _say_cloud_exits(cloud, cloud_workers, logs)
         raise
     finally:
         if client is not None:
