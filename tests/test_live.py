@@ -278,19 +278,24 @@ def test_a_resumed_live_robot_numbers_on_and_drops_what_the_session_has():
     """A camera cannot go back to a frame index: after a restart the robot numbers its frames
     on from the cloud's next index and drops frames not after the session's last timestamp
     (a replay restarted from its beginning)."""
+    import threading
+
+    from fleetslam.edge.pacing import live_frames
+    from fleetslam.edge.report import RobotReport
     from fleetslam.edge.robot import Robot
 
     recording = open_source(f"{require(TUM_RPY)}:0-29")
     replay = ReplaySource(recording, "fr1_rpy", 30.0)
     replay.start(10.0)
-    robot = Robot("r1", replay, "fr1_rpy", 3, Config(), show_progress=False)
     with pytest.raises(ValueError, match="delivers frames at its own rate"):
         Robot("r2", replay, "fr1_rpy", 3, Config(), rate="30", show_progress=False)
-    robot._resume_after = float(recording.timestamps[9])
-    frames = list(robot._frames(57))
+    report = RobotReport("r1", 3)
+    # The session's last frame was the recording's 10th; it resumes at index 57.
+    frames = list(live_frames(replay, 57, Config().source.live_frame_timeout_s,
+                              threading.Event(), report, float(recording.timestamps[9]), "r1"))
     replay.close()
     assert [f.index for f in frames] == list(range(57, 57 + len(frames)))
     assert frames and frames[0].timestamp > recording.timestamps[9]
-    assert robot.report.camera_before_resume >= 1
-    assert robot.report.camera_taken == len(frames)
-    assert robot.report.camera_skipped == replay.skipped
+    assert report.camera_before_resume >= 1
+    assert report.camera_taken == len(frames)
+    assert report.camera_skipped == replay.skipped

@@ -92,7 +92,7 @@ def test_frames_beyond_the_budget_are_dropped_unread_counted_and_the_robot_told(
         assert counts[OVER_BUDGET] == 16 and counts["frames"] == 4
         told = [r for r in replies if r.get("code") == protocol.Code.OVER_BUDGET.value]
         assert len(told) == 1  # at most once a second
-        assert session._transport_counts()[OVER_BUDGET] == 16
+        assert session.transport_counts()[OVER_BUDGET] == 16
     finally:
         session.close()
 
@@ -111,7 +111,7 @@ def test_under_the_budget_nothing_is_dropped(point0, tmp_path):
         session.drain()
         counts = session.counts()
         assert counts["frames"] == 20
-        assert session._transport_counts()[OVER_BUDGET] == 0
+        assert session.transport_counts()[OVER_BUDGET] == 0
         assert not [r for r in replies if r.get("type") == "error"]
     finally:
         session.close()
@@ -178,7 +178,7 @@ def test_an_honest_robot_at_point_0_loses_no_frame_to_the_budget(tmp_path):
                       show_progress=False)
         robot.run()
         session = server.sessions["r1"]
-        transport = session._transport_counts()
+        transport = session.transport_counts()
         assert transport[OVER_BUDGET] == 0
         assert transport["frames"] == 40
         assert session.budget.peak <= config.transport.session_budget_mb * MB
@@ -237,7 +237,7 @@ def test_uploads_beyond_the_budget_are_dropped_unread_under_it_read(point0, tmp_
         deadline = time.monotonic() + 10.0
         while session.counts()["rejected keyframe"] < 1 and time.monotonic() < deadline:
             time.sleep(0.05)
-        counts = session._transport_counts()
+        counts = session.transport_counts()
         assert counts["keyframes dropped unread (over memory budget)"] == 1
         assert counts["rejected keyframe"] == 1
         assert session.budget.used == 0  # the read upload's bytes are released

@@ -84,7 +84,6 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
     were lost); a cloud that does not answer at all holds it up at most in_flight_wait_s."""
     import threading
     import time
-    from types import SimpleNamespace
 
     import numpy as np
     from conftest import small_scene
@@ -105,7 +104,7 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
     time.sleep(0.3)
     assert waiter.is_alive()  # 4 in flight: the next frame waits
     data = encode_feedback("r1", 2, Feedback(2, 0.0, True, False, 100, np.eye(4), 5.0))
-    robot._on_feedback(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data)))
+    robot.take_feedback(data)
     waiter.join(5)
     assert not waiter.is_alive() and robot.window.in_flight() == [3]
     assert robot.report.flow_timeouts == 0

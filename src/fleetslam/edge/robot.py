@@ -166,8 +166,13 @@ class Robot:
     # -- what the cloud says (Zenoh callbacks) --------------------------------------------
 
     def _on_feedback(self, sample: Any) -> None:
+        self.take_feedback(sample.payload.to_bytes())
+
+    def take_feedback(self, data: bytes) -> None:
+        """The cloud's feedback on a frame (the Zenoh callback's): its place in flight
+        freed, its pose to ROS 2, a keyframe's upload queued."""
         try:
-            header, fb = decode_feedback(sample.payload.to_bytes())
+            header, fb = decode_feedback(data)
         except WireError as exc:
             log.warning("robot %s: feedback rejected: %s", self.robot_id, exc)
             return

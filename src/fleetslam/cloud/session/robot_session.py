@@ -78,7 +78,7 @@ class RobotSession:
         self.tracker = session_tracker(state, config, local_mapping)
         self.keyframes = self.tracker
         self.outputs = SessionOutputs(state, config, store, self.tracker.slam,
-                                      self._transport_counts)
+                                      self.transport_counts)
         # Why the robot's earlier session could not be restored (None: nothing was lost).
         self.history_lost: str | None = None
         # Decoded frames that inter-coded frames refer to (not checkpointed: a restored
@@ -252,7 +252,7 @@ class RobotSession:
         """The frames waiting in the session's inboxes (to decode, to track)."""
         return self._frames.waiting_frames() + self._decoded.waiting_frames()
 
-    def _transport_counts(self) -> dict[str, int]:
+    def transport_counts(self) -> dict[str, int]:
         """The counts as the summary's ``transport`` has them."""
         return {**{name: 0 for name in OVER_BUDGET.values()}, **self.counts(),
                 "frames dropped (session busy)": self._frames.dropped + self._decoded.dropped,
