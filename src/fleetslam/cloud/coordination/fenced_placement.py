@@ -62,8 +62,6 @@ class FencedPlacement(Placement):
         self.ownership = ownership
         ownership.on_fenced = self._on_fenced
         ownership.on_lost = self._on_lost
-        self._z: zenoh.Session | None = None  # set by start
-        self._served: Served | None = None  # set by start
         self._lock = threading.Lock()
         # robot -> (worker, epoch, mod revision) as etcd last said; the merger under MERGER.
         self._owners: dict[str, tuple[str, int, int]] = {}
@@ -83,7 +81,7 @@ class FencedPlacement(Placement):
     # -- lifecycle ------------------------------------------------------------------------
 
     def start(self, z: zenoh.Session, served: Served) -> "FencedPlacement":
-        self._z, self._served = z, served
+        self.directory.bind(z, served)
         self.ownership.start()
         self.directory.start_loads(z)
         prefix = self.ownership.keys.owner("")
@@ -107,11 +105,6 @@ class FencedPlacement(Placement):
         if self._watch is not None:
             self._watch.close()
         self.directory.close()
-
-    def _started(self) -> tuple[zenoh.Session, Served]:
-        if self._z is None or self._served is None:
-            raise RuntimeError("the placement is not started")
-        return self._z, self._served
 
     # -- what the worker asks ---------------------------------------------------------------
 
@@ -204,7 +197,7 @@ class FencedPlacement(Placement):
             self._apply(event.kv.key.decode()[len(prefix):], event.deleted, event.kv)
 
     def _apply(self, robot: str, deleted: bool, kv: Any) -> None:
-        _, served = self._started()
+        _, served = self.directory.started()
         if not deleted and kv.lease == 0:
             # No grant is without a lease (ownership.py): not an owner; the next grant of
             # the robot removes the key.
@@ -243,7 +236,7 @@ class FencedPlacement(Placement):
     def _on_fenced(self, robots: list[tuple[str, int]]) -> None:
         """The lease was not renewed in time: stop serving every robot at once (their
         sessions go unsaved: the store would refuse their writes anyway)."""
-        _, served = self._started()
+        _, served = self.directory.started()
         for robot, _epoch in robots:
             if robot == MERGER:
                 continue  # merges() says no from now on
@@ -259,7 +252,7 @@ class FencedPlacement(Placement):
             return
         reason = (f"worker {self.worker_id} no longer serves robot {robot} (its grant, epoch "
                   f"{epoch}, is gone from the coordination service: {why}); say hello again")
-        z, _ = self._started()
+        z, _ = self.directory.started()
         try:
             z.put(keys.reply(robot), protocol.encode(protocol.Error.of(
                 protocol.Code.NO_SESSION, reason)))
@@ -313,7 +306,7 @@ class FencedPlacement(Placement):
 
     def _elect(self, robot: str) -> None:
         try:
-            _, served = self._started()
+            _, served = self.directory.started()
             for attempt in range(self.cfg.max_rounds):
                 with self._lock:
                     held = self._owners.get(robot)

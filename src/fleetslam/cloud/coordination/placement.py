@@ -56,8 +56,6 @@ class LivelinessPlacement(Placement):
         self.worker_id = keys.check_worker_id(worker_id)
         self.cfg = cfg
         self.directory = WorkerDirectory(self.worker_id, cfg, meter, self, OUTCOMES)
-        self._z: zenoh.Session | None = None  # set by start
-        self._served: Served | None = None  # set by start
         self._lock = threading.Lock()
         self.owners: dict[str, set[str]] = {}  # robot -> workers holding its owner token
         self._mine: dict[str, Any] = {}  # robot -> this worker's owner token
@@ -73,7 +71,7 @@ class LivelinessPlacement(Placement):
     # -- lifecycle ------------------------------------------------------------------------
 
     def start(self, z: zenoh.Session, served: Served) -> "LivelinessPlacement":
-        self._z, self._served = z, served
+        self.directory.bind(z, served)
         self._elector.start()
         self.directory.start_loads(z)
         self.directory.announce(z)
@@ -92,11 +90,6 @@ class LivelinessPlacement(Placement):
         if self._subscriber is not None:
             self._subscriber.undeclare()
         self.directory.close()
-
-    def _started(self) -> tuple[zenoh.Session, Served]:
-        if self._z is None or self._served is None:
-            raise RuntimeError("the placement is not started")
-        return self._z, self._served
 
     # -- what the worker asks ---------------------------------------------------------------
 
@@ -150,7 +143,7 @@ class LivelinessPlacement(Placement):
     # -- liveliness events -------------------------------------------------------------------
 
     def _on_owner(self, sample: zenoh.Sample) -> None:
-        _, served = self._started()
+        _, served = self.directory.started()
         robot, worker = keys.last_chunks(sample.key_expr, 2)
         with self._lock:
             owners = self.owners.setdefault(robot, set())
@@ -182,7 +175,7 @@ class LivelinessPlacement(Placement):
 
     def _listed(self, key: str) -> list[str]:
         """The tokens under ``key`` now, asked of the routers (not the cached table)."""
-        z, _ = self._started()
+        z, _ = self.directory.started()
         replies = z.liveliness().get(key, timeout=self.cfg.query_timeout_s)
         return [str(r.ok.key_expr) for r in replies if r.ok is not None]
 
@@ -192,7 +185,7 @@ class LivelinessPlacement(Placement):
 
     def _elect(self, robot: str) -> None:
         try:
-            z, served = self._started()
+            z, served = self.directory.started()
             for attempt in range(self.cfg.max_rounds):
                 if self._closed.is_set() or self._listed(f"{keys.OWNERS}/{robot}/*"):
                     return

@@ -11,6 +11,7 @@ from typing import Any, Protocol
 
 import zenoh
 
+from fleetslam.cloud.coordination.placement_protocol import Served
 from fleetslam.cloud.coordination.worker_load import Holdings, LoadMeter, WorkerLoads
 from fleetslam.config import PlacementConfig
 from fleetslam.transport import keys
@@ -36,8 +37,21 @@ class WorkerDirectory:
         self._elections = dict.fromkeys(outcomes, 0)
         self._token: Any = None
         self._subscriber: Any = None
+        self._z: zenoh.Session | None = None  # set by bind
+        self._served: Served | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------
+
+    def bind(self, z: zenoh.Session, served: Served) -> None:
+        """The placement started: on ``z``, handing robots to ``served``."""
+        self._z, self._served = z, served
+
+    def started(self) -> tuple[zenoh.Session, Served]:
+        """The placement's Zenoh session and whom it hands robots to; RuntimeError before
+        it started."""
+        if self._z is None or self._served is None:
+            raise RuntimeError("the placement is not started")
+        return self._z, self._served
 
     def start_loads(self, z: zenoh.Session) -> None:
         """Report this worker's load and hear the others'."""
