@@ -26,7 +26,7 @@ from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import keys, protocol
-from fleetslam.transport.protocol import PROTOCOL, Code
+from fleetslam.transport.protocol import PROTOCOL, Code, Hello
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.envelope import FORMAT_VERSION, Kind, open_message
 from fleetslam.wire.frames import encode_frame_message
@@ -984,3 +984,46 @@ def test_a_flood_of_status_requests_costs_one_build_per_interval(cloud):
     assert [a.id for a in answers] == [f"q{i}" for i in range(200)]
     assert all(a.robots == answers[0].robots for a in answers)
     assert server.operator.status_builds - before <= 1 + int(took / STATUS_EVERY_S)
+
+
+def test_a_finished_session_is_never_resumed_a_new_run_is_refused_with_why(tmp_path,
+                                                                          messages):
+    """A robot id whose session ended: its next hello (a new run under the same id, before
+    or after a cloud restart) is refused as ended, saying to use a new id, and nothing of
+    the old session changes (it had been resumed past its end: '0 frames sent', exit 0)."""
+    endpoint = free_endpoint()
+    store = tmp_path / "cloud"
+    server = CloudServer(exact_config(), store, endpoint).start()
+    client = open_connecting(endpoint)
+    seq0, msgs0, _ = messages["r0"]
+    robot = FakeRobot(client, "r0", seq0.camera)
+    try:
+        robot.hello()
+        for data in msgs0:
+            robot.send(data)
+        keyframes = [fb.frame_index for fb in robot.poses(N_FRAMES) if fb.is_keyframe]
+        robot.z.put(keys.control("r0"), protocol.encode(
+            protocol.End(N_FRAMES - 1, unavailable=frozenset(keyframes))))
+        robot.reply("ended", timeout=60.0)
+        written = (store / "r0" / "trajectory.tum").read_bytes()
+        for restart in (False, True):
+            if restart:
+                server.close()
+                server = CloudServer(exact_config(), store, endpoint).start()
+            refusal = None
+            for _ in range(40):  # resent until answered: the client reconnects after a restart
+                robot.z.put(keys.control("r0"), protocol.encode(
+                    Hello(K, seq0.camera, "test").message(N_FRAMES)))
+                try:
+                    refusal = robot.reply("error", timeout=1.0)
+                    break
+                except AssertionError:
+                    continue
+            assert refusal is not None, "no answer to the hello"
+            assert (refusal["code"], refusal["answer_to"]) == ("session_ended", "hello")
+            assert "never resumed: run the robot under a new --id" in refusal["reason"]
+            assert (store / "r0" / "trajectory.tum").read_bytes() == written
+    finally:
+        robot.close()
+        client.close()
+        server.close()

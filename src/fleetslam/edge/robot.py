@@ -345,7 +345,8 @@ class Robot:
                             self._silence(), cfg.max_attempts)
             self.sender.control(message)
             try:
-                welcome = self.replies.await_reply((protocol.Welcome,), cfg.connect_timeout_s, "hello")
+                welcome = self.replies.await_reply((protocol.Welcome,), cfg.connect_timeout_s,
+                                                   "hello")
             except CloudRefused as refusal:
                 if refusal.wait:  # e.g. its coordination service out of reach: hello again
                     if waiting != refusal.reason:
@@ -358,6 +359,8 @@ class Robot:
                 # A full cloud frees slots (robots end, empty sessions expire): a few more
                 # hellos, further apart. Any other refusal (a bad hello, a changed point)
                 # would be refused again: stop at once.
+                if refusal.code == protocol.Code.SESSION_ENDED.value:
+                    raise  # its reason says what to do (a new --id)
                 if not refusal.full:
                     raise RuntimeError(f"robot {self.robot_id}: the cloud at {self.endpoint} "
                                        f"refused it: {refusal.reason}") from None
@@ -400,8 +403,7 @@ class Robot:
             if self.uploader.error:
                 raise RuntimeError(self.uploader.error)
             if self.replies.need_hello.is_set():  # the cloud lost the session meanwhile
-                self.report.note_welcome(self._hello(), self.report.first_index
-                                         + self.report.frames)
+                self._hello_while_ending()
             # Keyframes the robot cannot upload (a live camera's, gone from its buffer): the
             # cloud builds the map without their images instead of asking again.
             self.sender.control(protocol.End(last_seq, poses, camera,
@@ -431,6 +433,19 @@ class Robot:
                 self.uploader.queue(index)
             self.uploader.wait()
         raise RuntimeError(f"robot {self.robot_id}: the cloud never confirmed the end")
+
+    def _hello_while_ending(self) -> None:
+        """Hello again while ending (the cloud lost the session meanwhile): a session that
+        ended already (its "ended" was lost) is refused as ended, and the next end hears
+        "ended" again."""
+        try:
+            welcome = self._hello()
+        except CloudRefused as refusal:
+            if refusal.code != protocol.Code.SESSION_ENDED.value:
+                raise
+            self.replies.need_hello.clear()
+            return
+        self.report.note_welcome(welcome, self.report.first_index + self.report.frames)
 
     def _record_end(self, answer: protocol.Ended) -> None:
         r = self.report

@@ -56,6 +56,9 @@ class Code(str, Enum):
     # The robot's session holds its memory budget: frames and uploads beyond it are dropped
     # unread (an upload is resent until acknowledged). Keep to max_frames_in_flight.
     OVER_BUDGET = "over_budget"
+    # A hello for a session that ended: a finished session is never resumed (its trajectory
+    # and map stay as written); a new run starts under a new robot id.
+    SESSION_ENDED = "session_ended"
 
 
 def encode(message: Any) -> bytes:

@@ -414,12 +414,25 @@ class RobotSession:
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")
         if kind == "hello":
+            if self.finished is not None:
+                return self._refuse_ended()
             self.welcome(resumed=True)
         elif kind == "end":
             self.ends.take(message, arrival)
         else:
             self.replies.reject("control", f"unknown control message {str(kind)[:40]!r}",
                                 protocol.Code.UNKNOWN_TYPE)
+
+    def _refuse_ended(self) -> None:
+        """A hello for this ended session: a new run of the robot, refused with why (or the
+        robot ending it, which then ends again and hears "ended")."""
+        st = self.state
+        self.replies.reply(protocol.Error.of(
+            protocol.Code.SESSION_ENDED,
+            f"robot {self.robot_id}'s session ended at frame {st.last_index} "
+            f"({len(st.rows)} frames tracked); its trajectory and map stay as written in the "
+            f"store's {self.robot_id}/, and a finished session is never resumed: run the "
+            f"robot under a new --id", answer_to="hello"))
 
     @property
     def finished(self) -> FinishedMap | None:
