@@ -65,7 +65,8 @@ def _output_files(summary: dict) -> str:
     return ("summary.json, <robot>/trajectory.tum, <robot>/online.tum, <robot>/map.ply, "
             "<robot>/map.pgm + .yaml (nav2)"
             + (", global/<robot>.tum, global_map.ply, global_map.bt, global_map.pgm + .yaml "
-               "(nav2)" if merged else ""))
+               "(nav2)" if merged else "")
+            + (", map/ (the saved map)" if summary.get("map") else ""))
 
 
 def cmd_report(args: argparse.Namespace, config: Config) -> int:

@@ -246,9 +246,12 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
         if not merged:
             skipped.append("the merge and the global map")
         global_map = fleet.build_outputs([r.track() for r in runs], out_dir) if merged else None
+        saved = fleet.save(out_dir / "map", global_map) if global_map is not None else None
         interrupted = interrupt.requested
     summary = make_summary(runs, fleet if merged else None, global_map, config,
                            time.perf_counter() - start)
+    if saved is not None:
+        summary["map"] = saved
     if interrupted:
         summary["interrupted"] = {
             "by": "Ctrl-C", "frames_tracked": {r.name: len(r.timestamps) for r in runs},

@@ -24,6 +24,7 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.global_map import GlobalMap, RobotTrack, build_global_map, merge_summary
 from fleetslam.merging.merger import MapMerger, Searcher
+from fleetslam.merging.saved_map import write_map
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 
@@ -60,6 +61,11 @@ class FleetMap:
         """The largest group's global trajectories, point cloud, octree and grid, written
         under ``out_dir`` (global_map.py)."""
         return build_global_map(self.merger, tracks, self.config, out_dir)
+
+    def save(self, folder: Path, global_map: GlobalMap) -> dict[str, Any]:
+        """The merged group's map as a folder that outlives the run (saved_map.py); what
+        summary.json says of it."""
+        return write_map(folder, self.merger, global_map)
 
     def summary(self, global_map: GlobalMap | None) -> dict[str, Any]:
         """The merge as summary.json has it."""

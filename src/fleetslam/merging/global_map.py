@@ -67,6 +67,10 @@ class GlobalMap:
     # How the level map frame was found, and where it lies in the anchor's own map.
     map_frame: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0  # building it: dense refinement, graph, FS-HICP, outputs
+    # Members: each keyframe's dense cloud in its camera frame (points, colours), for the
+    # saved map (saved_map.py).
+    keyframe_clouds: dict[str, list[tuple[np.ndarray, np.ndarray]]] = \
+        field(default_factory=dict)
 
 
 def largest_component(components: dict[str, list[str]]) -> str:
@@ -132,7 +136,8 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     merger.refine_constraints(cloud_of)
     graph_poses = merger.solve_keyframe_poses()
     result = GlobalMap(members, anchor, {}, {}, {}, {},
-                       not_merged=_not_merged(merger, list(by_name), members))
+                       not_merged=_not_merged(merger, list(by_name), members),
+                       keyframe_clouds={m: clouds[m] for m in members})
     kf_poses = {m: graph_poses[m].copy() for m in members}
     # Made level below.
     result.T_global_map_graph = {m: merger.solve_T_global_map(m) for m in members}

@@ -129,6 +129,9 @@ class FleetMerge:
             log.warning("merge: robot %s left out: %s", robot, why)
         summary = RunSummary([f.summary for f in finished], merge, self.config,
                              time.perf_counter() - start).to_dict()
+        self._still_merger("the saved map")
+        summary["map"] = self.merger.locked(
+            lambda fleet: fleet.save(self.out_dir / "map", global_map))
         self._still_merger("summary.json")
         if self.config.outputs.mcap:
             summary["mcap"] = self._write_mcap(summary)

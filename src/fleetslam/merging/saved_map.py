@@ -1,0 +1,248 @@
+"""The fleet's map as a folder that outlives its run (``<run>/map/``), and its loader.
+
+    map/manifest.json        format and version, the group's anchor and map frame, each
+                             robot's camera and keyframe count, the inter-robot constraints,
+                             and every file's size and SHA-256
+    map/robots/<robot>.npz   the robot's keyframes as the merger holds them (features as the
+                             wire codes them: wire/merger_keyframes.py's KeyframeSummary),
+                             their poses in the map frame, and each keyframe's dense cloud
+
+Written after a merge, for the merged group (the global outputs' robots): written whole
+beside its folder, then put in its place, so a map is never half-written nor changed in
+place (a later merge of the same store replaces it whole). The place index is not
+stored: it is a function of the keyframes' descriptors, rebuilt when the map is loaded.
+
+Loading checks everything before anything is used, as the checkpoint loader does: the
+manifest's format and version, every file's size and hash, then each array's dtype and
+shape; a damaged map is refused with the file and the reason, never half-loaded, and the
+folder is only read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleetslam.camera import Camera
+from fleetslam.io.files import UnreadableFile, read_regular
+from fleetslam.merging.global_map import GlobalMap
+from fleetslam.merging.merger import MapMerger
+from fleetslam.pipeline.states import FeatureFrame
+from fleetslam.validation.names import name_problem
+from fleetslam.wire import data_tree
+from fleetslam.wire.merger_keyframes import KeyframeSummary
+
+MAP_FORMAT = "fleetslam-map"
+MAP_VERSION = 1
+MANIFEST = "manifest.json"
+# A manifest is kilobytes (a constraint is ~1 kB); a robot's file holds its keyframes'
+# features and dense clouds (~0.1-1 MB a keyframe).
+MAX_MANIFEST_BYTES = 16 << 20
+MAX_ROBOT_BYTES = 8 << 30
+CLASSES = data_tree.classes_of(Camera, KeyframeSummary, FeatureFrame)
+
+
+class MapError(ValueError):
+    """A saved map that cannot be loaded: ``path`` (the file) and ``reason``."""
+
+    def __init__(self, path: Path | str, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path, self.reason = str(path), reason
+
+
+@dataclass
+class SavedRobot:
+    name: str
+    camera: Camera
+    keyframes: list[KeyframeSummary]  # the merger's, in the robot's own map frame
+    poses: np.ndarray  # K x 4 x 4 T_map_keyframe in the saved map's frame
+    clouds: list[tuple[np.ndarray, np.ndarray]]  # per keyframe: N x 3 float32 (camera), colours
+
+
+@dataclass
+class SavedMap:
+    anchor: str  # whose first camera (made level) the map frame is
+    map_frame: dict[str, Any]  # how the level frame was found (global_map.py)
+    robots: dict[str, SavedRobot]
+    constraints: list[dict[str, Any]]  # the inter-robot edges, as the manifest has them
+
+    @property
+    def keyframes(self) -> int:
+        return sum(len(r.keyframes) for r in self.robots.values())
+
+
+def _constraints(merger: MapMerger, members: set[str]) -> list[dict[str, Any]]:
+    out = []
+    for c in merger.constraints:
+        q, p = c.match.query, c.match.place
+        if q.robot in members and p.robot in members:
+            info = c.information
+            out.append({"query": [q.robot, q.keyframe], "place": [p.robot, p.keyframe],
+                        "T_place_query": np.asarray(c.T_place_query).tolist(),
+                        "information": None if info is None else np.asarray(info).tolist(),
+                        "trusted": c.trusted, "kept": c.kept})
+    return out
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[str, Any]:
+    """The merged group's map into ``folder`` (written beside it, then put in its place:
+    there is never a half-written map; an earlier map there is replaced whole); what
+    summary.json says of it."""
+    if folder.exists() and not (folder / MANIFEST).is_file():
+        raise FileExistsError(f"{folder}: exists and is not a map fleetslam wrote; not "
+                              f"replaced")
+    members = list(global_map.members)
+    staging = folder.with_name(folder.name + ".writing")
+    shutil.rmtree(staging, ignore_errors=True)
+    (staging / "robots").mkdir(parents=True)
+    files, robots = {}, []
+    for name in members:
+        record = merger.robots[name]
+        clouds = global_map.keyframe_clouds.get(name, [])
+        tree = {"camera": record.camera, "keyframes": list(record.keyframes),
+                "poses": np.asarray(global_map.keyframe_poses[name], np.float64),
+                "cloud_points": [np.asarray(p, np.float32) for p, _ in clouds],
+                "cloud_colors": [np.asarray(c, np.uint8) for _, c in clouds]}
+        relative = f"robots/{name}.npz"
+        (staging / relative).write_bytes(data_tree.dumps(tree, CLASSES))
+        files[relative] = {"bytes": (staging / relative).stat().st_size,
+                           "sha256": _sha256(staging / relative)}
+        robots.append({"name": name, "keyframes": len(record.keyframes),
+                       "file": relative, "camera": record.camera.to_dict()})
+    manifest = {"format": MAP_FORMAT, "version": MAP_VERSION, "anchor": global_map.anchor,
+                "map_frame": global_map.map_frame, "robots": robots,
+                "constraints": _constraints(merger, set(members)), "files": files}
+    (staging / MANIFEST).write_text(json.dumps(manifest, indent=1))
+    _put_in_place(staging, folder)
+    total = sum(f["bytes"] for f in files.values())
+    keyframes = sum(r["keyframes"] for r in robots)
+    return {"folder": folder.name, "format_version": MAP_VERSION, "robots": members,
+            "keyframes": keyframes, "bytes": total,
+            "bytes_per_keyframe": total / keyframes if keyframes else None}
+
+
+def _put_in_place(staging: Path, folder: Path) -> None:
+    """``staging`` becomes ``folder``; an earlier map there goes only once it is replaced."""
+    old = folder.with_name(folder.name + ".replaced")
+    shutil.rmtree(old, ignore_errors=True)
+    if folder.exists():
+        os.replace(folder, old)
+    os.replace(staging, folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _manifest(folder: Path) -> dict[str, Any]:
+    path = folder / MANIFEST
+    try:
+        text = read_regular(path, MAX_MANIFEST_BYTES, f"the limit of {MAX_MANIFEST_BYTES}")
+        manifest = json.loads(text)
+    except UnreadableFile as exc:
+        raise MapError(path, "no manifest: not a map folder fleetslam wrote"
+                       if exc.reason == "missing" else exc.reason) from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise MapError(path, f"not a map manifest ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != MAP_FORMAT:
+        raise MapError(path, "not a map manifest fleetslam wrote")
+    version = manifest.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version > MAP_VERSION:
+        raise MapError(path, f"map format version {version!r}; this fleetslam reads up to "
+                             f"{MAP_VERSION} (a newer fleetslam wrote it)")
+    for key, kind in (("anchor", str), ("robots", list), ("files", dict),
+                      ("constraints", list), ("map_frame", dict)):
+        if not isinstance(manifest.get(key), kind):
+            raise MapError(path, f"{key} is not a {kind.__name__}")
+    return manifest
+
+
+def _checked_file(folder: Path, relative: str, listed: Any) -> bytes:
+    """A listed file's bytes, once its size and hash match the manifest's."""
+    path = folder / relative
+    if not isinstance(listed, dict) or not isinstance(listed.get("bytes"), int) \
+            or not isinstance(listed.get("sha256"), str):
+        raise MapError(folder / MANIFEST, f"{relative}: no size and hash listed")
+    if Path(relative).is_absolute() or ".." in Path(relative).parts:
+        raise MapError(folder / MANIFEST, f"{relative}: not a path inside the map")
+    try:
+        data = read_regular(path, min(listed["bytes"], MAX_ROBOT_BYTES), "its listed size")
+    except UnreadableFile as exc:
+        raise MapError(path, "missing (the manifest lists it)" if exc.reason == "missing"
+                       else exc.reason) from None
+    if len(data) != listed["bytes"]:
+        raise MapError(path, f"{len(data)} bytes, the manifest says {listed['bytes']} "
+                             f"(truncated or changed)")
+    if hashlib.sha256(data).hexdigest() != listed["sha256"]:
+        raise MapError(path, "its SHA-256 is not the manifest's (changed since it was "
+                             "written)")
+    return data
+
+
+def _robot(folder: Path, entry: Any, files: dict[str, Any]) -> SavedRobot:
+    manifest_path = folder / MANIFEST
+    if not isinstance(entry, dict) or not isinstance(entry.get("name"), str) \
+            or name_problem(entry["name"]) or not isinstance(entry.get("file"), str) \
+            or not isinstance(entry.get("keyframes"), int):
+        raise MapError(manifest_path, f"robot entry {str(entry)[:80]!r} is not one")
+    name, relative = entry["name"], entry["file"]
+    data = _checked_file(folder, relative, files.get(relative))
+    path = folder / relative
+    try:
+        tree = data_tree.loads(data, str(path), CLASSES, MAX_ROBOT_BYTES)
+    except data_tree.CheckpointError as exc:
+        raise MapError(path, exc.reason.replace("session checkpoint", "map file")) from None
+    return _robot_from_tree(path, name, entry["keyframes"], tree)
+
+
+def _robot_from_tree(path: Path, name: str, count: int, tree: Any) -> SavedRobot:
+    if not isinstance(tree, dict) or not isinstance(tree.get("camera"), Camera):
+        raise MapError(path, "no camera")
+    keyframes, poses = tree.get("keyframes"), tree.get("poses")
+    points, colors = tree.get("cloud_points"), tree.get("cloud_colors")
+    if not isinstance(keyframes, list) or len(keyframes) != count or not all(
+            isinstance(k, KeyframeSummary) and k.robot == name for k in keyframes):
+        raise MapError(path, f"not {count} keyframes of robot {name}")
+    if not isinstance(poses, np.ndarray) or poses.shape != (count, 4, 4) \
+            or poses.dtype != np.float64 or not np.isfinite(poses).all():
+        raise MapError(path, f"poses are not {count} finite 4 x 4 transforms")
+    if not isinstance(points, list) or not isinstance(colors, list) \
+            or len(points) != len(colors) or len(points) not in (0, count):
+        raise MapError(path, "dense clouds are not one per keyframe")
+    for p, c in zip(points, colors):
+        if not isinstance(p, np.ndarray) or not isinstance(c, np.ndarray) \
+                or p.dtype != np.float32 or c.dtype != np.uint8 or p.ndim != 2 \
+                or p.shape[1:] != (3,) or c.shape != p.shape or not np.isfinite(p).all():
+            raise MapError(path, "a dense cloud is not N x 3 finite float32 points with "
+                                 "N x 3 uint8 colours")
+    return SavedRobot(name, tree["camera"], keyframes, poses, list(zip(points, colors)))
+
+
+def read_map(folder: Path) -> SavedMap:
+    """The map saved in ``folder``, every file checked first; MapError naming the file and
+    what is wrong (nothing is loaded then, and the folder is never written)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise MapError(folder, "not a folder")
+    manifest = _manifest(folder)
+    robots = {}
+    for entry in manifest["robots"]:
+        robot = _robot(folder, entry, manifest["files"])
+        robots[robot.name] = robot
+    if manifest["anchor"] not in robots:
+        raise MapError(folder / MANIFEST, f"anchor {manifest['anchor']!r} is not one of its "
+                                          f"robots")
+    return SavedMap(manifest["anchor"], manifest["map_frame"], robots,
+                    manifest["constraints"])

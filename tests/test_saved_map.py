@@ -1,0 +1,102 @@
+"""The fleet's map as a folder that outlives its run (merging/saved_map.py): a merging run
+writes map/, and loading it gives back every keyframe, pose and dense cloud; a damaged map
+is refused with the file and the reason, nothing loaded and the folder unchanged."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import SEVEN_SCENES, require
+from fleetslam.config import Config
+from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.merging.saved_map import MANIFEST, MAP_VERSION, MapError, read_map, write_map
+from fleetslam.system import run_fleet
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> Path:
+    """Two robots on 7-Scenes (frames 0-99 and 60-159 of one recording) merged in one
+    process: the run's map/."""
+    folder = require(SEVEN_SCENES)
+    out = tmp_path_factory.mktemp("saved") / "run"
+    robots = [(f"r{i}", str(folder), RgbdSequence(folder, first=a, last=b))
+              for i, (a, b) in enumerate(((0, 99), (60, 159)))]
+    run_fleet(robots, Config(), out, show_progress=False)
+    return out
+
+
+def _tree_digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_merging_run_saves_its_map_and_it_loads_whole(run):
+    summary = json.loads((run / "summary.json").read_text())
+    saved = read_map(run / "map")
+    members = summary["merge"]["members"]
+    assert sorted(saved.robots) == sorted(members) and saved.anchor in members
+    assert summary["map"]["keyframes"] == saved.keyframes > 0
+    for name, robot in saved.robots.items():
+        global_kfs = np.loadtxt(run / "global" / f"{name}.tum")  # a frame per row
+        assert len(robot.keyframes) == len(robot.poses) == len(robot.clouds)
+        assert [k.keyframe for k in robot.keyframes] == list(range(len(robot.keyframes)))
+        assert sum(len(p) for p, _ in robot.clouds) > 0
+        assert len(global_kfs) >= len(robot.keyframes)
+    # The inter-robot constraints of the group, as its graph held them.
+    assert saved.constraints and all(c["query"][0] != c["place"][0] for c in saved.constraints)
+
+
+def test_a_map_is_written_whole_and_replaces_only_a_map(run, tmp_path):
+    folder = tmp_path / "not-a-map"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("mine")
+    from fleetslam.merging.global_map import GlobalMap
+    from fleetslam.merging.merger import MapMerger
+
+    with pytest.raises(FileExistsError, match="not a map fleetslam wrote"):
+        write_map(folder, MapMerger(Config()), GlobalMap([], "r0", {}, {}, {}, {}))
+    assert (folder / "notes.txt").read_text() == "mine"
+
+
+def _damage(folder: Path, how: str) -> str:
+    manifest = json.loads((folder / MANIFEST).read_text())
+    robot_file = folder / manifest["robots"][0]["file"]
+    if how == "no manifest":
+        (folder / MANIFEST).unlink()
+        return "no manifest: not a map folder fleetslam wrote"
+    if how == "a changed byte":
+        data = bytearray(robot_file.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        robot_file.write_bytes(bytes(data))
+        return "SHA-256 is not the manifest's"
+    if how == "a truncated file":
+        robot_file.write_bytes(robot_file.read_bytes()[:-100])
+        return "truncated or changed"
+    if how == "a newer format":
+        manifest["version"] = MAP_VERSION + 1
+        (folder / MANIFEST).write_text(json.dumps(manifest))
+        return f"map format version {MAP_VERSION + 1}; this fleetslam reads up to"
+    if how == "a missing robot file":
+        robot_file.unlink()
+        return "missing (the manifest lists it)"
+    raise AssertionError(how)
+
+
+@pytest.mark.parametrize("how", ["no manifest", "a changed byte", "a truncated file",
+                                 "a newer format", "a missing robot file"])
+def test_a_damaged_map_is_refused_in_one_line_and_left_as_it_is(run, tmp_path, how):
+    folder = tmp_path / "map"
+    shutil.copytree(run / "map", folder)
+    reason = _damage(folder, how)
+    before = _tree_digest(folder)
+    with pytest.raises(MapError, match=re.escape(reason)) as refused:
+        read_map(folder)
+    assert "\n" not in str(refused.value) and str(folder) in str(refused.value)
+    assert _tree_digest(folder) == before
