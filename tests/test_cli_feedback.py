@@ -38,3 +38,15 @@ def test_status_and_merge_document_connect():
         assert ("--connect ENDPOINT the cloud's Zenoh endpoint, as its --listen, or a router of "
                 "several workers (default from config [transport] endpoint: "
                 "tcp/127.0.0.1:7447)") in text, text
+
+
+def test_a_robot_named_after_a_run_folder_is_refused_before_anything_is_written(tmp_path):
+    """A robot's files are <run>/<name>/: a name that is a folder the run keeps beside them
+    (global/, map/, report/) or that is no robot id is refused, naming the flag."""
+    for name, reason in (("map", "robot id 'map' is reserved"),
+                         ("../x", "--name '../x'")):
+        out = tmp_path / f"run-{len(name)}"
+        result = _cli("--quiet", "run", "--robot", str(tmp_path / "nowhere"), "--name", name,
+                      "--out", str(out))
+        assert result.returncode != 0 and reason in result.stderr, result.stderr
+        assert not out.exists()

@@ -523,6 +523,11 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     names = args.name or []
     if names and len(names) != len(args.robot):
         raise ValueError(f"{len(names)} --name for {len(args.robot)} --robot")
+    for name in names:  # a robot's folder in the run: <out>/<name>/
+        try:
+            keys_check(name)
+        except ValueError as exc:
+            raise ValueError(f"--name {name!r}: {exc}") from None
     robots = []
     for i, spec in enumerate(args.robot):
         name = names[i] if names else f"r{i}"

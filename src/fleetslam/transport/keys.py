@@ -34,6 +34,8 @@ from fleetslam.wire import envelope
 
 ROOT = "fleet"
 CLOUD = "cloud"  # reserved: not a robot id
+# A robot's files are <run or store>/<robot>/: not the folders a run keeps beside them.
+RUN_FOLDERS = ("global", "map", "report", "logs", "tls", "etcd")
 
 
 def check_robot_id(robot_id: str) -> str:
@@ -41,6 +43,9 @@ def check_robot_id(robot_id: str) -> str:
     envelope.check_robot_id(robot_id)
     if robot_id == CLOUD:
         raise ValueError(f"robot id '{CLOUD}' is reserved for the cloud's own keys")
+    if robot_id in RUN_FOLDERS:
+        raise ValueError(f"robot id {robot_id!r} is reserved: a run keeps its {robot_id}/ "
+                         f"folder beside the robots' ({', '.join(RUN_FOLDERS)} are taken)")
     return robot_id
 
 
