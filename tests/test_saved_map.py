@@ -100,3 +100,58 @@ def test_a_damaged_map_is_refused_in_one_line_and_left_as_it_is(run, tmp_path, h
         read_map(folder)
     assert "\n" not in str(refused.value) and str(folder) in str(refused.value)
     assert _tree_digest(folder) == before
+
+
+def test_a_loaded_map_is_searched_and_a_robot_that_finds_it_tracks_in_its_frame(run,
+                                                                                 tmp_path):
+    """The next day: a new run loads the map, and a robot on frames the map covers part of
+    (120-219) joins it by itself; its global trajectory is in the map's frame (scored with
+    one alignment together with the map's robots', as one session's would be), the map's
+    anchor stays where it was, and the run writes the extended map (the loaded one is
+    never changed)."""
+    from fleetslam.evaluation.ate import absolute_trajectory_error
+    from fleetslam.io.trajectory import read_tum_trajectory
+
+    folder = require(SEVEN_SCENES)
+    before = _tree_digest(run / "map")
+    saved = read_map(run / "map")
+    out = tmp_path / "day2"
+    robots = [("r0", str(folder), RgbdSequence(folder, first=120, last=219))]
+    summary = run_fleet(robots, Config(), out, show_progress=False, saved_map=saved)
+    assert _tree_digest(run / "map") == before
+    merge = summary["merge"]
+    assert sorted(merge["members"]) == sorted(["r0", *(f"map-{n}" for n in saved.robots)])
+    assert merge["map_frame"]["source"] == "the loaded map's frame"
+    anchor_then = read_tum_trajectory(run / "global" / f"{saved.anchor}.tum")[1]
+    anchor_now = read_tum_trajectory(out / "global" / f"map-{saved.anchor}.tum")[1]
+    np.testing.assert_allclose(anchor_now[0], saved.robots[saved.anchor].poses[0], atol=1e-9)
+    assert len(anchor_then) >= len(anchor_now)
+    # One alignment for yesterday's robots and today's: today's is in the map's frame.
+    gt_times, gt_poses = read_tum_trajectory(folder / "groundtruth.txt")
+    estimated, truth = [], []
+    for path in (run / "global" / "r0.tum", run / "global" / "r1.tum",
+                 out / "global" / "r0.tum"):
+        times, poses = read_tum_trajectory(path)
+        nearest = np.abs(gt_times[None, :] - times[:, None]).argmin(axis=1)
+        found = np.abs(gt_times[nearest] - times) < 1e-3
+        estimated.append(poses[found])
+        truth.append(gt_poses[nearest[found]])
+    joint = absolute_trajectory_error(np.concatenate(estimated), np.concatenate(truth))
+    assert joint.rmse_m < 0.05, joint
+    extended = read_map(out / "map")
+    assert extended.keyframes > saved.keyframes
+
+
+def test_a_robot_from_another_room_never_joins_the_map(run, tmp_path):
+    """TUM fr1_rpy (another building) against the 7-Scenes map: searched, never joined; it
+    stays in its own frame and the run says so."""
+    from conftest import TUM_RPY
+
+    saved = read_map(run / "map")
+    folder = require(TUM_RPY)
+    robots = [("r0", str(folder), RgbdSequence(folder, last=59))]
+    summary = run_fleet(robots, Config(), tmp_path / "elsewhere", show_progress=False,
+                        saved_map=saved)
+    merge = summary["merge"]
+    assert "r0" not in merge["members"]
+    assert "r0" in merge["not_merged"]

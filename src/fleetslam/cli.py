@@ -516,6 +516,7 @@ def _still_merging(merge: dict[str, Any]) -> str:
 
 def cmd_run(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.recording import absolute_spec, open_source
+    from fleetslam.merging.saved_map import read_map
     from fleetslam.system import run_fleet
 
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
@@ -533,9 +534,10 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
         name = names[i] if names else f"r{i}"
         # Absolute, so `fleetslam report` finds its ground truth from any directory.
         robots.append((name, absolute_spec(spec), open_source(spec, camera, config.source)))
+    saved = read_map(Path(args.map)) if args.map else None  # checked before anything runs
     out = Path(args.out) if args.out else _default_out("run")
     _free_out(out, args.overwrite)
-    summary = run_fleet(robots, config, out, show_progress=not args.quiet)
+    summary = run_fleet(robots, config, out, show_progress=not args.quiet, saved_map=saved)
     _finish(summary, out, args.quiet)
     return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
 
@@ -717,6 +719,9 @@ def _add_run_command(sub: Any) -> None:
     run.add_argument("--name", action="append", help="robot name, once per --robot")
     run.add_argument("--camera", help="camera.json overriding the detected camera")
     _add_topic_options(run)
+    run.add_argument("--map", metavar="DIR", help="a saved map (an earlier run's map/): the "
+                     "robots search it and, where they find it, track in its frame; the run "
+                     "writes the extended map as its own map/ (DIR is never changed)")
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
     run.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
                      "earlier run folder (an interrupted one, say)")

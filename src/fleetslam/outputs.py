@@ -7,7 +7,7 @@ schema: run_summary.py) and the tables printed from it (also the HTML report's).
     <out>/<robot>/map.ply          the robot's dense map
     <out>/<robot>/robot.json       the robot's entry of summary.json (the cloud, as it ends)
     <out>/<robot>/robot_report.json  the robot process's own report (a deployed run)
-    <out>/summary.json             run_summary.RunSummary; robots, merge, config; a deployed run (the
+    <out>/summary.json             run_summary.RunSummary: robots, merge, config; a deployed run (the
                                    demo) adds each robot's report and the deployment; ``mcap``
                                    names run.mcap when the run wrote it
     <out>/run.mcap                 all of it as ROS 2 messages (run_mcap.py)

@@ -34,6 +34,7 @@ from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid
 from fleetslam.merging.fleet_map import FleetMap
 from fleetslam.merging.global_map import GlobalMap, RobotTrack
+from fleetslam.merging.saved_map import SavedMap
 from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.backend.robot_slam import RobotSlam
@@ -173,14 +174,14 @@ def track_robot(name: str, source: str, sequence: RecordedSource, config: Config
 
 
 def track_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config,
-                show_progress: bool = True, interrupt: Interrupt | None = None
-                ) -> tuple[list[RobotRun], FleetMap]:
+                show_progress: bool = True, interrupt: Interrupt | None = None,
+                fleet: FleetMap | None = None) -> tuple[list[RobotRun], FleetMap]:
     """Every robot tracked, taking turns frame by frame; each new keyframe goes to the
     fleet's map at once, so robots join as soon as they share a place (as in the cloud). An
     ``interrupt`` requested ends it early: each robot's run holds the frames it tracked."""
     interrupt = interrupt or Interrupt()
     trackers = [RobotTracker(name, source, seq, config) for name, source, seq in robots]
-    fleet = FleetMap(config)
+    fleet = fleet or FleetMap(config)
     for t in trackers:
         fleet.add_robot(t.name, t.sequence.camera.mounted(config.camera.base_link))
     total = sum(len(t.sequence) for t in trackers)
@@ -220,7 +221,8 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
 
 
 def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,
-              show_progress: bool = True) -> dict[str, Any]:
+              show_progress: bool = True, saved_map: SavedMap | None = None
+              ) -> dict[str, Any]:
     """Track, map and merge; write everything under ``out_dir``; score against ground truth
     where a sequence has it (after the run); return the summary. A Ctrl-C ends it early:
     the trajectories tracked so far are written, and ``summary["interrupted"]`` says so."""
@@ -229,8 +231,11 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
         sequence.camera.mounted(config.camera.base_link)
     out_dir.mkdir(parents=True, exist_ok=False)
     skipped: list[str] = []  # what a Ctrl-C left unbuilt
+    fleet = FleetMap(config)
+    # A loaded map is the fleet's first group: the robots search it as they search each other.
+    saved_tracks = fleet.load(saved_map) if saved_map is not None else []
     with Interrupt() as interrupt:
-        runs, fleet = track_fleet(robots, config, show_progress, interrupt)
+        runs, fleet = track_fleet(robots, config, show_progress, interrupt, fleet)
         for run in runs:
             # After a Ctrl-C the trajectories are written, the maps are not built.
             if interrupt.requested:
@@ -245,7 +250,8 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
         merged = not interrupt.requested
         if not merged:
             skipped.append("the merge and the global map")
-        global_map = fleet.build_outputs([r.track() for r in runs], out_dir) if merged else None
+        global_map = fleet.build_outputs([r.track() for r in runs] + saved_tracks, out_dir) \
+            if merged else None
         saved = fleet.save(out_dir / "map", global_map) if global_map is not None else None
         interrupted = interrupt.requested
     summary = make_summary(runs, fleet if merged else None, global_map, config,

@@ -24,7 +24,7 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.global_map import GlobalMap, RobotTrack, build_global_map, merge_summary
 from fleetslam.merging.merger import MapMerger, Searcher
-from fleetslam.merging.saved_map import write_map
+from fleetslam.merging.saved_map import SavedMap, load_into, write_map
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 
@@ -61,6 +61,12 @@ class FleetMap:
         """The largest group's global trajectories, point cloud, octree and grid, written
         under ``out_dir`` (global_map.py)."""
         return build_global_map(self.merger, tracks, self.config, out_dir)
+
+    def load(self, saved: SavedMap) -> list[RobotTrack]:
+        """A saved map as the fleet's first group, in its own frame: robots added after it
+        search it as they search each other, and a group they join keeps the map's frame.
+        The tracks the global outputs need of its robots."""
+        return load_into(self.merger, saved)
 
     def save(self, folder: Path, global_map: GlobalMap) -> dict[str, Any]:
         """The merged group's map as a folder that outlives the run (saved_map.py); what

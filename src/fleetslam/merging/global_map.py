@@ -49,6 +49,9 @@ class RobotTrack:
     references: np.ndarray  # N int: reference keyframe of each frame, -1 none
     T_reference_camera: list[np.ndarray | None]
     keyframe_image: KeyframeImage
+    # A loaded map's robot: each keyframe's dense cloud as saved, by frame index (it has no
+    # images).
+    keyframe_clouds: dict[int, tuple[np.ndarray, np.ndarray]] | None = None
 
 
 @dataclass
@@ -103,6 +106,9 @@ def _local_clouds(track: RobotTrack, frame_indices: Iterable[int], config: Confi
                   ) -> list[tuple[np.ndarray, np.ndarray]]:
     clouds = []
     for i in frame_indices:
+        if track.keyframe_clouds is not None:
+            clouds.append(track.keyframe_clouds[i])
+            continue
         image = track.keyframe_image(i)
         if image is None:  # no images: an empty cloud keeps the list aligned with the poses
             clouds.append((np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)))
@@ -143,7 +149,8 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
     result.T_global_map_graph = {m: merger.solve_T_global_map(m) for m in members}
     correction = {m: np.eye(4) for m in members}
     if config.merge.fshicp_refine and len(members) > 1:
-        result.fshicp = _refine_by_fshicp(members, clouds, kf_poses, correction, config)
+        result.fshicp = _refine_by_fshicp(members, clouds, kf_poses, correction, config,
+                                          merger.saved)
     # Every keyframe placed once, for the point cloud, the grid and the octree's scans.
     placed_points = [p for m in members for p in _place(clouds[m], kf_poses[m])]
     origins = [T[:3, 3] for m in members for T in kf_poses[m]]
@@ -157,7 +164,8 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
         graph[anchor] if anchor in graph else merger.solve_T_global_map(anchor))
     grid, T_map_graph, result.map_frame = _fleet_frame(
         list(zip(placed_points, origins)), poses.reshape(-1, 4, 4),
-        merger.robots[anchor].camera, T_graph_anchor, config)
+        merger.robots[anchor].camera, T_graph_anchor, config,
+        loaded=anchor == merger.fixed_anchor)
     # Everything from here on in the level map frame (map_frame.py).
     placed_points = [transform_points(T_map_graph, p) for p in placed_points]
     origins = [transform_points(T_map_graph, o[None])[0] for o in origins]
@@ -219,13 +227,14 @@ def _not_merged(merger: MapMerger, robots: list[str], members: list[str]) -> dic
 
 def _refine_by_fshicp(members: list[str], clouds: dict[str, list[tuple[np.ndarray, np.ndarray]]],
                       kf_poses: dict[str, np.ndarray], correction: dict[str, np.ndarray],
-                      config: Config) -> list[dict[str, Any]]:
+                      config: Config, fixed: set[str]) -> list[dict[str, Any]]:
     """FS-HICP of each member's dense map to the rest of the group's, kept where it lowers
-    the fitness: ``kf_poses`` and ``correction`` updated in place; one record per robot."""
+    the fitness: ``kf_poses`` and ``correction`` updated in place; one record per robot.
+    The first member, and a loaded map's robots (``fixed``), stay."""
     records = []
     placed = {m: voxel_downsample(np.vstack(_place(clouds[m], kf_poses[m])), None,
                                   config.map.voxel_m)[0] for m in members}
-    for m in members[1:]:
+    for m in [m for m in members[1:] if m not in fixed]:
         target = np.vstack([placed[o] for o in members if o != m])
         fit = fshicp(placed[m], target, np.eye(4), config.fshicp)
         improved = fit.final_fitness < fit.initial_fitness
@@ -244,13 +253,16 @@ def _refine_by_fshicp(members: list[str], clouds: dict[str, list[tuple[np.ndarra
 
 
 def _fleet_frame(scans: list[tuple[np.ndarray, np.ndarray]], poses: np.ndarray,
-                 anchor_camera: Camera, T_graph_anchor: np.ndarray, config: Config
-                 ) -> tuple[OccupancyGrid, np.ndarray, dict[str, Any]]:
+                 anchor_camera: Camera, T_graph_anchor: np.ndarray, config: Config,
+                 loaded: bool = False) -> tuple[OccupancyGrid, np.ndarray, dict[str, Any]]:
     """(the grid, in the map frame; T_map_graph; how the map frame was found): the anchor's
-    base_link at its first frame with a mounting, else the grid's level frame (map_frame.py)."""
+    base_link at its first frame with a mounting, else the grid's level frame (map_frame.py);
+    a loaded map's group keeps the map's frame (the graph's is it)."""
     grid = occupancy_grid(scans, poses, config.grid, mounting_up(T_graph_anchor, anchor_camera))
     mounted = base_link_frame(T_graph_anchor, anchor_camera)
-    if mounted is None:
+    if loaded:
+        T_graph_map, source = np.eye(4), "the loaded map's frame"
+    elif mounted is None:
         T_graph_map, source = grid.T_map_grid, grid.up_source
         grid.T_map_grid = np.eye(4)
     else:

@@ -104,6 +104,9 @@ class MapMerger:
         self.dense_seconds: list[float] = []
         # Global keyframe poses per robot from the last optimisation (None: stale).
         self._global: dict[str, np.ndarray] | None = None
+        # A loaded map's group: its frame is kept whoever joins it (None: no map loaded).
+        self.fixed_anchor: str | None = None
+        self.saved: set[str] = set()  # the loaded map's robots (their poses stay)
 
     # -- input ----------------------------------------------------------------------------
 
@@ -112,6 +115,38 @@ class MapMerger:
             return
         self.robots[name] = RobotRecord(name, len(self.robots), camera, anchor=name)
         self.search.add_robot(name, camera)
+
+    def add_saved_robot(self, name: str, camera: Camera, keyframes: list[KeyframeSummary],
+                        poses: np.ndarray, anchor: str) -> None:
+        """A robot of a loaded map: its keyframes at their poses in the map's frame, in the
+        map's group (``anchor``'s) from the start, indexed for the other robots' searches
+        (none of them searched: the map's robots are joined already)."""
+        self.add_robot(name, camera)
+        record = self.robots[name]
+        record.keyframes = list(keyframes)
+        record.poses = np.array(poses, np.float64).reshape(-1, 4, 4)
+        record.anchor, record.T_anchor_map = anchor, np.eye(4)
+        record.joined = {"component": anchor, "via": ["the loaded map"], "frames": {},
+                         "matches": 0}
+        for summary in keyframes:
+            self.search.submit(summary, [], time.monotonic())
+        self.search.take_results()  # indexed only
+        self.fixed_anchor = anchor
+        self.saved.add(name)
+        self._global = None
+
+    def add_saved_constraint(self, query: KeyframeSummary, place: KeyframeSummary,
+                             T_place_query: np.ndarray, information: np.ndarray | None,
+                             kept: bool | None) -> None:
+        """An inter-robot edge of a loaded map, as its graph held it (refined already)."""
+        T = np.asarray(T_place_query, np.float64)
+        dense = DenseRefinement(information is not None, "" if information is not None
+                                else "the loaded map's edge was not refined", T,
+                                information, 0.0, 0.0, 0.0, 0, 0.0)
+        match = PlaceMatch(query, place, T, 0.0, 0, 0)
+        self._pairs.add(pair_key(query, place))
+        self.constraints.append(Constraint(match, trusted=True, kept=kept, dense=dense))
+        self._global = None
 
     def update_poses(self, robot: str, poses: np.ndarray) -> None:
         """The robot's latest keyframe poses (local BA and loop closing move them)."""
@@ -235,7 +270,9 @@ class MapMerger:
         q, p = self.robots[newest.query.robot], self.robots[newest.place.robot]
         # The group that keeps its frame: the one whose anchor's id sorts first (not the
         # first to arrive, so the global frame does not depend on network timing).
-        keep, absorb = (p, q) if p.anchor <= q.anchor else (q, p)
+        # A loaded map's group keeps its frame whoever joins it.
+        keep, absorb = (p, q) if (p.anchor != self.fixed_anchor, p.anchor) \
+            <= (q.anchor != self.fixed_anchor, q.anchor) else (q, p)
         T_place_query = self.implied(newest)
         T_keep_absorb = T_place_query if keep is p else invert(T_place_query)  # map to map
         # absorbed robot's map -> keeping robot's map -> keeping anchor; and every member of

@@ -20,6 +20,7 @@ folder is only read.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -32,7 +33,7 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.io.files import UnreadableFile, read_regular
-from fleetslam.merging.global_map import GlobalMap
+from fleetslam.merging.global_map import GlobalMap, RobotTrack
 from fleetslam.merging.merger import MapMerger
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.validation.names import name_problem
@@ -46,6 +47,9 @@ MANIFEST = "manifest.json"
 # features and dense clouds (~0.1-1 MB a keyframe).
 MAX_MANIFEST_BYTES = 16 << 20
 MAX_ROBOT_BYTES = 8 << 30
+# A loaded map's robots join the run under their names with this before them (a run's own
+# robots are r0, r1, ... as the map's were).
+LOADED_PREFIX = "map-"
 CLASSES = data_tree.classes_of(Camera, KeyframeSummary, FeatureFrame)
 
 
@@ -244,5 +248,70 @@ def read_map(folder: Path) -> SavedMap:
     if manifest["anchor"] not in robots:
         raise MapError(folder / MANIFEST, f"anchor {manifest['anchor']!r} is not one of its "
                                           f"robots")
+    for c in manifest["constraints"]:
+        problem = _constraint_problem(c, robots)
+        if problem is not None:
+            raise MapError(folder / MANIFEST, f"constraint {str(c)[:80]}: {problem}")
     return SavedMap(manifest["anchor"], manifest["map_frame"], robots,
                     manifest["constraints"])
+
+
+def _matrix(value: Any, n: int) -> np.ndarray | None:
+    try:
+        m = np.array(value, np.float64)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return m if m.shape == (n, n) and np.isfinite(m).all() else None
+
+
+def _constraint_problem(c: Any, robots: dict[str, SavedRobot]) -> str | None:
+    """Why an inter-robot edge of the manifest is not one between its keyframes, or None."""
+    if not isinstance(c, dict):
+        return "not an object"
+    for end in ("query", "place"):
+        ref = c.get(end)
+        if not isinstance(ref, list) or len(ref) != 2 or ref[0] not in robots \
+                or not isinstance(ref[1], int) \
+                or not 0 <= ref[1] < len(robots[ref[0]].keyframes):
+            return f"its {end} is not a keyframe of the map"
+    if _matrix(c.get("T_place_query"), 4) is None:
+        return "T_place_query is not a finite 4 x 4"
+    if c.get("information") is not None and _matrix(c["information"], 6) is None:
+        return "information is not a finite 6 x 6"
+    if c.get("kept") not in (True, False, None):
+        return "kept is not true, false or null"
+    return None
+
+
+def load_into(merger: MapMerger, saved: SavedMap) -> list[RobotTrack]:
+    """The saved map as the merger's first group, in the map's frame, each robot renamed
+    ``map-<name>``; the tracks the global map needs of them (their keyframes as frames, with
+    the saved clouds). Its edges come with it, as its graph held them."""
+    names = {name: LOADED_PREFIX + name for name in saved.robots}
+    taken = [n for n in names.values() if n in merger.robots]
+    if taken:
+        raise ValueError(f"robots {', '.join(taken)} are in the run already: a loaded map's "
+                         f"robots are named {LOADED_PREFIX}<name>")
+    keyframes: dict[str, list[KeyframeSummary]] = {}
+    tracks = []
+    for name in sorted(saved.robots, key=lambda n: (n != saved.anchor, n)):
+        robot, new = saved.robots[name], names[name]
+        kfs = [dataclasses.replace(k, robot=new, T_map_keyframe=pose.copy())
+               for k, pose in zip(robot.keyframes, robot.poses)]
+        merger.add_saved_robot(new, robot.camera, kfs, robot.poses, names[saved.anchor])
+        keyframes[name] = kfs
+        count = len(kfs)
+        tracks.append(RobotTrack(
+            new, robot.camera, np.array([k.timestamp for k in kfs]), robot.poses.copy(),
+            np.arange(count), [np.eye(4)] * count, lambda _: None,
+            keyframe_clouds={k.frame_index: cloud for k, cloud in zip(kfs, robot.clouds)}
+            if robot.clouds else None))
+    for c in saved.constraints:
+        (q_robot, q), (p_robot, p) = c["query"], c["place"]
+        information = c.get("information")
+        merger.add_saved_constraint(keyframes[q_robot][q], keyframes[p_robot][p],
+                                    np.array(c["T_place_query"], np.float64),
+                                    None if information is None
+                                    else np.array(information, np.float64), c.get("kept"))
+    return tracks
+
