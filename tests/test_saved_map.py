@@ -155,3 +155,23 @@ def test_a_robot_from_another_room_never_joins_the_map(run, tmp_path):
     merge = summary["merge"]
     assert "r0" not in merge["members"]
     assert "r0" in merge["not_merged"]
+
+
+def test_localise_only_places_the_robot_in_the_map_and_leaves_the_map_as_it_was(run,
+                                                                                  tmp_path):
+    """--localise-only: the robot joins the map and its trajectory is in the map's frame,
+    the map's keyframes keep their poses (to the graph's prior, 1e-6), and no new map is
+    written (nothing extends it)."""
+    from fleetslam.io.trajectory import read_tum_trajectory
+
+    folder = require(SEVEN_SCENES)
+    saved = read_map(run / "map")
+    out = tmp_path / "localised"
+    robots = [("r0", str(folder), RgbdSequence(folder, first=120, last=219))]
+    summary = run_fleet(robots, Config(), out, show_progress=False, saved_map=saved,
+                        localise_only=True)
+    assert "r0" in summary["merge"]["members"]
+    assert not (out / "map").exists() and "map" not in summary
+    for name, robot in saved.robots.items():
+        now = read_tum_trajectory(out / "global" / f"map-{name}.tum")[1]
+        np.testing.assert_allclose(now, robot.poses, atol=1e-5)

@@ -534,10 +534,13 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
         name = names[i] if names else f"r{i}"
         # Absolute, so `fleetslam report` finds its ground truth from any directory.
         robots.append((name, absolute_spec(spec), open_source(spec, camera, config.source)))
+    if args.localise_only and not args.map:
+        raise ValueError("--localise-only places robots in a saved map: give it with --map")
     saved = read_map(Path(args.map)) if args.map else None  # checked before anything runs
     out = Path(args.out) if args.out else _default_out("run")
     _free_out(out, args.overwrite)
-    summary = run_fleet(robots, config, out, show_progress=not args.quiet, saved_map=saved)
+    summary = run_fleet(robots, config, out, show_progress=not args.quiet, saved_map=saved,
+                        localise_only=args.localise_only)
     _finish(summary, out, args.quiet)
     return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
 
@@ -722,6 +725,9 @@ def _add_run_command(sub: Any) -> None:
     run.add_argument("--map", metavar="DIR", help="a saved map (an earlier run's map/): the "
                      "robots search it and, where they find it, track in its frame; the run "
                      "writes the extended map as its own map/ (DIR is never changed)")
+    run.add_argument("--localise-only", action="store_true", help="with --map: place the "
+                     "robots in the map without extending it (its keyframes keep their "
+                     "poses; no new map/ is written)")
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
     run.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
                      "earlier run folder (an interrupted one, say)")

@@ -221,8 +221,8 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
 
 
 def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,
-              show_progress: bool = True, saved_map: SavedMap | None = None
-              ) -> dict[str, Any]:
+              show_progress: bool = True, saved_map: SavedMap | None = None,
+              localise_only: bool = False) -> dict[str, Any]:
     """Track, map and merge; write everything under ``out_dir``; score against ground truth
     where a sequence has it (after the run); return the summary. A Ctrl-C ends it early:
     the trajectories tracked so far are written, and ``summary["interrupted"]`` says so."""
@@ -233,7 +233,7 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
     skipped: list[str] = []  # what a Ctrl-C left unbuilt
     fleet = FleetMap(config)
     # A loaded map is the fleet's first group: the robots search it as they search each other.
-    saved_tracks = fleet.load(saved_map) if saved_map is not None else []
+    saved_tracks = fleet.load(saved_map, localise_only) if saved_map is not None else []
     with Interrupt() as interrupt:
         runs, fleet = track_fleet(robots, config, show_progress, interrupt, fleet)
         for run in runs:
@@ -252,7 +252,9 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
             skipped.append("the merge and the global map")
         global_map = fleet.build_outputs([r.track() for r in runs] + saved_tracks, out_dir) \
             if merged else None
-        saved = fleet.save(out_dir / "map", global_map) if global_map is not None else None
+        # Localisation only: the map is not extended, so no new one is written.
+        saved = fleet.save(out_dir / "map", global_map) \
+            if global_map is not None and not localise_only else None
         interrupted = interrupt.requested
     summary = make_summary(runs, fleet if merged else None, global_map, config,
                            time.perf_counter() - start)

@@ -45,12 +45,14 @@ class PoseGraphResult:
     error_after: float
 
 
-def optimise_pose_graph(poses: dict[int, np.ndarray], edges: list[PoseEdge], fixed: int,
-                        sigma_rotation_rad: float, sigma_translation_m: float,
+def optimise_pose_graph(poses: dict[int, np.ndarray], edges: list[PoseEdge],
+                        fixed: int | list[int], sigma_rotation_rad: float,
+                        sigma_translation_m: float,
                         max_iterations: int = 100) -> PoseGraphResult:
     """Optimise ``poses`` (T_world_node by node id) under ``edges``; node ``fixed`` holds
-    the frame. Loop edges are tested by GNC (unless trusted); the others are known inliers.
-    ``loop_inliers`` lists every loop edge, trusted ones included."""
+    the frame (several: each stays where it is). Loop edges are tested by GNC (unless
+    trusted); the others are known inliers. ``loop_inliers`` lists every loop edge, trusted
+    ones included."""
 
     def noise_of(rotation_rad: float, translation_m: float) -> gtsam.noiseModel.Base:
         return gtsam.noiseModel.Diagonal.Sigmas(
@@ -58,9 +60,11 @@ def optimise_pose_graph(poses: dict[int, np.ndarray], edges: list[PoseEdge], fix
 
     default_noise = noise_of(sigma_rotation_rad, sigma_translation_m)
     graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPose3(fixed, gtsam.Pose3(poses[fixed]),
-                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-    known, loop_factor = [0], []
+    held = [fixed] if isinstance(fixed, int) else list(fixed)
+    for node in held:
+        graph.add(gtsam.PriorFactorPose3(node, gtsam.Pose3(poses[node]),
+                                         gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    known, loop_factor = list(range(len(held))), []
     for edge in edges:
         index = graph.size()
         if edge.information is not None:

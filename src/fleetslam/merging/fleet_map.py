@@ -62,10 +62,12 @@ class FleetMap:
         under ``out_dir`` (global_map.py)."""
         return build_global_map(self.merger, tracks, self.config, out_dir)
 
-    def load(self, saved: SavedMap) -> list[RobotTrack]:
+    def load(self, saved: SavedMap, localise_only: bool = False) -> list[RobotTrack]:
         """A saved map as the fleet's first group, in its own frame: robots added after it
-        search it as they search each other, and a group they join keeps the map's frame.
-        The tracks the global outputs need of its robots."""
+        search it as they search each other, and a group they join keeps the map's frame;
+        ``localise_only``: its keyframes keep their poses (the robots are placed in it, the
+        map does not move). The tracks the global outputs need of its robots."""
+        self.merger.hold_saved = localise_only
         return load_into(self.merger, saved)
 
     def save(self, folder: Path, global_map: GlobalMap) -> dict[str, Any]:

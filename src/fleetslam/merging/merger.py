@@ -106,7 +106,9 @@ class MapMerger:
         self._global: dict[str, np.ndarray] | None = None
         # A loaded map's group: its frame is kept whoever joins it (None: no map loaded).
         self.fixed_anchor: str | None = None
-        self.saved: set[str] = set()  # the loaded map's robots (their poses stay)
+        self.saved: set[str] = set()  # the loaded map's robots (FS-HICP leaves them)
+        # Localisation only: the loaded map's keyframes hold their poses in the graph too.
+        self.hold_saved = False
 
     # -- input ----------------------------------------------------------------------------
 
@@ -392,7 +394,11 @@ class MapMerger:
                                       _node(self.robots[m.query.robot], m.query.keyframe),
                                       c.T_place_query, "loop", inter, trusted=c.trusted,
                                       information=c.information))
-            result = optimise_pose_graph(values, edges, fixed=_node(self.robots[anchor], 0),
+            fixed = [_node(self.robots[anchor], 0)]
+            if self.hold_saved:
+                fixed += [_node(r, k) for r in records if r.name in self.saved
+                          for k in range(len(r.poses)) if _node(r, k) != fixed[0]]
+            result = optimise_pose_graph(values, edges, fixed=fixed,
                                          sigma_rotation_rad=odometry[0],
                                          sigma_translation_m=odometry[1])
             for c, kept in zip(used, result.loop_inliers):
