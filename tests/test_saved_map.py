@@ -154,7 +154,7 @@ def test_a_robot_from_another_room_never_joins_the_map(run, tmp_path):
                         saved_map=saved)
     merge = summary["merge"]
     assert "r0" not in merge["members"]
-    assert "r0" in merge["not_merged"]
+    assert "never found the loaded map" in merge["not_merged"]["r0"]
 
 
 def test_localise_only_places_the_robot_in_the_map_and_leaves_the_map_as_it_was(run,
@@ -175,3 +175,34 @@ def test_localise_only_places_the_robot_in_the_map_and_leaves_the_map_as_it_was(
     for name, robot in saved.robots.items():
         now = read_tum_trajectory(out / "global" / f"map-{name}.tum")[1]
         np.testing.assert_allclose(now, robot.poses, atol=1e-5)
+
+
+def test_a_cloud_loads_a_map_and_a_robot_over_the_link_joins_it(run, tmp_path):
+    """fleetslam cloud --map: a robot streaming over Zenoh (point 3) finds the loaded map,
+    the merge places it in the map's frame, and the store's map/ is the extended map."""
+    import threading
+
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.edge.robot import Robot
+    from fleetslam.launch import free_endpoint
+
+    folder = require(SEVEN_SCENES)
+    saved = read_map(run / "map")
+    endpoint = free_endpoint()
+    config = Config().with_values({"transport.endpoint": endpoint})
+    server = CloudServer(config, tmp_path / "store", endpoint, saved_map=saved).start()
+    try:
+        robot = Robot("r0", open_source(f"{folder}:120-219"), "r0", 3, config,
+                      show_progress=False)
+        thread = threading.Thread(target=robot.run, daemon=True)
+        thread.start()
+        thread.join(300)
+        assert not thread.is_alive(), "the robot did not finish"
+        summary = server.merge()
+    finally:
+        server.close()
+    merge = summary["merge"]
+    assert sorted(merge["members"]) == sorted(["r0", *(f"map-{n}" for n in saved.robots)])
+    assert merge["map_frame"]["source"] == "the loaded map's frame"
+    assert read_map(tmp_path / "store" / "map").keyframes > saved.keyframes

@@ -104,6 +104,7 @@ def cmd_generate(args: argparse.Namespace, config: Config) -> int:
 
 def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.demo import run_demo
+    from fleetslam.merging.saved_map import read_map
 
     if args.robots is not None:
         config = config.with_values({"synthetic.n_robots": args.robots}, flag="--robots")
@@ -124,18 +125,21 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     if args.workers < 1 or (args.in_process and args.workers > 1):
         raise ValueError("--workers N: at least 1, and cloud workers are processes (not with "
                          "--in-process)")
+    saved = read_map(Path(args.map)) if args.map else None
+    map_args = ["--map", str(Path(args.map).resolve())] if args.map else []
     _free_out(out, args.overwrite)  # after every check: an earlier run is replaced only to run
     if args.in_process:
         from fleetslam.datasets.tum import RgbdSequence
         from fleetslam.system import run_fleet
 
         robots = [(f"r{i}", str(f), RgbdSequence(f)) for i, f in enumerate(folders)]
-        summary = run_fleet(robots, config, out, show_progress=not args.quiet)
+        summary = run_fleet(robots, config, out, show_progress=not args.quiet,
+                            saved_map=saved)
     else:
         summary = run_demo([str(f) for f in folders], out, args.offload_at, args.config,
                            link_args=_link_args(args), show_progress=not args.quiet,
                            zenoh_config=config.transport.zenoh_config or None,
-                           secure=not args.insecure, cloud_args=view_args,
+                           secure=not args.insecure, cloud_args=view_args + map_args,
                            workers=args.workers)
     _finish(summary, out, args.quiet)
     return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
@@ -240,6 +244,7 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     import threading
 
     from fleetslam.cloud.server import CloudServer
+    from fleetslam.merging.saved_map import read_map
     from fleetslam.visualisation.views import open_view
     from fleetslam.visualisation.recording import live_plan
 
@@ -249,11 +254,12 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
                                                 "coordination_certs")})
     if args.ros2_out:  # before the views: the ROS 2 graph's is one of them
         config = config.with_values({"ros2_out.endpoint": args.ros2_out}, flag="--ros2-out")
+    saved = read_map(Path(args.map)) if args.map else None  # checked before anything starts
     view = open_view(config, args.save, args.view, args.foxglove)
     for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
     server = CloudServer(config, Path(args.out), args.listen, view=view,
-                         connect=args.connect).start()
+                         connect=args.connect, saved_map=saved).start()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -705,6 +711,8 @@ def _add_demo_command(sub: Any) -> None:
     demo.add_argument("--workers", type=int, default=1,
                       help="cloud workers: N > 1 runs a Zenoh router and N cloud worker "
                            "processes that share the robots (default 1: one cloud process)")
+    demo.add_argument("--map", metavar="DIR", help="a saved map (an earlier run's map/) the "
+                      "robots search and, where they find it, track in (the cloud's --map)")
     demo.add_argument("--in-process", action="store_true",
                       help="track, map and merge in this one process (no network)")
     demo.add_argument("--insecure", action="store_true",
@@ -753,6 +761,10 @@ def _add_cloud_command(sub: Any) -> None:
                        help="the etcd's TLS folder `fleetslam certs` made (<lab>/etcd): its "
                             "CA and the workers' client certificate ([placement] "
                             "coordination_certs)")
+    cloud.add_argument("--map", metavar="DIR", help="a saved map (a run's or a store's "
+                       "map/): the fleet's first group, searched by every robot; a robot that "
+                       "finds it tracks in its frame, and each merge writes the extended map "
+                       "to the store's map/ (DIR is never changed); every worker gets the same")
     cloud.add_argument("--out", required=True, help="the store: maps, trajectories, "
                        "keyframes and checkpoints (reused after a restart; every worker of "
                        "a fleet is given the same folder, a shared volume across machines)")

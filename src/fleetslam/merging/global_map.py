@@ -83,14 +83,16 @@ def largest_component(components: dict[str, list[str]]) -> str:
 
 
 def largest_group(merger: MapMerger, among: Iterable[str]) -> tuple[str, list[str]]:
-    """(anchor, members among ``among``) of the biggest component (largest_component). The
-    group's frame is its anchor's, even if the anchor is not among them."""
+    """(anchor, members among ``among``) of the biggest component (largest_component), or
+    a loaded map's group, whatever its size: the fleet's map is the loaded one. The group's
+    frame is its anchor's, even if the anchor is not among them."""
     among = set(among)
     components = {a: [m for m in ms if m in among] for a, ms in merger.components().items()}
     components = {a: ms for a, ms in components.items() if ms}
     if not components:
         raise ValueError("no robot to merge")
-    anchor = largest_component(components)
+    anchor = merger.fixed_anchor if merger.fixed_anchor in components \
+        else largest_component(components)
     return anchor, components[anchor]
 
 
@@ -212,12 +214,16 @@ def _write_maps(out_dir: Path, placed_points: list[np.ndarray], origins: list[np
 def _not_merged(merger: MapMerger, robots: list[str], members: list[str]) -> dict[str, str]:
     """Why each robot outside the global map is (a lone robot's run: none)."""
     out = {}
+    loaded = [m for m in members if m in merger.saved]
     for name in robots:
-        if name in members and (len(members) > 1 or len(robots) == 1):
+        if name in members and (len(members) > 1 or len(robots) == 1 or name in loaded):
             continue
         if name not in merger.robots or not merger.robots[name].keyframes:
             out[name] = "no keyframe features reached the merger (it made no keyframe, or " \
                         "none of its keyframe messages arrived)"
+        elif loaded:
+            out[name] = "never found the loaded map (no verified place shared with " \
+                        + ", ".join(members) + "): it stays in its own frame"
         elif len(members) > 1:
             out[name] = "shares no verified place with " + ", ".join(members)
         else:

@@ -116,7 +116,7 @@ class FleetMerge:
                                  "lists the robots this cloud serves)")
         self._still_merger("the global map")
         global_map = self.merger.locked(lambda fleet: fleet.build_outputs(
-            [f.track for f in finished], self.out_dir))
+            [f.track for f in finished] + self.merger.saved_tracks, self.out_dir))
         if self.merger.frames is not None:
             # Each member robot still connected hears summary.json's transform.
             self.merger.frames.update({m: (global_map.anchor, T) for m, T in

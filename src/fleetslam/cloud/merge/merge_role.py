@@ -15,6 +15,7 @@ from fleetslam.camera import Camera
 from fleetslam.cloud.coordination.placement_protocol import Placement
 from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.cloud.merge.merger_service import MergerService
+from fleetslam.merging.saved_map import SavedMap
 from fleetslam.cloud.session.robot_session import Publish, RobotSession
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
@@ -29,7 +30,8 @@ log = logging.getLogger("fleetslam.cloud")
 class MergeRole:
     def __init__(self, config: Config, view: NullView, worker_id: str, sessions: SessionTable,
                  publish: Publish, placement: Placement,
-                 frames: FleetFrames | None = None) -> None:
+                 frames: FleetFrames | None = None, saved_map: SavedMap | None = None
+                 ) -> None:
         """``publish``: to the merging worker (droppable: a gap is filled from the store);
         ``placement``: says whether this worker merges; ``frames``: tells robots where the
         merger placed their maps. The table hands this role its robots and keyframes
@@ -39,7 +41,7 @@ class MergeRole:
         self.store = sessions.store
         self.publish = publish
         self.placement = placement
-        self.merger = MergerService(config, view, self.keyframes_in_store, frames)
+        self.merger = MergerService(config, view, self.keyframes_in_store, frames, saved_map)
         self._merging = False  # this worker runs the fleet's merger (see is_merger)
 
     def is_merger(self) -> bool:

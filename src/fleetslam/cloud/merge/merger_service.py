@@ -25,6 +25,7 @@ from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.config import Config
 from fleetslam.mapping.map_frame import live_map_frame
 from fleetslam.merging.fleet_map import FleetMap
+from fleetslam.merging.saved_map import SavedMap
 from fleetslam.merging.merger import MapMerger
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
 from fleetslam.transforms import invert
@@ -45,9 +46,10 @@ FromStore = Callable[[str], "tuple[Camera, list[KeyframeSummary], np.ndarray] | 
 
 class MergerService:
     def __init__(self, config: Config, view: NullView | None = None,
-                 from_store: FromStore | None = None, frames: FleetFrames | None = None
-                 ) -> None:
-        """``frames``: tells each joined robot where its map lies (None: nobody is told)."""
+                 from_store: FromStore | None = None, frames: FleetFrames | None = None,
+                 saved_map: SavedMap | None = None) -> None:
+        """``frames``: tells each joined robot where its map lies (None: nobody is told);
+        ``saved_map``: a loaded map, the fleet's first group (saved_map.py)."""
         cfg = config.merge
         self._queue: queue.Queue = queue.Queue()
         search = PlaceSearchProcess(config, cfg.search_nice, cfg.search_timeout_s,
@@ -59,6 +61,8 @@ class MergerService:
         # the lock, its matches taken when they land).
         self.fleet = FleetMap(config, search)
         self.merger = self.fleet.merger
+        # The loaded map's robots as the global outputs need them (none without a map).
+        self.saved_tracks = self.fleet.load(saved_map) if saved_map is not None else []
         self._from_store = from_store
         self.remote_gaps = 0  # keyframes that came after a gap, filled from the store
         self.errors = 0
