@@ -122,6 +122,8 @@ def test_a_loaded_map_is_searched_and_a_robot_that_finds_it_tracks_in_its_frame(
     merge = summary["merge"]
     assert sorted(merge["members"]) == sorted(["r0", *(f"map-{n}" for n in saved.robots)])
     assert merge["map_frame"]["source"] == "the loaded map's frame"
+    # It starts where the map was made: placed in it within the 30 frames.
+    assert merge["entered_map"]["r0"]["frames"] <= 30
     anchor_then = read_tum_trajectory(run / "global" / f"{saved.anchor}.tum")[1]
     anchor_now = read_tum_trajectory(out / "global" / f"map-{saved.anchor}.tum")[1]
     np.testing.assert_allclose(anchor_now[0], saved.robots[saved.anchor].poses[0], atol=1e-9)

@@ -109,6 +109,9 @@ class MapMerger:
         self.saved: set[str] = set()  # the loaded map's robots (FS-HICP leaves them)
         # Localisation only: the loaded map's keyframes hold their poses in the graph too.
         self.hold_saved = False
+        # Robot -> frames and seconds from its first keyframe to the keyframe it had when its
+        # group joined the loaded map (its first pose in the map's frame).
+        self.entered_map: dict[str, dict[str, float]] = {}
 
     # -- input ----------------------------------------------------------------------------
 
@@ -285,6 +288,10 @@ class MapMerger:
         for r in members:
             r.T_anchor_map = T_anchorK_anchorZ @ r.T_anchor_map
             r.anchor = keep.anchor
+            if keep.anchor == self.fixed_anchor and r.keyframes and r.name not in self.saved:
+                first, now = r.keyframes[0], r.keyframes[-1]
+                self.entered_map[r.name] = {"frames": now.frame_index - first.frame_index,
+                                            "seconds": now.timestamp - first.timestamp}
         for m in agreeing:
             self.constraints.append(Constraint(m, trusted=True, kept=True))
         found[:] = [m for m in found if m not in agreeing]
