@@ -208,3 +208,15 @@ def test_a_cloud_loads_a_map_and_a_robot_over_the_link_joins_it(run, tmp_path):
     assert sorted(merge["members"]) == sorted(["r0", *(f"map-{n}" for n in saved.robots)])
     assert merge["map_frame"]["source"] == "the loaded map's frame"
     assert read_map(tmp_path / "store" / "map").keyframes > saved.keyframes
+
+
+def test_a_map_whose_features_this_run_could_never_match_is_refused_before_the_run(run,
+                                                                                   tmp_path):
+    saved = read_map(run / "map")
+    folder = require(SEVEN_SCENES)
+    config = Config().with_values({"orb.scale_factor": 1.3})
+    out = tmp_path / "never"
+    with pytest.raises(MapError, match=r"orb_scale_factor 1\.2 \(this run: 1\.3\)"):
+        run_fleet([("r0", str(folder), RgbdSequence(folder, last=9))], config, out,
+                  show_progress=False, saved_map=saved)
+    assert not out.exists()

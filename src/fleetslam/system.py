@@ -229,11 +229,12 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
     start = time.perf_counter()
     for _, _, sequence in robots:  # a bad mounting is said before anything is written
         sequence.camera.mounted(config.camera.base_link)
+    fleet = FleetMap(config)
+    # A loaded map is the fleet's first group: the robots search it as they search each other
+    # (one it cannot take is said before anything is written).
+    saved_tracks = fleet.load(saved_map, localise_only) if saved_map is not None else []
     out_dir.mkdir(parents=True, exist_ok=False)
     skipped: list[str] = []  # what a Ctrl-C left unbuilt
-    fleet = FleetMap(config)
-    # A loaded map is the fleet's first group: the robots search it as they search each other.
-    saved_tracks = fleet.load(saved_map, localise_only) if saved_map is not None else []
     with Interrupt() as interrupt:
         runs, fleet = track_fleet(robots, config, show_progress, interrupt, fleet)
         for run in runs:

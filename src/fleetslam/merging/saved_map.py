@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from fleetslam.camera import Camera
+from fleetslam.config import Config
 from fleetslam.io.files import UnreadableFile, read_regular
 from fleetslam.merging.global_map import GlobalMap, RobotTrack
 from fleetslam.merging.merger import MapMerger
@@ -76,6 +77,8 @@ class SavedMap:
     map_frame: dict[str, Any]  # how the level frame was found (global_map.py)
     robots: dict[str, SavedRobot]
     constraints: list[dict[str, Any]]  # the inter-robot edges, as the manifest has them
+    features: dict[str, Any]  # how its keyframes' features were made (features_of)
+    folder: Path | None = None
 
     @property
     def keyframes(self) -> int:
@@ -130,6 +133,7 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
                        "file": relative, "camera": record.camera.to_dict()})
     manifest = {"format": MAP_FORMAT, "version": MAP_VERSION, "anchor": global_map.anchor,
                 "map_frame": global_map.map_frame, "robots": robots,
+                "features": features_of(merger.config),
                 "constraints": _constraints(merger, set(members)), "files": files}
     (staging / MANIFEST).write_text(json.dumps(manifest, indent=1))
     _put_in_place(staging, folder)
@@ -252,8 +256,11 @@ def read_map(folder: Path) -> SavedMap:
         problem = _constraint_problem(c, robots)
         if problem is not None:
             raise MapError(folder / MANIFEST, f"constraint {str(c)[:80]}: {problem}")
+    features = manifest.get("features")
+    if not isinstance(features, dict):
+        raise MapError(folder / MANIFEST, "no features entry (how its ORB features were made)")
     return SavedMap(manifest["anchor"], manifest["map_frame"], robots,
-                    manifest["constraints"])
+                    manifest["constraints"], features, folder)
 
 
 def _matrix(value: Any, n: int) -> np.ndarray | None:
@@ -283,10 +290,26 @@ def _constraint_problem(c: Any, robots: dict[str, SavedRobot]) -> str | None:
     return None
 
 
+def features_of(config: Config) -> dict[str, Any]:
+    """What makes two keyframes' ORB features comparable: the pyramid they were found on
+    and the place recognition that indexes them."""
+    orb = config.orb
+    return {"orb_n_levels": orb.n_levels, "orb_scale_factor": orb.scale_factor,
+            "place_recognition": config.place_recognition.method}
+
+
 def load_into(merger: MapMerger, saved: SavedMap) -> list[RobotTrack]:
     """The saved map as the merger's first group, in the map's frame, each robot renamed
     ``map-<name>``; the tracks the global map needs of them (their keyframes as frames, with
-    the saved clouds). Its edges come with it, as its graph held them."""
+    the saved clouds). Its edges come with it, as its graph held them. MapError if its
+    features were made otherwise than this run's robots' are (they could never match)."""
+    ours = features_of(merger.config)
+    if saved.features != ours:
+        differ = ", ".join(f"{k} {saved.features.get(k)!r} (this run: {v!r})"
+                           for k, v in ours.items() if saved.features.get(k) != v)
+        raise MapError((saved.folder or Path("map")) / MANIFEST,
+                       f"its features were made with {differ}: this run's robots' could "
+                       f"never match them; run with the map's settings")
     names = {name: LOADED_PREFIX + name for name in saved.robots}
     taken = [n for n in names.values() if n in merger.robots]
     if taken:
