@@ -175,13 +175,7 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
         result.T_global_map_graph[m] = T_map_graph @ graph[m]
         result.T_global_map[m] = T_map_graph @ correction[m] @ graph[m]
         result.keyframe_poses[m] = T_map_graph @ kf_poses[m]
-        track = by_name[m]
-        result.trajectories[m] = global_trajectory(track, result.keyframe_poses[m],
-                                                   result.T_global_map[m])
-        write_tum_trajectory(out_dir / "global" / f"{m}.tum", track.timestamps,
-                             result.trajectories[m],
-                             comment=f"fleetslam robot {m} in the fleet's map frame (level, "
-                                     f"z up: {result.map_frame['source']}; robot {anchor}'s)")
+        _write_global_trajectory(out_dir, by_name[m], result)
     _write_maps(out_dir, placed_points, origins, colors_in, grid, config, result)
     result.seconds = time.perf_counter() - started
     log.info("global map: %s in the map frame (%s's, up from the %s), %d points, octomap "
@@ -189,6 +183,17 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
              result.map_frame["source"], result.points, result.octomap["occupied"],
              result.octomap["free"])
     return result
+
+
+def _write_global_trajectory(out_dir: Path, track: RobotTrack, result: GlobalMap) -> None:
+    """A member's every frame in the global frame, from its keyframes' global poses."""
+    m = track.name
+    result.trajectories[m] = global_trajectory(track, result.keyframe_poses[m],
+                                               result.T_global_map[m])
+    write_tum_trajectory(out_dir / "global" / f"{m}.tum", track.timestamps,
+                         result.trajectories[m],
+                         comment=f"fleetslam robot {m} in the fleet's map frame (level, z up: "
+                                 f"{result.map_frame['source']}; robot {result.anchor}'s)")
 
 
 def _write_maps(out_dir: Path, placed_points: list[np.ndarray], origins: list[np.ndarray],
