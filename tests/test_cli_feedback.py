@@ -37,4 +37,5 @@ def test_status_and_merge_document_connect():
         text = " ".join(result.stdout.split())
         assert ("--connect ENDPOINT the cloud's Zenoh endpoint, as its --listen, or a router of "
                 "several workers (default from config [transport] endpoint: "
-                "tcp/127.0.0.1:7447)") in text, text
+                "tcp/127.0.0.1:7450)") in text, text
+
