@@ -39,3 +39,13 @@ def test_status_and_merge_document_connect():
                 "several workers (default from config [transport] endpoint: "
                 "tcp/127.0.0.1:7450)") in text, text
 
+
+def test_version_is_the_packages():
+    import tomllib
+    from pathlib import Path
+
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml")
+                            .read_text())["project"]
+    result = _cli("--version")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == f"fleetslam {project['version']}\n"

@@ -51,10 +51,10 @@ def test_a_robot_with_no_cloud_says_so_and_gives_up_at_its_deadline(caplog):
     assert "retrying" in caplog.text
 
 
-def test_a_robot_with_no_cloud_says_so_first_naming_its_wait(tmp_path):
+def test_a_robot_with_no_cloud_says_so_first_naming_its_wait_and_no_faiss_lines(tmp_path):
     """A robot may start before its cloud: its first line says none answers yet and how long
-    it keeps trying, by the setting's name (a robot that tracks itself, point 6, has made
-    its back-end by then)."""
+    it keeps trying, by the setting's name. A robot that tracks itself (point 6) has loaded
+    faiss by then, whose loader's INFO lines (7 of them) are not shown."""
     import subprocess
     import sys
 
@@ -77,6 +77,7 @@ def test_a_robot_with_no_cloud_says_so_first_naming_its_wait(tmp_path):
         f"(connection refused): is the cloud running, and is this its endpoint (--connect)?"
     ), result.stderr
     assert lines[-1].startswith(f"fleetslam: error: nothing answers at {endpoint} after ")
+    assert "faiss" not in result.stderr
 
 
 def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):

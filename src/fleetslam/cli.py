@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from fleetslam import __version__
 from fleetslam.camera import Camera
 from fleetslam.config import Config, load_config
 from fleetslam.datasets.live_sources import live_specs
@@ -234,6 +235,9 @@ def _setup_logging(quiet: bool) -> None:
 
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    # faiss's loader says at INFO which CPU build it tried (7 lines in every robot's and
+    # cloud's log); its warnings still show.
+    logging.getLogger("faiss").setLevel(logging.WARNING)
 
 
 def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
@@ -923,6 +927,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
         "FS-HICP map merging.")
     _add_global_options(parser, None)
+    parser.add_argument("--version", action="version", version=f"fleetslam {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     # The same options after the command too: `fleetslam run --config f.toml` as well as
     # `fleetslam --config f.toml run` (there, unset ones keep what was given before it).
