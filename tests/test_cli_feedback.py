@@ -37,7 +37,18 @@ def test_status_and_merge_document_connect():
         text = " ".join(result.stdout.split())
         assert ("--connect ENDPOINT the cloud's Zenoh endpoint, as its --listen, or a router of "
                 "several workers (default from config [transport] endpoint: "
-                "tcp/127.0.0.1:7447)") in text, text
+                "tcp/127.0.0.1:7450)") in text, text
+
+
+def test_version_is_the_packages():
+    import tomllib
+    from pathlib import Path
+
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml")
+                            .read_text())["project"]
+    result = _cli("--version")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == f"fleetslam {project['version']}\n"
 
 
 def test_a_robot_named_after_a_run_folder_is_refused_before_anything_is_written(tmp_path):

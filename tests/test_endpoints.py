@@ -72,3 +72,58 @@ def test_tls_with_a_zenoh_config_holding_certificates_passes(tmp_path):
     with pytest.raises(ValueError, match="--connect 'quic/localhost:7447': quic needs"):
         check_endpoint("quic/localhost:7447", "--connect", str(plain))
     assert check_endpoint("unixsock-stream//tmp/z.sock", "--listen") and load_config()
+
+
+@pytest.fixture
+def taken_endpoint():
+    """A loopback port a plain socket listens on, as ROS 2's rmw_zenohd holds 7447."""
+    import socket
+
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        yield f"tcp/127.0.0.1:{holder.getsockname()[1]}"
+
+
+@pytest.mark.parametrize("command", [["cloud", "--out", "{tmp}/store"], ["router"]])
+def test_a_taken_port_is_one_line_naming_port_and_flag_and_leaves_nothing(
+        command, taken_endpoint, tmp_path, capsys):
+    import multiprocessing
+
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in command] + ["--listen", taken_endpoint]
+    before = set(multiprocessing.active_children())
+    assert cli.main(argv) == 2
+    port = taken_endpoint.rpartition(":")[2]
+    assert capsys.readouterr().err == (
+        f"fleetslam: error: --listen '{taken_endpoint}': port {port} is taken (another Zenoh "
+        f"router? ROS 2's rmw_zenohd uses 7447): choose another with --listen\n")
+    assert not (tmp_path / "store").exists()
+    assert not set(multiprocessing.active_children()) - before
+
+
+def test_a_taken_port_in_the_config_file_names_the_setting(taken_endpoint, tmp_path, capsys):
+    path = tmp_path / "c.toml"
+    path.write_text(f'[transport]\nendpoint = "{taken_endpoint}"\n')
+    assert cli.main(["--config", str(path), "cloud", "--out", str(tmp_path / "store")]) == 2
+    assert capsys.readouterr().err.startswith(
+        f"fleetslam: error: {path}: transport.endpoint '{taken_endpoint}': port ")
+    assert not (tmp_path / "store").exists()
+
+
+def test_a_cloud_whose_port_is_taken_as_it_starts_leaves_no_process(taken_endpoint, tmp_path):
+    """Taken after the command line's check (or a caller without one): Zenoh's refusal in
+    one line, and the place search and local mapping processes the cloud had started end
+    with it (they outlived it, and the search's end was logged as its failure)."""
+    import multiprocessing
+
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.config import Config
+
+    before = set(multiprocessing.active_children())
+    server = CloudServer(Config(), tmp_path / "store", taken_endpoint)
+    with pytest.raises(RuntimeError, match=f"cannot listen on {taken_endpoint}: its port is "
+                       r"taken \(another Zenoh router\? ROS 2's rmw_zenohd uses 7447\): "
+                       "choose another with --listen$"):
+        server.start()
+    assert not set(multiprocessing.active_children()) - before
+

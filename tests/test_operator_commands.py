@@ -14,6 +14,7 @@ from conftest import TUM_RPY, require
 
 from fleetslam.cli import main
 from fleetslam.launch import free_endpoint, start_cloud, start_robot, stop
+from fleetslam.transport.zenoh_session import wait_until_reachable
 
 # Two robots on overlapping parts of one recording: they join.
 SOURCES = (":0-19", ":10-29")
@@ -30,6 +31,8 @@ def test_status_and_merge_say_what_and_where(tmp_path, capsys, monkeypatch):
     endpoint, store = free_endpoint(), tmp_path / "store"
     cloud = start_cloud(endpoint, store, tmp_path / "cloud.log")
     try:
+        # An operator's command says at once that nothing listens: the cloud is up first.
+        wait_until_reachable(endpoint, 60.0)
         # Before any robot finished: one line saying there is nothing to merge yet.
         assert main(["--quiet", "merge", "--connect", endpoint]) != 0
         early = capsys.readouterr().err

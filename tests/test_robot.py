@@ -51,6 +51,35 @@ def test_a_robot_with_no_cloud_says_so_and_gives_up_at_its_deadline(caplog):
     assert "retrying" in caplog.text
 
 
+def test_a_robot_with_no_cloud_says_so_first_naming_its_wait_and_no_faiss_lines(tmp_path):
+    """A robot may start before its cloud: its first line says none answers yet and how long
+    it keeps trying, by the setting's name. A robot that tracks itself (point 6) has loaded
+    faiss by then, whose loader's INFO lines (7 of them) are not shown."""
+    import subprocess
+    import sys
+
+    from conftest import TUM_RPY, require
+
+    from fleetslam.launch import free_endpoint
+
+    config = tmp_path / "short.toml"
+    config.write_text("[transport]\nreach_deadline_s = 1.0\n")
+    endpoint = free_endpoint()
+    result = subprocess.run(
+        [sys.executable, "-m", "fleetslam.cli", "--config", str(config), "robot", "--connect",
+         endpoint, "--id", "r1", "--source", f"{require(TUM_RPY)}:0-9", "--offload-at", "6"],
+        capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert lines[0].endswith(
+        f"WARNING no cloud answers at {endpoint} yet; retrying for up to 1 s "
+        f"(transport.reach_deadline_s): nothing listens at {endpoint.partition('/')[2]} "
+        f"(connection refused): is the cloud running, and is this its endpoint (--connect)?"
+    ), result.stderr
+    assert lines[-1].startswith(f"fleetslam: error: nothing answers at {endpoint} after ")
+    assert "faiss" not in result.stderr
+
+
 def test_an_upload_the_cloud_no_longer_needs_is_not_resent(tmp_path_factory):
     """A cloud restarted from a checkpoint older than a keyframe's feedback lost that
     keyframe: it says so (not_a_keyframe) and the robot's upload ends there instead of being

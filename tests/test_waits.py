@@ -50,6 +50,18 @@ def test_status_and_merge_with_no_cloud_give_up_soon_saying_what_to_check(tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
+def test_status_and_merge_say_a_refused_connection_before_their_deadline(tmp_path):
+    """Nothing listens: the refusal is the answer, not a wait until --deadline (600 s here;
+    the subprocess's 60 s timeout only guards against a hang)."""
+    endpoint = free_endpoint()
+    for command in ("status", "merge"):
+        done, _ = fleetslam([command, "--connect", endpoint, "--deadline", "600"], tmp_path)
+        assert done.stderr == (f"fleetslam: error: no cloud at {endpoint}: nothing listens at "
+                               f"{endpoint.partition('/')[2]} (connection refused): is the "
+                               f"cloud running, and is this its endpoint (--connect)?\n")
+        assert done.returncode == 2
+
+
 @pytest.fixture(scope="module")
 def tls_cloud(tmp_path_factory):
     """(endpoint, the lab's Zenoh configs, another lab's): a cloud over mutual TLS with
@@ -74,8 +86,9 @@ def test_a_certificate_of_another_lab_is_told_from_no_cloud(tls_cloud, tmp_path)
     assert "but refuses a Zenoh session: most likely the TLS handshake: is --zenoh-config " \
            f"{other['client']} from the cloud's lab" in error_line(done)
     # Said on the first failed attempt too, not only at the deadline.
-    assert done.stderr.splitlines()[0].startswith(f"nothing answers at {endpoint} yet: "
-                                                  f"something listens")
+    assert done.stderr.splitlines()[0].startswith(
+        f"no cloud answers at {endpoint} yet; retrying for up to 4 s (--deadline, "
+        f"transport.ask_deadline_s): something listens")
     # Plain TCP to the TLS listener: "is it a tls/ endpoint".
     done, _ = fleetslam(["status", "--connect", endpoint.replace("tls/", "tcp/"),
                          "--deadline", "2"], tmp_path)

@@ -11,13 +11,16 @@ import time
 from pathlib import Path
 from typing import Any
 
+from fleetslam import __version__
 from fleetslam.camera import Camera
 from fleetslam.config import Config, load_config
 from fleetslam.datasets.live_sources import live_specs
 from fleetslam.planner.model import OBJECTIVES, SWEEP_MBPS
 from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
-from fleetslam.validation.endpoints import check_endpoint
+from fleetslam.validation.endpoints import check_endpoint, check_listenable
+
+DEFAULT_ENDPOINT = Config().transport.endpoint
 
 
 def _default_out(kind: str) -> Path:
@@ -237,6 +240,9 @@ def _setup_logging(quiet: bool) -> None:
 
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    # faiss's loader says at INFO which CPU build it tried (7 lines in every robot's and
+    # cloud's log); its warnings still show.
+    logging.getLogger("faiss").setLevel(logging.WARNING)
 
 
 def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
@@ -258,8 +264,15 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     view = open_view(config, args.save, args.view, args.foxglove)
     for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
-    server = CloudServer(config, Path(args.out), args.listen, view=view,
-                         connect=args.connect, saved_map=saved).start()
+    out = Path(args.out)
+    made = not out.exists()
+    try:
+        server = CloudServer(config, out, args.listen, view=view, connect=args.connect,
+                             saved_map=saved).start()
+    except BaseException:
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # a cloud that did not start leaves no store behind
+        raise
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -460,8 +473,11 @@ def _ask_cloud(args: argparse.Namespace, config: Config, request: str) -> dict[s
                                     flag="--deadline")
     cfg = config.transport
     deadline = time.monotonic() + cfg.ask_deadline_s
-    client = CloudClient(args.connect or cfg.endpoint, cfg.ask_deadline_s, cfg.zenoh_config or None,
-                         silence_hint_s=cfg.silence_hint_s)
+    # Nothing listening is known at once; the deadline is for a cloud that may yet answer.
+    client = CloudClient(args.connect or cfg.endpoint, cfg.ask_deadline_s,
+                         cfg.zenoh_config or None, silence_hint_s=cfg.silence_hint_s,
+                         deadline_setting="--deadline, transport.ask_deadline_s",
+                         refused_ends=True)
     try:
         left = max(deadline - time.monotonic(), 1.0)
         if request == "status":
@@ -659,14 +675,15 @@ def cmd_certs(args: argparse.Namespace, config: Config) -> int:
     print(f"lab CA and certificates in {args.out}/ (keep ca.key off the robots); "
           f"robots admitted by the cloud's access control: "
           f"{', '.join(lab_robots(Path(args.out))) or 'none'}")
-    print(f"cloud:   fleetslam --zenoh-config {files['cloud']} cloud --listen tls/HOST:7447 ...")
-    print(f"clients: fleetslam --zenoh-config {files['client']} merge --connect tls/HOST:7447")
+    tls = f"tls/HOST:{DEFAULT_ENDPOINT.rpartition(':')[2]}"
+    print(f"cloud:   fleetslam --zenoh-config {files['cloud']} cloud --listen {tls} ...")
+    print(f"clients: fleetslam --zenoh-config {files['client']} merge --connect {tls}")
     print(f"or several workers: fleetslam --zenoh-config {files['cloud']} router --listen "
-          f"tls/HOST:7447, then on each worker machine: fleetslam --zenoh-config "
-          f"{files['worker']} cloud --connect tls/HOST:7447 --worker-id wN --out SHARED")
+          f"{tls}, then on each worker machine: fleetslam --zenoh-config "
+          f"{files['worker']} cloud --connect {tls} --worker-id wN --out SHARED")
     for robot in args.robot:
         print(f"robot {robot}: fleetslam --zenoh-config {files[robot]} robot --id {robot} "
-              f"--connect tls/HOST:7447 ...")
+              f"--connect {tls} ...")
     return 0
 
 
@@ -747,7 +764,7 @@ def _add_cloud_command(sub: Any) -> None:
     where = cloud.add_mutually_exclusive_group()
     where.add_argument("--listen", default=None, metavar="ENDPOINT",
                        help="alone: be the Zenoh router robots connect to, listening here "
-                            "(default tcp/127.0.0.1:7447)")
+                            f"(default from config [transport] endpoint: {DEFAULT_ENDPOINT})")
     where.add_argument("--connect", default=None, metavar="ENDPOINT",
                        help="as one of several workers: connect to the Zenoh router there "
                             "(`fleetslam router`); robots are shared among the workers")
@@ -783,7 +800,8 @@ def _add_router_command(sub: Any) -> None:
     router = sub.add_parser("router", help="a Zenoh router that cloud workers and robots "
                             "connect to")
     router.add_argument("--listen", default=None, metavar="ENDPOINT",
-                        help="endpoint to listen on (default tcp/127.0.0.1:7447)")
+                        help="endpoint to listen on (default from config [transport] "
+                        f"endpoint: {DEFAULT_ENDPOINT})")
     router.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                         help="another router to join (repeatable)")
     router.set_defaults(func=cmd_router)
@@ -792,7 +810,10 @@ def _add_router_command(sub: Any) -> None:
 def _add_robot_command(sub: Any) -> None:
     robot = sub.add_parser("robot", help="stream a recorded sequence or a camera to the cloud")
     robot.add_argument("--connect", default=None, metavar="ENDPOINT",
-                       help="the cloud's Zenoh endpoint (default tcp/127.0.0.1:7447)")
+                       help="the cloud's Zenoh endpoint (default from config [transport] "
+                       f"endpoint: {DEFAULT_ENDPOINT}); a robot may start first: it says so "
+                       "and keeps trying for transport.reach_deadline_s "
+                       f"({Config().transport.reach_deadline_s:g} s)")
     robot.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ -)")
     robot.add_argument("--source", required=True, metavar="SOURCE[:FIRST-LAST] | CAMERA",
                        help="TUM-layout folder (a synthetic scene's robot folder works too), "
@@ -936,6 +957,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fleetslam", description="Multi-robot RGB-D SLAM with partial offloading and "
         "FS-HICP map merging.")
     _add_global_options(parser, None)
+    parser.add_argument("--version", action="version", version=f"fleetslam {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     # The same options after the command too: `fleetslam run --config f.toml` as well as
     # `fleetslam --config f.toml run` (there, unset ones keep what was given before it).
@@ -967,9 +989,13 @@ def _check_endpoints(args: argparse.Namespace, config: Config) -> None:
         for endpoint in given if isinstance(given, list) else [given]:
             if endpoint is not None:
                 check_endpoint(endpoint, f"--{flag}", zenoh_config)
+    where = f"{args.config}: transport.endpoint" if args.config else "transport.endpoint"
     if flags and not any(getattr(args, f) for f in flags):
-        where = f"{args.config}: transport.endpoint" if args.config else "transport.endpoint"
         check_endpoint(config.transport.endpoint, where, zenoh_config)
+    # A lone cloud and a router listen: a taken port is said before anything is made.
+    if args.command == "router" or (args.command == "cloud" and not args.connect):
+        check_listenable(args.listen or config.transport.endpoint,
+                         "--listen" if args.listen else where)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -476,9 +476,8 @@ class SourceConfig:
     # does (end, uploads, map), the reason in its report.
     live_frame_timeout_s: Annotated[float, above(0.0)] = 10.0
     # Live ROS 2 topics over rmw_zenoh (datasets/ros2_topics.py, source spec `ros2` or
-    # `ros2:ENDPOINT`). The robot's ROS 2 Zenoh router: rmw_zenoh's default, on the robot.
-    # fleetslam's cloud endpoint defaults to the same port: run the cloud elsewhere, or give
-    # one of them another port.
+    # `ros2:ENDPOINT`). The robot's ROS 2 Zenoh router: rmw_zenoh's default, on the robot
+    # (fleetslam's own endpoint, transport.endpoint, is on another port).
     ros_endpoint: Annotated[str, ENDPOINT] = "tcp/localhost:7447"
     # ROS_DOMAIN_ID of the camera's nodes; -1: the ROS_DOMAIN_ID environment variable, as
     # ROS 2 reads it (0 without it).
@@ -574,7 +573,8 @@ class LinkConfig:
 class TransportConfig:
     """Zenoh endpoints and the reliability of keyframe uploads and the robot's handshake."""
 
-    endpoint: Annotated[str, ENDPOINT] = "tcp/127.0.0.1:7447"
+    # Not Zenoh's own 7447: ROS 2's router (rmw_zenohd) listens there on a robot computer.
+    endpoint: Annotated[str, ENDPOINT] = "tcp/127.0.0.1:7450"
     # A Zenoh config file (JSON5) every fleetslam process starts from: a lab's TLS,
     # authentication, access control and routers. Empty: peer mode, no multicast.
     zenoh_config: Annotated[str, ANY_TEXT] = ""
@@ -584,7 +584,8 @@ class TransportConfig:
     max_attempts: Annotated[int, at_least(1)] = 30
     # A robot waits this long for the cloud to answer its hello before retrying.
     connect_timeout_s: Annotated[float, above(0.0)] = 2.0
-    # How long a robot or a cloud worker waits for anything to answer at the endpoint.
+    # How long a robot or a cloud worker waits for anything to answer at the endpoint (it
+    # may start before its cloud: it says so at once, then keeps trying).
     reach_deadline_s: Annotated[float, at_least(0.0)] = 600.0
     # A router (the lone cloud, `fleetslam router`) that has waited this long to hand a
     # message to one receiver whose queue is full (an unreachable worker or robot) drops

@@ -115,14 +115,19 @@ class CloudClient:
     """Ask a running cloud something over its control key (status, merge)."""
 
     def __init__(self, endpoint: str, reach_deadline_s: float = 600.0,
-                 zenoh_config: str | None = None, silence_hint_s: float | None = None
-                 ) -> None:
+                 zenoh_config: str | None = None, silence_hint_s: float | None = None,
+                 deadline_setting: str = "transport.reach_deadline_s",
+                 refused_ends: bool = False) -> None:
         """``silence_hint_s``: when the open session has heard no answer this long, say
-        what to check (a command's user waits; None: say nothing)."""
+        what to check (a command's user waits; None: say nothing). ``deadline_setting``
+        names ``reach_deadline_s`` in what is said; ``refused_ends``: a refused connection
+        (nothing listens there) is an error at once (an operator's command), not waited
+        out (a cloud starting)."""
         self.endpoint = endpoint
         self.zenoh_config = zenoh_config
         self.silence_hint_s = silence_hint_s
-        self._session = open_connecting(endpoint, reach_deadline_s, zenoh_config)
+        self._session = open_connecting(endpoint, reach_deadline_s, zenoh_config,
+                                        setting=deadline_setting, refused_ends=refused_ends)
         self._replies: queue.Queue = queue.Queue()
         self._sub = self._session.declare_subscriber(
             keys.CLOUD_REPLY, lambda s: self._replies.put(s.payload.to_bytes()))

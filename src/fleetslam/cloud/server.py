@@ -140,15 +140,11 @@ class CloudServer:
             self.local_mapping = LocalMappingPool(tracking.local_mapping_workers,
                                                   tracking.local_mapping_nice)
             self.sessions.local_mapping = self.local_mapping
-        transport = self.config.transport
-        if self.connect:
-            self._zenoh = open_connecting(self.connect, transport.reach_deadline_s,
-                                          transport.zenoh_config or None,
-                                          self.config.placement.zenoh_lease_s)
-        else:
-            self._zenoh = open_listening(self.endpoint, transport.zenoh_config or None,
-                                         transport.router_block_s)
-        z = self._zenoh
+        try:
+            z = self._zenoh = self._open_zenoh()
+        except BaseException:
+            self.close()  # its workers end quietly, not as failures
+            raise
         # Placement first: a hello heard before it existed was served at once, unowned, and
         # the robot's next frames were dropped while this worker then bid for it (seen in
         # test_processes when a robot's hello met a cloud starting).
@@ -172,6 +168,15 @@ class CloudServer:
                  self.out_dir, f", ownership by etcd at {self.config.placement.coordination}"
                  if self.ownership is not None else "")
         return self
+
+    def _open_zenoh(self) -> zenoh.Session:
+        transport = self.config.transport
+        if self.connect:
+            return open_connecting(self.connect, transport.reach_deadline_s,
+                                   transport.zenoh_config or None,
+                                   self.config.placement.zenoh_lease_s)
+        return open_listening(self.endpoint, transport.zenoh_config or None,
+                              transport.router_block_s)
 
     def close(self) -> None:
         """Stop; every session's state goes to the store first, then this worker's robots

@@ -230,7 +230,7 @@ class Ros2TopicSource(SlotCounts):
         if not topics:
             alive = (f"no ROS 2 publisher is alive at {self.endpoint} in domain "
                      f"{self.domain_id} (is that the robot's ROS 2 router, and its "
-                     f"ROS_DOMAIN_ID? fleetslam's cloud defaults to port 7447 too)")
+                     f"ROS_DOMAIN_ID?)")
         else:
             alive = f"live topics at {self.endpoint}, domain {self.domain_id}: {describe(topics)}"
         got = ", ".join(f"{t} {n}" for t, n in sorted(self.received.items())) or "none"

@@ -21,14 +21,15 @@ from __future__ import annotations
 import re
 import socket
 
-# TCP-based protocols a plain connection can probe (QUIC and UDP cannot be).
-_STREAM_PROTOCOLS = ("tcp", "tls", "ws")
+# The TCP-based protocols a plain connection can probe (QUIC and UDP cannot be).
+from fleetslam.validation.endpoints import STREAM_PROTOCOLS
+
 ZENOH_LOG = "RUST_LOG=debug shows Zenoh's own reason"
 
 
 def _host_port(endpoint: str) -> tuple[str, str, int] | None:
     protocol, _, address = endpoint.partition("/")
-    if protocol not in _STREAM_PROTOCOLS:
+    if protocol not in STREAM_PROTOCOLS:
         return None
     host, _, port = re.split(r"[?#]", address, maxsplit=1)[0].rpartition(":")
     return protocol, host.strip("[]"), int(port)

@@ -4,6 +4,7 @@ the reach deadline."""
 
 from __future__ import annotations
 
+import errno
 import ipaddress
 import json
 import re
@@ -12,6 +13,8 @@ import socket
 # Protocols that take host:port; unixsock-stream takes a socket file's path.
 HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 PATH_PROTOCOLS = ("unixsock-stream",)
+# Protocols over TCP: a plain socket tells whether their port is free or answers.
+STREAM_PROTOCOLS = ("tcp", "tls", "ws")
 # These need certificates from a Zenoh config file (transport/link/tls).
 TLS_PROTOCOLS = ("tls", "quic")
 _LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
@@ -85,6 +88,34 @@ def check_endpoint(endpoint: str, name: str, zenoh_config: str | None = None) ->
             socket.getaddrinfo(host, None)
         except socket.gaierror as exc:
             raise ValueError(f"{name} {endpoint!r}: host {host!r} does not resolve "
+                             f"({exc.strerror})") from None
+    return endpoint
+
+
+def check_listenable(endpoint: str, name: str) -> str:
+    """``endpoint`` itself, or ValueError naming ``name`` when this machine cannot listen
+    there: its port taken (a ROS 2 robot's rmw_zenohd holds Zenoh's 7447) or its address
+    not this machine's. Said before the store or any worker is made: Zenoh says it in a
+    long line of its source paths, after the cloud built everything. A TCP-based endpoint
+    only (QUIC and UDP cannot be told this way); a form check_endpoint accepted."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol not in STREAM_PROTOCOLS:
+        return endpoint
+    host, _, port = re.split(r"[?#]", address, maxsplit=1)[0].rpartition(":")
+    family, kind, proto, _, where = socket.getaddrinfo(host.strip("[]"), int(port),
+                                                        type=socket.SOCK_STREAM)[0]
+    with socket.socket(family, kind, proto) as probe:
+        # As Zenoh's listener (tokio) binds: a connection of a stopped cloud lingering in
+        # TIME_WAIT does not make the port taken, a listening socket does.
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(where)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise ValueError(f"{name} {endpoint!r}: port {port} is taken (another Zenoh "
+                                 f"router? ROS 2's rmw_zenohd uses 7447): choose another "
+                                 f"with --listen") from None
+            raise ValueError(f"{name} {endpoint!r}: cannot listen there "
                              f"({exc.strerror})") from None
     return endpoint
 
