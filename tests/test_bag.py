@@ -8,6 +8,7 @@ and a ROS 2 MCAP bag (JPEG CompressedImage colour). The bad-input tests write ti
 from __future__ import annotations
 
 import dataclasses
+import json
 import importlib.util
 import sys
 import tracemalloc
@@ -476,15 +477,27 @@ def test_fleetslam_run_on_the_lossless_bag_gives_the_folders_poses(tum_bags, fol
     from fleetslam.cli import main
     from fleetslam.io.trajectory import read_tum_trajectory
 
+    from fleetslam.evaluation.fleet import run_ate
+
     out = tmp_path / "run"
-    assert main(["--quiet", "run", "--robot", str(tum_bags["ros1"]), "--out", str(out)]) == 0
+    # A bag carries no ground truth: the recording's file is given (issue 45 item 3).
+    gt = TUM_RPY / "groundtruth.txt"
+    assert main(["--quiet", "run", "--robot", str(tum_bags["ros1"]), "--groundtruth", str(gt),
+                 "--out", str(out)]) == 0
     times, poses = read_tum_trajectory(out / "r0" / "trajectory.tum")
     assert len(poses) == 150
     np.testing.assert_allclose(times, folder_run.timestamps, atol=1e-6)
     np.testing.assert_allclose(poses[:, :3, 3], folder_run.poses[:, :3, 3], atol=1e-6)
     np.testing.assert_allclose(poses[:, :3, :3], folder_run.poses[:, :3, :3], atol=1e-6)
-    summary = (out / "summary.json").read_text()
-    assert "unpaired 0 colour and 0 depth" in summary
+    text = (out / "summary.json").read_text()
+    assert "unpaired 0 colour and 0 depth" in text
+    robot = json.loads(text)["robots"][0]
+    assert robot["groundtruth"] == str(gt.resolve())
+    assert robot["ate"]["rmse_m"] == pytest.approx(run_ate(folder_run)["rmse_m"], abs=1e-6)
+    # The report made later reads the bag's file again from summary.json.
+    assert main(["--quiet", "report", str(out)]) == 0
+    page = (out / "report" / "report.html").read_text()
+    assert "a bag carries no ground truth" not in page and "error_over_time.png" in page
 
 
 @pytest.mark.realdata

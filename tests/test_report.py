@@ -236,6 +236,10 @@ def test_a_ground_truth_file_scores_a_recording_that_has_none(run_dir, tmp_path,
     cells = _robot_rows(page)["solo"]
     assert cells[ATE_CELL].startswith(f"{robot['ate']['rmse_m'] * 100:.3g} / "), cells
     assert "error_over_time.png" in check_page(page)
+    # The file the run was given, gone since: the report says so and shows the rest.
+    gt.rename(gt.with_suffix(".moved"))
+    assert "ground truth not readable here" in write_report(out).read_text()
+    gt.with_suffix(".moved").rename(gt)
     # The report alone is given it too, for a run made without it.
     (out / "summary.json").write_text(json.dumps({**json.loads((out / "summary.json")
                                                                .read_text()), "robots": [

@@ -207,7 +207,11 @@ def _open_source(source: str | None, file: Path | None, config: SourceConfig
         hint = ("; the path is relative to the directory the run was started in: run "
                 "`fleetslam report` from there" if not spec_path(source).is_absolute() else "")
         return None, f"source not readable here ({exc}{hint})"
-    if not sequence.has_ground_truth:
+    try:
+        has = sequence.has_ground_truth  # a given file is read here
+    except ValueError as exc:  # the run's file moved or changed since
+        return None, f"ground truth not readable here ({exc}; give it with --groundtruth)"
+    if not has:
         where = f"{file} covers none of its frames" if file else \
             f"{sequence.folder} has no groundtruth.txt (give one with --groundtruth)"
         return None, where
