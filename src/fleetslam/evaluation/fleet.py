@@ -80,6 +80,9 @@ def match_ground_truth(values: Sequence[str], names: Sequence[str]) -> dict[str,
             if name in named:
                 raise ValueError(f"{GROUND_TRUTH_FLAG} {value}: robot {name} has one already")
             named[name] = Path(rest)
+        elif sep and not Path(value).exists():
+            raise ValueError(f"{GROUND_TRUTH_FLAG} {value}: no robot {name} (robots: "
+                             f"{', '.join(names)}) and no such file")
         else:
             bare.append(Path(value))
     if named and bare:
