@@ -120,7 +120,7 @@ def load_run(folder: Path, ground_truth: bool = True, groundtruth: Sequence[str]
         if ground_truth:
             file = given.get(name) or (Path(r["groundtruth"]) if r.get("groundtruth") else None)
             sequence, note = _open_source(r.get("source"), file, _source_config(summary))
-            if sequence is not None and own is not None:
+            if sequence is not None:
                 sequences[name] = sequence
                 for traj in (own, glob):
                     if traj is not None:
@@ -130,8 +130,11 @@ def load_run(folder: Path, ground_truth: bool = True, groundtruth: Sequence[str]
             name, str(r.get("source")), own, glob, int(r.get("frames", 0)),
             dict(r.get("stage_ms") or {}), dict(robot.get("robot_stage_ms") or {}),
             _read_sends(folder / name / ROBOT_REPORT), None, r.get("offload_at"), note))
-    if sequences:
-        _score(run, sequences)
+    # Scored where its trajectory is there to score (score_fleet reads it).
+    scored = {r.name: sequences[r.name] for r in run.robots
+              if r.name in sequences and r.own is not None}
+    if scored:
+        _score(run, scored)
     for robot, entry in zip(run.robots, summary.get("robots", [])):
         robot.ate_rmse_m = (entry.get("ate") or {}).get("rmse_m")
     if ground_truth:
