@@ -8,6 +8,7 @@ and a ROS 2 MCAP bag (JPEG CompressedImage colour). The bad-input tests write ti
 from __future__ import annotations
 
 import dataclasses
+import json
 import importlib.util
 import sys
 import tracemalloc
@@ -218,6 +219,79 @@ def test_two_colour_topics_are_listed_and_a_flag_chooses(tmp_path):
     assert seq.rgb_topic == "/b/image" and seq[0].rgb[0, 0].tolist() == [5, 5, 5]
 
 
+RS = "/camera/camera"  # the RealSense ROS 2 driver's namespace
+
+
+def realsense_bag(path: Path) -> Path:
+    """A bag laid out as the RealSense driver records: raw colour with its JPEG
+    image_transport copy, unaligned depth (200 mm) and depth aligned to colour (700 mm)
+    with its compressedDepth copy, CameraInfo beside each."""
+    import struct
+
+    import cv2
+
+    ts = bw.typestore_for("mcap")
+    messages = []
+    for k in range(3):
+        ns = 1_600_000_000 * 10**9 + k * 33_333_333
+        rgb = np.full((H, W, 3), (1, 2, 3), np.uint8)
+        aligned = np.full((H, W), 700, np.uint16)
+        coded_depth = struct.pack("<iff", 0, 0.0, 0.0) + cv2.imencode(".png", aligned)[1].tobytes()
+        for topic, kind, msg in (
+                (f"{RS}/color/image_raw", bw.IMAGE, bw.image(ts, ns, "rgb8", rgb)),
+                (f"{RS}/color/image_raw/compressed", bw.COMPRESSED,
+                 bw.compressed(ts, ns, "rgb8; jpeg compressed bgr8",
+                               cv2.imencode(".jpg", rgb)[1].tobytes())),
+                (f"{RS}/depth/image_rect_raw", bw.IMAGE,
+                 bw.image(ts, ns, "16UC1", np.full((H, W), 200, np.uint16))),
+                (f"{RS}/aligned_depth_to_color/image_raw", bw.IMAGE,
+                 bw.image(ts, ns, "16UC1", aligned)),
+                (f"{RS}/aligned_depth_to_color/image_raw/compressedDepth", bw.COMPRESSED,
+                 bw.compressed(ts, ns, "16UC1; compressedDepth png", coded_depth))):
+            messages.append((topic, kind, ns, msg))
+        for where in ("color", "depth", "aligned_depth_to_color"):
+            messages.append((f"{RS}/{where}/camera_info", bw.CAMERA_INFO, ns,
+                             bw.camera_info(ts, ns, 50.0, 50.0, 3.5, 2.5, W, H)))
+    return bw.write_bag(path, "mcap", messages)
+
+
+def test_a_realsense_bag_plays_aligned_depth_and_raw_colour_and_says_why(tmp_path, caplog):
+    """Issue 45 item 2: such a bag failed with "2 depth image topics"; the topics a user
+    means are chosen, in one log line that names the others and why they were passed over."""
+    path = realsense_bag(tmp_path / "rs")
+    with caplog.at_level("INFO", logger="fleetslam.datasets.bag"):
+        seq = open_source(str(path))
+    assert seq.rgb_topic == f"{RS}/color/image_raw"
+    assert seq.depth_topic == f"{RS}/aligned_depth_to_color/image_raw"
+    assert seq[1].depth_raw[0, 0] == 700 and seq[1].rgb[0, 0].tolist() == [1, 2, 3]
+    lines = [r.getMessage() for r in caplog.records if "chosen over" in r.getMessage()]
+    assert len(lines) == 1, caplog.text
+    for part in (f"colour {RS}/color/image_raw and depth {RS}/aligned_depth_to_color/image_raw",
+                 f"{RS}/color/image_raw/compressed (image_transport copy of "
+                 f"{RS}/color/image_raw)",
+                 f"{RS}/aligned_depth_to_color/image_raw/compressedDepth (image_transport copy",
+                 f"{RS}/depth/image_rect_raw (not aligned to colour)"):
+        assert part in lines[0], lines[0]
+    # The flags still win, and then nothing is said to be passed over for that role.
+    caplog.clear()
+    with caplog.at_level("INFO", logger="fleetslam.datasets.bag"):
+        seq = open_source(str(path), source_config=SourceConfig(
+            rgb_topic=f"{RS}/color/image_raw/compressed",
+            depth_topic=f"{RS}/depth/image_rect_raw"))
+    assert (seq.rgb_topic, seq.depth_topic) == (f"{RS}/color/image_raw/compressed",
+                                                f"{RS}/depth/image_rect_raw")
+    assert seq[0].depth_raw[0, 0] == 200 and "chosen over" not in caplog.text
+
+
+def test_two_aligned_depth_topics_are_still_for_the_user_to_choose(tmp_path):
+    path = tiny_bag(tmp_path / "b.bag", depth={"/a/aligned_depth_to_color/image_raw": "16UC1",
+                                               "/b/depth_registered/image_raw": "16UC1",
+                                               "/c/depth/image_raw": "16UC1"})
+    with pytest.raises(BagError) as exc:
+        open_source(str(path))
+    one_line_error(exc, path, "2 depth image topics", "--depth-topic")
+
+
 def test_an_unsupported_encoding_is_named(tmp_path):
     path = tiny_bag(tmp_path / "b.bag", colour={"/cam/rgb/image": "yuv422"})
     with pytest.raises(BagError) as exc:
@@ -403,15 +477,27 @@ def test_fleetslam_run_on_the_lossless_bag_gives_the_folders_poses(tum_bags, fol
     from fleetslam.cli import main
     from fleetslam.io.trajectory import read_tum_trajectory
 
+    from fleetslam.evaluation.fleet import run_ate
+
     out = tmp_path / "run"
-    assert main(["--quiet", "run", "--robot", str(tum_bags["ros1"]), "--out", str(out)]) == 0
+    # A bag carries no ground truth: the recording's file is given (issue 45 item 3).
+    gt = TUM_RPY / "groundtruth.txt"
+    assert main(["--quiet", "run", "--robot", str(tum_bags["ros1"]), "--groundtruth", str(gt),
+                 "--out", str(out)]) == 0
     times, poses = read_tum_trajectory(out / "r0" / "trajectory.tum")
     assert len(poses) == 150
     np.testing.assert_allclose(times, folder_run.timestamps, atol=1e-6)
     np.testing.assert_allclose(poses[:, :3, 3], folder_run.poses[:, :3, 3], atol=1e-6)
     np.testing.assert_allclose(poses[:, :3, :3], folder_run.poses[:, :3, :3], atol=1e-6)
-    summary = (out / "summary.json").read_text()
-    assert "unpaired 0 colour and 0 depth" in summary
+    text = (out / "summary.json").read_text()
+    assert "unpaired 0 colour and 0 depth" in text
+    robot = json.loads(text)["robots"][0]
+    assert robot["groundtruth"] == str(gt.resolve())
+    assert robot["ate"]["rmse_m"] == pytest.approx(run_ate(folder_run)["rmse_m"], abs=1e-6)
+    # The report made later reads the bag's file again from summary.json.
+    assert main(["--quiet", "report", str(out)]) == 0
+    page = (out / "report" / "report.html").read_text()
+    assert "a bag carries no ground truth" not in page and "error_over_time.png" in page
 
 
 @pytest.mark.realdata

@@ -3,6 +3,7 @@ and against evo."""
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -162,3 +163,26 @@ def test_rotation_error_and_rpe_agree_with_evo():
     assert rpe.translation_max_m == pytest.approx(evo["rpe_trans"]["max"], rel=1e-6)
     assert rpe.rotation_rmse_deg == pytest.approx(evo["rpe_rot"]["rmse"], rel=1e-6)
     assert rpe.rotation_mean_deg == pytest.approx(evo["rpe_rot"]["mean"], rel=1e-6)
+
+
+def test_ground_truth_files_are_matched_to_robots_and_checked_first(tmp_path):
+    """--groundtruth (issue 45 item 3): FILE in the robots' order or NAME=FILE; a file that
+    is no TUM trajectory, or a flag that fits no robot, is one line naming the flag."""
+    from fleetslam.evaluation.fleet import match_ground_truth
+
+    good = tmp_path / "gt.txt"
+    good.write_text("# t tx ty tz qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n")
+    names = ["r0", "r1"]
+    assert match_ground_truth([str(good)], names) == {"r0": good.resolve()}
+    assert match_ground_truth([f"r1={good}"], names) == {"r1": good.resolve()}
+    assert match_ground_truth([], names) == {}
+    bad = tmp_path / "rgb.txt"
+    bad.write_text("1.0 rgb/1.png\n")
+    for values, words in (([str(bad)], f"--groundtruth: {bad}:1: expected 8 values"),
+                          ([f"r5={good}"], "--groundtruth r5="),
+                          ([str(good)] * 3, "3 --groundtruth for 2 robots"),
+                          ([f"r0={good}", str(good)], "give every one as NAME=FILE"),
+                          ([f"r0={good}", f"r0={good}"], "robot r0 has one already")):
+        with pytest.raises(ValueError, match=re.escape(words)) as exc:
+            match_ground_truth(values, names)
+        assert "\n" not in str(exc.value)

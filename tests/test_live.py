@@ -227,9 +227,13 @@ def test_a_robot_slower_than_its_camera_skips_frames_holds_one_and_tracks(tmp_pa
     assert report.camera_skipped > 20 and report.live_source == replay.description
     assert report.camera_taken == report.frames
     assert report.camera_taken + report.camera_skipped <= replay.delivered <= 150
+    # Every frame of the recording is counted: delivered, or never delivered (late).
+    assert replay.delivered + replay.undelivered == 150
+    assert report.camera_undelivered == replay.undelivered == replay.late
     assert max(held) <= 1  # one waiting frame at most, however far behind
     entry = json.loads((tmp_path / "cloud" / "summary.json").read_text())["robots"][0]
     assert entry["name"] == "r1" and summary["robots"][0]["live_camera"] == entry["live_camera"]
+    assert entry["live_camera"]["undelivered"] == replay.late
     assert entry["live_camera"]["skipped"] == report.camera_skipped
     assert entry["live_camera"]["taken"] == report.camera_taken == entry["frames"]
     assert entry["lost_frames"] <= 0.1 * entry["frames"]

@@ -72,3 +72,15 @@ def test_status_and_merge_say_what_and_where(tmp_path, capsys, monkeypatch):
     for line in merged.splitlines():
         cells = line.split()
         assert not cells or cells.count("-") < len(cells) // 2, line
+    # Issue 45 items 3 and 5: the merge's own time (a wall time read 0.0 s); a reason a
+    # robot is not merged is no column that could be listed as "not shown".
+    assert "\nmerge took " in merged and "wall time" not in merged
+    assert "not merged because" not in merged
+    # The report of the store: titled as one, the tables scored as the plots (the robots'
+    # sources have ground truth), where they showed ATE "-" beside the plots' errors.
+    assert main(["--quiet", "report", str(store)]) == 0
+    text = (folder / "report" / "report.html").read_text()
+    assert "<h1>fleetslam cloud store store</h1>" in text and "merge took " in text
+    assert "no ground truth in the run" not in text and "joint ATE" in text
+    robots = json.loads((folder / "summary.json").read_text())["robots"]
+    assert not any(r.get("ate") for r in robots)  # summary.json stays the cloud's

@@ -84,10 +84,15 @@ def test_bad_keyframe_poses_of_an_end_are_refused(poses, reason):
 
 def test_an_end_parses_to_what_was_sent():
     end = protocol.End(9, {3: np.eye(4)}, {"source": "cam", "delivered": 5, "taken": 4,
-                                           "skipped": 1}, frozenset({3}))
+                                           "skipped": 1, "undelivered": 2}, frozenset({3}))
     again = protocol.End.parse(protocol.parse_control(protocol.encode(end)))
     assert list(again.keyframe_poses) == [3] and again.keyframe_poses[3].shape == (4, 4)
     assert (again.last_seq, again.camera, again.unavailable) == (9, end.camera, {3})
+    # A robot from before frames never delivered were counted: its end still parses.
+    older = {k: v for k, v in end.camera.items() if k != "undelivered"}
+    assert protocol.End.parse(protocol.End(9, camera=older).message()).camera == older
+    with pytest.raises(ValueError, match="undelivered -1 is not a count"):
+        protocol.End.parse(protocol.End(9, camera={**older, "undelivered": -1}).message())
     assert protocol.End.parse(protocol.End(9).message()).keyframe_poses == {}
 
 

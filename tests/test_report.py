@@ -81,7 +81,7 @@ def test_report_of_a_merged_run_with_ground_truth(run_dir, capsys):
     text = page.read_text()
     assert "Ground truth (evaluation only" in text and "joint ATE" in text
     # Each robot's ATE (translation / rotation) and RPE (evo_rpe, consecutive frames).
-    assert "ATE RMSE cm / deg" in text and "RPE RMSE cm / deg" in text
+    assert "ATE RMSE cm / deg (rot. after position fit)" in text and "RPE RMSE cm / deg" in text
     # (The ATE's rotation is not bounded here: on 20 nearly straight frames evo's alignment,
     # by positions only, leaves the roll about the path open: several degrees, as evo says.)
     for robot in summary["robots"]:
@@ -197,3 +197,116 @@ def test_report_of_an_older_run_with_a_relative_source_says_where_from(run_dir, 
     text = write_report(old).read_text()
     assert ("relative/robot_0: no such sequence folder; the path is relative to the directory "
             "the run was started in: run `fleetslam report` from there") in text
+
+
+def _robot_rows(page: Path) -> dict[str, dict[str, str]]:
+    """The page's robot table: robot name -> {header: cell}."""
+    text = page.read_text()
+    table = text.split("<h2>Robots</h2>", 1)[1].split("</table>", 1)[0]
+    headers = re.findall(r"<th>(.*?)</th>", table)
+    rows = {}
+    for row in re.findall(r"<tr>(.*?)</tr>", table)[1:]:
+        cells = re.findall(r"<td[^>]*>(.*?)</td>", row)
+        rows[cells[0]] = dict(zip(headers, cells))
+    return rows
+
+
+ATE_CELL = "ATE RMSE cm / deg (rot. after position fit)"
+
+
+def test_a_ground_truth_file_scores_a_recording_that_has_none(run_dir, tmp_path, capsys):
+    """Issue 45 item 3: a recording without groundtruth.txt (as a bag) given --groundtruth
+    gets its ATE in summary.json and the report's table; a bad file is refused before the
+    run, naming the flag."""
+    source = Path(json.loads((run_dir / "summary.json").read_text())["robots"][0]["source"])
+    copy = tmp_path / "no_gt"
+    shutil.copytree(source, copy)
+    gt = tmp_path / "mocap" / "robot0.txt"
+    gt.parent.mkdir()
+    (copy / "groundtruth.txt").rename(gt)
+    out = tmp_path / "run"
+    assert main(["--quiet", "run", "--robot", f"{copy}:0-11", "--groundtruth", str(tmp_path),
+                 "--out", str(out)]) == 2
+    assert "--groundtruth: " in capsys.readouterr().err and not out.exists()
+    assert main(["--quiet", "run", "--robot", f"{copy}:0-11", "--name", "solo",
+                 "--groundtruth", f"solo={gt}", "--out", str(out)]) == 0
+    robot = json.loads((out / "summary.json").read_text())["robots"][0]
+    assert robot["groundtruth"] == str(gt.resolve()) and robot["ate"]["n_poses"] == 12
+    page = out / "report" / "report.html"
+    cells = _robot_rows(page)["solo"]
+    assert cells[ATE_CELL].startswith(f"{robot['ate']['rmse_m'] * 100:.3g} / "), cells
+    assert "error_over_time.png" in check_page(page)
+    # The file the run was given, gone since: the report says so and shows the rest.
+    gt.rename(gt.with_suffix(".moved"))
+    assert "ground truth not readable here" in write_report(out).read_text()
+    gt.with_suffix(".moved").rename(gt)
+    # The report alone is given it too, for a run made without it.
+    (out / "summary.json").write_text(json.dumps({**json.loads((out / "summary.json")
+                                                               .read_text()), "robots": [
+        {k: v for k, v in robot.items() if k not in ("groundtruth", "ate", "rpe")}]}))
+    assert "no groundtruth.txt" in write_report(out).read_text()
+    assert main(["--quiet", "report", str(out), "--groundtruth", str(gt)]) == 0
+    assert _robot_rows(page)["solo"] == cells
+
+
+def test_a_summary_without_scores_is_scored_as_its_plots_are(run_dir, tmp_path):
+    """Issue 45 item 3: a cloud's store has no scores in summary.json (the cloud never reads
+    ground truth); the report's plots read it from the robots' sources, and its tables showed
+    ATE "-" beside them. The report scores once and shows the same numbers in both."""
+    from fleetslam.reporting.run import alignment, load_run, translation_errors
+
+    store = tmp_path / "store2"
+    shutil.copytree(run_dir, store)
+    summary = json.loads((store / "summary.json").read_text())
+    for robot in summary["robots"]:
+        robot.pop("ate"), robot.pop("rpe")
+    summary["merge"].pop("evaluation")
+    (store / "summary.json").write_text(json.dumps(summary))
+    run = load_run(store)
+    rows = _robot_rows(write_report(store))
+    for robot, entry in zip(run.robots, run.summary["robots"]):
+        err = translation_errors(robot.own, alignment([robot.own]))
+        assert entry["ate"]["rmse_m"] == pytest.approx(np.sqrt(np.nanmean(err**2)))
+        assert rows[robot.name][ATE_CELL].startswith(f"{entry['ate']['rmse_m'] * 100:.3g} / ")
+    text = (store / "report" / "report.html").read_text()
+    assert "no ground truth in the run" not in text and "joint ATE" in text
+    assert "<h1>fleetslam run store2</h1>" in text
+
+
+def test_a_live_cameras_frames_add_up_on_the_page(run_dir, tmp_path):
+    """Issue 45 item 5: a live replay of 600 frames showed 575 delivered = 446 taken + 129
+    skipped, the 25 it never delivered (decoded too late) uncounted."""
+    run = tmp_path / "live"
+    shutil.copytree(run_dir, run)
+    summary = json.loads((run / "summary.json").read_text())
+    summary["robots"][0]["live_camera"] = {"source": "replay of fr1 at 30 fps",
+                                           "delivered": 575, "undelivered": 25, "taken": 446,
+                                           "skipped": 129}
+    (run / "summary.json").write_text(json.dumps(summary))
+    text = write_report(run).read_text()
+    assert ("replay of fr1 at 30 fps: 600 frames produced, 25 never delivered (the camera "
+            "dropped them), 575 delivered: 446 taken, 129 skipped (the robot was busy)") in text
+
+
+def test_the_console_tables_say_what_their_numbers_are(run_dir):
+    """Issue 45 item 5: a cloud's merge printed "wall time 0.0 s" (its own time, well under
+    a second), "not merged because" among the columns "not shown", an empty "groups" in the
+    demo's progress line; the ATE's rotation (after a position-only fit, as evo's) is said."""
+    from fleetslam.outputs import map_groups, summary_table
+
+    summary = json.loads((run_dir / "summary.json").read_text())
+    text = summary_table(summary)
+    assert "ATE RMSE cm / deg (rot. after position fit)" in text and "wall time " in text
+    # A cloud's merge: robots tracked over the link (offload_at), one left out.
+    for robot in summary["robots"]:
+        robot["offload_at"] = 3
+        robot.pop("ate"), robot.pop("rpe")
+    summary["merge"]["not_merged"] = {"r9": "not finished: its stream has not ended"}
+    summary["wall_time_s"] = 0.04
+    text = summary_table(summary, drop_empty=True)
+    assert "\nmerge took 0.04 s" in text and "wall time" not in text
+    assert "not merged: r9: not finished: its stream has not ended" in text
+    assert "not merged because" not in text
+    assert "not shown (no value for any robot): ATE RMSE cm" in text
+    assert map_groups(summary["merge"]) == "r0+r1" and map_groups({}) == "none yet"
+    assert map_groups({"components": {}}) == "none yet"

@@ -381,6 +381,27 @@ def test_topic_choice_from_live_publishers():
     assert sibling_camera_info("/cam/color/image_raw/compressedDepth") == "/cam/color/camera_info"
 
 
+def test_realsense_live_topics_choose_aligned_depth_by_the_bags_rule():
+    """Issue 45 item 2: the RealSense driver publishes depth aligned to colour and unaligned;
+    the live source took neither ("cannot tell the depth image topic"). One rule with bags."""
+    rs = "/camera/camera"
+    topics = {f"{rs}/color/image_raw": {IMAGE},
+              f"{rs}/color/image_raw/compressed": {"sensor_msgs/msg/CompressedImage"},
+              f"{rs}/depth/image_rect_raw": {IMAGE},
+              f"{rs}/aligned_depth_to_color/image_raw": {IMAGE},
+              f"{rs}/aligned_depth_to_color/image_raw/compressedDepth":
+                  {"sensor_msgs/msg/CompressedImage"},
+              f"{rs}/color/camera_info": {CAMERA_INFO}}
+    chosen = choose_topics(topics)
+    assert (chosen.colour, chosen.depth) == (f"{rs}/color/image_raw",
+                                             f"{rs}/aligned_depth_to_color/image_raw")
+    assert chosen.depth_info == f"{rs}/aligned_depth_to_color/camera_info"
+    assert f"{rs}/depth/image_rect_raw (not aligned to colour)" in chosen.why
+    assert f"{rs}/color/image_raw/compressed (image_transport copy" in chosen.why
+    given = choose_topics(topics, depth_topic=f"{rs}/depth/image_rect_raw")
+    assert given.depth == f"{rs}/depth/image_rect_raw" and "aligned" not in given.why
+
+
 def test_a_depth_camera_info_with_another_distortion_model_is_refused_clearly():
     """ros_messages.camera_from_info compared 5 against 8 coefficients by broadcasting (a
     numpy ValueError); now they are two models and the message says so."""

@@ -75,7 +75,8 @@ def _output_files(summary: dict) -> str:
 def cmd_report(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.reporting import write_report
 
-    print(write_report(Path(args.run_dir), show_progress=not args.quiet))
+    print(write_report(Path(args.run_dir), show_progress=not args.quiet,
+                       groundtruth=args.groundtruth or []))
     return 0
 
 
@@ -509,6 +510,8 @@ def cmd_merge(args: argparse.Namespace, config: Config) -> int:
 
 
 def cmd_status(args: argparse.Namespace, config: Config) -> int:
+    from fleetslam.outputs import map_groups
+
     status = _ask_cloud(args, config, "status")
     merge = status.get("merge") or {}
     merged = merge.get("robots", {})
@@ -520,8 +523,7 @@ def cmd_status(args: argparse.Namespace, config: Config) -> int:
               f"{m.get('keyframes', 0):>10} {m.get('anchor', '-'):>10}  {s.get('worker', '-')}")
     print(f"workers: {', '.join(status.get('workers') or [])} (answered: "
           f"{', '.join(status.get('answered') or [])})")
-    groups = " | ".join("+".join(m) for m in (merge.get("components") or {}).values())
-    print(f"map groups (merger of worker {status.get('worker')}): {groups or 'none'}; "
+    print(f"map groups (merger of worker {status.get('worker')}): {map_groups(merge)}; "
           f"inter-robot constraints: {merge.get('constraints', 0)} "
           f"({merge.get('constraints_rejected', 0)} rejected){_still_merging(merge)}")
     return 0
@@ -539,6 +541,7 @@ def _still_merging(merge: dict[str, Any]) -> str:
 def cmd_run(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.recording import absolute_spec, open_source
     from fleetslam.merging.saved_map import read_map
+    from fleetslam.evaluation.fleet import match_ground_truth
     from fleetslam.system import run_fleet
 
     camera = Camera.from_json(Path(args.camera)) if args.camera else None
@@ -551,9 +554,11 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
             keys_check(name)
         except ValueError as exc:
             raise ValueError(f"--name {name!r}: {exc}") from None
+    names = names or [f"r{i}" for i in range(len(args.robot))]
+    # Checked now, read again only after the run (evaluation/fleet.py).
+    ground_truth = match_ground_truth(args.groundtruth or [], names)
     robots = []
-    for i, spec in enumerate(args.robot):
-        name = names[i] if names else f"r{i}"
+    for name, spec in zip(names, args.robot):
         # Absolute, so `fleetslam report` finds its ground truth from any directory.
         robots.append((name, absolute_spec(spec), open_source(spec, camera, config.source)))
     if args.localise_only and not args.map:
@@ -562,7 +567,7 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     out = Path(args.out) if args.out else _default_out("run")
     _free_out(out, args.overwrite)
     summary = run_fleet(robots, config, out, show_progress=not args.quiet, saved_map=saved,
-                        localise_only=args.localise_only)
+                        localise_only=args.localise_only, ground_truth=ground_truth)
     _finish(summary, out, args.quiet)
     return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
 
@@ -753,6 +758,7 @@ def _add_run_command(sub: Any) -> None:
     run.add_argument("--localise-only", action="store_true", help="with --map: place the "
                      "robots in the map without extending it (its keyframes keep their "
                      "poses; no new map/ is written)")
+    _add_groundtruth_option(run)
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
     run.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
                      "earlier run folder (an interrupted one, say)")
@@ -903,8 +909,17 @@ def _add_certs_command(sub: Any) -> None:
 def _add_report_command(sub: Any) -> None:
     report = sub.add_parser("report", help="(re)build a finished run's report/ (PNG plots "
                             "and report.html); prints the page's path")
-    report.add_argument("run_dir", metavar="RUN_DIR", help="a run folder with summary.json")
+    report.add_argument("run_dir", metavar="RUN_DIR", help="a run folder with summary.json "
+                        "(a `fleetslam run`'s, a demo's or a cloud's --out store)")
+    _add_groundtruth_option(report)
     report.set_defaults(func=cmd_report)
+
+
+def _add_groundtruth_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--groundtruth", action="append", metavar="[NAME=]FILE",
+                        help="a TUM-format ground-truth file for a robot whose recording has "
+                        "none (a bag): FILE goes to the robots in order, NAME=FILE to robot "
+                        "NAME; repeat per robot. Read only after the run, to score it")
 
 
 def _add_export_command(sub: Any) -> None:

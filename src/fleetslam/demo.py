@@ -17,7 +17,8 @@ from fleetslam.edge.report import EXIT_INCOMPLETE
 from fleetslam.evaluation.fleet import score_fleet
 from fleetslam.launch import (CloudClient, free_endpoint, start_cloud, start_robot, start_router,
                               start_worker, stop, stop_all)
-from fleetslam.outputs import ROBOT_REPORT, add_deployment, add_robot_reports, write_summary
+from fleetslam.outputs import (ROBOT_REPORT, add_deployment, add_robot_reports, map_groups,
+                               write_summary)
 from fleetslam.progress import Progress
 from fleetslam.transport.certs import make_lab
 
@@ -125,9 +126,8 @@ def _follow_robots(client: CloudClient, robots: dict[str, subprocess.Popen], log
                                    + _tail(logs / f"{name}.log"))
         try:
             status = client.status(timeout=5.0)
-            groups = (status.get("merge") or {}).get("components", {})
             progress.update(sum(r["frames"] for r in status["robots"].values()),
-                            "groups " + " | ".join("+".join(m) for m in groups.values()))
+                            f"map groups: {map_groups(status.get('merge'))}")
             if watch is not None:
                 watch(status, cloud_workers)
         except TimeoutError:

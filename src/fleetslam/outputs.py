@@ -131,6 +131,13 @@ def _cm_deg(cm: float | None, deg: float | None) -> str | None:
     return _cell(cm) + ("" if deg is None else f" / {_cell(deg)}")
 
 
+# The ATE's rotation is evo_ape -a -r angle_deg's: after the SE(3) Umeyama fit of positions
+# (evo's -a fits rotations no better). Where the camera barely moves (fr1_rpy) that fit
+# leaves the trajectory's heading loose, and the angle is large however well it tracked:
+# the header says so, where the number is read, and keeps it comparable with evo's.
+ATE_HEADER = "ATE RMSE cm / deg (rot. after position fit)"
+
+
 def robot_table(summary: dict[str, Any]) -> Table:
     """One row per robot: frames, losses, loops, ATE and RPE (if scored: RMSE of the
     translation and of the rotation, as evo_ape -a and evo_rpe give them), speed, map size;
@@ -149,7 +156,7 @@ def robot_table(summary: dict[str, Any]) -> Table:
                              rpe.get("rotation_rmse_deg")),
                      r.get("tracking_fps"), r["map_points"]])
     return (["robot", "frames", *(["camera skipped"] if live else []), "keyframes", "lost",
-             "relocalised", "loops", "ATE RMSE cm / deg", "RPE RMSE cm / deg", "fps",
+             "relocalised", "loops", ATE_HEADER, "RPE RMSE cm / deg", "fps",
              "map points"], rows)
 
 
@@ -207,10 +214,34 @@ def summary_table(summary: dict[str, Any], drop_empty: bool = False) -> str:
     if merge:
         head, lines = merge_notes(merge)
         text += "\n\n" + "\n".join([head, text_of(merge_robot_table(merge)), *lines])
-    text += f"\n\nwall time {summary['wall_time_s']:.1f} s"
+    text += f"\n\n{time_line(summary)}"
     if dropped:
         text += f"\nnot shown (no value for any robot): {', '.join(dropped)}"
     return text
+
+
+def map_groups(merge: dict[str, Any] | None) -> str:
+    """The merger's map groups as "r0+r1 | r2" (a cloud's status), or "none yet" before any
+    robot's map reached it (a demo's first progress lines showed an empty "groups")."""
+    components = (merge or {}).get("components") or {}
+    return " | ".join("+".join(m) for m in components.values()) or "none yet"
+
+
+def run_kind(summary: dict[str, Any]) -> str:
+    """What made the summary's folder: "deployed run" (the demo: robots and a cloud in
+    processes of their own), "cloud store" (a cloud's --out, written by a merge: its robots
+    were tracked over the link) or "run" (``fleetslam run``, one process)."""
+    if summary.get("deployment"):
+        return "deployed run"
+    return "cloud store" if any("offload_at" in r for r in summary.get("robots", [])) else "run"
+
+
+def time_line(summary: dict[str, Any]) -> str:
+    """A run's wall time, or a cloud's merge time (its summary's wall_time_s: the merge's
+    own, often well under a second, which one decimal showed as 0.0 s)."""
+    seconds = summary.get("wall_time_s") or 0.0
+    shown = f"{seconds:.2f} s" if seconds < 10 else f"{seconds:.1f} s"
+    return f"merge took {shown}" if run_kind(summary) == "cloud store" else f"wall time {shown}"
 
 
 def fleet_merge(summary: dict[str, Any]) -> dict[str, Any] | None:
@@ -237,10 +268,11 @@ def merge_robot_table(merge: dict[str, Any]) -> Table:
                      else None,
                      rel.get("final_rotation_error_deg"),
                      None if rel.get("final_translation_error_m") is None
-                     else rel["final_translation_error_m"] * 100,
-                     (merge.get("not_merged") or {}).get(name, "")])
+                     else rel["final_translation_error_m"] * 100])
+    # Why a robot is not merged is said on lines of its own (merge_notes): as a column, an
+    # empty one was listed among the values "not shown".
     return (["robot", "group", "joined at (robot:frame)", "rel. rot err deg",
-             "rel. trans err cm", "not merged because"], rows)
+             "rel. trans err cm"], rows)
 
 
 def constraint_table(merge: dict[str, Any]) -> Table:
@@ -305,7 +337,10 @@ def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
         worst = max(kept, key=lambda c: c["rotation_error_deg"])
         line += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
                  f" / {max(c['translation_error_m'] for c in kept) * 100:.1f} cm")
-    lines = [line, *join_lines(merge)]
+    not_merged = merge.get("not_merged") or {}
+    lines = [line, *join_lines(merge),
+             *([f"not merged: {'; '.join(f'{r}: {why}' for r, why in sorted(not_merged.items()))}"]
+               if not_merged else [])]
     if joint:
         lines.append(f"joint ATE of the global trajectories: {joint['rmse_m'] * 100:.2f} cm")
     return head, lines

@@ -28,7 +28,7 @@ import numpy as np
 
 from fleetslam.config import Config
 from fleetslam.datasets.source import RecordedSource
-from fleetslam.evaluation.fleet import score_fleet
+from fleetslam.evaluation.fleet import score_fleet, with_ground_truth
 from fleetslam.mapping.dense_map import build_dense_map
 from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid
@@ -222,10 +222,12 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
 
 def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,
               show_progress: bool = True, saved_map: SavedMap | None = None,
-              localise_only: bool = False) -> dict[str, Any]:
+              localise_only: bool = False, ground_truth: dict[str, Path] | None = None
+              ) -> dict[str, Any]:
     """Track, map and merge; write everything under ``out_dir``; score against ground truth
-    where a sequence has it (after the run); return the summary. A Ctrl-C ends it early:
-    the trajectories tracked so far are written, and ``summary["interrupted"]`` says so."""
+    where a sequence has it or ``ground_truth`` gives a file for its robot (read after the
+    run); return the summary. A Ctrl-C ends it early: the trajectories tracked so far are
+    written, and ``summary["interrupted"]`` says so."""
     start = time.perf_counter()
     for _, _, sequence in robots:  # a bad mounting is said before anything is written
         sequence.camera.mounted(config.camera.base_link)
@@ -266,7 +268,9 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
             "by": "Ctrl-C", "frames_tracked": {r.name: len(r.timestamps) for r in runs},
             "frames_given": {r.name: len(r.sequence) for r in runs}, "not_built": skipped}
     # Evaluation: ground truth is read only now, after every output is written.
-    score_fleet(summary, out_dir, {r.name: r.sequence for r in runs})
+    given = ground_truth or {}
+    score_fleet(summary, out_dir, {r.name: with_ground_truth(r.sequence, given.get(r.name))
+                                   for r in runs})
     if config.outputs.mcap and not interrupted:
         summary["mcap"] = write_run_mcap(out_dir, summary).name
     write_summary(out_dir, summary)

@@ -26,6 +26,7 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.config import SourceConfig
 from fleetslam.datasets.ranges import play_order, repeated_text
+from fleetslam.datasets.ros2_discovery import preferred_images
 from fleetslam.datasets.ros_messages import (
     CAMERA_INFO_TYPE, COLOUR_ENCODINGS, DEPTH_ENCODINGS, IMAGE_TYPES, camera_from_info,
     colour_image, depth_image, depth_image_scale, image_format, image_role, stamp_seconds)
@@ -162,6 +163,7 @@ class BagSequence:
                  config: SourceConfig | None = None) -> None:
         self.folder = Path(path)
         self.camera_frame_id = ""  # the colour images' header frame_id, once one is read
+        self.topic_choice = ""  # the image topics passed over and why ("" if none were)
         config = config or SourceConfig()
         if not self.folder.exists():
             raise BagError(f"{self.folder}: no such bag")
@@ -206,8 +208,10 @@ class BagSequence:
         self.camera_source = "; ".join(filter(None, [camera_source, (
             f"{self.pairs} colour/depth pairs, unpaired {self.unpaired_rgb} colour and "
             f"{self.unpaired_depth} depth"), repeated_text(self.repeated)]))
-        log.log(logging.WARNING if self.repeated else logging.INFO, "%s: %s and %s, camera %s",
-                self.folder, self.rgb_topic, self.depth_topic, self.camera_source)
+        log.log(logging.WARNING if self.repeated else logging.INFO,
+                "%s: colour %s and depth %s%s, camera %s", self.folder, self.rgb_topic,
+                self.depth_topic, f" ({self.topic_choice})" if self.topic_choice else "",
+                self.camera_source)
         connections = [c for c in self._reader.connections
                        if c.topic in (self.rgb_topic, self.depth_topic)]
         needed = set(self._rgb_keys) | set(self._depth_keys)
@@ -240,7 +244,7 @@ class BagSequence:
         return "image topics: " + ("; ".join(images) if images else "none")
 
     def _choose_image_topics(self, config: SourceConfig) -> tuple[str, str]:
-        chosen = []
+        chosen, passed = [], []
         for role, given, flag, encodings in (
                 ("colour", config.rgb_topic, "--rgb-topic", COLOUR_ENCODINGS),
                 ("depth", config.depth_topic, "--depth-topic", DEPTH_ENCODINGS)):
@@ -251,17 +255,10 @@ class BagSequence:
                                    f"the bag ({self._image_topics()})")
                 chosen.append(given)
                 continue
-            candidates = [t for t in self._topics.values()
-                          if t.msgtype in IMAGE_TYPES and image_role(t.first) == role]
-            if len(candidates) != 1:
-                unread = [t.describe() for t in self._topics.values()
-                          if t.msgtype in IMAGE_TYPES and image_role(t.first) is None]
-                why = (f"{len(candidates)} {role} image topics, choose one with {flag}"
-                       if candidates else f"no {role} image topic"
-                       + (f" fleetslam reads ({role} encodings: {', '.join(encodings)}; "
-                          f"unsupported: {'; '.join(unread)})" if unread else ""))
-                raise BagError(f"{self.folder}: {why} ({self._image_topics()})")
-            chosen.append(candidates[0].name)
+            name, passed_over = self._auto_topic(role, flag, encodings)
+            chosen.append(name)
+            passed += passed_over
+        self.topic_choice = f"chosen over {', '.join(passed)}" if passed else ""
         rgb, depth = chosen
         for topic, role, encodings in ((rgb, "colour", COLOUR_ENCODINGS),
                                        (depth, "depth", DEPTH_ENCODINGS)):
@@ -273,6 +270,24 @@ class BagSequence:
                                f"(use one of {', '.join(encodings)}"
                                f"{'' if role == 'depth' else ', or a JPEG/PNG CompressedImage'})")
         return rgb, depth
+
+    def _auto_topic(self, role: str, flag: str, encodings: tuple[str, ...]
+                    ) -> tuple[str, list[str]]:
+        """The one image topic of ``role`` a user means (``preferred_images``: the raw topic
+        over its image_transport copies, depth aligned to colour over unaligned) and the
+        topics passed over; BagError naming the image topics when that is not one."""
+        candidates, passed = preferred_images(
+            [t.name for t in self._topics.values()
+             if t.msgtype in IMAGE_TYPES and image_role(t.first) == role], role)
+        if len(candidates) == 1:
+            return candidates[0], passed
+        unread = [t.describe() for t in self._topics.values()
+                  if t.msgtype in IMAGE_TYPES and image_role(t.first) is None]
+        why = (f"{len(candidates)} {role} image topics, choose one with {flag}"
+               if candidates else f"no {role} image topic"
+               + (f" fleetslam reads ({role} encodings: {', '.join(encodings)}; "
+                  f"unsupported: {'; '.join(unread)})" if unread else ""))
+        raise BagError(f"{self.folder}: {why} ({self._image_topics()})")
 
     def _index(self) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
         """(bag time, rank, header stamp) of every colour and every depth message, in one

@@ -93,6 +93,13 @@ class SlotCounts:
         return self._slot.delivered
 
     @property
+    def undelivered(self) -> int:
+        """Frames the camera produced that never reached the robot (a replay's decoded too
+        late); 0 where the driver does not say (a RealSense, ROS 2 topics: their own
+        counts)."""
+        return 0
+
+    @property
     def waiting(self) -> int:
         """Frames held for the robot: at most one, whatever its pace."""
         return self._slot.waiting
@@ -134,6 +141,12 @@ class LiveSource(Protocol):
     def delivered(self) -> int:
         """Frames the camera delivered (``NewestFrame.delivered``): with the frames taken and
         skipped, what a run's summary shows of its camera."""
+        ...
+
+    @property
+    def undelivered(self) -> int:
+        """Frames the camera produced that it never delivered: produced = delivered +
+        undelivered."""
         ...
 
     def close(self) -> None: ...

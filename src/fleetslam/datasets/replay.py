@@ -51,6 +51,11 @@ class ReplaySource(SlotCounts):
     def take(self, timeout: float) -> Frame | None:
         return take_numbered(self._slot, timeout)
 
+    @property
+    def undelivered(self) -> int:
+        """The recording's frames this camera dropped, decoded too late (``late``)."""
+        return self.late
+
     def close(self) -> None:
         self._stop.set()
         self._slot.close()

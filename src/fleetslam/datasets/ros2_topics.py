@@ -171,6 +171,8 @@ class Ros2TopicSource(SlotCounts):
         self._subscribers.append(self._session.liveliness().declare_subscriber(
             liveliness_key(self.domain_id), self._on_liveliness, history=True))
         self.topics = topics = self._choose_topics(deadline, timeout)
+        if topics.why:
+            log.info("ROS 2 topics %s and %s %s", topics.colour, topics.depth, topics.why)
         self.description = (f"ROS 2 topics {topics.colour} + {topics.depth} over rmw_zenoh at "
                             f"{self.endpoint} (domain {self.domain_id})")
         self._subscribe(topic_key(self.domain_id, topics.colour), self._on_image(COLOUR))

@@ -105,6 +105,24 @@ def detect_camera(folder: Path) -> tuple[Camera, str]:
     return TUM_CAMERAS["default"], "ROS default (folder names no freiburg camera)"
 
 
+def ground_truth_at_stamps(path: Path, stamps: np.ndarray) -> np.ndarray:
+    """Poses of a TUM-format ground-truth file at ``stamps`` (N, 4, 4), interpolated between
+    its poses; NaN where it does not cover a stamp (outside it, or across a gap longer than
+    MAX_GT_GAP_S). ValueError naming the file if it is not one."""
+    times, poses = read_tum_trajectory(path)
+    out = np.full((len(stamps), 4, 4), np.nan)
+    inside = (stamps >= times[0]) & (stamps <= times[-1])
+    if len(times) == 1:
+        out[stamps == times[0]] = poses[0]
+        return out
+    idx = np.clip(np.searchsorted(times, stamps), 1, len(times) - 1)
+    gap = times[idx] - times[idx - 1]
+    ok = inside & (gap <= MAX_GT_GAP_S)
+    if ok.any():
+        out[ok] = interpolate_poses(times, poses, stamps[ok])
+    return out
+
+
 class RgbdSequence:
     """Random access to the associated RGB-D frames of one folder, optionally a frame range."""
 
@@ -160,19 +178,8 @@ class RgbdSequence:
         path = self.folder / "groundtruth.txt"
         if not path.exists():
             return None
-        times, poses = read_tum_trajectory(path)
-        stamps = self.recorded_timestamps  # ground truth at each played frame's own time
-        out = np.full((len(stamps), 4, 4), np.nan)
-        inside = (stamps >= times[0]) & (stamps <= times[-1])
-        if len(times) == 1:
-            out[stamps == times[0]] = poses[0]
-            return out
-        idx = np.clip(np.searchsorted(times, stamps), 1, len(times) - 1)
-        gap = times[idx] - times[idx - 1]
-        ok = inside & (gap <= MAX_GT_GAP_S)
-        if ok.any():
-            out[ok] = interpolate_poses(times, poses, stamps[ok])
-        return out
+        # Ground truth at each played frame's own time.
+        return ground_truth_at_stamps(path, self.recorded_timestamps)
 
     @property
     def has_ground_truth(self) -> bool:

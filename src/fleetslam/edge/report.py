@@ -66,6 +66,7 @@ class RobotReport:
     # after the session's last timestamp (it has them already).
     live_source: str | None = None
     camera_delivered: int = 0
+    camera_undelivered: int = 0  # produced by the camera, never delivered (a replay's late)
     camera_taken: int = 0
     camera_skipped: int = 0
     camera_before_resume: int = 0
@@ -156,6 +157,7 @@ class RobotReport:
                 f"{self.total_s:.1f} s"
                 + (f"; from {self.live_source}: {self.camera_taken} frames taken, "
                    f"{self.camera_skipped} skipped (the robot was busy), "
+                   f"{self.camera_undelivered} never delivered by the camera, "
                    f"{self.camera_rejected} messages refused" if live else "")
                 + (f"; the camera's stream ended: {self.camera_ended}" if self.camera_ended
                    else "")

@@ -272,6 +272,7 @@ class Robot:
         if self.live is not None:  # whether the camera's stream ended or the robot stopped
             self.report.camera_skipped = self.live.skipped
             self.report.camera_delivered = self.live.delivered
+            self.report.camera_undelivered = self.live.undelivered
             self.report.camera_rejected = self.live.rejected
         progress.finish(i + 1 - start_index, self._progress_note(k, step))
         self.report.streaming_s = time.monotonic() - t0
@@ -397,6 +398,7 @@ class Robot:
         poses = self.onboard.keyframe_poses() if self.onboard is not None else {}
         camera = None if self.live is None else {
             "source": self.live.description, "delivered": self.report.camera_delivered,
+            "undelivered": self.report.camera_undelivered,
             "taken": self.report.camera_taken, "skipped": self.report.camera_skipped}
         cfg = self.config.transport
         for _ in range(cfg.max_attempts):

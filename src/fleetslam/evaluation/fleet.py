@@ -8,16 +8,96 @@ run; nothing here feeds back into the system.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from fleetslam.datasets.source import RecordedSource
+from fleetslam.camera import Camera
+from fleetslam.datasets.source import Frame, RecordedSource
+from fleetslam.datasets.tum import ground_truth_at_stamps
 from fleetslam.evaluation.ate import absolute_trajectory_error, relative_pose_error
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.registration.metrics import transform_error
 from fleetslam.transforms import invert
+
+
+GROUND_TRUTH_FLAG = "--groundtruth"
+
+
+class GivenGroundTruth:
+    """A recording scored against a TUM-format ground-truth file given for it
+    (``--groundtruth``: a bag, which carries none, or a folder without groundtruth.txt);
+    the file is read on first use, for evaluation only."""
+
+    def __init__(self, sequence: RecordedSource, path: Path) -> None:
+        self.sequence, self.path = sequence, path
+        self.folder: Path = sequence.folder
+        self.timestamps: np.ndarray = sequence.timestamps
+        self.first: int = sequence.first
+
+    @property
+    def camera(self) -> Camera:
+        return self.sequence.camera
+
+    @property
+    def camera_source(self) -> str:
+        return self.sequence.camera_source
+
+    def __len__(self) -> int:
+        return len(self.sequence)
+
+    def __getitem__(self, i: int) -> Frame:
+        return self.sequence[i]
+
+    @functools.cached_property
+    def gt_poses(self) -> np.ndarray | None:
+        # At each played frame's recorded time (a retimed range plays at other times).
+        return ground_truth_at_stamps(self.path, getattr(
+            self.sequence, "recorded_timestamps", self.sequence.timestamps))
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.gt_poses is not None and bool(np.isfinite(self.gt_poses[:, 0, 0]).any())
+
+
+def with_ground_truth(sequence: RecordedSource, path: Path | None) -> RecordedSource:
+    """``sequence`` scored against ``path`` where one is given, else its own ground truth."""
+    return sequence if path is None else GivenGroundTruth(sequence, path)
+
+
+def match_ground_truth(values: Sequence[str], names: Sequence[str]) -> dict[str, Path]:
+    """Robot name -> ground-truth file from ``--groundtruth`` values: ``NAME=FILE`` names
+    its robot, a bare ``FILE`` goes to the robots in order (not both kinds at once); each
+    file is checked to be a TUM trajectory now, not after a long run. ValueError naming the
+    flag and what is wrong."""
+    named, bare = {}, []
+    for value in values:
+        name, sep, rest = value.partition("=")
+        if sep and name in names:
+            if name in named:
+                raise ValueError(f"{GROUND_TRUTH_FLAG} {value}: robot {name} has one already")
+            named[name] = Path(rest)
+        elif sep and not Path(value).exists():
+            raise ValueError(f"{GROUND_TRUTH_FLAG} {value}: no robot {name} (robots: "
+                             f"{', '.join(names)}) and no such file")
+        else:
+            bare.append(Path(value))
+    if named and bare:
+        raise ValueError(f"{GROUND_TRUTH_FLAG}: give every one as NAME=FILE (robots: "
+                         f"{', '.join(names)}) or every one as FILE, in the robots' order")
+    if len(bare) > len(names):
+        raise ValueError(f"{len(bare)} {GROUND_TRUTH_FLAG} for {len(names)} robots "
+                         f"({', '.join(names)})")
+    files = named or dict(zip(names, bare))
+    for path in files.values():
+        try:
+            read_tum_trajectory(path)
+        except ValueError as exc:
+            raise ValueError(f"{GROUND_TRUTH_FLAG}: {exc}") from None
+    return {name: path.resolve() for name, path in files.items()}
 
 
 def ground_truth_at(times: np.ndarray, sequence: RecordedSource) -> tuple[np.ndarray, np.ndarray]:
@@ -155,12 +235,17 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, Recor
 def score_fleet(summary: dict[str, Any], out_dir: Path, sequences: dict[str, RecordedSource]
                 ) -> None:
     """Add ground-truth scores to ``summary`` in place (robots' ATE and RPE, merge
-    evaluation)."""
+    evaluation), and the ground-truth file given for a robot (``GivenGroundTruth``), so
+    that a report made later scores with it too."""
     for robot in summary["robots"]:
         sequence = sequences.get(robot["name"])
+        if sequence is None:  # its scores, if any, stay as they are
+            continue
         trajectory = out_dir / robot["trajectory"]
-        robot["ate"] = trajectory_ate(trajectory, sequence) if sequence is not None else None
-        robot["rpe"] = trajectory_rpe(trajectory, sequence) if sequence is not None else None
+        if isinstance(sequence, GivenGroundTruth):
+            robot["groundtruth"] = str(sequence.path)
+        robot["ate"] = trajectory_ate(trajectory, sequence)
+        robot["rpe"] = trajectory_rpe(trajectory, sequence)
     merge = summary.get("merge")
     if merge is not None and all(n in sequences for n in merge.get("robots", {})):
         merge["evaluation"] = score_merge(merge, out_dir, sequences)

@@ -5,6 +5,7 @@ page). ``fleetslam report RUN_DIR`` rebuilds it."""
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,15 +19,17 @@ if TYPE_CHECKING:
 _LOCK = threading.Lock()
 
 
-def write_report(folder: Path, ground_truth: bool = True, show_progress: bool = False) -> Path:
+def write_report(folder: Path, ground_truth: bool = True, show_progress: bool = False,
+                 groundtruth: Sequence[str] = ()) -> Path:
     """Write ``folder/report/`` (replacing the report's own files) and return the path of
     report.html. ValueError if ``folder`` holds no summary.json. ``ground_truth``: read each
-    robot's ground truth for the plots that need it (the cloud does not)."""
+    robot's ground truth for the scores and the plots that need it (the cloud does not);
+    ``groundtruth``: ``--groundtruth`` values (reporting.run.load_run)."""
     from fleetslam.reporting.run import load_run
 
     folder = Path(folder)
     with _LOCK:
-        run = load_run(folder, ground_truth)
+        run = load_run(folder, ground_truth, groundtruth)
         return _write(run, folder / "report", show_progress)
 
 

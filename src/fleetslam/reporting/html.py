@@ -11,7 +11,7 @@ from fleetslam.tables import _cell
 from fleetslam.reporting.plots import Figure
 from fleetslam.reporting.run import RunData
 from fleetslam.outputs import (constraint_table, fleet_merge, merge_notes, merge_robot_table,
-                               robot_table, transport_table)
+                               robot_table, run_kind, time_line, transport_table)
 
 STYLE = """
 body { font: 14px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px;
@@ -31,8 +31,16 @@ def _camera_note(camera: dict[str, Any] | None) -> str | None:
     """A live source's line: what it was and how many frames the robot took and skipped."""
     if camera is None:
         return None
-    return (f"{camera['source']}: {camera['delivered']} frames delivered, {camera['taken']} "
-            f"taken, {camera['skipped']} skipped (the robot was busy)")
+    undelivered = camera.get("undelivered")  # None: a robot from before it was counted
+    produced = "" if undelivered is None else (
+        f"{camera['delivered'] + undelivered} frames produced, {undelivered} never delivered "
+        f"(the camera dropped them), ")
+    # The rest of the delivered: the frame waiting at the stop, those before a resume.
+    rest = camera["delivered"] - camera["taken"] - camera["skipped"]
+    return (f"{camera['source']}: {produced}{camera['delivered']} delivered: "
+            f"{camera['taken']} taken, {camera['skipped']} skipped (the robot was busy)"
+            + (f", {rest} not taken (waiting at the end, or before a resume)" if rest > 0
+               else ""))
 
 
 def _table(headers: list[str], rows: list[list[Any]]) -> str:
@@ -56,18 +64,18 @@ def _ground_truth_line(run: RunData) -> str:
                 "aligned trajectories) are left out; every other plot is shown.")
     others = [r.name for r in run.robots if r.name not in with_gt]
     return ("Ground truth (evaluation only, read after the run from each robot's source "
-            f"folder): {', '.join(with_gt)}"
+            "folder or the --groundtruth file given for it; the tables' errors and the plots' "
+            f"are scored from it alike): {', '.join(with_gt)}"
             + (f"; none for {', '.join(others)}" if others else "") + ".")
 
 
 def render_page(run: RunData, figures: list[Figure], skipped: dict[str, str]) -> str:
     s = run.summary
-    name = run.folder.resolve().name
+    title = html.escape(f"fleetslam {run_kind(s)} {run.folder.resolve().name}")
     parts = [f"<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-             f"<title>fleetslam run {html.escape(name)}</title><style>{STYLE}</style></head>"
-             f"<body><h1>fleetslam run {html.escape(name)}</h1>"]
+             f"<title>{title}</title><style>{STYLE}</style></head><body><h1>{title}</h1>"]
     deployment = s.get("deployment") or {}
-    meta = [f"{len(run.robots)} robots", f"wall time {s.get('wall_time_s', 0):.1f} s"]
+    meta = [f"{len(run.robots)} robots", time_line(s)]
     if deployment:
         meta.append(f"{deployment.get('processes')} processes over "
                     f"{'TLS' if deployment.get('tls') else 'TCP'}, offload at "

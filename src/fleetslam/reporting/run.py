@@ -3,24 +3,29 @@ global frame), ground truth at the same instants, the global map, stage times, a
 robot put on its link.
 
 Ground truth is evaluation only: it is read here, after the run, from the ``groundtruth.txt``
-of the folder each robot played (its ``source`` in summary.json; a ROS bag carries none). A
-run without it, or a report made without it (the cloud's own report), still loads
-everything else.
+of the folder each robot played (its ``source`` in summary.json; a ROS bag carries none), or
+from a file given for the robot (``--groundtruth`` to ``run``, kept in summary.json as its
+``groundtruth``, or to ``report``). The summary's scores are made again from it, so tables
+and plots show the same errors. A run without it, or a report made without it (the cloud's
+own report), still loads everything else.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fleetslam.config import SourceConfig
 from fleetslam.datasets.recording import open_source, spec_is_bag, spec_path
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.evaluation.ate import umeyama
-from fleetslam.evaluation.fleet import ground_truth_at, same_world
+from fleetslam.evaluation.fleet import (ground_truth_at, match_ground_truth, same_world,
+                                        score_fleet, with_ground_truth)
 from fleetslam.io.ply import read_ply
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.outputs import ROBOT_REPORT
@@ -85,9 +90,12 @@ class RunData:
         return f"C{index % 10}"
 
 
-def load_run(folder: Path, ground_truth: bool = True) -> RunData:
+def load_run(folder: Path, ground_truth: bool = True, groundtruth: Sequence[str] = ()
+             ) -> RunData:
     """Everything the report shows, from a finished run folder (ValueError if it has no
-    summary.json)."""
+    summary.json). ``groundtruth``: ``--groundtruth`` values, ground-truth files for the
+    robots (over the ones the run was given and its recordings' own). The robots are scored
+    here, once, with the ground truth the plots use: the tables show these scores."""
     folder = Path(folder)
     path = folder / "summary.json"
     if not path.is_file():
@@ -99,6 +107,7 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
     run = RunData(folder, summary, [], ground_truth_read=ground_truth)
     if summary.get("interrupted"):
         run.notes.append(_interrupted_note(summary["interrupted"]))
+    given = match_ground_truth(groundtruth, [r["name"] for r in summary.get("robots", [])])
     sequences: dict[str, RecordedSource] = {}
     merge = summary.get("merge") or {}
     global_files = merge.get("global_trajectories") or {}
@@ -109,7 +118,8 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
             if name in global_files else None
         note = ""
         if ground_truth:
-            sequence, note = _open_source(r.get("source"))
+            file = given.get(name) or (Path(r["groundtruth"]) if r.get("groundtruth") else None)
+            sequence, note = _open_source(r.get("source"), file, _source_config(summary))
             if sequence is not None:
                 sequences[name] = sequence
                 for traj in (own, glob):
@@ -119,23 +129,52 @@ def load_run(folder: Path, ground_truth: bool = True) -> RunData:
         run.robots.append(RobotData(
             name, str(r.get("source")), own, glob, int(r.get("frames", 0)),
             dict(r.get("stage_ms") or {}), dict(robot.get("robot_stage_ms") or {}),
-            _read_sends(folder / name / ROBOT_REPORT),
-            (r.get("ate") or {}).get("rmse_m"), r.get("offload_at"), note))
+            _read_sends(folder / name / ROBOT_REPORT), None, r.get("offload_at"), note))
+    # Scored where its trajectory is there to score (score_fleet reads it).
+    scored = {r.name: sequences[r.name] for r in run.robots
+              if r.name in sequences and r.own is not None}
+    if scored:
+        _score(run, scored)
+    for robot, entry in zip(run.robots, summary.get("robots", [])):
+        robot.ate_rmse_m = (entry.get("ate") or {}).get("rmse_m")
     if ground_truth:
         missing = [f"{r.name}: {r.gt_note}" for r in run.robots if r.gt_note]
         if missing:
             run.notes.append("no ground truth for " + "; ".join(missing))
+    _read_merge(run, sequences, merge)
+    return run
+
+
+def _score(run: RunData, sequences: dict[str, RecordedSource]) -> None:
+    """The summary's scores (robots' ATE and RPE, the merge's evaluation) from the ground
+    truth read here: a cloud's summary has none, a run's are made again the same way. Kept
+    in the report, not written back to summary.json."""
+    try:
+        score_fleet(run.summary, run.folder, sequences)
+    except (ValueError, KeyError, IndexError) as exc:  # outputs that are not there any more
+        run.notes.append(f"not scored against ground truth: {type(exc).__name__}: {exc}")
+
+
+def _read_merge(run: RunData, sequences: dict[str, RecordedSource], merge: dict[str, Any]
+                ) -> None:
+    """Whether the merged robots share one ground-truth world, and the global map."""
     merged = [r.name for r in run.robots if r.glob is not None]
     run.joint_gt = len(merged) > 1 and all(m in sequences for m in merged) and all(
         same_world(sequences[merged[0]], sequences[m]) for m in merged[1:])
-    if ground_truth and len(merged) > 1 and not run.joint_gt:
+    if run.ground_truth_read and len(merged) > 1 and not run.joint_gt:
         run.notes.append("the merged robots' ground truths share no world frame (or some "
                          "are missing): the global frame is shown unaligned")
-    map_path = folder / merge.get("global_map", "global_map.ply")
+    map_path = run.folder / merge.get("global_map", "global_map.ply")
     if merge.get("global_map") and map_path.is_file():
         run.map_points, run.map_colors = read_ply(map_path)
-    run.bandwidth_mbps = _bandwidth(summary)
-    return run
+    run.bandwidth_mbps = _bandwidth(run.summary)
+
+
+def _source_config(summary: dict[str, Any]) -> SourceConfig:
+    """The run's topic choices, so a bag opens here as it did in the run."""
+    given = (summary.get("config") or {}).get("source") or {}
+    keys = ("rgb_topic", "depth_topic", "camera_info_topic", "pair_tolerance_s")
+    return SourceConfig(**{k: given[k] for k in keys if k in given})
 
 
 def _interrupted_note(interrupted: dict[str, Any]) -> str:
@@ -155,21 +194,30 @@ def _read_trajectory(path: Path, notes: list[str]) -> Trajectory | None:
     return Trajectory(times, poses)
 
 
-def _open_source(source: str | None) -> tuple[RecordedSource | None, str]:
-    """The robot's recording, for its ground truth; (None, why) if there is none."""
+def _open_source(source: str | None, file: Path | None, config: SourceConfig
+                 ) -> tuple[RecordedSource | None, str]:
+    """The robot's recording with its ground truth (``file``: a ground-truth file given for
+    it); (None, why) if there is none."""
     if not source:
         return None, "the summary names no source"
-    if spec_is_bag(source):  # not opened: indexing a bag only to find no ground truth
-        return None, f"{spec_path(source)} is a ROS bag (a bag carries no ground truth)"
+    if spec_is_bag(source) and file is None:  # not indexed only to find no ground truth
+        return None, (f"{spec_path(source)} is a ROS bag (a bag carries no ground truth; "
+                      f"give one with --groundtruth)")
     try:
-        sequence = open_source(source)
+        sequence = with_ground_truth(open_source(source, source_config=config), file)
     except (ValueError, OSError) as exc:
         # Runs made before sources were stored absolute name them as given.
         hint = ("; the path is relative to the directory the run was started in: run "
                 "`fleetslam report` from there" if not spec_path(source).is_absolute() else "")
         return None, f"source not readable here ({exc}{hint})"
-    if not sequence.has_ground_truth:
-        return None, f"{sequence.folder} has no groundtruth.txt"
+    try:
+        has = sequence.has_ground_truth  # a given file is read here
+    except ValueError as exc:  # the run's file moved or changed since
+        return None, f"ground truth not readable here ({exc}; give it with --groundtruth)"
+    if not has:
+        where = f"{file} covers none of its frames" if file else \
+            f"{sequence.folder} has no groundtruth.txt (give one with --groundtruth)"
+        return None, where
     return sequence, ""
 
 

@@ -229,11 +229,14 @@ def _end_camera(message: dict[str, Any]) -> dict[str, Any] | None:
     if not isinstance(camera, dict) or not isinstance(camera.get("source"), str) \
             or len(camera["source"]) > 200:
         raise ValueError("bad camera counts: not an object with a source name")
-    for name in ("delivered", "taken", "skipped"):
+    # "undelivered" (frames the camera produced and never delivered) is newer: optional.
+    names = ("delivered", "taken", "skipped", *(("undelivered",) if "undelivered" in camera
+                                                else ()))
+    for name in names:
         value = camera.get(name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise ValueError(f"bad camera counts: {name} {value!r} is not a count")
-    return {name: camera[name] for name in ("source", "delivered", "taken", "skipped")}
+    return {name: camera[name] for name in ("source", *names)}
 
 
 def _end_unavailable(message: dict[str, Any]) -> frozenset[int]:
