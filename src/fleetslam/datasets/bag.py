@@ -183,13 +183,7 @@ class BagSequence:
 
         rgb_ns, rgb_rank, rgb_t = rgb
         depth_ns, depth_rank, depth_t = depth
-        pairs = associate(rgb_t, depth_t, config.pair_tolerance_s)
-        if not pairs:
-            raise BagError(
-                f"{self.folder}: no colour/depth pair closer than "
-                f"{config.pair_tolerance_s * 1000:.0f} ms ({self.rgb_topic} stamps "
-                f"{rgb_t[0]:.3f}..{rgb_t[-1]:.3f}, {self.depth_topic} "
-                f"{depth_t[0]:.3f}..{depth_t[-1]:.3f})")
+        pairs = self._pairs(rgb_t, depth_t, config.pair_tolerance_s)
         self.pairs = len(pairs)
         self.unpaired_rgb = len(rgb_t) - len(pairs)
         self.unpaired_depth = len(depth_t) - len(pairs)
@@ -223,6 +217,17 @@ class BagSequence:
         self._lock = threading.Lock()  # one reader: the robot's uploader reads too
 
     # -- opening -----------------------------------------------------------------------
+
+    def _pairs(self, rgb_t: np.ndarray, depth_t: np.ndarray, tolerance_s: float
+               ) -> list[tuple[int, int]]:
+        """Colour and depth frames paired by stamp; BagError if none are."""
+        pairs = associate(rgb_t, depth_t, tolerance_s)
+        if not pairs:
+            raise BagError(
+                f"{self.folder}: no colour/depth pair closer than {tolerance_s * 1000:.0f} ms "
+                f"({self.rgb_topic} stamps {rgb_t[0]:.3f}..{rgb_t[-1]:.3f}, "
+                f"{self.depth_topic} {depth_t[0]:.3f}..{depth_t[-1]:.3f})")
+        return pairs
 
     def _where(self, topic: str) -> str:
         return f"{self.folder} topic {topic}"
