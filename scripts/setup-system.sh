@@ -41,8 +41,17 @@ if ! command -v etcd >/dev/null 2>&1; then
         SUDO=""
         [ "$(id -u)" = 0 ] || SUDO="sudo"
         # Not fatal: a single cloud process never needs it (the many-worker tests skip).
-        { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq etcd-server; } ||
+        if { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq etcd-server; }; then
+            # Debian enables and starts its own etcd.service (plain HTTP on 2379, at every
+            # boot): fleetslam runs its own, so the one we installed is stopped and disabled
+            # where systemd runs (/run/systemd/system: systemd is PID 1; not in a container).
+            if command -v systemctl >/dev/null 2>&1 && [ -d /run/systemd/system ]; then
+                $SUDO systemctl disable --now etcd.service ||
+                    echo "could not disable Debian's etcd.service: an etcd listens on 2379" >&2
+            fi
+        else
             echo "could not install etcd-server: many cloud workers cannot run here" >&2
+        fi
     else
         echo "many cloud workers need etcd (3.4+) on PATH; install it for them" >&2
     fi

@@ -13,6 +13,10 @@ SHARED_DATA = PROJECT.parent / "shared" / "data"
 SEVEN_SCENES = SHARED_DATA / "7scenes_redkitchen_seq01_f0000-0599"
 TUM_RPY = SHARED_DATA / "tum_fr1_rpy_f000-149"
 FRAGMENTS = SHARED_DATA / "3dmatch_7scenes-redkitchen_fragments"
+# A bound on a measured duration fails only beyond this: far past anything expected, even on
+# a loaded machine, so it catches a hang or a wrong deadline path, never a slow machine
+# (tests/test_test_hygiene.py).
+HANG_S = 60.0
 
 
 def require(path: Path) -> Path:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import io
 import json
-import time
 import tracemalloc
 import types
 import zipfile
@@ -193,14 +192,12 @@ def test_a_zip_bomb_is_refused_before_it_is_inflated(tmp_path, zip_bomb):
     (tmp_path / "r0" / CHECKPOINT).write_bytes(zip_bomb)
     store = CloudStore(tmp_path)
     tracemalloc.start()
-    start = time.perf_counter()
     try:
         with pytest.raises(CheckpointError, match="is compressed"):
             store.load_checkpoint("r0")
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    assert time.perf_counter() - start < 2.0
     assert peak < 16 << 20, f"peak {peak / 2**20:.0f} MiB while refusing a 1 MB file"
 
 

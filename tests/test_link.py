@@ -8,22 +8,25 @@ import time
 
 import pytest
 
+from conftest import HANG_S
+
 from fleetslam.config import LinkConfig
 from fleetslam.transport.link import EmulatedLink
 
 
 class Received:
-    """A thread-safe deliver callback that records what arrived and when."""
+    """A thread-safe deliver callback that records what arrived and when (on ``clock``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock=time.monotonic) -> None:
         self.items: list[tuple[str, bytes]] = []
         self.times: list[float] = []
+        self._clock = clock
         self._lock = threading.Lock()
 
     def __call__(self, key: str, data: bytes) -> None:
         with self._lock:
             self.items.append((key, data))
-            self.times.append(time.monotonic())
+            self.times.append(self._clock())
 
     @property
     def keys(self) -> list[str]:
@@ -36,6 +39,7 @@ class FakeTime:
     def __init__(self) -> None:
         self.t = 0.0
         self.sleeps: list[float] = []
+        self.woke: dict[int, float] = {}  # thread ident -> the virtual time it last woke at
         self._lock = threading.Lock()
         self._seen = threading.local()
 
@@ -48,17 +52,20 @@ class FakeTime:
         with self._lock:
             self.sleeps.append(dt)
             self.t = max(self.t, getattr(self._seen, "t", self.t) + dt)
+            self.woke[threading.get_ident()] = self.t
+
+    def link(self, config: LinkConfig, received: Received) -> EmulatedLink:
+        return EmulatedLink(config, received, clock=self.clock, sleep=self.sleep)
 
 
 def test_bandwidth_paces_sends() -> None:
-    received = Received()
-    # 100 kB at 8 Mbps is 0.1 s on the wire.
-    with EmulatedLink(LinkConfig(bandwidth_mbps=8.0), received) as link:
-        start = time.monotonic()
+    fake = FakeTime()
+    received = Received(fake.clock)
+    # 100 kB at 8 Mbps is 0.1 s on the wire: each send returns when its message is sent.
+    with fake.link(LinkConfig(bandwidth_mbps=8.0), received) as link:
         for i in range(10):
             assert link.send(f"m{i}", bytes(100_000))
-        elapsed = time.monotonic() - start
-    assert elapsed == pytest.approx(1.0, rel=0.15)
+            assert fake.woke[threading.get_ident()] == pytest.approx(0.1 * (i + 1))
     assert received.keys == [f"m{i}" for i in range(10)]
     stats = link.stats
     assert (stats.messages, stats.bytes, stats.delivered) == (10, 1_000_000, 10)
@@ -66,23 +73,22 @@ def test_bandwidth_paces_sends() -> None:
 
 
 def test_threads_share_the_link() -> None:
-    received = Received()
-    link = EmulatedLink(LinkConfig(bandwidth_mbps=8.0), received)
+    fake = FakeTime()
+    received = Received(fake.clock)
+    link = fake.link(LinkConfig(bandwidth_mbps=8.0), received)
 
     def sender(name: str) -> None:
         for i in range(5):
             link.send(f"{name}{i}", bytes(100_000))
 
     threads = [threading.Thread(target=sender, args=(name,)) for name in "ab"]
-    start = time.monotonic()
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join()
-    elapsed = time.monotonic() - start
     link.close()
-    # Two senders of 0.5 s each on one link: the sum, not the max.
-    assert elapsed == pytest.approx(1.0, rel=0.15)
+    # Two senders of 0.5 s each on one link: the sum, not the max; one message at a time.
+    assert fake.t == pytest.approx(1.0)
     assert sorted(received.keys) == sorted(f"{n}{i}" for n in "ab" for i in range(5))
     # Each sender's own messages stay in order.
     for name in "ab":
@@ -118,28 +124,26 @@ def test_idle_link_starts_at_now() -> None:
 
 
 def test_latency_delays_delivery_not_send() -> None:
-    received = Received()
-    link = EmulatedLink(LinkConfig(latency_ms=200.0), received)
-    start = time.monotonic()
+    fake = FakeTime()
+    received = Received(fake.clock)
+    link = fake.link(LinkConfig(latency_ms=200.0), received)
     for i in range(3):
         assert link.send(f"m{i}", b"x" * 100)
-    send_time = time.monotonic() - start
-    assert send_time < 0.05
-    assert received.items == []
-    link.flush(timeout=2.0)
+    assert threading.get_ident() not in fake.woke  # sending never slept
+    link.flush(timeout=HANG_S)
     assert received.keys == ["m0", "m1", "m2"]
-    assert received.times[0] - start == pytest.approx(0.2, abs=0.05)
+    assert received.times == pytest.approx([0.2] * 3)  # delivered a latency after sending
     link.close()
 
 
 def test_latency_adds_to_wire_time() -> None:
-    received = Received()
-    link = EmulatedLink(LinkConfig(bandwidth_mbps=8.0, latency_ms=100.0), received)
-    start = time.monotonic()
+    fake = FakeTime()
+    received = Received(fake.clock)
+    link = fake.link(LinkConfig(bandwidth_mbps=8.0, latency_ms=100.0), received)
     link.send("m", bytes(100_000))  # 0.1 s on the wire
-    assert time.monotonic() - start == pytest.approx(0.1, abs=0.03)
-    link.flush(timeout=2.0)
-    assert received.times[0] - start == pytest.approx(0.2, abs=0.05)
+    assert fake.woke[threading.get_ident()] == pytest.approx(0.1)
+    link.flush(timeout=HANG_S)
+    assert received.times == pytest.approx([0.2])
     link.close()
 
 

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import SEVEN_SCENES, TUM_RPY, require
+from conftest import HANG_S, SEVEN_SCENES, TUM_RPY, require
 
 from fleetslam.config import Config
 from fleetslam.datasets.live import LiveSource, NewestFrame, take_numbered
@@ -41,7 +41,7 @@ def test_the_slot_times_out_ends_and_passes_the_cameras_error_on():
     start = time.monotonic()
     with pytest.raises(TimeoutError, match="no frame from the camera in 0.1 s"):
         slot.take(0.1)
-    assert 0.09 < time.monotonic() - start < 1.0
+    assert time.monotonic() - start >= 0.09  # it waited its timeout
     slot.put(frame(1.0))
     slot.close()
     assert slot.take(0.1).timestamp == 1.0  # the last frame is still taken
@@ -60,27 +60,35 @@ def test_a_replay_delivers_on_its_clock_and_a_slow_taker_skips():
     # beside the other test worker; at 30 fps they did not always (12 of 45 late, once).
     fast = ReplaySource(recording, "fr1_rpy", 15.0)
     assert isinstance(fast, LiveSource)
+    start, stamps = time.monotonic(), []  # before the camera's clock starts
     fast.start(10.0)
-    start, stamps = time.monotonic(), []
-    while (f := fast.take(5.0)) is not None:
+    while (f := fast.take(HANG_S)) is not None:
         stamps.append(f.timestamp)
     elapsed = time.monotonic() - start
     fast.close()
-    assert 2.7 < elapsed < 3.6  # 44 frame periods (2.93 s), not as fast as it can read
-    assert fast.delivered + fast.late == 45 and fast.late <= 3
-    assert len(stamps) == fast.delivered - fast.skipped and fast.skipped <= 3
+    # Not as fast as it can read: the last frame comes 44 periods after the first. (How many
+    # frames were decoded too late or overwritten depends on the machine's load: counted.)
+    assert elapsed >= 44 / 15
+    assert fast.delivered + fast.late == 45
+    assert len(stamps) == fast.delivered - fast.skipped
     assert stamps == sorted(stamps)  # recorded timestamps, kept for evaluation
 
     slow = ReplaySource(recording, "fr1_rpy", 30.0)
     slow.start(10.0)
-    start, taken = time.monotonic(), 0
-    while slow.take(5.0) is not None:
-        taken += 1
-        time.sleep(0.1)  # a robot at 10 fps
-    elapsed = time.monotonic() - start
+    order = {float(stamp): i for i, stamp in enumerate(recording.timestamps)}
+    taken = []
+    while (f := slow.take(HANG_S)) is not None:
+        taken.append(order[f.timestamp])
+        # A robot slower than its camera: two more frames come before it takes the next (or
+        # the stream ends).
+        more = slow.delivered + 2
+        while slow.delivered < more and slow.delivered + slow.late < 45:
+            time.sleep(0.01)
     slow.close()
-    assert abs(taken - elapsed * 10) <= 3  # frames taken ~ time x the robot's rate
-    assert slow.skipped == slow.delivered - taken >= 25
+    assert slow.skipped == slow.delivered - len(taken)  # every frame taken or overwritten
+    assert slow.skipped >= len(taken) - 2 > 0
+    # The newest frame each time: two or more recording frames on from the one before.
+    assert all(b - a >= 2 for a, b in zip(taken[:-2], taken[1:-1])), taken
     assert slow.waiting == 0
 
 
@@ -89,12 +97,13 @@ def test_a_replay_at_recorded_timestamps_takes_the_recordings_time():
     span = float(recording.timestamps[-1] - recording.timestamps[0])
     replay = ReplaySource(recording, "fr1_rpy", None)
     assert "recorded timestamps" in replay.description
+    start, n = time.monotonic(), 0  # before the camera's clock starts
     replay.start(10.0)
-    start, n = time.monotonic(), 0
-    while replay.take(5.0) is not None:
+    while replay.take(HANG_S) is not None:
         n += 1
     replay.close()
-    assert abs(time.monotonic() - start - span) < 0.4 and n + replay.skipped + replay.late == 30
+    # The recording's span at least (its last frame is due then), not as fast as it reads.
+    assert time.monotonic() - start >= span and n + replay.skipped + replay.late == 30
 
 
 def test_bad_replays_say_what_is_wrong():
@@ -179,7 +188,7 @@ def test_a_realsense_recording_plays_through_pyrealsense2_as_a_camera(tmp_path, 
     elapsed = time.monotonic() - start
     source.close()
     # Real time: the recording's span from the playback's start, not as fast as it reads.
-    assert 0.8 * span < elapsed < span + 3.0, (elapsed, span)
+    assert elapsed > 0.8 * span, (elapsed, span)
     assert len(taken) + source.skipped == source.delivered >= 25
     assert [f.index for f in taken] == list(range(len(taken)))
     for f in taken:  # each frame as recorded: the same colour, depth and time
@@ -268,11 +277,9 @@ def test_a_live_robot_keeps_keyframe_uploads_until_acknowledged_and_names_lost_o
         uploader.keep(Frame(i, i / 30, image, depth, depth / 1000.0), 3)
     uploader.keyframe(0)  # already queued: once only
     uploader.queue(1)  # fell out of the buffer before its feedback: gone
-    start = time.monotonic()
     uploader.start(send)
     uploader.wait()
     uploader.stop()
-    assert time.monotonic() - start < 2.0
     assert sent == [0] and report.acknowledged == [0]
     assert uploader.unavailable == {1} and report.keyframes_unavailable == 1
     assert uploader._pinned == {}  # acknowledged: no longer held

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import exact_config, small_scene
+from conftest import HANG_S, exact_config, small_scene
 
 from fleetslam.cli import main
 
@@ -170,10 +170,10 @@ def test_a_stalled_view_never_holds_up_a_session(scene, tmp_path):
         np.testing.assert_array_equal(  # ... exactly as without a view
             np.array([r.T_world_camera for r in session.state.rows]), poses)
         assert view.dropped >= N_FRAMES - config.view.queue_size - 1
-        assert time.monotonic() - start < 60.0
+        assert time.monotonic() - start < HANG_S
         closing = time.monotonic()
         view.close()  # gives up on the stalled thread after close_timeout_s
-        assert time.monotonic() - closing < 5.0
+        assert time.monotonic() - closing < HANG_S  # not stuck on the stalled thread
     finally:
         recording.release.set()
         session.close()

@@ -12,7 +12,7 @@ import threading
 import time
 
 import pytest
-from conftest import wait_for
+from conftest import HANG_S, wait_for
 from link_cutter import LinkCutter
 
 from fleetslam.backend.back_end import new_state
@@ -73,7 +73,7 @@ def test_the_service_says_why_it_did_not_start(tmp_path):
     started = time.monotonic()
     with pytest.raises(CoordinationServiceError, match=r"not healthy within 0.001 s.*etcd.log"):
         EtcdService(tmp_path / "slow" / "etcd", start_deadline_s=0.001).start()
-    assert time.monotonic() - started < 5.0
+    assert time.monotonic() - started < HANG_S
     # A data folder that is a file: etcd exits, and the error quotes its log.
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "etcd").write_text("not a folder")
@@ -185,7 +185,7 @@ def test_a_cut_off_worker_is_fenced_before_the_other_is_granted(etcd, keys, tmp_
         link.cut()
         epoch_b = None
         while epoch_b is None:  # B asks as a worker would when the owner is gone
-            assert time.monotonic() - cut < LEASE_S * 3, "B was never granted r1"
+            assert time.monotonic() - cut < HANG_S, "B was never granted r1"
             epoch_b = b.grant("r1")
             granted = time.monotonic()
             if epoch_b is None:
@@ -201,7 +201,6 @@ def test_a_cut_off_worker_is_fenced_before_the_other_is_granted(etcd, keys, tmp_
         print(f"\nfailover (lease_s {LEASE_S}): cut -> B granted {granted - cut:.2f} s; "
               f"A fenced at +{fence_at - cut:.2f} s, {granted - fence_at:.2f} s before B's "
               f"grant")
-        assert granted - cut <= 3.0
 
         store_b.save_checkpoint("r1", _state(20))
         pointer = store_b.current("r1")
@@ -356,7 +355,6 @@ def test_ended_only_when_the_final_checkpoint_is_durable(etcd, keys, tmp_path,
                                 "unavailable": unavailable}, time.monotonic())
         wait_for(lambda: any(r["type"] in ("ended", "error") for r in replies), 20,
                  "an answer to the end")
-        assert time.monotonic() - started < 10.0
     finally:
         if session is not None:
             session.close()
@@ -419,8 +417,12 @@ def test_a_paused_coordination_service_fences_every_owner(tmp_path, keys):
             paused = time.monotonic()
             os.kill(etcd.pid, signal.SIGSTOP)
             try:
-                wait_for(lambda: fenced, LEASE_S * 2, "A to fence itself", interval=0.02)
-                assert fenced[0][0] - paused <= LEASE_S * 0.75 + 0.1
+                wait_for(lambda: fenced, HANG_S, "A to fence itself", interval=0.02)
+                # A's deadline (its every check says no from then on, however late its
+                # threads run) comes from a renewal sent before the pause: 3/4 of the lease
+                # after it at most, before etcd can expire the lease.
+                _, deadline = a._keeper.read()
+                assert 0 < deadline <= paused + LEASE_S * 0.75
                 assert a.epoch("r1") is None
                 time.sleep(0.5)  # past the lease at etcd too
             finally:
@@ -457,7 +459,7 @@ def test_a_watch_hears_puts_deletes_and_expiries(etcd, keys):
         assert [(e.deleted, e.kv.key.decode()) for e in heard] == [
             (False, keys.owner("r1")), (True, keys.owner("r1")),
             (False, keys.owner("r2")), (True, keys.owner("r2"))]
-        assert LEASE_S - 0.2 < time.monotonic() - started < LEASE_S + 1.2
+        assert time.monotonic() - started > LEASE_S - 0.2  # expired, not deleted
     finally:
         watch.close()
     assert not watch._thread.is_alive()

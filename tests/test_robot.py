@@ -144,7 +144,7 @@ def test_a_robot_ahead_of_its_cloud_waits_for_feedback_then_goes_on(tmp_path_fac
         robot.window.sent(seq)
     start = time.monotonic()
     assert not robot.window.wait_for_room()  # the robot then says hello again
-    assert 0.2 <= time.monotonic() - start < 2.0
+    assert time.monotonic() - start >= 0.2  # it waited in_flight_wait_s, then gave up
     assert robot.report.flow_timeouts == 1 and len(robot.window.in_flight()) < 4
 
 

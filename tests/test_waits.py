@@ -9,11 +9,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
-from conftest import TUM_RPY, exact_config, require
+from conftest import HANG_S, TUM_RPY, exact_config, require
 
 from fleetslam.config import Config
 from fleetslam.launch import free_endpoint
@@ -21,12 +20,20 @@ from fleetslam.launch import free_endpoint
 SRC = Path(__file__).resolve().parents[1] / "src"
 
 
-def fleetslam(args: list[str], cwd: Path) -> tuple[subprocess.CompletedProcess, float]:
+def fleetslam(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """The command run to its end; subprocess.TimeoutExpired past HANG_S (a wait the
+    command should not have made: the tests give it far longer defaults than their flags)."""
     env = dict(os.environ, PYTHONPATH=str(SRC))
-    start = time.monotonic()
-    done = subprocess.run([sys.executable, "-m", "fleetslam.cli", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=60)
-    return done, time.monotonic() - start
+    return subprocess.run([sys.executable, "-m", "fleetslam.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=HANG_S)
+
+
+def long_waits(tmp_path: Path) -> str:
+    """A config file whose deadlines are far beyond HANG_S: a command that ignored its
+    --deadline would time out."""
+    path = tmp_path / "long-waits.toml"
+    path.write_text(f"[transport]\nask_deadline_s = {4 * HANG_S}\n")
+    return str(path)
 
 
 def error_line(done: subprocess.CompletedProcess) -> str:
@@ -41,13 +48,14 @@ def error_line(done: subprocess.CompletedProcess) -> str:
 def test_status_and_merge_with_no_cloud_give_up_soon_saying_what_to_check(tmp_path):
     assert Config().transport.ask_deadline_s <= 30  # not the robots' 600 s
     port = free_endpoint().rsplit(":", 1)[1]
+    work = tmp_path / "work"
+    work.mkdir()
     for command in ("status", "merge"):
-        done, took = fleetslam([command, "--connect", f"tcp/127.0.0.1:{port}",
-                                "--deadline", "2"], tmp_path)
+        done = fleetslam([command, "--config", long_waits(tmp_path), "--connect",
+                          f"tcp/127.0.0.1:{port}", "--deadline", "2"], work)
         assert f"nothing listens at 127.0.0.1:{port} (connection refused): is the cloud " \
                f"running" in error_line(done)
-        assert took < 15
-    assert list(tmp_path.iterdir()) == []
+    assert list(work.iterdir()) == []
 
 
 def test_status_and_merge_say_a_refused_connection_before_their_deadline(tmp_path):
@@ -81,8 +89,8 @@ def tls_cloud(tmp_path_factory):
 
 def test_a_certificate_of_another_lab_is_told_from_no_cloud(tls_cloud, tmp_path):
     endpoint, _, other = tls_cloud
-    done, _ = fleetslam(["status", "--connect", endpoint, "--zenoh-config",
-                         str(other["client"]), "--deadline", "4"], tmp_path)
+    done = fleetslam(["status", "--connect", endpoint, "--zenoh-config",
+                      str(other["client"]), "--deadline", "4"], tmp_path)
     assert "but refuses a Zenoh session: most likely the TLS handshake: is --zenoh-config " \
            f"{other['client']} from the cloud's lab" in error_line(done)
     # Said on the first failed attempt too, not only at the deadline.
@@ -90,27 +98,26 @@ def test_a_certificate_of_another_lab_is_told_from_no_cloud(tls_cloud, tmp_path)
         f"no cloud answers at {endpoint} yet; retrying for up to 4 s (--deadline, "
         f"transport.ask_deadline_s): something listens")
     # Plain TCP to the TLS listener: "is it a tls/ endpoint".
-    done, _ = fleetslam(["status", "--connect", endpoint.replace("tls/", "tcp/"),
-                         "--deadline", "2"], tmp_path)
+    done = fleetslam(["status", "--connect", endpoint.replace("tls/", "tcp/"),
+                      "--deadline", "2"], tmp_path)
     assert "is it a tls/ endpoint" in error_line(done)
 
 
 def test_the_operator_asking_with_a_robots_certificate_is_hinted_at_early(tls_cloud, tmp_path):
     endpoint, lab, _ = tls_cloud
-    done, took = fleetslam(["merge", "--connect", endpoint, "--zenoh-config", str(lab["r1"]),
-                            "--deadline", "6"], tmp_path)
+    done = fleetslam(["merge", "--config", long_waits(tmp_path), "--connect", endpoint,
+                      "--zenoh-config", str(lab["r1"]), "--deadline", "6"], tmp_path)
     told = ("its access control drops our messages, which Zenoh does not report: only the "
             "operator's certificate (client.json5 of the lab) may ask the cloud")
     assert told in error_line(done)
     hint = [line for line in done.stderr.splitlines() if line.startswith(
         f"no answer from the cloud at {endpoint} yet (3 s): ")]
     assert len(hint) == 1 and told in hint[0]
-    assert took < 15
-    done, _ = fleetslam(["status", "--connect", endpoint, "--zenoh-config",
-                         str(lab["client"]), "--deadline", "10"], tmp_path)
+    done = fleetslam(["status", "--connect", endpoint, "--zenoh-config",
+                      str(lab["client"]), "--deadline", "10"], tmp_path)
     assert done.returncode == 0 and "workers:" in done.stdout  # the operator is answered
-    done, _ = fleetslam(["merge", "--connect", endpoint, "--zenoh-config", str(lab["client"]),
-                         "--deadline", "10"], tmp_path)
+    done = fleetslam(["merge", "--connect", endpoint, "--zenoh-config", str(lab["client"]),
+                      "--deadline", "10"], tmp_path)
     # Answered: the cloud says it has nothing to merge yet (no robot finished).
     assert "no robot has finished yet" in done.stderr, done.stderr
 
@@ -118,9 +125,10 @@ def test_the_operator_asking_with_a_robots_certificate_is_hinted_at_early(tls_cl
 def test_a_robot_with_another_robots_certificate_is_hinted_at_early(tls_cloud, tmp_path):
     endpoint, lab, _ = tls_cloud
     (tmp_path / "c.toml").write_text("[transport]\nmax_attempts = 3\n")
-    done, took = fleetslam(["--quiet", "robot", "--config", "c.toml", "--id", "r1",
-                            "--connect", endpoint, "--zenoh-config", str(lab["r2"]),
-                            "--source", f"{require(TUM_RPY)}:0-4"], tmp_path)
+    # After 3 hellos, not transport.reach_deadline_s (600 s): fleetslam() times out at HANG_S.
+    done = fleetslam(["--quiet", "robot", "--config", "c.toml", "--id", "r1",
+                      "--connect", endpoint, "--zenoh-config", str(lab["r2"]),
+                      "--source", f"{require(TUM_RPY)}:0-4"], tmp_path)
     told = ("a robot may use only its own keys: is it robot r1's certificate "
             "(robot-r1.json5 of the lab)")
     assert "after 3 hellos" in error_line(done) and told in error_line(done)
@@ -134,7 +142,6 @@ def test_a_robot_with_another_robots_certificate_is_hinted_at_early(tls_cloud, t
                         f"drops the others unseen")
     hint = [line for line in lines if "WARNING robot r1: no answer to its hello" in line]
     assert len(hint) == 1 and told in hint[0]
-    assert took < 20
 
 
 def test_the_common_name_is_read_without_an_x509_library(tls_cloud):
