@@ -91,7 +91,6 @@ def test_a_cut_off_owner_stops_serving_before_the_robot_moves_and_never_takes_it
         assert not b.placement.serves("r1") and b.when("won", "r1") is None
         assert not b.placement.merges()
 
-        cut = time.monotonic()
         link.cut()
         wait_for(lambda: b.when("won", "r1") is not None, 3 * CFG.lease_s,
                  "wb to take r1 over after wa's lease expired")

@@ -349,7 +349,6 @@ def test_ended_only_when_the_final_checkpoint_is_durable(etcd, keys, tmp_path,
             session.submit_frame(data, time.monotonic())
         session.drain()
         EtcdClient(etcd.endpoint).put(keys.owner("r1"), "someone else")
-        started = time.monotonic()
         unavailable = [r.index for r in session.state.rows if r.is_keyframe]
         session.submit_control({"type": "end", "last_seq": len(messages) - 1,
                                 "unavailable": unavailable}, time.monotonic())
