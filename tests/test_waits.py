@@ -63,7 +63,7 @@ def test_status_and_merge_say_a_refused_connection_before_their_deadline(tmp_pat
     the subprocess's 60 s timeout only guards against a hang)."""
     endpoint = free_endpoint()
     for command in ("status", "merge"):
-        done, _ = fleetslam([command, "--connect", endpoint, "--deadline", "600"], tmp_path)
+        done = fleetslam([command, "--connect", endpoint, "--deadline", "600"], tmp_path)
         assert done.stderr == (f"fleetslam: error: no cloud at {endpoint}: nothing listens at "
                                f"{endpoint.partition('/')[2]} (connection refused): is the "
                                f"cloud running, and is this its endpoint (--connect)?\n")
