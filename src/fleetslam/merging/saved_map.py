@@ -98,14 +98,6 @@ def _constraints(merger: MapMerger, members: set[str]) -> list[dict[str, Any]]:
     return out
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[str, Any]:
     """The merged group's map into ``folder`` (written beside it, then put in its place:
     there is never a half-written map; an earlier map there is replaced whole); what
@@ -126,9 +118,9 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
                 "cloud_points": [np.asarray(p, np.float32) for p, _ in clouds],
                 "cloud_colors": [np.asarray(c, np.uint8) for _, c in clouds]}
         relative = f"robots/{name}.npz"
-        (staging / relative).write_bytes(data_tree.dumps(tree, CLASSES))
-        files[relative] = {"bytes": (staging / relative).stat().st_size,
-                           "sha256": _sha256(staging / relative)}
+        data = data_tree.dumps(tree, CLASSES)
+        (staging / relative).write_bytes(data)
+        files[relative] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
         robots.append({"name": name, "keyframes": len(record.keyframes),
                        "file": relative, "camera": record.camera.to_dict()})
     manifest = {"format": MAP_FORMAT, "version": MAP_VERSION, "anchor": global_map.anchor,
