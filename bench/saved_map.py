@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT / "src"))
 from fleetslam.config import Config  # noqa: E402
 from fleetslam.datasets.tum import RgbdSequence  # noqa: E402
 from fleetslam.merging.fleet_map import FleetMap  # noqa: E402
-from fleetslam.merging.saved_map import read_map  # noqa: E402
+from fleetslam.merging.saved_map import LoadedMap, read_map  # noqa: E402
 from fleetslam.system import run_fleet  # noqa: E402
 from fleetslam.tables import format_table  # noqa: E402
 
@@ -43,7 +43,7 @@ def measure(folder: Path, config: Config) -> dict[str, float]:
     read_s = time.perf_counter() - start
     start = time.perf_counter()
     fleet = FleetMap(config)
-    fleet.load(saved)
+    fleet.load(LoadedMap(saved))
     load_s = time.perf_counter() - start
     held, _ = tracemalloc.get_traced_memory()
     tracemalloc.stop()
@@ -74,7 +74,8 @@ def main() -> int:
             robot = [("r0", str(SEQUENCE), RgbdSequence(SEQUENCE, first=args.first,
                                                          last=args.last))]
             start = time.perf_counter()
-            run_fleet(robot, config, out, show_progress=False, saved_map=saved)
+            run_fleet(robot, config, out, show_progress=False,
+                      loaded=LoadedMap(saved) if saved is not None else None)
             row = {"day": day, "run_s": time.perf_counter() - start,
                    **measure(out / "map", config)}
             rows.append(row)

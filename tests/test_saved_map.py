@@ -16,7 +16,8 @@ import pytest
 from conftest import SEVEN_SCENES, require
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
-from fleetslam.merging.saved_map import MANIFEST, MAP_VERSION, MapError, read_map, write_map
+from fleetslam.merging.saved_map import (MANIFEST, MAP_VERSION, LoadedMap, MapError, read_map,
+                                         write_map)
 from fleetslam.system import run_fleet
 
 
@@ -83,6 +84,10 @@ def _damage(folder: Path, how: str) -> str:
         manifest["version"] = MAP_VERSION + 1
         (folder / MANIFEST).write_text(json.dumps(manifest))
         return f"map format version {MAP_VERSION + 1}; this fleetslam reads up to"
+    if how == "a camera edited in the manifest":
+        manifest["robots"][0]["camera"]["fx"] += 10
+        (folder / MANIFEST).write_text(json.dumps(manifest))
+        return "camera is not the one its file"
     if how == "a missing robot file":
         robot_file.unlink()
         return "missing (the manifest lists it)"
@@ -90,7 +95,8 @@ def _damage(folder: Path, how: str) -> str:
 
 
 @pytest.mark.parametrize("how", ["no manifest", "a changed byte", "a truncated file",
-                                 "a newer format", "a missing robot file"])
+                                 "a newer format", "a missing robot file",
+                                 "a camera edited in the manifest"])
 def test_a_damaged_map_is_refused_in_one_line_and_left_as_it_is(run, tmp_path, how):
     folder = tmp_path / "map"
     shutil.copytree(run / "map", folder)
@@ -117,7 +123,7 @@ def test_a_loaded_map_is_searched_and_a_robot_that_finds_it_tracks_in_its_frame(
     saved = read_map(run / "map")
     out = tmp_path / "day2"
     robots = [("r0", str(folder), RgbdSequence(folder, first=120, last=219))]
-    summary = run_fleet(robots, Config(), out, show_progress=False, saved_map=saved)
+    summary = run_fleet(robots, Config(), out, show_progress=False, loaded=LoadedMap(saved))
     assert _tree_digest(run / "map") == before
     merge = summary["merge"]
     assert sorted(merge["members"]) == sorted(["r0", *(f"map-{n}" for n in saved.robots)])
@@ -152,8 +158,13 @@ def test_a_robot_from_another_room_never_joins_the_map(run, tmp_path):
     saved = read_map(run / "map")
     folder = require(TUM_RPY)
     robots = [("r0", str(folder), RgbdSequence(folder, last=59))]
+    # Another camera too: refused unless the run says the camera is new to the map.
+    with pytest.raises(MapError, match="is none of the map's cameras"):
+        run_fleet(robots, Config(), tmp_path / "refused", show_progress=False,
+                  loaded=LoadedMap(saved))
+    assert not (tmp_path / "refused").exists()
     summary = run_fleet(robots, Config(), tmp_path / "elsewhere", show_progress=False,
-                        saved_map=saved)
+                        loaded=LoadedMap(saved, new_cameras=True))
     merge = summary["merge"]
     assert "r0" not in merge["members"]
     assert "never found the loaded map" in merge["not_merged"]["r0"]
@@ -170,8 +181,8 @@ def test_localise_only_places_the_robot_in_the_map_and_leaves_the_map_as_it_was(
     saved = read_map(run / "map")
     out = tmp_path / "localised"
     robots = [("r0", str(folder), RgbdSequence(folder, first=120, last=219))]
-    summary = run_fleet(robots, Config(), out, show_progress=False, saved_map=saved,
-                        localise_only=True)
+    summary = run_fleet(robots, Config(), out, show_progress=False,
+                        loaded=LoadedMap(saved, localise_only=True))
     assert "r0" in summary["merge"]["members"]
     assert not (out / "map").exists() and "map" not in summary
     for name, robot in saved.robots.items():
@@ -193,7 +204,7 @@ def test_a_cloud_loads_a_map_and_a_robot_over_the_link_joins_it(run, tmp_path):
     saved = read_map(run / "map")
     endpoint = free_endpoint()
     config = Config().with_values({"transport.endpoint": endpoint})
-    server = CloudServer(config, tmp_path / "store", endpoint, saved_map=saved).start()
+    server = CloudServer(config, tmp_path / "store", endpoint, loaded=LoadedMap(saved)).start()
     try:
         robot = Robot("r0", open_source(f"{folder}:120-219"), "r0", 3, config,
                       show_progress=False)
@@ -201,6 +212,8 @@ def test_a_cloud_loads_a_map_and_a_robot_over_the_link_joins_it(run, tmp_path):
         thread.start()
         thread.join(300)
         assert not thread.is_alive(), "the robot did not finish"
+        assert server.merger.drain(120), "the merger did not take the robot's keyframes"
+        live = server.merger.placements()  # what robots hear while they run (map -> r0/map)
         summary = server.merge()
     finally:
         server.close()
@@ -208,6 +221,13 @@ def test_a_cloud_loads_a_map_and_a_robot_over_the_link_joins_it(run, tmp_path):
     assert sorted(merge["members"]) == sorted(["r0", *(f"map-{n}" for n in saved.robots)])
     assert merge["map_frame"]["source"] == "the loaded map's frame"
     assert read_map(tmp_path / "store" / "map").keyframes > saved.keyframes
+    # The robot was placed in the map's own frame while it ran (no levelling of its own: the
+    # map's frame is level already), where the merge then put it, to FS-HICP's refinement.
+    assert live["r0"][0] == f"map-{saved.anchor}"
+    T_live, T_merged = live["r0"][1], np.array(merge["T_global_map"]["r0"])
+    assert np.linalg.norm(T_live[:3, 3] - T_merged[:3, 3]) < 0.10
+    cos = (np.trace(T_live[:3, :3].T @ T_merged[:3, :3]) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 3.0
 
 
 def test_a_map_whose_features_this_run_could_never_match_is_refused_before_the_run(run,
@@ -218,5 +238,71 @@ def test_a_map_whose_features_this_run_could_never_match_is_refused_before_the_r
     out = tmp_path / "never"
     with pytest.raises(MapError, match=r"orb_scale_factor 1\.2 \(this run: 1\.3\)"):
         run_fleet([("r0", str(folder), RgbdSequence(folder, last=9))], config, out,
-                  show_progress=False, saved_map=saved)
+                  show_progress=False, loaded=LoadedMap(saved))
     assert not out.exists()
+
+
+def _serve(config: Config, store: Path, loaded: LoadedMap | None):
+    from fleetslam.cloud.server import CloudServer
+
+    return CloudServer(config, store, config.transport.endpoint, loaded=loaded).start()
+
+
+def test_a_cloud_refuses_a_robot_it_cannot_place_and_says_why(run, tmp_path):
+    """A hello the loaded map cannot take is refused with the reason, before a session
+    opens: a camera that is none of the map's (unless the cloud says --new-camera), and a
+    robot asking to localise only in a cloud without a map."""
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.edge.robot import Robot
+    from conftest import TUM_RPY
+    from fleetslam.launch import free_endpoint
+
+    saved = read_map(run / "map")
+    tum = require(TUM_RPY)
+    for loaded, localise_only, reason in (
+            (LoadedMap(saved), False, "is none of the map's cameras"),
+            (None, True, "this cloud has no saved map loaded")):
+        config = Config().with_values({"transport.endpoint": free_endpoint(),
+                                       "transport.max_attempts": 3})
+        server = _serve(config, tmp_path / f"store-{localise_only}", loaded)
+        try:
+            robot = Robot("r0", open_source(f"{tum}:0-4"), "r0", 3, config,
+                          show_progress=False, localise_only=localise_only)
+            with pytest.raises(RuntimeError, match=f"refused it: .*{reason}"):
+                robot.run()
+            assert "r0" not in server.sessions
+        finally:
+            server.close()
+
+
+def test_a_robot_localising_only_is_placed_in_the_map_and_never_moves_it(run, tmp_path):
+    """fleetslam robot --localise-only against cloud --map: the robot joins the map and the
+    merge places it in the map's frame, the map's keyframes keep their poses, and the store
+    writes no new map (the robot did not extend it)."""
+    import threading
+
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.edge.robot import Robot
+    from fleetslam.io.trajectory import read_tum_trajectory
+    from fleetslam.launch import free_endpoint
+
+    folder = require(SEVEN_SCENES)
+    saved = read_map(run / "map")
+    config = Config().with_values({"transport.endpoint": free_endpoint()})
+    store = tmp_path / "store"
+    server = _serve(config, store, LoadedMap(saved))
+    try:
+        robot = Robot("r0", open_source(f"{folder}:120-219"), "r0", 3, config,
+                      show_progress=False, localise_only=True)
+        thread = threading.Thread(target=robot.run, daemon=True)
+        thread.start()
+        thread.join(300)
+        assert not thread.is_alive(), "the robot did not finish"
+        summary = server.merge()
+    finally:
+        server.close()
+    assert "r0" in summary["merge"]["members"]
+    assert not (store / "map").exists() and "map" not in summary
+    for name, saved_robot in saved.robots.items():
+        now = read_tum_trajectory(store / "global" / f"map-{name}.tum")[1]
+        np.testing.assert_allclose(now, saved_robot.poses, atol=1e-5)

@@ -9,7 +9,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fleetslam import __version__
 from fleetslam.camera import Camera
@@ -19,6 +19,9 @@ from fleetslam.planner.model import OBJECTIVES, SWEEP_MBPS
 from fleetslam.transport.keys import check_robot_id as keys_check
 from fleetslam.transport.link import parse_link_trace
 from fleetslam.validation.endpoints import check_endpoint, check_listenable
+
+if TYPE_CHECKING:
+    from fleetslam.merging.saved_map import LoadedMap
 
 DEFAULT_ENDPOINT = Config().transport.endpoint
 
@@ -108,7 +111,6 @@ def cmd_generate(args: argparse.Namespace, config: Config) -> int:
 
 def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.demo import run_demo
-    from fleetslam.merging.saved_map import read_map
 
     if args.robots is not None:
         config = config.with_values({"synthetic.n_robots": args.robots}, flag="--robots")
@@ -129,16 +131,17 @@ def cmd_demo(args: argparse.Namespace, config: Config) -> int:
     if args.workers < 1 or (args.in_process and args.workers > 1):
         raise ValueError("--workers N: at least 1, and cloud workers are processes (not with "
                          "--in-process)")
-    saved = read_map(Path(args.map)) if args.map else None
-    map_args = ["--map", str(Path(args.map).resolve())] if args.map else []
+    loaded = _loaded_map(args)
+    map_args = ["--map", str(Path(args.map).resolve())] + \
+        ["--localise-only"] * args.localise_only + ["--new-camera"] * args.new_camera \
+        if args.map else []
     _free_out(out, args.overwrite)  # after every check: an earlier run is replaced only to run
     if args.in_process:
         from fleetslam.datasets.tum import RgbdSequence
         from fleetslam.system import run_fleet
 
         robots = [(f"r{i}", str(f), RgbdSequence(f)) for i, f in enumerate(folders)]
-        summary = run_fleet(robots, config, out, show_progress=not args.quiet,
-                            saved_map=saved)
+        summary = run_fleet(robots, config, out, show_progress=not args.quiet, loaded=loaded)
     else:
         summary = run_demo([str(f) for f in folders], out, args.offload_at, args.config,
                            link_args=_link_args(args), show_progress=not args.quiet,
@@ -251,7 +254,6 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     import threading
 
     from fleetslam.cloud.server import CloudServer
-    from fleetslam.merging.saved_map import read_map
     from fleetslam.visualisation.views import open_view
     from fleetslam.visualisation.recording import live_plan
 
@@ -261,7 +263,7 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
                                                 "coordination_certs")})
     if args.ros2_out:  # before the views: the ROS 2 graph's is one of them
         config = config.with_values({"ros2_out.endpoint": args.ros2_out}, flag="--ros2-out")
-    saved = read_map(Path(args.map)) if args.map else None  # checked before anything starts
+    loaded = _loaded_map(args)  # checked before anything starts
     view = open_view(config, args.save, args.view, args.foxglove)
     for line in live_plan(config.view, Path(args.save) if args.save else None, args.view):
         print(f"fleetslam cloud: {line}", file=sys.stderr, flush=True)
@@ -269,7 +271,7 @@ def cmd_cloud(args: argparse.Namespace, config: Config) -> int:
     made = not out.exists()
     try:
         server = CloudServer(config, out, args.listen, view=view, connect=args.connect,
-                             saved_map=saved).start()
+                             loaded=loaded).start()
     except BaseException:
         if made and out.is_dir() and not any(out.iterdir()):
             out.rmdir()  # a cloud that did not start leaves no store behind
@@ -450,7 +452,7 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
                   paper_yaml_dir=Path(args.paper_yaml) if args.paper_yaml else None,
                   planner=planner, link_trace=trace,
                   onboard=_onboard_pipeline(config, sequence.camera) if k == ROBOT_TRACKS
-                  else None)
+                  else None, localise_only=args.localise_only)
     report = _run_until_stopped(robot, args.id)
     if args.report:
         Path(args.report).parent.mkdir(parents=True, exist_ok=True)
@@ -540,7 +542,6 @@ def _still_merging(merge: dict[str, Any]) -> str:
 
 def cmd_run(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.recording import absolute_spec, open_source
-    from fleetslam.merging.saved_map import read_map
     from fleetslam.evaluation.fleet import match_ground_truth
     from fleetslam.system import run_fleet
 
@@ -561,15 +562,37 @@ def cmd_run(args: argparse.Namespace, config: Config) -> int:
     for name, spec in zip(names, args.robot):
         # Absolute, so `fleetslam report` finds its ground truth from any directory.
         robots.append((name, absolute_spec(spec), open_source(spec, camera, config.source)))
-    if args.localise_only and not args.map:
-        raise ValueError("--localise-only places robots in a saved map: give it with --map")
-    saved = read_map(Path(args.map)) if args.map else None  # checked before anything runs
+    loaded = _loaded_map(args)  # checked before anything runs
     out = Path(args.out) if args.out else _default_out("run")
     _free_out(out, args.overwrite)
-    summary = run_fleet(robots, config, out, show_progress=not args.quiet, saved_map=saved,
-                        localise_only=args.localise_only, ground_truth=ground_truth)
+    summary = run_fleet(robots, config, out, show_progress=not args.quiet, loaded=loaded,
+                        ground_truth=ground_truth)
     _finish(summary, out, args.quiet)
     return 130 if summary.get("interrupted") else 0  # 130: the shell's code for Ctrl-C
+
+
+def _loaded_map(args: argparse.Namespace) -> LoadedMap | None:
+    """The saved map of --map, read and checked whole, with how it is used."""
+    from fleetslam.merging.saved_map import LoadedMap, read_map
+
+    if not args.map:
+        for flag in ("localise_only", "new_camera"):
+            if getattr(args, flag):
+                raise ValueError(f"--{flag.replace('_', '-')} is about a saved map: give it "
+                                 f"with --map")
+        return None
+    return LoadedMap(read_map(Path(args.map)), args.localise_only, args.new_camera)
+
+
+def _add_map_options(parser: argparse.ArgumentParser, where: str) -> None:
+    parser.add_argument("--map", metavar="DIR", help="a saved map (a run's or a store's "
+                        f"map/): the fleet's first group, in its own frame; {where}")
+    parser.add_argument("--localise-only", action="store_true", help="with --map: place the "
+                        "robots in the map without extending it (its keyframes keep their "
+                        "poses; no new map/ is written)")
+    parser.add_argument("--new-camera", action="store_true", help="with --map: let robots "
+                        "whose camera is none of the map's search it (without it they are "
+                        "refused: a wrong camera file or a wrong map)")
 
 
 def _free_out(out: Path, overwrite: bool) -> None:
@@ -733,8 +756,8 @@ def _add_demo_command(sub: Any) -> None:
     demo.add_argument("--workers", type=int, default=1,
                       help="cloud workers: N > 1 runs a Zenoh router and N cloud worker "
                            "processes that share the robots (default 1: one cloud process)")
-    demo.add_argument("--map", metavar="DIR", help="a saved map (an earlier run's map/) the "
-                      "robots search and, where they find it, track in (the cloud's --map)")
+    _add_map_options(demo, "the robots search it and, where they find it, track in its "
+                     "frame (the cloud's --map)")
     demo.add_argument("--in-process", action="store_true",
                       help="track, map and merge in this one process (no network)")
     demo.add_argument("--insecure", action="store_true",
@@ -752,12 +775,9 @@ def _add_run_command(sub: Any) -> None:
     run.add_argument("--name", action="append", help="robot name, once per --robot")
     run.add_argument("--camera", help="camera.json overriding the detected camera")
     _add_topic_options(run)
-    run.add_argument("--map", metavar="DIR", help="a saved map (an earlier run's map/): the "
-                     "robots search it and, where they find it, track in its frame; the run "
-                     "writes the extended map as its own map/ (DIR is never changed)")
-    run.add_argument("--localise-only", action="store_true", help="with --map: place the "
-                     "robots in the map without extending it (its keyframes keep their "
-                     "poses; no new map/ is written)")
+    _add_map_options(run, "the robots search it and, where they find it, track in its "
+                     "frame; the run writes the extended map as its own map/ (DIR is never "
+                     "changed)")
     _add_groundtruth_option(run)
     run.add_argument("--out", help="run folder to create (default runs/run-<time>)")
     run.add_argument("--overwrite", action="store_true", help="replace --out if it is an "
@@ -784,10 +804,9 @@ def _add_cloud_command(sub: Any) -> None:
                        help="the etcd's TLS folder `fleetslam certs` made (<lab>/etcd): its "
                             "CA and the workers' client certificate ([placement] "
                             "coordination_certs)")
-    cloud.add_argument("--map", metavar="DIR", help="a saved map (a run's or a store's "
-                       "map/): the fleet's first group, searched by every robot; a robot that "
-                       "finds it tracks in its frame, and each merge writes the extended map "
-                       "to the store's map/ (DIR is never changed); every worker gets the same")
+    _add_map_options(cloud, "searched by every robot; a robot that finds it tracks in its "
+                     "frame, and each merge writes the extended map to the store's map/ (DIR "
+                     "is never changed); every worker gets the same")
     cloud.add_argument("--out", required=True, help="the store: maps, trajectories, "
                        "keyframes and checkpoints (reused after a restart; every worker of "
                        "a fleet is given the same folder, a shared volume across machines)")
@@ -821,6 +840,9 @@ def _add_robot_command(sub: Any) -> None:
                        "and keeps trying for transport.reach_deadline_s "
                        f"({Config().transport.reach_deadline_s:g} s)")
     robot.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ -)")
+    robot.add_argument("--localise-only", action="store_true", help="be placed in the "
+                       "cloud's saved map (cloud --map) without moving or extending it; the "
+                       "cloud refuses the robot if it has no map loaded")
     robot.add_argument("--source", required=True, metavar="SOURCE[:FIRST-LAST] | CAMERA",
                        help="TUM-layout folder (a synthetic scene's robot folder works too), "
                        "a ROS bag (.bag, ROS 2 bag folder, .mcap), optionally frame ranges, "

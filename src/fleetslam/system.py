@@ -34,7 +34,7 @@ from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid
 from fleetslam.merging.fleet_map import FleetMap
 from fleetslam.merging.global_map import GlobalMap, RobotTrack
-from fleetslam.merging.saved_map import SavedMap
+from fleetslam.merging.saved_map import LoadedMap, MapError
 from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.backend.robot_slam import RobotSlam
@@ -221,9 +221,8 @@ def build_robot_map(run: RobotRun, config: Config, show_progress: bool = True) -
 
 
 def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out_dir: Path,
-              show_progress: bool = True, saved_map: SavedMap | None = None,
-              localise_only: bool = False, ground_truth: dict[str, Path] | None = None
-              ) -> dict[str, Any]:
+              show_progress: bool = True, loaded: LoadedMap | None = None,
+              ground_truth: dict[str, Path] | None = None) -> dict[str, Any]:
     """Track, map and merge; write everything under ``out_dir``; score against ground truth
     where a sequence has it or ``ground_truth`` gives a file for its robot (read after the
     run); return the summary. A Ctrl-C ends it early: the trajectories tracked so far are
@@ -233,8 +232,15 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
         sequence.camera.mounted(config.camera.base_link)
     fleet = FleetMap(config)
     # A loaded map is the fleet's first group: the robots search it as they search each other
-    # (one it cannot take is said before anything is written).
-    saved_tracks = fleet.load(saved_map, localise_only) if saved_map is not None else []
+    # (one it cannot take, or a robot it does not know the camera of, is said before
+    # anything is written).
+    saved_tracks = []
+    if loaded is not None:
+        for name, _, sequence in robots:
+            problem = loaded.camera_problem(name, sequence.camera)
+            if problem:
+                raise MapError(loaded.saved.folder or Path("map"), problem)
+        saved_tracks = fleet.load(loaded)
     out_dir.mkdir(parents=True, exist_ok=False)
     skipped: list[str] = []  # what a Ctrl-C left unbuilt
     with Interrupt() as interrupt:
@@ -256,8 +262,7 @@ def run_fleet(robots: list[tuple[str, str, RecordedSource]], config: Config, out
         global_map = fleet.build_outputs([r.track() for r in runs] + saved_tracks, out_dir) \
             if merged else None
         # Localisation only: the map is not extended, so no new one is written.
-        saved = fleet.save(out_dir / "map", global_map) \
-            if global_map is not None and not localise_only else None
+        saved = fleet.save(out_dir / "map", global_map) if global_map is not None else None
         interrupted = interrupt.requested
     summary = make_summary(runs, fleet if merged else None, global_map, config,
                            time.perf_counter() - start)

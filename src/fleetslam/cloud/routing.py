@@ -261,6 +261,9 @@ class Router:
             if hello is None:
                 return self.error(reply, protocol.Code.NO_SESSION,
                                   "no session: send a hello first")
+            problem = self.merging.hello_problem(robot_id, hello)
+            if problem is not None:
+                return self.error(reply, protocol.Code.REFUSED, problem, answer_to="hello")
             session = self.sessions.open(robot_id, hello)
             if session is None:
                 return self.error(reply, protocol.Code.REFUSED, self.sessions.refusal(),

@@ -56,7 +56,7 @@ from fleetslam.cloud.session.idle_reaper import IdleReaper
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.merging.saved_map import SavedMap
+from fleetslam.merging.saved_map import LoadedMap
 from fleetslam.transport import keys
 from fleetslam.transport.zenoh_session import open_connecting, open_listening, put
 from fleetslam.visualisation.live_view import NullView
@@ -72,10 +72,10 @@ def default_worker_id() -> str:
 class CloudServer:
     def __init__(self, config: Config, out_dir: Path, endpoint: str | None = None,
                  view: NullView | None = None, connect: str | None = None,
-                 saved_map: SavedMap | None = None) -> None:
+                 loaded: LoadedMap | None = None) -> None:
         """``endpoint``: listen there as the router (a lone cloud); ``connect``: a worker
         connecting to the routers there instead. ``out_dir`` is the store every worker of
-        the fleet shares. ``saved_map``: a loaded map, the fleet's first group."""
+        the fleet shares. ``loaded``: a saved map, the fleet's first group."""
         self.config = config
         # The live view (visualisation/live_view.py; off: a NullView). The server closes it.
         self.view = view or NullView()
@@ -111,7 +111,7 @@ class CloudServer:
             else LivelinessPlacement(self.worker_id, config.placement, cpu))
         self.merging = MergeRole(config, self.view, self.worker_id, self.sessions,
                                  self.publish_droppable, self.placement,
-                                 FleetFrames(config.merge, self.publish), saved_map)
+                                 FleetFrames(config.merge, self.publish), loaded)
         # The table hands the merge role each new keyframe and robot; the role reads the table.
         self.sessions.hand_to(self.merging)
         self.merger = self.merging.merger

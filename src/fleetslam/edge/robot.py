@@ -111,7 +111,9 @@ class Robot:
                  show_progress: bool = True, paper_yaml_dir: Path | None = None,
                  planner: OnlinePlanner | None = None,
                  link_trace: list[tuple[int, float]] | None = None,
-                 onboard: OnboardTracker | None = None) -> None:
+                 onboard: OnboardTracker | None = None, localise_only: bool = False) -> None:
+        """``localise_only``: the robot asks to be placed in the cloud's loaded map without
+        moving or extending it."""
         self.robot_id = keys.check_robot_id(robot_id)
         self.live = sequence if isinstance(sequence, LiveSource) else None
         self.fps = _check_arguments(robot_id, self.live, offload_at, rate, paper_yaml_dir,
@@ -121,6 +123,7 @@ class Robot:
         self.sequence = sequence
         self.source = source
         self.offload_at = offload_at
+        self.localise_only = localise_only
         self.config = config
         self.endpoint = endpoint or config.transport.endpoint
         self.show_progress = show_progress
@@ -331,8 +334,8 @@ class Robot:
         # nowhere (resume goes by its own next index).
         # The cloud hears the camera's mounting too (the fleet's map frame: map_frame.py).
         camera = self.sequence.camera.mounted(self.config.camera.base_link)
-        message = Hello(self.offload_at, camera, self.source,
-                        self.planner is not None).message(
+        message = Hello(self.offload_at, camera, self.source, self.planner is not None,
+                        self.localise_only).message(
             None if self.live is not None else len(self.sequence))
         cfg = self.config.transport
         full = 0  # refusals because the cloud was full

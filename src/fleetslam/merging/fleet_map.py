@@ -24,7 +24,7 @@ from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.global_map import GlobalMap, RobotTrack, build_global_map, merge_summary
 from fleetslam.merging.merger import MapMerger, Searcher
-from fleetslam.merging.saved_map import SavedMap, load_into, write_map
+from fleetslam.merging.saved_map import LoadedMap, load_into, write_map
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 
@@ -34,9 +34,11 @@ class FleetMap:
     def __init__(self, config: Config, search: Searcher | None = None) -> None:
         self.config = config
         self.merger = MapMerger(config, search)
+        self.loaded: LoadedMap | None = None  # the saved map this fleet started from
 
-    def add_robot(self, name: str, camera: Camera) -> None:
-        self.merger.add_robot(name, camera)
+    def add_robot(self, name: str, camera: Camera, localising: bool = False) -> None:
+        """``localising``: the robot is placed in the loaded map, never moves nor extends it."""
+        self.merger.add_robot(name, camera, localising)
 
     def add_keyframe(self, summary: KeyframeSummary, poses: np.ndarray
                      ) -> list[dict[str, Any]]:
@@ -62,17 +64,23 @@ class FleetMap:
         under ``out_dir`` (global_map.py)."""
         return build_global_map(self.merger, tracks, self.config, out_dir)
 
-    def load(self, saved: SavedMap, localise_only: bool = False) -> list[RobotTrack]:
+    def load(self, loaded: LoadedMap) -> list[RobotTrack]:
         """A saved map as the fleet's first group, in its own frame: robots added after it
         search it as they search each other, and a group they join keeps the map's frame;
-        ``localise_only``: its keyframes keep their poses (the robots are placed in it, the
+        localising only, its keyframes keep their poses (the robots are placed in it, the
         map does not move). The tracks the global outputs need of its robots."""
-        self.merger.hold_saved = localise_only
-        return load_into(self.merger, saved)
+        self.merger.hold_saved = loaded.localise_only
+        self.loaded = loaded
+        return load_into(self.merger, loaded.saved)
 
-    def save(self, folder: Path, global_map: GlobalMap) -> dict[str, Any]:
-        """The merged group's map as a folder that outlives the run (saved_map.py); what
-        summary.json says of it."""
+    def save(self, folder: Path, global_map: GlobalMap) -> dict[str, Any] | None:
+        """The merged group's map as a folder that outlives the run (saved_map.py), without
+        the robots that localised only; what summary.json says of it. None when it would be
+        the loaded map again (every robot localised only)."""
+        if self.loaded is not None and (self.loaded.localise_only or not any(
+                m not in self.merger.saved and m not in self.merger.localising
+                for m in global_map.members)):
+            return None
         return write_map(folder, self.merger, global_map)
 
     def summary(self, global_map: GlobalMap | None) -> dict[str, Any]:

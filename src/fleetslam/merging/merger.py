@@ -109,13 +109,19 @@ class MapMerger:
         self.saved: set[str] = set()  # the loaded map's robots (FS-HICP leaves them)
         # Localisation only: the loaded map's keyframes hold their poses in the graph too.
         self.hold_saved = False
+        # Robots placed in the map that never move it (localisation only, per robot): the
+        # graph places them after the rest, and the saved map leaves them out.
+        self.localising: set[str] = set()
         # Robot -> frames and seconds from its first keyframe to the keyframe it had when its
         # group joined the loaded map (its first pose in the map's frame).
         self.entered_map: dict[str, dict[str, float]] = {}
 
     # -- input ----------------------------------------------------------------------------
 
-    def add_robot(self, name: str, camera: Camera) -> None:
+    def add_robot(self, name: str, camera: Camera, localising: bool = False) -> None:
+        """``localising``: the robot is placed in the map without moving or extending it."""
+        if localising:
+            self.localising.add(name)
         if name in self.robots:
             return
         self.robots[name] = RobotRecord(name, len(self.robots), camera, anchor=name)
@@ -373,48 +379,67 @@ class MapMerger:
         return self._global
 
     def _optimise(self) -> dict[str, np.ndarray]:
-        cfg = self.config.merge
         out = {r.name: r.T_anchor_map @ r.poses for r in self.robots.values()}
         for anchor, members in self.components().items():
             if len(members) < 2:
                 continue
             start = time.perf_counter()
             records = [self.robots[m] for m in members]
-            values: dict[int, np.ndarray] = {}
-            edges: list[PoseEdge] = []
-            odometry = (np.deg2rad(cfg.odometry_sigma_rotation_deg),
-                        cfg.odometry_sigma_translation_m)
-            for r in records:
-                T = out[r.name]
-                for k in range(len(T)):
-                    values[_node(r, k)] = T[k]
-                    if k:
-                        edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
-                                              invert(r.poses[k - 1]) @ r.poses[k],
-                                              "odometry", odometry))
-            inter = (np.deg2rad(cfg.inter_sigma_rotation_deg), cfg.inter_sigma_translation_m)
-            used = [c for c in self.constraints
-                    if self.robots[c.match.query.robot].anchor == anchor]
-            for c in used:
-                m = c.match
-                edges.append(PoseEdge(_node(self.robots[m.place.robot], m.place.keyframe),
-                                      _node(self.robots[m.query.robot], m.query.keyframe),
-                                      c.T_place_query, "loop", inter, trusted=c.trusted,
-                                      information=c.information))
-            fixed = [_node(self.robots[anchor], 0)]
-            if self.hold_saved:
-                fixed += [_node(r, k) for r in records if r.name in self.saved
-                          for k in range(len(r.poses)) if _node(r, k) != fixed[0]]
-            result = optimise_pose_graph(values, edges, fixed=fixed,
-                                         sigma_rotation_rad=odometry[0],
-                                         sigma_translation_m=odometry[1])
-            for c, kept in zip(used, result.loop_inliers):
-                c.kept = kept
-            for r in records:
-                out[r.name] = np.array([result.poses[_node(r, k)]
-                                        for k in range(len(r.poses))]).reshape(-1, 4, 4)
+            # The map as the robots that make it place it; then the robots localising in it
+            # on it, held where it is: they are placed by the map and never move it.
+            # A loaded map's keyframes move only when a robot extends it.
+            making = [r for r in records if r.name not in self.localising]
+            held = {r.name for r in making if self.hold_saved and r.name in self.saved}
+            if len(making) > 1 and len(held) < len(making) and any(
+                    r.name not in self.saved for r in making):
+                self._solve(anchor, making, held, out)
+            if len(making) < len(records):
+                self._solve(anchor, records, {r.name for r in making}, out)
             self.graph_seconds.append(time.perf_counter() - start)
         return out
+
+    def _solve(self, anchor: str, records: list[RobotRecord], held: set[str],
+               out: dict[str, np.ndarray]) -> None:
+        """The pose graph of ``records`` (odometry, and the constraints among them) from
+        and into ``out``; the keyframes of ``held`` robots, and the group anchor's first,
+        stay where they are."""
+        cfg = self.config.merge
+        names = {r.name for r in records}
+        values: dict[int, np.ndarray] = {}
+        edges: list[PoseEdge] = []
+        odometry = (np.deg2rad(cfg.odometry_sigma_rotation_deg),
+                    cfg.odometry_sigma_translation_m)
+        for r in records:
+            T = out[r.name]
+            for k in range(len(T)):
+                values[_node(r, k)] = T[k]
+                if k:
+                    edges.append(PoseEdge(_node(r, k - 1), _node(r, k),
+                                          invert(r.poses[k - 1]) @ r.poses[k],
+                                          "odometry", odometry))
+        inter = (np.deg2rad(cfg.inter_sigma_rotation_deg), cfg.inter_sigma_translation_m)
+        used = [c for c in self.constraints if c.match.query.robot in names
+                and c.match.place.robot in names
+                and not (c.match.query.robot in held and c.match.place.robot in held)]
+        for c in used:
+            m = c.match
+            edges.append(PoseEdge(_node(self.robots[m.place.robot], m.place.keyframe),
+                                  _node(self.robots[m.query.robot], m.query.keyframe),
+                                  c.T_place_query, "loop", inter, trusted=c.trusted,
+                                  information=c.information))
+        # Nothing held: the group's frame is its anchor's first keyframe (or, the anchor
+        # localising only and placed after, the first robot's).
+        fixed = [_node(r, k) for r in records if r.name in held for k in range(len(r.poses))] \
+            or [_node(self.robots[anchor] if anchor in names else records[0], 0)]
+        result = optimise_pose_graph(values, edges, fixed=fixed,
+                                     sigma_rotation_rad=odometry[0],
+                                     sigma_translation_m=odometry[1])
+        for c, kept in zip(used, result.loop_inliers):
+            c.kept = kept
+        for r in records:
+            if r.name not in held:
+                out[r.name] = np.array([result.poses[_node(r, k)]
+                                        for k in range(len(r.poses))]).reshape(-1, 4, 4)
 
     def solve_T_global_map(self, robot: str) -> np.ndarray:
         """Where the graph puts the robot's map frame (its first keyframe's camera, as the

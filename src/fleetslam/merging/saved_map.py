@@ -51,6 +51,9 @@ MAX_ROBOT_BYTES = 8 << 30
 # A loaded map's robots join the run under their names with this before them (a run's own
 # robots are r0, r1, ... as the map's were).
 LOADED_PREFIX = "map-"
+# Two cameras are one when their images are the same size and their pinholes agree within
+# this fraction of the focal length (a calibration done again differs by a few pixels).
+SAME_CAMERA_TOLERANCE = 0.02
 CLASSES = data_tree.classes_of(Camera, KeyframeSummary, FeatureFrame)
 
 
@@ -85,6 +88,47 @@ class SavedMap:
         return sum(len(r.keyframes) for r in self.robots.values())
 
 
+def same_camera(a: Camera, b: Camera) -> bool:
+    """Whether ``a`` and ``b`` are one camera (``SAME_CAMERA_TOLERANCE``)."""
+    if (a.width, a.height) != (b.width, b.height):
+        return False
+    scale = max(a.fx, a.fy, b.fx, b.fy)
+    return all(abs(x - y) <= SAME_CAMERA_TOLERANCE * scale
+               for x, y in ((a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy)))
+
+
+def describe_camera(camera: Camera) -> str:
+    return (f"{camera.width}x{camera.height}, fx {camera.fx:g} fy {camera.fy:g} "
+            f"cx {camera.cx:g} cy {camera.cy:g}")
+
+
+@dataclass(frozen=True)
+class LoadedMap:
+    """A saved map and how a run or a cloud uses it."""
+
+    saved: SavedMap
+    # The robots are placed in it and extend it not: its keyframes keep their poses, and no
+    # new map/ is written (ORB-SLAM3's localisation mode, for the fleet's map).
+    localise_only: bool = False
+    # A robot whose camera is none of the map's may search it (a fleet of other cameras);
+    # without it such a robot is refused: a wrong camera file or a wrong map, said at once.
+    new_cameras: bool = False
+
+    def camera_problem(self, robot: str, camera: Camera) -> str | None:
+        """Why ``robot`` with ``camera`` may not search this map, or None."""
+        if self.new_cameras or any(same_camera(camera, r.camera)
+                                   for r in self.saved.robots.values()):
+            return None
+        theirs: dict[str, list[str]] = {}
+        for name, r in sorted(self.saved.robots.items()):
+            theirs.setdefault(describe_camera(r.camera), []).append(name)
+        listed = "; ".join(f"{', '.join(names)}: {camera}" for camera, names in theirs.items())
+        return (f"robot {robot}'s camera ({describe_camera(camera)}) is none of the map's "
+                f"cameras ({listed}): a wrong camera file or a wrong map? If the robot's "
+                f"camera is meant to be new to the map, say so with --new-camera (fleetslam "
+                f"run's, or the cloud's)")
+
+
 def _constraints(merger: MapMerger, members: set[str]) -> list[dict[str, Any]]:
     out = []
     for c in merger.constraints:
@@ -105,7 +149,7 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
     if folder.exists() and not (folder / MANIFEST).is_file():
         raise FileExistsError(f"{folder}: exists and is not a map fleetslam wrote; not "
                               f"replaced")
-    members = list(global_map.members)
+    members = [m for m in global_map.members if m not in merger.localising]
     staging = folder.with_name(folder.name + ".writing")
     shutil.rmtree(staging, ignore_errors=True)
     (staging / "robots").mkdir(parents=True)
@@ -204,7 +248,16 @@ def _robot(folder: Path, entry: Any, files: dict[str, Any]) -> SavedRobot:
         tree = data_tree.loads(data, str(path), CLASSES, MAX_ROBOT_BYTES)
     except data_tree.CheckpointError as exc:
         raise MapError(path, exc.reason.replace("session checkpoint", "map file")) from None
-    return _robot_from_tree(path, name, entry["keyframes"], tree)
+    robot = _robot_from_tree(path, name, entry["keyframes"], tree)
+    try:
+        listed = Camera.from_dict(entry.get("camera"), f"robot {name}'s camera") \
+            if isinstance(entry.get("camera"), dict) else None
+    except ValueError as exc:
+        raise MapError(manifest_path, str(exc)) from None
+    if listed is None or listed != robot.camera:
+        raise MapError(manifest_path, f"robot {name}'s camera is not the one its file "
+                                      f"{relative} holds (changed since it was written)")
+    return robot
 
 
 def _robot_from_tree(path: Path, name: str, count: int, tree: Any) -> SavedRobot:

@@ -91,6 +91,10 @@ class Hello:
     # The robot re-plans while it runs: its frames may come at any point the cloud tracks
     # at (0-3), frame by frame (the session holds the map at all of them).
     adaptive: bool = False
+    # The robot is placed in the cloud's loaded map and never moves nor extends it
+    # (localisation only, for this robot). A class-level default: a checkpoint written
+    # before this field restores with it off.
+    localise_only: bool = False
 
     @staticmethod
     def parse(message: dict[str, Any]) -> "Hello":
@@ -114,14 +118,17 @@ class Hello:
         source = message.get("source", "")
         if not isinstance(source, str):
             raise ValueError("hello source must be a string")
-        return Hello(int(k), camera, source, adaptive)
+        localise_only = message.get("localise_only", False)
+        if not isinstance(localise_only, bool):
+            raise ValueError(f"localise_only must be true or false, got {localise_only!r}")
+        return Hello(int(k), camera, source, adaptive, localise_only)
 
     def message(self, frames: int | None) -> dict[str, Any]:
         """``frames``: how many the robot will send, None from a live camera (unknown until
         it stops). Informational: the cloud's progress and resume go by what it tracked."""
         return {"type": "hello", "protocol": PROTOCOL, "offload_at": self.offload_at,
                 "adaptive": self.adaptive, "camera": self.camera.to_dict(),
-                "source": self.source, "frames": frames}
+                "source": self.source, "frames": frames, "localise_only": self.localise_only}
 
 
 # -- robot <-> cloud ------------------------------------------------------------------------

@@ -96,8 +96,9 @@ class NullView:
 
     def merged(self, T_global_map: dict[str, np.ndarray],
                constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
-               groups: dict[str, list[str]] | None = None) -> None:
-        """Where the merger places each robot's map (``groups``: anchor -> members)."""
+               fleet: list[str] | None = None) -> None:
+        """Where the merger places each robot's map (``fleet``: the robots of the group
+        whose frame is ``map``, none while no robots have joined)."""
 
     def fleet_map(self, run_dir: Path, summary: dict[str, Any]) -> None:
         """A merge wrote its outputs in ``run_dir`` (``summary``: its summary.json)."""
@@ -186,7 +187,7 @@ class LiveView(NullView):
 
     def merged(self, T_global_map: dict[str, np.ndarray],
                constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
-               groups: dict[str, list[str]] | None = None) -> None:
+               fleet: list[str] | None = None) -> None:
         self._put(("merged", T_global_map, constraints))
 
     def close(self) -> None:

@@ -6,7 +6,8 @@ cloud --ros2-out ENDPOINT``, ``ros2_sink.py``) or the Foxglove app (``--foxglove
                                                     <robot>/map, at its capture time
     /tf                  tf2_msgs/TFMessage         <robot>/map -> <robot>/camera
     /tf_static           tf2_msgs/TFMessage         map -> <robot>/map for the robots of the
-                                                    largest joined group (the merge's), as
+                                                    fleet's group (a loaded map's, else the
+                                                    largest joined one: the merge's), as
                                                     the merger places them (at most every
                                                     view.global_every_s)
     /map/global, /map/grid, /map/octomap, /map/constraints, /<robot>/global_path
@@ -27,7 +28,6 @@ from typing import Any, Protocol
 import numpy as np
 
 from fleetslam.io.mcap_out import RosMessages
-from fleetslam.merging.global_map import largest_component
 from fleetslam.ros2_out import cdr
 from fleetslam.run_mcap import GLOBAL_FRAME, add_fleet_map, camera_frame, map_frame
 from fleetslam.visualisation.live_view import NullView
@@ -64,13 +64,11 @@ class TopicView(NullView):
 
     def merged(self, T_global_map: dict[str, np.ndarray],
                constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
-               groups: dict[str, list[str]] | None = None) -> None:
-        # `map` is one group's frame: the largest's, as a merge picks it. A robot not
-        # joined yet is in no fleet frame.
-        joined = {a: ms for a, ms in (groups or {}).items() if len(ms) > 1}
-        if not joined:
+               fleet: list[str] | None = None) -> None:
+        # `map` is the fleet group's frame; a robot not joined yet is in no fleet frame.
+        members = fleet or []
+        if not members:
             return
-        members = joined[largest_component(joined)]
         now = time.time_ns()
         self.sink.publish("/tf_static", cdr.TF_MESSAGE, cdr.tf_message(
             [(now, GLOBAL_FRAME, map_frame(robot), T_global_map[robot])

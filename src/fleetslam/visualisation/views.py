@@ -54,9 +54,9 @@ class Views(NullView):
 
     def merged(self, T_global_map: dict[str, np.ndarray],
                constraints: list[tuple[np.ndarray, np.ndarray, bool | None]],
-               groups: dict[str, list[str]] | None = None) -> None:
+               fleet: list[str] | None = None) -> None:
         for v in self.views:
-            v.merged(T_global_map, constraints, groups)
+            v.merged(T_global_map, constraints, fleet)
 
     def fleet_map(self, run_dir: Path, summary: dict[str, Any]) -> None:
         for v in self.views:

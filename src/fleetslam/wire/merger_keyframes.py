@@ -30,13 +30,17 @@ class KeyframeSummary:
 CLASSES = data_tree.classes_of(Camera, KeyframeSummary, FeatureFrame)
 
 
-def encode_merger_keyframe(camera: Camera, summary: KeyframeSummary, poses: np.ndarray) -> bytes:
-    """A keyframe for the merger on another worker (``fleet/cloud/keyframes/<robot>``)."""
+def encode_merger_keyframe(camera: Camera, summary: KeyframeSummary, poses: np.ndarray,
+                           localising: bool = False) -> bytes:
+    """A keyframe for the merger on another worker (``fleet/cloud/keyframes/<robot>``);
+    ``localising``: its robot localises only (it never moves nor extends the loaded map)."""
     return data_tree.dumps({"camera": camera, "summary": summary,
-                            "poses": np.asarray(poses, np.float64)}, CLASSES)
+                            "poses": np.asarray(poses, np.float64),
+                            "localising": localising}, CLASSES)
 
 
-def decode_merger_keyframe(data: bytes, robot: str) -> tuple[Camera, KeyframeSummary, np.ndarray]:
+def decode_merger_keyframe(data: bytes, robot: str
+                           ) -> tuple[Camera, KeyframeSummary, np.ndarray, bool]:
     """What :func:`encode_merger_keyframe` wrote, for ``robot``; ValueError saying what is
     wrong."""
     where = f"keyframe summary of robot {robot}"
@@ -51,4 +55,7 @@ def decode_merger_keyframe(data: bytes, robot: str) -> tuple[Camera, KeyframeSum
             or not 0 <= summary.keyframe < len(poses):
         raise ValueError(f"{where}: robot {summary.robot!r}, keyframe {summary.keyframe} of "
                          f"poses {poses.shape}")
-    return tree["camera"], summary, poses
+    localising = tree.get("localising", False)
+    if not isinstance(localising, bool):
+        raise ValueError(f"{where}: localising is not true or false")
+    return tree["camera"], summary, poses, localising

@@ -130,8 +130,9 @@ class FleetMerge:
         summary = RunSummary([f.summary for f in finished], merge, self.config,
                              time.perf_counter() - start).to_dict()
         self._still_merger("the saved map")
-        summary["map"] = self.merger.locked(
-            lambda fleet: fleet.save(self.out_dir / "map", global_map))
+        saved = self.merger.locked(lambda fleet: fleet.save(self.out_dir / "map", global_map))
+        if saved is not None:  # None: every robot localised only (the map is not extended)
+            summary["map"] = saved
         self._still_merger("summary.json")
         if self.config.outputs.mcap:
             summary["mcap"] = self._write_mcap(summary)
@@ -170,7 +171,7 @@ class FleetMerge:
                 continue
             state = session.state
             self.merger.add_robot(robot_id, state.hello.camera, session.keyframes.all(),
-                                  session.keyframes.poses())
+                                  session.keyframes.poses(), state.hello.localise_only)
             found.append(session.outputs.finished_map())
         return found, unfinished
 

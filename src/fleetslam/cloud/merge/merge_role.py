@@ -15,11 +15,12 @@ from fleetslam.camera import Camera
 from fleetslam.cloud.coordination.placement_protocol import Placement
 from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.cloud.merge.merger_service import MergerService
-from fleetslam.merging.saved_map import SavedMap
+from fleetslam.merging.saved_map import LoadedMap
 from fleetslam.cloud.session.robot_session import Publish, RobotSession
 from fleetslam.cloud.session.sessions import SessionTable
 from fleetslam.config import Config
 from fleetslam.transport import keys
+from fleetslam.transport.protocol import Hello
 from fleetslam.visualisation.live_view import NullView
 from fleetslam.wire.merger_keyframes import (KeyframeSummary, decode_merger_keyframe,
                                              encode_merger_keyframe)
@@ -30,7 +31,7 @@ log = logging.getLogger("fleetslam.cloud")
 class MergeRole:
     def __init__(self, config: Config, view: NullView, worker_id: str, sessions: SessionTable,
                  publish: Publish, placement: Placement,
-                 frames: FleetFrames | None = None, saved_map: SavedMap | None = None
+                 frames: FleetFrames | None = None, loaded: LoadedMap | None = None
                  ) -> None:
         """``publish``: to the merging worker (droppable: a gap is filled from the store);
         ``placement``: says whether this worker merges; ``frames``: tells robots where the
@@ -41,7 +42,8 @@ class MergeRole:
         self.store = sessions.store
         self.publish = publish
         self.placement = placement
-        self.merger = MergerService(config, view, self.keyframes_in_store, frames, saved_map)
+        self.merger = MergerService(config, view, self.keyframes_in_store, frames, loaded)
+        self.loaded = loaded
         self._merging = False  # this worker runs the fleet's merger (see is_merger)
 
     def is_merger(self) -> bool:
@@ -61,15 +63,23 @@ class MergeRole:
         self._merging = merging
         return merging
 
-    def joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
+    def hello_problem(self, robot_id: str, hello: Hello) -> str | None:
+        """Why a new robot's hello may not open a session against the loaded map (its
+        camera is none of the map's; localisation only without a map), or None."""
+        if self.loaded is None:
+            return "localisation only, but this cloud has no saved map loaded (cloud --map)" \
+                if hello.localise_only else None
+        return self.loaded.camera_problem(robot_id, hello.camera)
+
+    def joined(self, robot_id: str, hello: Hello, restored: RobotSession | None) -> None:
         """A session opened here (``restored``: from its checkpoint, with the keyframes it
         already has): the merger, if this worker runs it, takes the robot."""
         if self.is_merger():
             if restored is None:
-                self.merger.add_robot(robot_id, camera)
+                self.merger.add_robot(robot_id, hello.camera, localising=hello.localise_only)
             else:
-                self.merger.add_robot(robot_id, camera, restored.keyframes.all(),
-                                      restored.keyframes.poses())
+                self.merger.add_robot(robot_id, hello.camera, restored.keyframes.all(),
+                                      restored.keyframes.poses(), hello.localise_only)
 
     def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
         """A session's new keyframe: to the merger here, or published for the worker that
@@ -79,18 +89,21 @@ class MergeRole:
         else:
             session = self.sessions.get(summary.robot)
             if session is not None:
+                hello = session.state.hello
                 self.publish(keys.merge_keyframe(summary.robot), encode_merger_keyframe(
-                    session.state.hello.camera, summary, poses))
+                    hello.camera, summary, poses, hello.localise_only))
 
     def take_remote(self, data: bytes, robot_id: str) -> None:
         """Another worker's keyframe of ``robot_id`` (ValueError if it is not one)."""
         self.merger.submit_remote(*decode_merger_keyframe(data, robot_id))
 
     def keyframes_in_store(self, robot_id: str
-                           ) -> tuple[Camera, list[KeyframeSummary], np.ndarray] | None:
+                           ) -> tuple[Camera, list[KeyframeSummary], np.ndarray, bool] | None:
         """A robot's keyframes for the merger: its live session's here, else its checkpoint
         in the store (read only)."""
         session = self.sessions.live(robot_id) or self.sessions.stored(robot_id)
         if session is None:
             return None
-        return (session.state.hello.camera, session.keyframes.all(), session.keyframes.poses())
+        hello = session.state.hello
+        return (hello.camera, session.keyframes.all(), session.keyframes.poses(),
+                hello.localise_only)

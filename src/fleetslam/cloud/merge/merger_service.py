@@ -25,7 +25,8 @@ from fleetslam.cloud.merge.fleet_frames import FleetFrames
 from fleetslam.config import Config
 from fleetslam.mapping.map_frame import live_map_frame
 from fleetslam.merging.fleet_map import FleetMap
-from fleetslam.merging.saved_map import SavedMap
+from fleetslam.merging.global_map import largest_group
+from fleetslam.merging.saved_map import LoadedMap
 from fleetslam.merging.merger import MapMerger
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
 from fleetslam.transforms import invert
@@ -39,17 +40,18 @@ T = TypeVar("T")
 DRAIN_POLL_S = 0.05
 
 
-# A robot's keyframes as the merger has them in the store: (camera, summaries, poses), or
-# None (no checkpoint): what fills a gap in keyframes heard from another worker.
-FromStore = Callable[[str], "tuple[Camera, list[KeyframeSummary], np.ndarray] | None"]
+# A robot's keyframes as the merger has them in the store: (camera, summaries, poses,
+# localising only), or None (no checkpoint): what fills a gap in keyframes heard from
+# another worker.
+FromStore = Callable[[str], "tuple[Camera, list[KeyframeSummary], np.ndarray, bool] | None"]
 
 
 class MergerService:
     def __init__(self, config: Config, view: NullView | None = None,
                  from_store: FromStore | None = None, frames: FleetFrames | None = None,
-                 saved_map: SavedMap | None = None) -> None:
+                 loaded: LoadedMap | None = None) -> None:
         """``frames``: tells each joined robot where its map lies (None: nobody is told);
-        ``saved_map``: a loaded map, the fleet's first group (saved_map.py)."""
+        ``loaded``: a saved map, the fleet's first group (saved_map.py)."""
         cfg = config.merge
         self._queue: queue.Queue = queue.Queue()
         search = PlaceSearchProcess(config, cfg.search_nice, cfg.search_timeout_s,
@@ -62,7 +64,7 @@ class MergerService:
         self.fleet = FleetMap(config, search)
         self.merger = self.fleet.merger
         # The loaded map's robots as the global outputs need them (none without a map).
-        self.saved_tracks = self.fleet.load(saved_map) if saved_map is not None else []
+        self.saved_tracks = self.fleet.load(loaded) if loaded is not None else []
         self._from_store = from_store
         self.remote_gaps = 0  # keyframes that came after a gap, filled from the store
         self.errors = 0
@@ -83,20 +85,22 @@ class MergerService:
 
     def add_robot(self, robot: str, camera: Camera,
                   keyframes: list[KeyframeSummary] | None = None,
-                  poses: np.ndarray | None = None) -> None:
+                  poses: np.ndarray | None = None, localising: bool = False) -> None:
         """Register a robot; a session restored from its checkpoint brings the keyframes it
-        already has (the merger is rebuilt from them after a cloud restart)."""
-        self._queue.put(("robot", (robot, camera, keyframes or [], poses, time.monotonic())))
+        already has (the merger is rebuilt from them after a cloud restart). ``localising``:
+        it is placed in the loaded map, never moves nor extends it."""
+        self._queue.put(("robot", (robot, camera, keyframes or [], poses, localising,
+                                   time.monotonic())))
 
     def submit(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
         self._queue.put(("keyframe", (summary, poses, time.monotonic())))
 
-    def submit_remote(self, camera: Camera, summary: KeyframeSummary, poses: np.ndarray
-                      ) -> None:
+    def submit_remote(self, camera: Camera, summary: KeyframeSummary, poses: np.ndarray,
+                      localising: bool = False) -> None:
         """A keyframe of a robot another worker serves: taken in order; one already held is
         skipped, and a gap (keyframes missed while this worker was not the merger, or
         lost) is filled from the robot's checkpoint in the store first."""
-        self._queue.put(("remote", (camera, summary, poses, time.monotonic())))
+        self._queue.put(("remote", (camera, summary, poses, localising, time.monotonic())))
 
     def rebuild_from_store(self, robots: list[str]) -> None:
         """Take these robots' keyframes as their checkpoints in the store have them (a worker
@@ -104,10 +108,10 @@ class MergerService:
         self._queue.put(("rebuild", (robots, time.monotonic())))
 
     def _take_robot(self, robot: str, camera: Camera, keyframes: list[KeyframeSummary],
-                    poses: np.ndarray | None, asked: float) -> int:
+                    poses: np.ndarray | None, localising: bool, asked: float) -> int:
         """Register the robot and take those of its keyframes not held yet; how many."""
         with self._lock:
-            self.merger.add_robot(robot, camera)
+            self.merger.add_robot(robot, camera, localising)
         have = len(self.merger.robots[robot].keyframes)
         for kf in keyframes[have:]:
             self._add(kf, poses[: kf.keyframe + 1], asked)
@@ -180,16 +184,16 @@ class MergerService:
             try:
                 self._view_due |= kind in ("robot", "keyframe")
                 if kind == "robot":
-                    robot, camera, keyframes, poses, asked = payload
-                    self._take_robot(robot, camera, keyframes, poses, asked)
+                    robot, camera, keyframes, poses, localising, asked = payload
+                    self._take_robot(robot, camera, keyframes, poses, localising, asked)
                     if poses is not None:
                         self._update_poses(robot, poses)
                 elif kind == "keyframe":
                     self._keyframe(*payload)
                 elif kind == "remote":
-                    camera, summary, poses, arrival = payload
+                    camera, summary, poses, localising, arrival = payload
                     with self._lock:
-                        self.merger.add_robot(summary.robot, camera)
+                        self.merger.add_robot(summary.robot, camera, localising)
                     self._keyframe(summary, poses, arrival)
                 elif kind == "rebuild":
                     robots, asked = payload
@@ -223,15 +227,21 @@ class MergerService:
             if q.keyframe < len(poses[q.robot]) and p.keyframe < len(poses[p.robot]):
                 lines.append(((level[q.robot] @ poses[q.robot][q.keyframe])[:3, 3],
                               (level[p.robot] @ poses[p.robot][p.keyframe])[:3, 3], c.kept))
-        self.view.merged(transforms, lines, m.components())
+        # `map` is one group's frame: a loaded map's, else the largest (as a merge picks).
+        fleet = largest_group(m, m.robots)[1] if m.robots else []
+        self.view.merged(transforms, lines, fleet if len(fleet) > 1 else [])
         self._view_due = False
         self._view_at = time.monotonic()
 
     def _level(self, m: MapMerger) -> dict[str, np.ndarray]:
         """Each robot's T_map_graph: its group's level map frame while the robots run
-        (map_frame.py: the anchor's mounting, else [grid] up; a merge finds the floor)."""
+        (map_frame.py: the anchor's mounting, else [grid] up; a merge finds the floor). A
+        loaded map's group is in the map's frame, level already."""
         out = {}
         for anchor, members in m.components().items():
+            if anchor == m.fixed_anchor:
+                out.update({r: np.eye(4) for r in members})
+                continue
             T_graph_map = live_map_frame(m.solve_T_global_map(anchor), m.robots[anchor].camera,
                                          self.grid)
             out.update({r: invert(T_graph_map) for r in members})
@@ -250,17 +260,22 @@ class MergerService:
         if self._placing_due and time.monotonic() - self._placed_at >= self._placing_every_s:
             self._placing_due = False
             self._placed_at = time.monotonic()
-
-            def placements(fleet: FleetMap) -> dict[str, tuple[str, np.ndarray]]:
-                # A lone robot's map is its group's frame: nothing to tell, no graph to solve.
-                joined = {r: anchor for anchor, members in fleet.groups().items()
-                          if len(members) > 1 for r in members}
-                level = self._level(fleet.merger)
-                return {r: (anchor, level[r] @ fleet.solve_T_global_map(r))
-                        for r, anchor in joined.items()}
-
-            self.frames.update(self.locked(placements))
+            self.frames.update(self.placements())
         self.frames.resend_due()
+
+    def placements(self) -> dict[str, tuple[str, np.ndarray]]:
+        """Where the graph puts each joined robot's map now: (its group, T_global_map in the
+        group's level frame), what robots hear while they run (``placed``)."""
+
+        def place(fleet: FleetMap) -> dict[str, tuple[str, np.ndarray]]:
+            # A lone robot's map is its group's frame: nothing to tell, no graph to solve.
+            joined = {r: anchor for anchor, members in fleet.groups().items()
+                      if len(members) > 1 for r in members}
+            level = self._level(fleet.merger)
+            return {r: (anchor, level[r] @ fleet.solve_T_global_map(r))
+                    for r, anchor in joined.items()}
+
+        return self.locked(place)
 
     def show(self) -> None:
         """Hand the view the merger's state now (after a merge)."""

@@ -16,7 +16,6 @@ from typing import Protocol
 import numpy as np
 
 from fleetslam.backend.workers import LocalMappingPool
-from fleetslam.camera import Camera
 from fleetslam.cloud.session.memory_budget import sessions_allowed
 from fleetslam.cloud.session.replies import Publish
 from fleetslam.cloud.session.robot_session import RobotSession
@@ -34,7 +33,7 @@ log = logging.getLogger("fleetslam.cloud")
 class MergeHandoff(Protocol):
     """Who the table hands each robot and keyframe to for the fleet's merge (merge_role.py)."""
 
-    def joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
+    def joined(self, robot_id: str, hello: Hello, restored: RobotSession | None) -> None:
         """A session opened (``restored`` None) or restored here, with the keyframes it has."""
 
     def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
@@ -44,7 +43,7 @@ class MergeHandoff(Protocol):
 class NoMerge:
     """The hand-off of a table nobody merges from: robots and keyframes go nowhere."""
 
-    def joined(self, robot_id: str, camera: Camera, restored: RobotSession | None) -> None:
+    def joined(self, robot_id: str, hello: Hello, restored: RobotSession | None) -> None:
         pass
 
     def keyframe_sink(self, summary: KeyframeSummary, poses: np.ndarray) -> None:
@@ -140,7 +139,7 @@ class SessionTable(Mapping[str, RobotSession]):
                 session.history_lost = self._lost.pop(robot_id, None)
             self._live[robot_id] = session
             self.view.robot(robot_id, hello.camera)
-            self._merge.joined(robot_id, hello.camera, None)
+            self._merge.joined(robot_id, hello, None)
             return session
 
     def _make_room(self, robot_id: str) -> bool:
@@ -185,7 +184,7 @@ class SessionTable(Mapping[str, RobotSession]):
                 self.view.robot(robot_id, state.hello.camera)
                 # The merger is rebuilt from the keyframes the session already has (none for
                 # a robot that tracks itself).
-                self._merge.joined(robot_id, state.hello.camera, session)
+                self._merge.joined(robot_id, state.hello, session)
                 log.info("robot %s: session restored from its checkpoint (frame %d)",
                          robot_id, state.last_index)
             return session
