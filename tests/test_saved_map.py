@@ -148,6 +148,10 @@ def test_a_loaded_map_is_searched_and_a_robot_that_finds_it_tracks_in_its_frame(
     assert joint.rmse_m < 0.05, joint
     extended = read_map(out / "map")
     assert extended.keyframes > saved.keyframes
+    # Names stay short however often a map is loaded and extended: the map's robots keep
+    # theirs, today's r0 is numbered on.
+    assert sorted(extended.robots) == sorted([*saved.robots, "r0-2"])
+    assert extended.anchor == saved.anchor
 
 
 def test_a_robot_from_another_room_never_joins_the_map(run, tmp_path):

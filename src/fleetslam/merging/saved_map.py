@@ -129,13 +129,31 @@ class LoadedMap:
                 f"run's, or the cloud's)")
 
 
-def _constraints(merger: MapMerger, members: set[str]) -> list[dict[str, Any]]:
+def map_names(members: list[str], saved: set[str]) -> dict[str, str]:
+    """Each robot's name in the map written: a loaded map's robot its name there (map-r0:
+    r0), a robot of this run its own, numbered on where the map has it (r0-2), so that names
+    stay short however often a map is loaded and extended."""
+    out = {m: m[len(LOADED_PREFIX):] for m in members if m in saved}
+    taken = set(out.values())
+    for m in members:
+        if m not in saved:
+            name, n = m, 1
+            while name in taken:
+                n += 1
+                name = f"{m}-{n}"
+            out[m] = name
+            taken.add(name)
+    return out
+
+
+def _constraints(merger: MapMerger, names: dict[str, str]) -> list[dict[str, Any]]:
     out = []
     for c in merger.constraints:
         q, p = c.match.query, c.match.place
-        if q.robot in members and p.robot in members:
+        if q.robot in names and p.robot in names:
             info = c.information
-            out.append({"query": [q.robot, q.keyframe], "place": [p.robot, p.keyframe],
+            out.append({"query": [names[q.robot], q.keyframe],
+                        "place": [names[p.robot], p.keyframe],
                         "T_place_query": np.asarray(c.T_place_query).tolist(),
                         "information": None if info is None else np.asarray(info).tolist(),
                         "trusted": c.trusted, "kept": c.kept})
@@ -150,6 +168,7 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
         raise FileExistsError(f"{folder}: exists and is not a map fleetslam wrote; not "
                               f"replaced")
     members = [m for m in global_map.members if m not in merger.localising]
+    names = map_names(members, merger.saved)
     staging = folder.with_name(folder.name + ".writing")
     shutil.rmtree(staging, ignore_errors=True)
     (staging / "robots").mkdir(parents=True)
@@ -157,25 +176,29 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
     for name in members:
         record = merger.robots[name]
         clouds = global_map.keyframe_clouds.get(name, [])
-        tree = {"camera": record.camera, "keyframes": list(record.keyframes),
+        tree = {"camera": record.camera,
+                "keyframes": [dataclasses.replace(k, robot=names[name])
+                              for k in record.keyframes],
                 "poses": np.asarray(global_map.keyframe_poses[name], np.float64),
                 "cloud_points": [np.asarray(p, np.float32) for p, _ in clouds],
                 "cloud_colors": [np.asarray(c, np.uint8) for _, c in clouds]}
-        relative = f"robots/{name}.npz"
+        relative = f"robots/{names[name]}.npz"
         data = data_tree.dumps(tree, CLASSES)
         (staging / relative).write_bytes(data)
         files[relative] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
-        robots.append({"name": name, "keyframes": len(record.keyframes),
+        robots.append({"name": names[name], "keyframes": len(record.keyframes),
                        "file": relative, "camera": record.camera.to_dict()})
-    manifest = {"format": MAP_FORMAT, "version": MAP_VERSION, "anchor": global_map.anchor,
+    manifest = {"format": MAP_FORMAT, "version": MAP_VERSION,
+                "anchor": names.get(global_map.anchor, global_map.anchor),
                 "map_frame": global_map.map_frame, "robots": robots,
                 "features": features_of(merger.config),
-                "constraints": _constraints(merger, set(members)), "files": files}
+                "constraints": _constraints(merger, names), "files": files}
     (staging / MANIFEST).write_text(json.dumps(manifest, indent=1))
     _put_in_place(staging, folder)
     total = sum(f["bytes"] for f in files.values())
     keyframes = sum(r["keyframes"] for r in robots)
-    return {"folder": folder.name, "format_version": MAP_VERSION, "robots": members,
+    return {"folder": folder.name, "format_version": MAP_VERSION,
+            "robots": [names[m] for m in members],
             "keyframes": keyframes, "bytes": total,
             "bytes_per_keyframe": total / keyframes if keyframes else None}
 
