@@ -14,8 +14,13 @@ from fleetslam.transport.protocol import Hello
 
 
 def test_a_hello_round_trips():
-    hello = Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "seq:0-9", adaptive=True)
-    assert Hello.parse(protocol.parse_control(protocol.encode(hello.message(10)))) == hello
+    for hello in (Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "seq:0-9", adaptive=True),
+                  Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "seq:0-9", localise_only=True)):
+        assert Hello.parse(protocol.parse_control(protocol.encode(hello.message(10)))) == hello
+    # A robot from before localisation only says nothing of it: it extends the map.
+    old = {k: v for k, v in Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "s").message(1).items()
+           if k != "localise_only"}
+    assert Hello.parse(old).localise_only is False
 
 
 @pytest.mark.parametrize("data, reason", [
@@ -36,6 +41,7 @@ def test_what_is_not_a_control_message_is_refused(data, reason):
     ({"offload_at": True}, "offloading point True not supported"),
     ({"camera": "x"}, "camera must be an object"),
     ({"source": 5}, "source must be a string"),
+    ({"localise_only": "yes"}, "localise_only must be true or false"),
 ])
 def test_a_bad_hello_names_what_is_wrong(change, reason):
     message = Hello(3, Camera(525.0, 525.0, 319.5, 239.5), "s").message(1)

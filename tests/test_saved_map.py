@@ -128,6 +128,11 @@ def test_a_loaded_map_is_searched_and_a_robot_that_finds_it_tracks_in_its_frame(
     merge = summary["merge"]
     assert sorted(merge["members"]) == sorted(["r0", *(f"map-{n}" for n in saved.robots)])
     assert merge["map_frame"]["source"] == "the loaded map's frame"
+    # Scored afterwards, the map's robots are not (their sources are not this run's).
+    assert merge["loaded_map"] == sorted(f"map-{n}" for n in saved.robots)
+    rows = merge["evaluation"]["constraints"]
+    assert rows and all("ground truth is not this run's" in r["note"] for r in rows
+                        if r["place_robot"].startswith("map-"))
     # It starts where the map was made: placed in it within the 30 frames.
     assert merge["entered_map"]["r0"]["frames"] <= 30
     anchor_then = read_tum_trajectory(run / "global" / f"{saved.anchor}.tum")[1]

@@ -338,7 +338,11 @@ def merge_notes(merge: dict[str, Any]) -> tuple[str, list[str]]:
         line += (f"; kept ones against ground truth: worst {worst['rotation_error_deg']:.2f} deg"
                  f" / {max(c['translation_error_m'] for c in kept) * 100:.1f} cm")
     not_merged = merge.get("not_merged") or {}
+    entered = merge.get("entered_map") or {}
     lines = [line, *join_lines(merge),
+             *(["in the loaded map's frame after: " + ", ".join(
+                 f"{r} {e['frames']} frames ({e['seconds']:.1f} s)"
+                 for r, e in sorted(entered.items()))] if entered else []),
              *([f"not merged: {'; '.join(f'{r}: {why}' for r, why in sorted(not_merged.items()))}"]
                if not_merged else [])]
     if joint:

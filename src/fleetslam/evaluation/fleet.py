@@ -182,10 +182,12 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, Recor
     """Errors of the merge against ground truth (see the module docstring)."""
     result: dict[str, Any] = {"constraints": [], "relative_poses": [], "joint_ate": None}
     for c in merge.get("constraints", []):
-        q, p = sequences[c["query_robot"]], sequences[c["place_robot"]]
+        q, p = sequences.get(c["query_robot"]), sequences.get(c["place_robot"])
         row = {k: c[k] for k in ("query_robot", "query_frame", "place_robot", "place_frame",
                                  "trusted", "kept")}
-        if same_world(q, p):
+        if q is None or p is None:
+            row["note"] = "a loaded map's robot: its ground truth is not this run's"
+        elif same_world(q, p):
             true = invert(p.gt_poses[c["place_frame"]]) @ q.gt_poses[c["query_frame"]]
             err = transform_error(np.array(c["T_place_query"]), true)
             row.update(rotation_error_deg=err.rotation_deg, translation_error_m=err.translation_m,
@@ -197,7 +199,9 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, Recor
         else:
             row["note"] = "different recordings: no common ground-truth frame"
         result["constraints"].append(row)
-    members = merge.get("members") or []
+    # A loaded map's robots are not scored (their sources are not this run's): this run's
+    # robots are, in the map's frame, with one alignment.
+    members = [m for m in merge.get("members") or [] if m in sequences]
     anchor = merge.get("anchor")
     if len(members) < 2 or anchor is None:
         return result
@@ -247,5 +251,7 @@ def score_fleet(summary: dict[str, Any], out_dir: Path, sequences: dict[str, Rec
         robot["ate"] = trajectory_ate(trajectory, sequence)
         robot["rpe"] = trajectory_rpe(trajectory, sequence)
     merge = summary.get("merge")
-    if merge is not None and all(n in sequences for n in merge.get("robots", {})):
+    loaded = set(merge.get("loaded_map", [])) if merge is not None else set()
+    if merge is not None and all(n in sequences for n in merge.get("robots", {})
+                                 if n not in loaded):
         merge["evaluation"] = score_merge(merge, out_dir, sequences)

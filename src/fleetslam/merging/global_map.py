@@ -317,8 +317,10 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
                   "constraint, global pose graph (GNC), FS-HICP refinement",
         "components": status["components"], "joins": status["events"],
         "robots": status["robots"], "constraints": constraints,
-        # A loaded map: each robot's way from its first frame to its first pose in its frame.
-        **({"entered_map": merger.entered_map} if merger.fixed_anchor is not None else {}),
+        # A loaded map: its robots (no source in this run), and each robot's way from its
+        # first frame to its first pose in the map's frame.
+        **({"loaded_map": sorted(merger.saved), "entered_map": merger.entered_map}
+           if merger.fixed_anchor is not None else {}),
         "keyframes_not_searched": status["keyframes_not_searched"],
         "keyframes_searched_late": status["keyframes_searched_late"],
         "query_ms_median": ms(merger.query_seconds),
