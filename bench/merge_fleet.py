@@ -14,7 +14,11 @@ Per case: which robots joined and at which frames, every inter-robot constraint 
 ground truth (false = above 5 deg or 20 cm; the feature estimate, and the edge the graph kept,
 dense where its refinement was accepted), each robot's map frame in the global frame
 against ground truth before and after FS-HICP, the joint ATE of the concatenated global
-trajectories (one SE(3) alignment), and the global outputs (PLY, OctoMap).
+trajectories (one SE(3) alignment); each robot's global trajectory aligned apart (and the
+bound a perfect merge approaches: their errors together, each aligned apart) and the
+map-to-map error (how far each robot's alignment is from the first's: rotation, and
+translation at the global frame's origin); each robot alone (its own frame); and the global
+outputs (PLY, OctoMap).
 """
 
 from __future__ import annotations
@@ -88,6 +92,13 @@ def run_case(name: str, specs: list[str], out: Path, config: Config, config_path
         "false_constraints": len(false) + len(unscored_kept),
         "relative_poses": ev.get("relative_poses", []),
         "joint_ate_cm": ev["joint_ate"]["rmse_m"] * 100 if ev.get("joint_ate") else None,
+        # Each robot's global trajectory aligned apart, the bound a perfect merge approaches,
+        # and how far apart the alignments are (evaluation/fleet.py map_to_map).
+        "separately_aligned_cm": {m: v * 100 for m, v in
+                                  ev.get("separately_aligned_m", {}).items()},
+        "separately_aligned_bound_cm": ev["separately_aligned_bound_m"] * 100
+        if ev.get("separately_aligned_bound_m") is not None else None,
+        "map_to_map": ev.get("map_to_map", []),
         "fshicp": merge.get("fshicp"), "octomap": merge.get("octomap"),
         "global_map_points": merge.get("global_map_points"),
         "query_ms_median": merge.get("query_ms_median"),
@@ -135,13 +146,18 @@ def main() -> None:
             " ".join(f"{p['final_rotation_error_deg']:.2f}/{p['final_translation_error_m'] * 100:.1f}"
                      for p in rel if "final_rotation_error_deg" in p) or "-",
             r["joint_ate_cm"],
+            " ".join(f"{p['rotation_deg']:.1f}/{p['translation_m'] * 100:.1f}"
+                     for p in r["map_to_map"]) or "-",
+            " ".join(f"{v:.2f}" for v in r["separately_aligned_cm"].values()) +
+            (f" ({r['separately_aligned_bound_cm']:.2f})"
+             if r["separately_aligned_bound_cm"] is not None else "") or "-",
             " ".join(f"{v:.2f}" for v in r["robot_ate_cm"].values() if v is not None),
             r["query_ms_median"], r["dense_ms_median"],
             " ".join(f"{v / 1000:.1f}" for v in r["bytes_per_frame"].values()) or "-"])
     print(format_table(["case", "groups", "joined at", "constraints", "dense", "false",
                         "features: max deg", "max cm", "kept edges: max deg", "max cm",
                         "rel. pose graph deg/cm", "after FS-HICP deg/cm", "joint ATE cm",
-                        "robot ATE cm", "query ms", "dense ms", "kB/frame sent"], rows))
+                        "map-to-map deg/cm", "apart cm (bound)", "robot ATE cm", "query ms", "dense ms", "kB/frame sent"], rows))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"false_constraint": {"rotation_deg": FALSE_ROTATION_DEG,

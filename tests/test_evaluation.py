@@ -186,3 +186,25 @@ def test_ground_truth_files_are_matched_to_robots_and_checked_first(tmp_path):
         with pytest.raises(ValueError, match=re.escape(words)) as exc:
             match_ground_truth(values, names)
         assert "\n" not in str(exc.value)
+
+
+def test_map_to_map_is_how_far_two_robots_maps_are_from_where_ground_truth_has_them():
+    """Two robots, each placed exactly but for the second's whole map turned 5 degrees about
+    the vertical at the origin: each aligned apart has no error, the bound is zero, the
+    map-to-map error is the 5 degrees, and one alignment for both sees the bend."""
+    from fleetslam.evaluation.fleet import map_to_map
+
+    rng = np.random.default_rng(3)
+    gt = [np.stack([make_T(np.eye(3), rng.normal(size=3)) for _ in range(40)])
+          for _ in range(2)]
+    turn = make_T(matrix_from_quaternion(np.array([0, 0, np.sin(np.radians(2.5)),
+                                                   np.cos(np.radians(2.5))]))[0], np.zeros(3))
+    est = [gt[0].copy(), np.einsum("ij,njk->nik", turn, gt[1])]
+    out = map_to_map(["r0", "r1"], est, gt)
+    assert out["separately_aligned_bound_m"] < 1e-9
+    (row,) = out["map_to_map"]
+    assert (row["robot"], row["to"]) == ("r1", "r0")
+    assert row["rotation_deg"] == pytest.approx(5.0, abs=1e-6)
+    assert row["translation_m"] < 1e-9
+    joint = absolute_trajectory_error(np.concatenate(est), np.concatenate(gt))
+    assert joint.rmse_m > 0.01

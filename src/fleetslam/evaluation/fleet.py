@@ -233,7 +233,30 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, Recor
             est.append(poses[ok])
             gt.append(g)
         result["joint_ate"] = ate_summary(np.concatenate(est), np.concatenate(gt))
+        result.update(map_to_map(members, est, gt))
     return result
+
+
+def map_to_map(members: list[str], est: list[np.ndarray], gt: list[np.ndarray]
+               ) -> dict[str, Any]:
+    """Each member's global trajectory aligned to ground truth on its own: its ATE, the
+    bound a perfect merge approaches (their errors together, each aligned apart), and how
+    far each alignment is from the first member's (the map-to-map error: zero when the
+    merge put the maps exactly where ground truth has them relative to each other)."""
+    alone = {m: absolute_trajectory_error(e, g) for m, e, g in zip(members, est, gt)
+             if np.sum(np.isfinite(g).all(axis=(1, 2))) >= 3}
+    if len(alone) < 2:
+        return {}
+    first, *others = alone
+    rows = []
+    for m in others:
+        err = transform_error(alone[m].T_gt_est, alone[first].T_gt_est)
+        rows.append({"robot": m, "to": first, "rotation_deg": err.rotation_deg,
+                     "translation_m": err.translation_m})
+    n = sum(r.n_poses for r in alone.values())
+    bound = float(np.sqrt(sum(r.n_poses * r.rmse_m ** 2 for r in alone.values()) / n))
+    return {"separately_aligned_m": {m: r.rmse_m for m, r in alone.items()},
+            "separately_aligned_bound_m": bound, "map_to_map": rows}
 
 
 def score_fleet(summary: dict[str, Any], out_dir: Path, sequences: dict[str, RecordedSource]
