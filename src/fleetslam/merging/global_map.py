@@ -309,8 +309,8 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
         "place_position": position(c.match.place.robot, c.match.place.keyframe),
     } for c in merger.constraints]
 
-    def ms(values: list[float]) -> float | None:
-        return 1000.0 * float(np.median(values)) if values else None
+    def ms(values: list[float], q: float = 50.0) -> float | None:
+        return 1000.0 * float(np.percentile(values, q)) if values else None
 
     out: dict[str, Any] = {
         "method": "inter-robot place recognition, dense (depth GICP) refinement of each "
@@ -324,12 +324,10 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
         "keyframes_not_searched": status["keyframes_not_searched"],
         "keyframes_searched_late": status["keyframes_searched_late"],
         "query_ms_median": ms(merger.query_seconds),
-        "query_ms_p95": 1000.0 * float(np.percentile(merger.query_seconds, 95))
-        if merger.query_seconds else None,
+        "query_ms_p95": ms(merger.query_seconds, 95),
         "graph_ms_median": ms(merger.graph_seconds),
         "dense_ms_median": ms(merger.dense_seconds),
-        "dense_ms_p95": 1000.0 * float(np.percentile(merger.dense_seconds, 95))
-        if merger.dense_seconds else None,
+        "dense_ms_p95": ms(merger.dense_seconds, 95),
     }
     if global_map is not None:
         out.update({

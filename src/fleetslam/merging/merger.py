@@ -385,9 +385,9 @@ class MapMerger:
                 continue
             start = time.perf_counter()
             records = [self.robots[m] for m in members]
-            # The map as the robots that make it place it; then the robots localising in it
-            # on it, held where it is: they are placed by the map and never move it.
-            # A loaded map's keyframes move only when a robot extends it.
+            # First the robots that make the map (a loaded map moves only when one of them
+            # extends it); then the robots localising only, with the map held: they are
+            # placed in it and never move it.
             making = [r for r in records if r.name not in self.localising]
             held = {r.name for r in making if self.hold_saved and r.name in self.saved}
             if len(making) > 1 and len(held) < len(making) and any(
