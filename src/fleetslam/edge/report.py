@@ -106,6 +106,12 @@ class RobotReport:
         field(default_factory=list)
     encode_ms_mean: float | None = None
     encode_ms_p95: float | None = None
+    # CPU time of the robot's own work on each frame sent (its stages and the message's
+    # encoding, the main thread's: time.thread_time), ms, in order; wall times above count
+    # the moments a shared or throttled CPU ran something else. And the whole process's CPU
+    # seconds while it streamed (reading images, the link, uploads too).
+    frame_cpu_ms: list[float] = field(default_factory=list)
+    streaming_cpu_s: float = 0.0
     inter_coding: dict[str, Any] = field(default_factory=dict)
 
     def note_welcome(self, welcome: Welcome, at_frame: int | None) -> None:
