@@ -69,6 +69,9 @@ class RobotReport:
     camera_undelivered: int = 0  # produced by the camera, never delivered (a replay's late)
     camera_taken: int = 0
     camera_skipped: int = 0
+    # Of those, the frames the camera delivered before the robot took its first (while it
+    # connected and said hello): the start's, not the pace's.
+    camera_skipped_at_start: int = 0
     camera_before_resume: int = 0
     # Messages of the camera the robot could not make a frame of (skipped and counted), and
     # why the camera's stream ended before the robot was stopped (a silent camera).

@@ -245,6 +245,8 @@ class Robot:
         for i, frame in enumerate(self._frames(start_index), start_index):
             if self._stopping.is_set():
                 break
+            if i == start_index and self.live is not None:
+                self.report.camera_skipped_at_start = self.live.skipped
             k, step = self._adapt(i, start_index, k, step)
             if step > 1 and (i - start_index) % step and i != (n or 0) - 1:
                 self.report.frames_skipped += 1
