@@ -35,6 +35,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -93,7 +94,7 @@ def make_group(share: float) -> tuple[CpuGroup | None, str | None]:
         return None, f"cannot make a cpu cgroup under {CGROUP_ROOT}: {exc}"
 
 
-def pre_exec(core: int, group: CpuGroup | None):
+def pre_exec(core: int, group: CpuGroup | None) -> Callable[[], None]:
     """What the robot's child process does before it starts: its core, its group."""
     def setup() -> None:
         os.sched_setaffinity(0, {core})
