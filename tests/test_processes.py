@@ -218,3 +218,6 @@ def test_demo_runs_cloud_and_robots_as_processes(scene, tmp_path, capsys):
     sends = json.loads((out / "r0" / "robot_report.json").read_text())["sends"]
     assert sum(kind == "frame" for _, _, _, kind, _ in sends) == N_FRAMES
     assert "sends" not in summary["robots"][0]["robot"]  # summary.json stays small
+    assert "frame_cpu_ms" not in summary["robots"][0]["robot"]
+    per_frame = json.loads((out / "r0" / "robot_report.json").read_text())["frame_cpu_ms"]
+    assert len(per_frame) == N_FRAMES

@@ -253,3 +253,30 @@ def test_a_session_the_cloud_lost_mid_run_is_said_and_reported(tmp_path,
     assert report.cloud_frames is not None
     assert report.cloud_frames < report.first_index + report.frames
     assert any(f"holds {report.cloud_frames} of the" in why for why in report.incomplete)
+
+
+def test_the_robot_reports_its_cpu_time_for_every_frame_it_sends(tmp_path, synthetic_scene):
+    """bench/robot_cpu.py reads each frame's CPU time (stages and encoding) from the report:
+    one value per frame sent, in order, and the process's CPU while it streamed."""
+    from fleetslam.cloud.server import CloudServer
+    from fleetslam.config import Config
+    from fleetslam.datasets.tum import RgbdSequence
+    from fleetslam.edge.robot import Robot
+    from fleetslam.launch import free_endpoint
+
+    _, folders = synthetic_scene
+    endpoint = free_endpoint()
+    config = Config()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    try:
+        robot = Robot("r0", RgbdSequence(folders[0]), str(folders[0]), 3, config, endpoint,
+                      show_progress=False)
+        report = robot.run()
+    finally:
+        server.close()
+    assert report.frames == 30
+    assert len(report.frame_cpu_ms) == report.frames
+    assert all(ms > 0 for ms in report.frame_cpu_ms)
+    # Each frame's CPU is part of its stages' and encoding's wall time (the robot's total).
+    assert sum(report.frame_cpu_ms) / 1000 <= report.robot_compute_s * 1.05 + 0.01
+    assert report.streaming_cpu_s >= sum(report.frame_cpu_ms) / 1000 * 0.95

@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +73,10 @@ def start_worker(router: str, worker_id: str, out_dir: Path, log_path: Path,
 def start_robot(endpoint: str, robot_id: str, source: str, offload_at: int | str,
                 log_path: Path, report_path: Path | None = None,
                 config_path: str | None = None, extra: list[str] | None = None,
-                zenoh_config: str | None = None) -> subprocess.Popen:
+                zenoh_config: str | None = None,
+                pre_exec: Callable[[], None] | None = None) -> subprocess.Popen:
+    """``pre_exec``: run in the child before the robot starts (bench/robot_cpu.py: join a
+    CPU cgroup, pin to a core)."""
     log_path.parent.mkdir(parents=True, exist_ok=True)
     cmd = _python(config_path, zenoh_config) + [
         "--quiet", "robot", "--connect", endpoint, "--id", robot_id, "--source", source,
@@ -80,7 +84,7 @@ def start_robot(endpoint: str, robot_id: str, source: str, offload_at: int | str
     if report_path is not None:
         cmd += ["--report", str(report_path)]
     return subprocess.Popen(cmd + (extra or []), stdout=open(log_path, "ab"),
-                            stderr=subprocess.STDOUT, env=_env())
+                            stderr=subprocess.STDOUT, env=_env(), preexec_fn=pre_exec)
 
 
 def _env() -> dict[str, str]:

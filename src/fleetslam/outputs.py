@@ -84,14 +84,15 @@ def read_robot_summary(robot_dir: Path) -> dict[str, Any] | None:
 
 def add_robot_reports(summary: dict[str, Any], out_dir: Path) -> None:
     """A deployed run: each robot's own report (``<robot>/robot_report.json``) in its entry,
-    without what the file keeps for itself (the cloud's summary as the robot heard it, and
-    every message it sent)."""
+    without what the file keeps for itself (the cloud's summary as the robot heard it, every
+    message it sent, and each frame's CPU time)."""
     for robot in summary["robots"]:
         report = out_dir / robot["name"] / ROBOT_REPORT
         if report.exists():
             robot["robot"] = json.loads(report.read_text())
             robot["robot"].pop("cloud_summary", None)
             robot["robot"].pop("sends", None)
+            robot["robot"].pop("frame_cpu_ms", None)
 
 
 def add_deployment(summary: dict[str, Any], wall_s: float, endpoint: str, processes: int,

@@ -42,6 +42,7 @@ class FrameEncoder:
     def encode(self, frame: Frame, k: int, seq: int) -> bytes:
         """Frame ``frame`` through the stages before point ``k``, as message ``seq``."""
         start = time.perf_counter()
+        cpu_start = time.thread_time()
         state = run_stages(self.stages[:k],
                            CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m),
                            self.sides, self.timer)
@@ -57,6 +58,7 @@ class FrameEncoder:
         now = time.perf_counter()
         self._encode_ms.append(1000.0 * (now - encode_start))
         self.report.robot_compute_s += now - start
+        self.report.frame_cpu_ms.append(round(1000.0 * (time.thread_time() - cpu_start), 3))
         if self.paper_yaml_dir is not None:
             write_paper_yaml(self.paper_yaml_dir / f"{frame.index:06d}.yml", state)
         return data

@@ -69,6 +69,9 @@ class RobotReport:
     camera_undelivered: int = 0  # produced by the camera, never delivered (a replay's late)
     camera_taken: int = 0
     camera_skipped: int = 0
+    # Of those, the frames the camera delivered before the robot took its first (while it
+    # connected and said hello): the start's, not the pace's.
+    camera_skipped_at_start: int = 0
     camera_before_resume: int = 0
     # Messages of the camera the robot could not make a frame of (skipped and counted), and
     # why the camera's stream ended before the robot was stopped (a silent camera).
@@ -106,6 +109,12 @@ class RobotReport:
         field(default_factory=list)
     encode_ms_mean: float | None = None
     encode_ms_p95: float | None = None
+    # CPU time of the robot's own work on each frame sent (its stages and the message's
+    # encoding, the main thread's: time.thread_time), ms, in order; wall times above count
+    # the moments a shared or throttled CPU ran something else. And the whole process's CPU
+    # seconds while it streamed (reading images, the link, uploads too).
+    frame_cpu_ms: list[float] = field(default_factory=list)
+    streaming_cpu_s: float = 0.0
     inter_coding: dict[str, Any] = field(default_factory=dict)
 
     def note_welcome(self, welcome: Welcome, at_frame: int | None) -> None:

@@ -237,6 +237,7 @@ class Robot:
         progress = Progress(f"robot {self.robot_id} (offload at {self.offload_at})",
                             None if n is None else n - start_index, enabled=self.show_progress)
         t0 = self.sender.t0 = time.monotonic()
+        cpu0 = time.process_time()
         pacer = Pacer(self.fps, t0, start_index)
         outbox = FrameOutbox(self.sender, self.window)
         k, step = self.offload_at, 1
@@ -244,6 +245,8 @@ class Robot:
         for i, frame in enumerate(self._frames(start_index), start_index):
             if self._stopping.is_set():
                 break
+            if i == start_index and self.live is not None:
+                self.report.camera_skipped_at_start = self.live.skipped
             k, step = self._adapt(i, start_index, k, step)
             if step > 1 and (i - start_index) % step and i != (n or 0) - 1:
                 self.report.frames_skipped += 1
@@ -279,6 +282,7 @@ class Robot:
             self.report.camera_rejected = self.live.rejected
         progress.finish(i + 1 - start_index, self._progress_note(k, step))
         self.report.streaming_s = time.monotonic() - t0
+        self.report.streaming_cpu_s = time.process_time() - cpu0
         return seq - 1
 
     def _progress_note(self, k: int, step: int) -> str:
