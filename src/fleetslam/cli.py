@@ -415,6 +415,7 @@ def _warn_of_another_identity(robot_id: str, config: Config) -> None:
 
 def cmd_robot(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.datasets.recording import absolute_spec
+    from fleetslam.edge.encoder import prepare as prepare_encoder
     from fleetslam.edge.robot import Robot
     from fleetslam.edge.report import EXIT_INCOMPLETE
     from fleetslam.pipeline.split import ROBOT_TRACKS
@@ -427,6 +428,8 @@ def cmd_robot(args: argparse.Namespace, config: Config) -> int:
         config = config.with_values({"link.seed": args.link_seed}, flag="--link-seed")
     if args.ros2_out:
         config = config.with_values({"ros2_out.endpoint": args.ros2_out}, flag="--ros2-out")
+    # One-time costs of the first frames, paid before a live camera's clock starts.
+    prepare_encoder(config, point)
     sequence, recording = _robot_source(args, config)
     live = sequence is not recording
     if live:  # its camera model (the device's, or the recording's image size) builds stages

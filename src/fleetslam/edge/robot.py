@@ -40,7 +40,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.live import LiveSource
 from fleetslam.datasets.source import Frame, RecordedSource
 from fleetslam.edge.cloud_replies import CloudRefused, CloudReplies
-from fleetslam.edge.encoder import FrameEncoder
+from fleetslam.edge.encoder import FrameEncoder, prepare
 from fleetslam.edge.flow import FlowWindow
 from fleetslam.edge.pacing import Pacer, live_frames, parse_rate, read_ahead
 from fleetslam.edge.report import RobotReport
@@ -142,6 +142,8 @@ class Robot:
             stages = front_end_stages()
             sides = Sides(edge=FrontEndState(config, sequence.camera) if runs_front_end else None)
         sequence.camera.mounted(config.camera.base_link)  # a bad mounting is said now
+        # Once per process (`fleetslam robot` did it before its camera started already).
+        prepare(config, None if planner is not None else offload_at)
         self.report = RobotReport(robot_id, offload_at)
         self.encoder = FrameEncoder(self.robot_id, sequence.camera, config, stages, sides,
                                     self.report, paper_yaml_dir)

@@ -158,6 +158,13 @@ def _faiss() -> Any:
     return faiss
 
 
+def load_matcher() -> None:
+    """Import the nearest-descriptor search's library now, not on the first inter-coded
+    frame: importing faiss costs ~30 ms of CPU once, which on a quarter of a core held that
+    frame back past the camera's next (the robot's second frame: 44-54 ms, bench/robot_cpu.py)."""
+    _faiss()
+
+
 def nearest(descriptors: np.ndarray, stacked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(row, Hamming distance) of each descriptor's nearest row of ``stacked``, the lowest
     row among equals: faiss's exact binary index (~1.4 ms for 1000 x 1000 on one core) or
