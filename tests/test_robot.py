@@ -280,3 +280,22 @@ def test_the_robot_reports_its_cpu_time_for_every_frame_it_sends(tmp_path, synth
     # Each frame's CPU is part of its stages' and encoding's wall time (the robot's total).
     assert sum(report.frame_cpu_ms) / 1000 <= report.robot_compute_s * 1.05 + 0.01
     assert report.streaming_cpu_s >= sum(report.frame_cpu_ms) / 1000 * 0.95
+
+
+def test_the_inter_coders_search_is_warmed_up_before_the_stream(monkeypatch):
+    """A robot that inter-codes its frames (points 2-5, or an adaptive robot) pays the
+    search's imports up front (`fleetslam robot` does so before its camera starts), so its
+    first inter-coded frame does not; one that cannot inter-code warms up nothing."""
+    from fleetslam.config import Config
+    from fleetslam.edge import encoder
+
+    calls: list[int] = []
+    monkeypatch.setattr(encoder, "warm_up", lambda: calls.append(1))
+    config = Config()
+    for point in (2, 3, None):
+        encoder.prepare(config, point)
+    assert len(calls) == 3
+    for point in (0, 1, 6):
+        encoder.prepare(config, point)
+    encoder.prepare(config.with_values({"wire.inter_frame": False}), 3)
+    assert len(calls) == 3

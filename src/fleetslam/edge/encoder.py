@@ -15,17 +15,17 @@ from fleetslam.edge.report import RobotReport
 from fleetslam.pipeline.split import INTER_POINTS, Sides, Stage, StageTimer, run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.wire.frames import encode_frame_message
-from fleetslam.wire.inter import InterEncoder, InterStats, load_matcher, reference_of
+from fleetslam.wire.inter import InterEncoder, InterStats, reference_of, warm_up
 from fleetslam.transport.protocol import Welcome
 from fleetslam.wire.paper_yaml import write_paper_yaml
 
 
 def prepare(config: Config, offload_at: int | None) -> None:
-    """Pay the first inter-coded frame's one-time cost (its matcher's import) now: before a
-    live camera starts, so it holds back no frame. ``offload_at`` None: an adaptive robot,
+    """Pay the first inter-coded frame's one-time costs (its search's imports) now: before
+    a live camera starts, so they hold back no frame. ``offload_at`` None: an adaptive robot,
     which may switch to any point."""
     if config.wire.inter_frame and (offload_at is None or offload_at in INTER_POINTS):
-        load_matcher()
+        warm_up()
 
 
 class FrameEncoder:

@@ -158,13 +158,6 @@ def _faiss() -> Any:
     return faiss
 
 
-def load_matcher() -> None:
-    """Import the nearest-descriptor search's library now, not on the first inter-coded
-    frame: importing faiss costs ~30 ms of CPU once, which on a quarter of a core held that
-    frame back past the camera's next (the robot's second frame: 44-54 ms, bench/robot_cpu.py)."""
-    _faiss()
-
-
 def nearest(descriptors: np.ndarray, stacked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(row, Hamming distance) of each descriptor's nearest row of ``stacked``, the lowest
     row among equals: faiss's exact binary index (~1.4 ms for 1000 x 1000 on one core) or
@@ -199,6 +192,15 @@ def nearest_by_octave(descriptors: np.ndarray, octaves: np.ndarray, stacked: np.
             found, distance[query] = nearest(descriptors[query], stacked[allowed])
             row[query] = allowed[found]
     return row, distance
+
+
+def warm_up() -> None:
+    """Pay the search's one-time costs now, not on the first inter-coded frame: importing
+    faiss (~30 ms of CPU) and the numpy parts ``np.unique`` imports lazily (~15 ms), which
+    made a robot's second frame cost 44-54 ms, past a quarter core's 25 ms a frame
+    (bench/robot_cpu.py at 64bc9e0). Searches two made-up descriptors, as a frame would."""
+    descriptors, octaves = np.zeros((2, DESCRIPTOR_BYTES), np.uint8), np.zeros(2, np.int64)
+    nearest_by_octave(descriptors, octaves, descriptors, octaves, 0)
 
 
 def put_inter_descriptors(w: Writer, descriptors: np.ndarray, angles: np.ndarray | None,
