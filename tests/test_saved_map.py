@@ -84,6 +84,10 @@ def _damage(folder: Path, how: str) -> str:
         manifest["version"] = MAP_VERSION + 1
         (folder / MANIFEST).write_text(json.dumps(manifest))
         return f"map format version {MAP_VERSION + 1}; this fleetslam reads up to"
+    if how == "a truncated constraints file":
+        constraints = folder / manifest["constraints"]
+        constraints.write_bytes(constraints.read_bytes()[:-10])
+        return "truncated or changed"
     if how == "a camera edited in the manifest":
         manifest["robots"][0]["camera"]["fx"] += 10
         (folder / MANIFEST).write_text(json.dumps(manifest))
@@ -96,7 +100,8 @@ def _damage(folder: Path, how: str) -> str:
 
 @pytest.mark.parametrize("how", ["no manifest", "a changed byte", "a truncated file",
                                  "a newer format", "a missing robot file",
-                                 "a camera edited in the manifest"])
+                                 "a camera edited in the manifest",
+                                 "a truncated constraints file"])
 def test_a_damaged_map_is_refused_in_one_line_and_left_as_it_is(run, tmp_path, how):
     folder = tmp_path / "map"
     shutil.copytree(run / "map", folder)
@@ -106,6 +111,19 @@ def test_a_damaged_map_is_refused_in_one_line_and_left_as_it_is(run, tmp_path, h
         read_map(folder)
     assert "\n" not in str(refused.value) and str(folder) in str(refused.value)
     assert _tree_digest(folder) == before
+
+
+def test_a_version_1_map_with_its_constraints_in_the_manifest_still_loads(run, tmp_path):
+    folder = tmp_path / "map"
+    shutil.copytree(run / "map", folder)
+    manifest = json.loads((folder / MANIFEST).read_text())
+    constraints = folder / manifest["constraints"]
+    manifest.update(version=1, constraints=json.loads(constraints.read_text()))
+    del manifest["files"][constraints.name]
+    constraints.unlink()
+    (folder / MANIFEST).write_text(json.dumps(manifest))
+    old, new = read_map(folder), read_map(run / "map")
+    assert old.constraints == new.constraints and old.keyframes == new.keyframes
 
 
 def test_a_loaded_map_is_searched_and_a_robot_that_finds_it_tracks_in_its_frame(run,

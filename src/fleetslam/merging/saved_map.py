@@ -1,8 +1,9 @@
 """The fleet's map as a folder that outlives its run (``<run>/map/``), and its loader.
 
     map/manifest.json        format and version, the group's anchor and map frame, each
-                             robot's camera and keyframe count, the inter-robot constraints,
-                             and every file's size and SHA-256
+                             robot's camera and keyframe count, and every file's size and
+                             SHA-256
+    map/constraints.json     the inter-robot constraints (the graph's edges between robots)
     map/robots/<robot>.npz   the robot's keyframes as the merger holds them (features as the
                              wire codes them: wire/merger_keyframes.py's KeyframeSummary),
                              their poses in the map frame, and each keyframe's dense cloud
@@ -42,10 +43,13 @@ from fleetslam.wire import data_tree
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 
 MAP_FORMAT = "fleetslam-map"
-MAP_VERSION = 1
+# 2: the inter-robot constraints in a file of their own (1 had them in the manifest, which
+# outgrew its bound at ~17,000 constraints when a place was mapped 26 days over).
+MAP_VERSION = 2
 MANIFEST = "manifest.json"
-# A manifest is kilobytes (a constraint is ~1 kB); a robot's file holds its keyframes'
-# features and dense clouds (~0.1-1 MB a keyframe).
+CONSTRAINTS = "constraints.json"
+# A manifest is kilobytes; a constraint ~1 kB; a robot's file holds its keyframes' features
+# and dense clouds (~0.1-1 MB a keyframe).
 MAX_MANIFEST_BYTES = 16 << 20
 MAX_ROBOT_BYTES = 8 << 30
 # A loaded map's robots join the run under their names with this before them (a run's own
@@ -188,11 +192,14 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
         files[relative] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
         robots.append({"name": names[name], "keyframes": len(record.keyframes),
                        "file": relative, "camera": record.camera.to_dict()})
+    data = json.dumps(_constraints(merger, names)).encode()
+    (staging / CONSTRAINTS).write_bytes(data)
+    files[CONSTRAINTS] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
     manifest = {"format": MAP_FORMAT, "version": MAP_VERSION,
                 "anchor": names.get(global_map.anchor, global_map.anchor),
                 "map_frame": global_map.map_frame, "robots": robots,
-                "features": features_of(merger.config),
-                "constraints": _constraints(merger, names), "files": files}
+                "features": features_of(merger.config), "constraints": CONSTRAINTS,
+                "files": files}
     (staging / MANIFEST).write_text(json.dumps(manifest, indent=1))
     _put_in_place(staging, folder)
     total = sum(f["bytes"] for f in files.values())
@@ -229,8 +236,9 @@ def _manifest(folder: Path) -> dict[str, Any]:
     if not isinstance(version, int) or isinstance(version, bool) or version > MAP_VERSION:
         raise MapError(path, f"map format version {version!r}; this fleetslam reads up to "
                              f"{MAP_VERSION} (a newer fleetslam wrote it)")
+    constraints = list if version == 1 else str  # version 1: in the manifest
     for key, kind in (("anchor", str), ("robots", list), ("files", dict),
-                      ("constraints", list), ("map_frame", dict)):
+                      ("constraints", constraints), ("map_frame", dict)):
         if not isinstance(manifest.get(key), kind):
             raise MapError(path, f"{key} is not a {kind.__name__}")
     return manifest
@@ -320,15 +328,32 @@ def read_map(folder: Path) -> SavedMap:
     if manifest["anchor"] not in robots:
         raise MapError(folder / MANIFEST, f"anchor {manifest['anchor']!r} is not one of its "
                                           f"robots")
-    for c in manifest["constraints"]:
+    constraints, where = _constraints_of(folder, manifest)
+    for c in constraints:
         problem = _constraint_problem(c, robots)
         if problem is not None:
-            raise MapError(folder / MANIFEST, f"constraint {str(c)[:80]}: {problem}")
+            raise MapError(where, f"constraint {str(c)[:80]}: {problem}")
     features = manifest.get("features")
     if not isinstance(features, dict):
         raise MapError(folder / MANIFEST, "no features entry (how its ORB features were made)")
-    return SavedMap(manifest["anchor"], manifest["map_frame"], robots,
-                    manifest["constraints"], features, folder)
+    return SavedMap(manifest["anchor"], manifest["map_frame"], robots, constraints, features,
+                    folder)
+
+
+def _constraints_of(folder: Path, manifest: dict[str, Any]) -> tuple[list[Any], Path]:
+    """The inter-robot constraints (their file's, or a version-1 manifest's own), and where
+    they were read."""
+    if isinstance(manifest["constraints"], list):
+        return manifest["constraints"], folder / MANIFEST
+    relative = manifest["constraints"]
+    data = _checked_file(folder, relative, manifest["files"].get(relative))
+    try:
+        constraints = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise MapError(folder / relative, f"not a list of constraints ({exc})") from None
+    if not isinstance(constraints, list):
+        raise MapError(folder / relative, "not a list of constraints")
+    return constraints, folder / relative
 
 
 def _matrix(value: Any, n: int) -> np.ndarray | None:
