@@ -49,7 +49,8 @@ def measure(folder: Path, config: Config) -> dict[str, float]:
     tracemalloc.stop()
     files = [p for p in folder.rglob("*") if p.is_file()]
     size = sum(p.stat().st_size for p in files)
-    return {"keyframes": saved.keyframes, "robots": len(saved.robots), "bytes": size,
+    return {"keyframes": saved.keyframes, "robots": len(saved.robots),
+            "constraints": len(saved.constraints), "bytes": size,
             "bytes_per_keyframe": size / max(saved.keyframes, 1), "read_s": read_s,
             "load_s": load_s, "held_mb": held / 2**20}
 
@@ -81,9 +82,10 @@ def main() -> int:
             rows.append(row)
             print(f"day {day}: {row['keyframes']} keyframes", file=sys.stderr, flush=True)
             saved = read_map(out / "map")
-    headers = ["day", "keyframes", "robots", "MB", "kB / keyframe", "read s", "load s",
-               "held MB", "run s"]
-    print(format_table(headers, [[r["day"], r["keyframes"], r["robots"], r["bytes"] / 2**20,
+    headers = ["day", "keyframes", "robots", "constraints", "MB", "kB / keyframe", "read s",
+               "load s", "held MB", "run s"]
+    print(format_table(headers, [[r["day"], r["keyframes"], r["robots"], r["constraints"],
+                                  r["bytes"] / 2**20,
                                   r["bytes_per_keyframe"] / 1024, r["read_s"], r["load_s"],
                                   r["held_mb"], r["run_s"]] for r in rows]))
     if args.json:
