@@ -106,14 +106,11 @@ class Robot:
     (its camera model builds the stages), which the robot closes when its run ends."""
 
     def __init__(self, robot_id: str, sequence: RecordedSource | LiveSource, source: str,
-                 offload_at: int,
-                 config: Config, endpoint: str | None = None, rate: str = "max",
+                 offload_at: int, config: Config, endpoint: str | None = None, rate: str = "max",
                  show_progress: bool = True, paper_yaml_dir: Path | None = None,
                  planner: OnlinePlanner | None = None,
                  link_trace: list[tuple[int, float]] | None = None,
                  onboard: OnboardTracker | None = None, localise_only: bool = False) -> None:
-        """``localise_only``: the robot asks to be placed in the cloud's loaded map without
-        moving or extending it."""
         self.robot_id = keys.check_robot_id(robot_id)
         self.live = sequence if isinstance(sequence, LiveSource) else None
         self.fps = _check_arguments(robot_id, self.live, offload_at, rate, paper_yaml_dir,
@@ -123,6 +120,7 @@ class Robot:
         self.sequence = sequence
         self.source = source
         self.offload_at = offload_at
+        # Its hello asks to be placed in the cloud's loaded map, never moving nor extending it.
         self.localise_only = localise_only
         self.config = config
         self.endpoint = endpoint or config.transport.endpoint
