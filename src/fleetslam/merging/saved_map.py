@@ -48,10 +48,10 @@ MAP_FORMAT = "fleetslam-map"
 MAP_VERSION = 2
 MANIFEST = "manifest.json"
 CONSTRAINTS = "constraints.json"
-# A manifest is kilobytes; a constraint ~1 kB; a robot's file holds its keyframes' features
-# and dense clouds (~0.1-1 MB a keyframe).
+# A manifest is kilobytes; a listed file is a robot's (its keyframes' features and dense
+# clouds, ~0.1-1 MB a keyframe) or the constraints (~1 kB each).
 MAX_MANIFEST_BYTES = 16 << 20
-MAX_ROBOT_BYTES = 8 << 30
+MAX_FILE_BYTES = 8 << 30
 # A loaded map's robots join the run under their names with this before them (a run's own
 # robots are r0, r1, ... as the map's were).
 LOADED_PREFIX = "map-"
@@ -187,14 +187,11 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
                 "cloud_points": [np.asarray(p, np.float32) for p, _ in clouds],
                 "cloud_colors": [np.asarray(c, np.uint8) for _, c in clouds]}
         relative = f"robots/{names[name]}.npz"
-        data = data_tree.dumps(tree, CLASSES)
-        (staging / relative).write_bytes(data)
-        files[relative] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        files[relative] = _write_listed(staging / relative, data_tree.dumps(tree, CLASSES))
         robots.append({"name": names[name], "keyframes": len(record.keyframes),
                        "file": relative, "camera": record.camera.to_dict()})
-    data = json.dumps(_constraints(merger, names)).encode()
-    (staging / CONSTRAINTS).write_bytes(data)
-    files[CONSTRAINTS] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    files[CONSTRAINTS] = _write_listed(staging / CONSTRAINTS,
+                                       json.dumps(_constraints(merger, names)).encode())
     manifest = {"format": MAP_FORMAT, "version": MAP_VERSION,
                 "anchor": names.get(global_map.anchor, global_map.anchor),
                 "map_frame": global_map.map_frame, "robots": robots,
@@ -208,6 +205,13 @@ def write_map(folder: Path, merger: MapMerger, global_map: GlobalMap) -> dict[st
             "robots": [names[m] for m in members],
             "keyframes": keyframes, "bytes": total,
             "bytes_per_keyframe": total / keyframes if keyframes else None}
+
+
+def _write_listed(path: Path, data: bytes) -> dict[str, Any]:
+    """Write a file of the map; its manifest entry (size and hash, as ``_checked_file``
+    checks them), from the bytes in hand."""
+    path.write_bytes(data)
+    return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
 
 
 def _put_in_place(staging: Path, folder: Path) -> None:
@@ -253,7 +257,7 @@ def _checked_file(folder: Path, relative: str, listed: Any) -> bytes:
     if Path(relative).is_absolute() or ".." in Path(relative).parts:
         raise MapError(folder / MANIFEST, f"{relative}: not a path inside the map")
     try:
-        data = read_regular(path, min(listed["bytes"], MAX_ROBOT_BYTES), "its listed size")
+        data = read_regular(path, min(listed["bytes"], MAX_FILE_BYTES), "its listed size")
     except UnreadableFile as exc:
         raise MapError(path, "missing (the manifest lists it)" if exc.reason == "missing"
                        else exc.reason) from None
@@ -276,7 +280,7 @@ def _robot(folder: Path, entry: Any, files: dict[str, Any]) -> SavedRobot:
     data = _checked_file(folder, relative, files.get(relative))
     path = folder / relative
     try:
-        tree = data_tree.loads(data, str(path), CLASSES, MAX_ROBOT_BYTES)
+        tree = data_tree.loads(data, str(path), CLASSES, MAX_FILE_BYTES)
     except data_tree.CheckpointError as exc:
         raise MapError(path, exc.reason.replace("session checkpoint", "map file")) from None
     robot = _robot_from_tree(path, name, entry["keyframes"], tree)
