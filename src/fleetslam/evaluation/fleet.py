@@ -264,7 +264,7 @@ def map_to_map(members: list[str], est: list[np.ndarray], gt: list[np.ndarray]
     if len(alone) < 2:
         return {}
     first, *others = alone
-    pose_fit = {m: pose_alignment(e, g) for m, e, g in zip(members, est, gt)}
+    pose_fit = {m: pose_alignment(e, g) for m, e, g in zip(members, est, gt) if m in alone}
     rows = []
     for m in others:
         err = transform_error(pose_fit[m], pose_fit[first])
