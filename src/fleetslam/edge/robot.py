@@ -140,7 +140,7 @@ class Robot:
             stages = front_end_stages()
             sides = Sides(edge=FrontEndState(config, sequence.camera) if runs_front_end else None)
         sequence.camera.mounted(config.camera.base_link)  # a bad mounting is said now
-        # Once per process (`fleetslam robot` did it before its camera started already).
+        # Once a process (warm_up is cached: `fleetslam robot` paid it before its camera).
         prepare(config, None if planner is not None else offload_at)
         self.report = RobotReport(robot_id, offload_at)
         self.encoder = FrameEncoder(self.robot_id, sequence.camera, config, stages, sides,

@@ -194,6 +194,7 @@ def nearest_by_octave(descriptors: np.ndarray, octaves: np.ndarray, stacked: np.
     return row, distance
 
 
+@functools.cache  # once a process: `fleetslam robot` calls it before its camera, a Robot again
 def warm_up() -> None:
     """Pay the search's one-time costs now, not on the first inter-coded frame: importing
     faiss (~30 ms of CPU) and the numpy parts ``np.unique`` imports lazily (~15 ms), which
