@@ -12,7 +12,8 @@ Cases (real data from ../shared/data, plus the built-in synthetic scene):
              fr1_rpy 0-149, and each of them with synthetic robot 0
 Per case: which robots joined and at which frames, every inter-robot constraint against
 ground truth (false = above 5 deg or 20 cm; the feature estimate, and the edge the graph kept,
-dense where its refinement was accepted), each robot's map frame in the global frame
+dense where its refinement was accepted; "proximity": edges registered on depth where the graph
+put two joined robots' keyframes near each other, merge.proximity_constraints), each robot's map frame in the global frame
 against ground truth before and after FS-HICP, the joint ATE of the concatenated global
 trajectories (one SE(3) alignment); each robot's global trajectory aligned apart (and the
 bound a perfect merge approaches: their errors together, each aligned apart) and the
@@ -81,6 +82,7 @@ def run_case(name: str, specs: list[str], out: Path, config: Config, config_path
         "constraints_rejected_by_gnc": sum(c["kept"] is False for c in merge["constraints"]),
         "constraint_errors": scored,
         "dense_used": sum(c.get("used") == "dense" for c in merge["constraints"]),
+        "proximity": sum(c.get("found") == "proximity" for c in merge["constraints"]),
         "dense_ms_median": merge.get("dense_ms_median"), "dense_ms_p95": merge.get("dense_ms_p95"),
         "global_map_seconds": merge.get("global_map_seconds"),
         "offload_at": processes_at,
@@ -134,11 +136,11 @@ def main() -> None:
             r["case"], " | ".join("+".join(m) for m in r["components"].values()),
             "; ".join(f"{j['query_robot']}:{j['query_frame']}~{j['place_robot']}:{j['place_frame']}"
                       for j in r["joins"]) or "-",
-            r["constraints"], r["dense_used"], r["false_constraints"],
-            max((c.get("feature_rotation_error_deg", c["rotation_error_deg"]) for c in errs),
-                default=None),
-            max((c.get("feature_translation_error_m", c["translation_error_m"]) * 100
-                 for c in errs), default=None),
+            r["constraints"], r["dense_used"], r.get("proximity", 0), r["false_constraints"],
+            max((c["feature_rotation_error_deg"] for c in errs
+                 if "feature_rotation_error_deg" in c), default=None),
+            max((c["feature_translation_error_m"] * 100 for c in errs
+                 if "feature_translation_error_m" in c), default=None),
             max((c["rotation_error_deg"] for c in errs if c["kept"]), default=None),
             max((c["translation_error_m"] * 100 for c in errs if c["kept"]), default=None),
             " ".join(f"{p['graph_rotation_error_deg']:.2f}/{p['graph_translation_error_m'] * 100:.1f}"
@@ -154,7 +156,8 @@ def main() -> None:
             " ".join(f"{v:.2f}" for v in r["robot_ate_cm"].values() if v is not None),
             r["query_ms_median"], r["dense_ms_median"],
             " ".join(f"{v / 1000:.1f}" for v in r["bytes_per_frame"].values()) or "-"])
-    print(format_table(["case", "groups", "joined at", "constraints", "dense", "false",
+    print(format_table(["case", "groups", "joined at", "constraints", "dense", "proximity",
+                        "false",
                         "features: max deg", "max cm", "kept edges: max deg", "max cm",
                         "rel. pose graph deg/cm", "after FS-HICP deg/cm", "joint ATE cm",
                         "map-to-map deg/cm", "apart cm (bound)", "robot ATE cm", "query ms", "dense ms", "kB/frame sent"], rows))

@@ -5,6 +5,7 @@ outputs with ground truth deleted, and the OctoMap written."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from fleetslam.mapping.octomap_export import read_octomap
 from fleetslam.merging.inter_robot import PlaceMatch
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.merging.merger import MapMerger
+from fleetslam.merging.proximity import near_keyframes
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame, FeatureFrame
 from fleetslam.system import run_fleet
@@ -124,8 +126,9 @@ def test_two_robots_on_one_real_sequence_join_and_ground_truth_changes_nothing(t
     scored = merge["evaluation"]["constraints"]
     assert all(c["used"] == "dense" for c in scored), merge["constraints"]
     assert max(c["rotation_error_deg"] for c in scored) < 2.0
-    assert max(c["rotation_error_deg"] for c in scored) < \
-        max(c["feature_rotation_error_deg"] for c in scored)
+    featured = [c for c in scored if c["found"] == "features"]
+    assert featured and max(c["rotation_error_deg"] for c in featured) < \
+        max(c["feature_rotation_error_deg"] for c in featured)
     # The run never read ground truth: without it, the same joins and the same outputs.
     blind_out, blind_summary = runs["blind"]
     assert blind_summary["merge"]["joins"] == merge["joins"]
@@ -192,3 +195,76 @@ def test_robots_in_different_places_never_join(tmp_path):
 def test_octomap_reports_a_missing_file(tmp_path):
     with pytest.raises(ValueError, match="no such OctoMap file"):
         read_octomap(tmp_path / "nowhere.bt")
+
+
+def test_near_keyframes_pairs_each_keyframe_with_its_nearest_facing_the_same_way():
+    a = np.array([make_T(np.eye(3), [x, 0.0, 0.0]) for x in (0.0, 1.0, 2.0)])
+    turned = make_T(random_perturbation(np.random.default_rng(0), 10.0, 0.0)[:3, :3], [0, 0, 0])
+    facing_back = make_T(np.diag([-1.0, 1.0, -1.0]), [0.9, 0.0, 0.0])
+    b = np.array([make_T(np.eye(3), [1.2, 0.1, 0.0]) @ turned,  # nearest: a's keyframe 1
+                  facing_back,  # near a's keyframe 1 but looking the other way
+                  make_T(np.eye(3), [5.0, 0.0, 0.0])])  # near nothing
+    assert near_keyframes(a, b, 0.5, 30.0) == [(1, 0)]
+    assert near_keyframes(a, b, 0.1, 30.0) == []
+
+
+def _room(rng: np.random.Generator) -> np.ndarray:
+    """Points on a floor, two walls and some boxes: a scene GICP can lock onto."""
+    n = 6000
+    floor = np.c_[rng.uniform(-2, 2, n), np.full(n, 1.2), rng.uniform(0, 5, n)]
+    back = np.c_[rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.2, n), np.full(n, 4.0)]
+    side = np.c_[np.full(n, -1.8), rng.uniform(-1.5, 1.2, n), rng.uniform(0, 5, n)]
+    boxes = np.vstack([c + rng.uniform(-0.2, 0.2, (n // 4, 3)) for c in
+                       ([0.5, 0.8, 2.5], [-0.8, 0.5, 3.0], [1.0, -0.5, 3.5])])
+    return np.vstack([floor, back, side, boxes])
+
+
+def _view(room: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
+    local = (room - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]
+    z = local[:, 2]
+    seen = (z > 0.3) & (z < 4.5) & (np.abs(local[:, 0]) < 0.6 * z) \
+        & (np.abs(local[:, 1]) < 0.45 * z)
+    return local[seen]
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_joined_robots_gain_depth_edges_where_the_graph_puts_them_near(on):
+    """Two robots walking side by side, joined by two exact matches: with
+    merge.proximity_constraints every other keyframe pair the graph puts near gets a depth
+    edge (found "proximity"), each near the true relative pose; without it, none."""
+    rng = np.random.default_rng(5)
+    room = _room(rng)
+    walk = [make_T(np.eye(3), [0.0, 0.0, 0.0])]
+    for _ in range(9):
+        step = random_perturbation(rng, 2.0, 0.0)[:3, :3]
+        walk.append(walk[-1] @ make_T(step, [0.05, 0.0, 0.04]))
+    beside = make_T(random_perturbation(rng, 3.0, 0.0)[:3, :3], [0.08, 0.02, 0.05])
+    world = {"a": np.array(walk), "b": np.array([T @ beside for T in walk])}
+    T_world_b = random_perturbation(rng, 30.0, 1.0)  # b's map frame in the world (= a's)
+    config = Config()
+    config = replace(config, merge=replace(config.merge, proximity_constraints=on))
+    merger = MapMerger(config)
+    own = {"a": world["a"], "b": np.array([invert(T_world_b) @ T for T in world["b"]])}
+    for name in own:
+        merger.add_robot(name, CAMERA)
+        merger.robots[name].keyframes = [_summary(name, k, T) for k, T in enumerate(own[name])]
+        merger.update_poses(name, own[name])
+    for qa, pb in ((2, 2), (6, 6)):
+        T = invert(world["a"][pb]) @ world["b"][qa]
+        merger._consider(PlaceMatch(merger.robots["b"].keyframes[qa],
+                                    merger.robots["a"].keyframes[pb], T, 1.0, 80, 80))
+    assert merger.robots["b"].anchor == "a"
+    clouds = {(name, k): _view(room, world[name][k]) for name in world for k in range(10)}
+    merger.refine_constraints(lambda robot, k: clouds[robot, k])
+    found = [c for c in merger.constraints if c.proximity]
+    if not on:
+        assert not found
+        return
+    assert len(found) >= 10 and {c.match.query.robot for c in found} == {"a", "b"}
+    for c in found:
+        place, query = c.match.place, c.match.query
+        true = invert(world[place.robot][place.keyframe]) @ world[query.robot][query.keyframe]
+        err = invert(true) @ c.T_place_query
+        assert rotation_angle_deg(err[:3, :3]) < 0.5 and np.linalg.norm(err[:3, 3]) < 0.02
+    merger.solve_keyframe_poses()
+    assert all(c.kept for c in found)

@@ -372,6 +372,14 @@ class MergeConfig:
     dense_max_rotation_deg: Annotated[float, above(0.0)] = 5.0
     dense_max_translation_m: Annotated[float, above(0.0)] = 0.15
     dense_sigma_translation_m: Annotated[float, above(0.0)] = 0.002
+    # Joined robots' keyframes the graph puts near each other (camera centres within
+    # proximity_distance_m, optical axes within proximity_angle_deg) are registered on
+    # their depth from where the graph puts them, wherever the robots overlap, not only
+    # where features matched: each keyframe with the nearest keyframe of another robot of
+    # its group, kept by the dense_* bounds above and judged by GNC.
+    proximity_constraints: bool = True
+    proximity_distance_m: Annotated[float, above(0.0)] = 0.5
+    proximity_angle_deg: Annotated[float, above(0.0)] = 30.0
     # FS-HICP refines each joined robot's dense map against the rest of its group.
     fshicp_refine: bool = True
     # The global OctoMap (.bt): leaf size, and how far rays from a keyframe are cast.

@@ -288,13 +288,15 @@ def constraint_table(merge: dict[str, Any]) -> Table:
         dense = c.get("dense") or {}
         e = scored.get((c["query_robot"], c["query_frame"], c["place_robot"], c["place_frame"]),
                        {})
-        feature_err = (e.get("feature_rotation_error_deg", e.get("rotation_error_deg")),
-                       e.get("feature_translation_error_m", e.get("translation_error_m")))
+        # A proximity edge began as the graph's guess, not a feature estimate: none to score.
+        feature_err = (None, None) if c.get("found") == "proximity" else (
+            e.get("feature_rotation_error_deg", e.get("rotation_error_deg")),
+            e.get("feature_translation_error_m", e.get("translation_error_m")))
         rows.append([
             f"{c['query_robot']}:{c['query_frame']}", f"{c['place_robot']}:{c['place_frame']}",
             c["inliers"], "join" if c["trusted"] else ("kept" if c["kept"] else
                                                       "rejected" if c["kept"] is False else "-"),
-            c.get("used", "features"),
+            c.get("used", "features") if c.get("found") != "proximity" else "dense (proximity)",
             dense.get("reason") or (None if not dense else
                                     f"moved {dense['moved_rotation_deg']:.2f} deg / "
                                     f"{dense['moved_translation_m'] * 100:.1f} cm, overlap "

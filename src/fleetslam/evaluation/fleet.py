@@ -191,7 +191,7 @@ def score_merge(merge: dict[str, Any], out_dir: Path, sequences: dict[str, Recor
             true = invert(p.gt_poses[c["place_frame"]]) @ q.gt_poses[c["query_frame"]]
             err = transform_error(np.array(c["T_place_query"]), true)
             row.update(rotation_error_deg=err.rotation_deg, translation_error_m=err.translation_m,
-                       used=c.get("used", "features"))
+                       used=c.get("used", "features"), found=c.get("found", "features"))
             if "T_place_query_features" in c:
                 feat = transform_error(np.array(c["T_place_query_features"]), true)
                 row.update(feature_rotation_error_deg=feat.rotation_deg,

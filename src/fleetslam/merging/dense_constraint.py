@@ -107,7 +107,20 @@ def refine(place: np.ndarray | DenseCloud, query: np.ndarray | DenseCloud,
            T_place_query: np.ndarray, cfg: MergeConfig) -> DenseRefinement:
     """Refine a constraint between two keyframes from their clouds, each in its own camera
     frame (N x 3, or prepared). The feature estimate ``T_place_query`` (an inter-robot
-    feature constraint, of that information) starts GICP."""
+    feature constraint, of that information) starts GICP, and is fused with its result."""
+    found = register(place, query, T_place_query, cfg)
+    if not found.accepted:
+        return found
+    found.T_place_query, found.information = fuse(
+        T_place_query, feature_information(cfg), found.T_dense, found.information)
+    return found
+
+
+def register(place: np.ndarray | DenseCloud, query: np.ndarray | DenseCloud,
+             T_start: np.ndarray, cfg: MergeConfig) -> DenseRefinement:
+    """GICP of two keyframes' clouds from ``T_start`` (place <- query), refused unless it
+    converges on enough overlapping points near the start; accepted, its measurement is
+    GICP's own, with its Hessian scaled (nothing fused: the start may be no measurement)."""
     start = time.perf_counter()
 
     def refused(reason: str, moved: tuple[float, float] = (0.0, 0.0), overlap: float = 0.0,
@@ -122,11 +135,11 @@ def refine(place: np.ndarray | DenseCloud, query: np.ndarray | DenseCloud,
                        f"need {cfg.dense_min_points})")
     target = place if isinstance(place, DenseCloud) else prepare(place, cfg)
     source = query if isinstance(query, DenseCloud) else prepare(query, cfg)
-    result = small_gicp.align(target.cloud, source.cloud, target.tree, T_place_query,
+    result = small_gicp.align(target.cloud, source.cloud, target.tree, T_start,
                               registration_type="GICP",
                               max_correspondence_distance=cfg.dense_max_correspondence_m,
                               max_iterations=cfg.dense_max_iterations)
-    moved = transform_error(result.T_target_source, T_place_query)
+    moved = transform_error(result.T_target_source, T_start)
     how_far = (moved.rotation_deg, moved.translation_m)
     overlap = result.num_inliers / max(source.cloud.size(), 1)
     if not result.converged:
@@ -138,14 +151,12 @@ def refine(place: np.ndarray | DenseCloud, query: np.ndarray | DenseCloud,
     if moved.rotation_deg > cfg.dense_max_rotation_deg \
             or moved.translation_m > cfg.dense_max_translation_m:
         return refused(f"moved {moved.rotation_deg:.1f} deg / {moved.translation_m:.3f} m from "
-                       f"the feature estimate (at most {cfg.dense_max_rotation_deg} deg / "
+                       f"the start (at most {cfg.dense_max_rotation_deg} deg / "
                        f"{cfg.dense_max_translation_m} m)", how_far, overlap, result.iterations)
     H = np.asarray(result.H, np.float64)
     if not np.isfinite(H).all() or np.linalg.eigvalsh(0.5 * (H + H.T))[-1] <= 0:
         return refused("GICP's Hessian is degenerate", how_far, overlap, result.iterations)
-    info_dense = _scaled_hessian(H, cfg.dense_sigma_translation_m)
-    T, info = fuse(T_place_query, feature_information(cfg),
-                   result.T_target_source, info_dense)
-    return DenseRefinement(True, "", T, info, how_far[0], how_far[1], overlap,
-                           result.iterations, time.perf_counter() - start,
-                           result.T_target_source)
+    T = np.asarray(result.T_target_source, np.float64)
+    return DenseRefinement(True, "", T, _scaled_hessian(H, cfg.dense_sigma_translation_m),
+                           how_far[0], how_far[1], overlap, result.iterations,
+                           time.perf_counter() - start, T)

@@ -302,8 +302,11 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
         "score": c.match.score, "trusted": c.trusted, "kept": c.kept,
         # The edge's measurement (dense where accepted) and the feature estimate it began as.
         "used": "dense" if c.dense is not None and c.dense.accepted else "features",
+        # How the pair was found: features matched, or the graph put the two near each other
+        # (merge.proximity_constraints; no feature estimate then).
+        "found": "proximity" if c.proximity else "features",
         "T_place_query": c.T_place_query.tolist(),
-        "T_place_query_features": c.match.T_place_query.tolist(),
+        **({} if c.proximity else {"T_place_query_features": c.match.T_place_query.tolist()}),
         "dense": None if c.dense is None else c.dense.to_json(),
         "query_position": position(c.match.query.robot, c.match.query.keyframe),
         "place_position": position(c.match.place.robot, c.match.place.keyframe),
@@ -314,7 +317,8 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
 
     out: dict[str, Any] = {
         "method": "inter-robot place recognition, dense (depth GICP) refinement of each "
-                  "constraint, global pose graph (GNC), FS-HICP refinement",
+                  "constraint, depth registration of joined robots' keyframes the graph puts "
+                  "near each other, global pose graph (GNC), FS-HICP refinement",
         "components": status["components"], "joins": status["events"],
         "robots": status["robots"], "constraints": constraints,
         # A loaded map: its robots (no source in this run), and each robot's way from its

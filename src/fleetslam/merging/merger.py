@@ -30,8 +30,10 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.dense_constraint import DenseCloud, DenseRefinement, prepare, refine
+from fleetslam.merging.constraint import Constraint
 from fleetslam.merging.inter_robot import PlaceMatch
 from fleetslam.merging.place_search import PlaceSearch, Searched, Searcher, pair_key
+from fleetslam.merging.proximity import proximity_constraints
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.transforms import invert, transforms_agree
@@ -57,27 +59,6 @@ class RobotRecord:
     anchor: str = ""
     T_anchor_map: np.ndarray = field(default_factory=lambda: np.eye(4))
     joined: dict[str, Any] | None = None  # how and when it joined its component
-
-
-@dataclass
-class Constraint:
-    """An inter-robot match as a graph edge."""
-
-    match: PlaceMatch
-    trusted: bool  # one of the consistent set that joined two components
-    kept: bool | None = None  # GNC's verdict at the last optimisation (trusted: True)
-    dense: DenseRefinement | None = None  # None: not tried yet (no depth at hand)
-
-    @property
-    def T_place_query(self) -> np.ndarray:
-        """The edge's measurement: the dense refinement's where it was accepted."""
-        if self.dense is not None and self.dense.T_place_query is not None:
-            return self.dense.T_place_query
-        return self.match.T_place_query
-
-    @property
-    def information(self) -> np.ndarray | None:
-        return None if self.dense is None else self.dense.information
 
 
 def _node(record: RobotRecord, keyframe: int) -> int:
@@ -358,6 +339,15 @@ class MapMerger:
                 log.info("dense refinement of %s frame %d ~ %s frame %d refused: %s",
                          m.query.robot, m.query.frame_index, m.place.robot,
                          m.place.frame_index, c.dense.reason)
+        if self.config.merge.proximity_constraints:
+            found, seconds = proximity_constraints(
+                [m for m in self.components().values() if len(m) > 1],
+                self.solve_keyframe_poses(),
+                {name: r.keyframes for name, r in self.robots.items()}, self.saved,
+                self._pairs, cloud, self.config.merge)
+            self.constraints.extend(found)
+            self.dense_seconds.extend(seconds)
+            tried += len(seconds)
         if tried:
             self._global = None
         return tried
