@@ -339,6 +339,8 @@ class MapMerger:
                 log.info("dense refinement of %s frame %d ~ %s frame %d refused: %s",
                          m.query.robot, m.query.frame_index, m.place.robot,
                          m.place.frame_index, c.dense.reason)
+        if tried:
+            self._global = None  # the proximity search starts from the refined graph
         if self.config.merge.proximity_constraints:
             found, seconds = proximity_constraints(
                 [m for m in self.components().values() if len(m) > 1],
@@ -347,9 +349,9 @@ class MapMerger:
                 self._pairs, cloud, self.config.merge)
             self.constraints.extend(found)
             self.dense_seconds.extend(seconds)
+            if seconds:
+                self._global = None
             tried += len(seconds)
-        if tried:
-            self._global = None
         return tried
 
     # -- the global pose graph ------------------------------------------------------------------
