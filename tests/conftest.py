@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+import fleetslam  # noqa: F401  (first: one BLAS thread a process, set before numpy loads)
+
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
 PROJECT = Path(__file__).resolve().parents[1]
