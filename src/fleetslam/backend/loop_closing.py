@@ -222,7 +222,11 @@ class LoopCloser:
                                "median": float(np.median(sent)) if len(sent) else None,
                                "max": int(sent.max()) if len(sent) else None,
                                "last": int(sent[-1]) if len(sent) else None,
-                               "full": self.mirror.full_sends if self.mirror else 0}}
+                               "full": self.mirror.full_sends if self.mirror else 0},
+                # The database's arrays now: about what each query sent when the worker
+                # was sent the whole database.
+                "database_bytes": sum(a.nbytes for a in vars(self.backend.places).values()
+                                      if isinstance(a, np.ndarray))}
 
 
 def _query(query: tuple[Any, np.ndarray, np.ndarray]) -> tuple[list, float]:
