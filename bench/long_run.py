@@ -219,18 +219,25 @@ def main() -> None:
     if len(results) > 1:
         for key in dict.fromkeys((r["code"], r["settings"]) for r in results):
             mine = [r for r in results if (r["code"], r["settings"]) == key]
-            ratios = [last_over_first(r) for r in mine]
-            ates = [r["ate_cm"] for r in mine]
-            print(f"{key[1] or 'defaults'} ({key[0]} code), {len(mine)} runs: last / first "
-                  f"block cloud CPU {span([c for c, _ in ratios], 'x')}, wall "
-                  f"{span([w for _, w in ratios], 'x')}; first block cloud CPU "
-                  f"{span([r['blocks'][0]['cloud_cpu_ms_per_frame'] for r in mine], ' ms')},"
-                  f" last {span([r['blocks'][-1]['cloud_cpu_ms_per_frame'] for r in mine], ' ms')}"
-                  f"; end RSS {span([r['blocks'][-1]['rss_mb'] for r in mine], ' MB')}; ATE "
-                  f"{span(ates, ' cm')}; load {span([x for r in mine for x in r['load_average']], '')}")
+            print(f"{key[1] or 'defaults'} ({key[0]} code), {len(mine)} runs: "
+                  f"{over_runs(mine)}")
     Path(args.out).write_text(json.dumps(results[0] if len(results) == 1 else results,
                                          indent=1))
     print(f"wrote {args.out}")
+
+
+def over_runs(results: list[dict[str, Any]]) -> str:
+    """Min-max over runs of one code and settings: last / first block, each block's cloud
+    CPU per frame, RSS at the end, ATE, and the load average at the runs' starts and ends."""
+    ratios = [last_over_first(r) for r in results]
+    first = [r["blocks"][0]["cloud_cpu_ms_per_frame"] for r in results]
+    last = [r["blocks"][-1]["cloud_cpu_ms_per_frame"] for r in results]
+    return (f"last / first block cloud CPU {span([c for c, _ in ratios], 'x')}, wall "
+            f"{span([w for _, w in ratios], 'x')}; cloud CPU first block "
+            f"{span(first, ' ms')}, last {span(last, ' ms')} a frame; end RSS "
+            f"{span([r['blocks'][-1]['rss_mb'] for r in results], ' MB')}; ATE "
+            f"{span([r['ate_cm'] for r in results], ' cm')}; load average "
+            f"{span([x for r in results for x in r['load_average']], '')}")
 
 
 def span(values: list[float], unit: str) -> str:

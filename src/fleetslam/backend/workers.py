@@ -10,9 +10,9 @@ session's use of it, pinned to one of its processes: that process keeps the sess
 keyframe database, so each loop query sends only the keyframes added since the last one
 (backend/worker_places.py; the whole database when the process's copy is missing), and
 forgets it at the session's end. If a worker dies, the sessions pinned to it run local BA
-and loop queries in-line from then on, and say so. What is sent, when, and what happens to an answer is the local
-mapper's and the loop closer's business (backend/local_mapping.py, backend/loop_closing.py,
-each with one latest-only job slot: backend/jobs.py).
+and loop queries in-line from then on, and say so. What is sent, when, and what happens to
+an answer is the local mapper's and the loop closer's business (backend/local_mapping.py,
+backend/loop_closing.py, each with one latest-only job slot: backend/jobs.py).
 
 The poses then depend on when each answer lands, so a run is not repeatable bit for bit;
 ``tracking.local_mapping = "inline"`` is the deterministic mode (the exactness tests, the
