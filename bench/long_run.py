@@ -3,7 +3,7 @@ grows? One robot plays 7-Scenes redkitchen forwards and back (0-599, 598-1, 0-59
 for ``--frames`` frames at offloading point 3 to one cloud process over Zenoh on loopback.
 
     .venv/bin/python bench/long_run.py [--frames 5000] [--block 1000] [--rate max]
-        [--configs a.toml,b.toml] [--runs N]
+        [--configs a.toml,b.toml] [--runs N] [--baseline REV]
 
 Sampled every ``--every`` seconds from outside (``status`` and /proc): per block of
 ``--block`` frames the cloud tracked, the wall time per frame, the cloud's CPU time per
@@ -12,16 +12,26 @@ end, and its keyframes. The last block against the first is the number that matt
 issue's target is "the last 1000 frames no slower than the first 1000". After the run,
 the robot's ATE against ground truth (read only then). ``--configs``: settings files (the
 robot and the cloud read them), alternated within each of ``--runs`` rounds, so an A/B sees
-the same machine. Writes bench/results/long_run.json.
+the same machine. ``--baseline REV``: the cloud and the robot also run from the code at git
+revision REV (its src/ extracted to a temporary folder), alternated with this code within
+each round, so a before/after sees the same machine too. Per run also the loop closer's
+queries to the worker (summary.json's loop_queries: bytes sent per query, where the code
+counts them, and the time from a query's submission to its answer landing). Writes
+bench/results/long_run.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 from typing import Any
 
 from shared_data import SEVEN_SCENES
@@ -70,20 +80,48 @@ def tree_rss_mb(pid: int) -> float:
     return total
 
 
+@contextmanager
+def code_from(src: Path | None) -> Iterator[None]:
+    """The processes started meanwhile import fleetslam from ``src`` (None: this code)."""
+    before = os.environ.get("PYTHONPATH")
+    if src is not None:
+        os.environ["PYTHONPATH"] = str(src)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = before
+
+
+def extract_src(revision: str, into: Path) -> Path:
+    """The src/ folder of git revision ``revision`` of this repository, under ``into``."""
+    root = Path(__file__).resolve().parents[1]
+    archive = subprocess.run(["git", "-C", str(root), "archive", revision, "src"],
+                             check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
+    return into / "src"
+
+
 def run(frames: int, block: int, rate: str, every_s: float, work: Path,
-        config_path: Path | None = None) -> dict[str, Any]:
+        config_path: Path | None = None, src: Path | None = None) -> dict[str, Any]:
     spec = f"{SEVEN_SCENES}:{forth_and_back(frames)}"
+    load_start = os.getloadavg()[0]
     endpoint = free_endpoint()
     out = work / "cloud"
     config = None if config_path is None else str(config_path)
-    cloud = start_cloud(endpoint, out, work / "cloud.log", config)
+    with code_from(src):
+        cloud = start_cloud(endpoint, out, work / "cloud.log", config)
     client = CloudClient(endpoint, reach_deadline_s=60.0)
     robot = None
     samples: list[dict[str, float]] = []
     try:
         client.status(timeout=60.0, gather_s=0.2)
-        robot = start_robot(endpoint, "r0", spec, 3, work / "r0.log", work / "r0_report.json",
-                            config_path=config, extra=["--rate", rate])
+        with code_from(src):
+            robot = start_robot(endpoint, "r0", spec, 3, work / "r0.log",
+                                work / "r0_report.json", config_path=config,
+                                extra=["--rate", rate])
         start = time.monotonic()
         next_block = block
         samples.append({"frames": 0, "t": 0.0, "cpu_s": tree_cpu_s(cloud.pid),
@@ -127,8 +165,14 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
                        "rss_mb": b["rss_mb"], "keyframes": b["keyframes"]})
     robot_summary = summary["robots"][0]
     report = json.loads((work / "r0_report.json").read_text())
+    queries = ((robot_summary.get("loop_closing") or {}).get("local_mapping") or {}
+               ).get("loop_queries", {})
     return {"frames": frames, "rate": rate, "blocks": blocks,
             "settings": None if config_path is None else str(config_path),
+            "code": "this" if src is None else "baseline",
+            "loop_queries": queries,
+            # 1-minute load average as the run started and as it ended (other jobs count).
+            "load_average": [load_start, os.getloadavg()[0]],
             "ate_cm": 100 * robot_summary["ate"]["rmse_m"] if robot_summary.get("ate") else None,
             "cloud_ms_median": robot_summary.get("cloud_ms_median"),
             "cloud_ms_p95": robot_summary.get("cloud_ms_p95"),
@@ -146,6 +190,8 @@ def main() -> None:
     parser.add_argument("--configs", default="",
                         help="settings files (comma-separated), alternated within each run")
     parser.add_argument("--runs", type=int, default=1, help="rounds over the settings")
+    parser.add_argument("--baseline", default="",
+                        help="a git revision whose code runs beside this code in each round")
     args = parser.parse_args()
     if not SEVEN_SCENES.exists():
         sys.exit(f"{SEVEN_SCENES} missing: this benchmark needs ../shared/data")
@@ -154,25 +200,49 @@ def main() -> None:
         if path is not None and not path.is_file():
             sys.exit(f"--configs: {path} is not a file")
     stamp = time.strftime("%Y%m%d-%H%M%S")
+    baseline_dir = tempfile.TemporaryDirectory(prefix="long-run-baseline-")
+    codes: list[Path | None] = [None]
+    if args.baseline:
+        codes = [extract_src(args.baseline, Path(baseline_dir.name)), None]
     results = []
     for round_ in range(args.runs):
-        for path in settings:
-            name = "defaults" if path is None else path.stem
-            print(f"{name}, run {round_ + 1}: {args.frames} frames ...", flush=True)
-            work = Path(args.out).parent / "long-runs" / stamp / f"run{round_ + 1}-{name}"
-            results.append(run(args.frames, args.block, args.rate, args.every, work, path))
-            report(results[-1])
+        for src in codes:
+            for path in settings:
+                name = ("defaults" if path is None else path.stem) + (
+                    f"-{args.baseline}" if src is not None else "")
+                print(f"{name}, run {round_ + 1}: {args.frames} frames ...", flush=True)
+                work = Path(args.out).parent / "long-runs" / stamp / f"run{round_ + 1}-{name}"
+                results.append(run(args.frames, args.block, args.rate, args.every, work, path,
+                                   src))
+                report(results[-1])
+    baseline_dir.cleanup()
     if len(results) > 1:
-        for name in dict.fromkeys(r["settings"] for r in results):
-            mine = [last_over_first(r) for r in results if r["settings"] == name]
-            ates = [r["ate_cm"] for r in results if r["settings"] == name]
-            print(f"{name or 'defaults'}, {len(mine)} runs: last / first block cloud CPU "
-                  f"{min(c for c, _ in mine):.2f}-{max(c for c, _ in mine):.2f}x, wall "
-                  f"{min(w for _, w in mine):.2f}-{max(w for _, w in mine):.2f}x; ATE "
-                  f"{min(ates):.2f}-{max(ates):.2f} cm")
+        for key in dict.fromkeys((r["code"], r["settings"]) for r in results):
+            mine = [r for r in results if (r["code"], r["settings"]) == key]
+            print(f"{key[1] or 'defaults'} ({key[0]} code), {len(mine)} runs: "
+                  f"{over_runs(mine)}")
     Path(args.out).write_text(json.dumps(results[0] if len(results) == 1 else results,
                                          indent=1))
     print(f"wrote {args.out}")
+
+
+def over_runs(results: list[dict[str, Any]]) -> str:
+    """Min-max over runs of one code and settings: last / first block, each block's cloud
+    CPU per frame, RSS at the end, ATE, and the load average at the runs' starts and ends."""
+    ratios = [last_over_first(r) for r in results]
+    first = [r["blocks"][0]["cloud_cpu_ms_per_frame"] for r in results]
+    last = [r["blocks"][-1]["cloud_cpu_ms_per_frame"] for r in results]
+    return (f"last / first block cloud CPU {span([c for c, _ in ratios], 'x')}, wall "
+            f"{span([w for _, w in ratios], 'x')}; cloud CPU first block "
+            f"{span(first, ' ms')}, last {span(last, ' ms')} a frame; end RSS "
+            f"{span([r['blocks'][-1]['rss_mb'] for r in results], ' MB')}; ATE "
+            f"{span([r['ate_cm'] for r in results], ' cm')}; load average "
+            f"{span([x for r in results for x in r['load_average']], '')}")
+
+
+def span(values: list[float], unit: str) -> str:
+    """min-max of ``values``, two decimals."""
+    return f"{min(values):.2f}-{max(values):.2f}{unit}"
 
 
 def last_over_first(result: dict[str, Any]) -> tuple[float, float]:
@@ -190,8 +260,21 @@ def report(result: dict[str, Any]) -> None:
     cpu, wall = last_over_first(result)
     print(f"last block / first block: cloud CPU {cpu:.2f}x, wall {wall:.2f}x; ATE "
           f"{result['ate_cm']:.2f} cm; cloud ms median {result['cloud_ms_median']}, p95 "
-          f"{result['cloud_ms_p95']}; round trip p95 {result['round_trip_ms_p95']} ms",
-          flush=True)
+          f"{result['cloud_ms_p95']}; round trip p95 {result['round_trip_ms_p95']} ms; "
+          f"load average {result['load_average'][0]:.2f} at the start, "
+          f"{result['load_average'][1]:.2f} at the end", flush=True)
+    queries = result["loop_queries"]
+    if queries:
+        lag = queries.get("request_to_answered") or {}
+        sent = queries.get("bytes_sent") or {}
+        search = queries.get("database_query") or {}
+        print(f"loop queries to the worker: {queries.get('answered')} answered, submission "
+              f"to answer median {lag.get('median_ms')} ms, p95 {lag.get('p95_ms')} ms; in "
+              f"the worker median {search.get('median_ms', 'not counted')} ms; "
+              f"bytes sent per query median {sent.get('median', 'not counted')}, max "
+              f"{sent.get('max', 'not counted')}, last {sent.get('last', 'not counted')}, "
+              f"{sent.get('full', 'not counted')} whole; the database's arrays at the end "
+              f"{queries.get('database_bytes', 'not counted')} B", flush=True)
 
 
 if __name__ == "__main__":

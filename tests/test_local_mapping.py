@@ -134,7 +134,7 @@ def test_a_flush_solves_here_what_a_starved_worker_holds():
         session, inline = scene_session(7), scene_session(7)
         mapping = mapper(pool, session)
         assert pool.submit(build_problem(session, NEWEST)).result(timeout=60) is not None
-        workers = list(pool._executor._processes)
+        workers = pool.pids()
         for pid in workers:
             os.kill(pid, signal.SIGSTOP)
         try:
@@ -163,7 +163,7 @@ def test_a_dead_worker_leaves_local_ba_in_line():
         back_end = CloudBackEnd(session.config, CAMERA, session, pool)
         mapping = back_end.local_mapper
         assert pool.submit(build_problem(session, NEWEST)).result(timeout=60) is not None
-        for pid in list(pool._executor._processes):  # the worker dies (OOM killer, a crash)
+        for pid in pool.pids():  # the worker dies (OOM killer, a crash)
             os.kill(pid, signal.SIGKILL)
         mapping.request(NEWEST)
         mapping.flush(timeout_s=60)
@@ -251,5 +251,8 @@ def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
             queries = summary["loop_queries"]
             searched = len(run.keyframe_indices) - config.loop_closing.min_keyframes
             assert queries["failed"] == 0 and queries["answered"] >= 0.5 * searched, queries
+            # The worker kept the database: sent whole once, then only the new keyframes.
+            assert queries["bytes_sent"]["full"] == 1 and queries["reseeded"] == 0, queries
+            assert queries["bytes_sent"]["last"] < queries["bytes_sent"]["max"] / 3, queries
             assert run.loop_closing["loop_queries"] == queries["answered"]
     assert ates["async"] <= 1.25 * ates["inline"], ates

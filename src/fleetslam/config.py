@@ -258,6 +258,11 @@ class LoopClosingConfig:
     # the local mapping worker (faiss holds the GIL); verification and correction stay on
     # the tracking thread. False: the query runs there too, as in-line.
     query_in_worker: bool = True
+    # The worker keeps each session's keyframe database and is sent only the keyframes
+    # added since its last query; it keeps at most this many (the least recently queried
+    # goes first: a session that ended without saying so; one that comes back is sent its
+    # database whole).
+    worker_databases: Annotated[int, at_least(1)] = 16
 
 
 @dataclass(frozen=True)

@@ -74,6 +74,11 @@ class CloudBackEnd:
         if self.workers is not None:
             self.loop_closer.flush()
             self.local_mapper.flush()
+            self.close()  # no query after the last
+
+    def close(self) -> None:
+        """The session ended: the workers forget it (its keyframe database in its worker)."""
+        self.loop_closer.release()
 
     def summary(self) -> dict[str, Any]:
         """Loop closing and relocalisation counts and times, for summary.json."""

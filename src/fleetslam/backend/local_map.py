@@ -99,6 +99,12 @@ class LocalMap:
         newest = self.keyframes[-1].id
         return np.flatnonzero((self.last_keyframe > newest - n_keyframes) & self.alive)
 
+    def created_since(self, kf_id: int) -> np.ndarray:
+        """Ids of the landmarks (live or not) created by keyframe ``kf_id`` or later: a tail
+        of the ids, which are given in keyframe order."""
+        start = int(np.searchsorted(self.first_keyframe, kf_id))
+        return np.arange(start, self.n_landmarks)
+
     def place_landmarks(self, kf_id: int, n_neighbours: int) -> np.ndarray:
         """Ids of the live landmarks observed by keyframe ``kf_id`` and its ``n_neighbours``
         most covisible keyframes: the map of one place."""
@@ -281,11 +287,9 @@ class LocalMap:
 
     def count_views(self, visible: np.ndarray, found: np.ndarray) -> None:
         """One tracked frame: landmarks ``visible`` were predicted in view, ``found`` were
-        matched as pose inliers (a found landmark counts as visible too)."""
-        seen = np.zeros(self.n_landmarks, bool)
-        seen[visible] = True
-        seen[found] = True
-        self.n_visible += seen
+        matched as pose inliers (a found landmark counts as visible too). Touches only
+        those: not an array the size of the map."""
+        self.n_visible[np.union1d(visible, found)] += 1
         self.n_found[np.unique(found)] += 1
 
     def redundant_keyframes(self, candidates: np.ndarray, max_depth: float, n_levels: int,

@@ -34,6 +34,7 @@ from fleetslam.backend.place_recognition import snapshot
 from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.backend.pose_optimizer import optimize_pose
 from fleetslam.backend.state import BackEndState, LoopDetection
+from fleetslam.backend.worker_places import PlaceMirror
 from fleetslam.backend.workers import SessionWorkers, query_places
 from fleetslam.transforms import invert, rotation_angle_deg, transforms_agree
 
@@ -49,9 +50,15 @@ class LoopCloser:
         self.backend = backend
         self.settle_map = settle_map
         self.workers = workers
-        # "taken_back": queried here at a flush, the worker being late.
+        # "taken_back": queried here at a flush, the worker being late; "reseeded": sent
+        # again with the whole database, the worker's copy not matching.
         self.counts: dict[str, int] = {"submitted": 0, "answered": 0, "superseded": 0,
-                                       "stale": 0, "failed": 0, "taken_back": 0}
+                                       "stale": 0, "failed": 0, "taken_back": 0,
+                                       "reseeded": 0}
+        # What the worker holds of the keyframe database (it is sent what is new).
+        self.mirror = PlaceMirror(workers.session) if workers is not None else None
+        # Seconds each database query took (in the worker: unpickling, adding, searching).
+        self.search_seconds: list[float] = []
         # The database query in flight and the newest keyframe whose query waits for it
         # (with the database as it was then).
         self.jobs = LatestOnly("loop query", backend.config.tracking.local_ba_timeout_s,
@@ -77,10 +84,19 @@ class LoopCloser:
                 start = time.perf_counter()
                 candidates = backend.places.query(kf.features.descriptors, allowed)
                 query_s = time.perf_counter() - start
-        backend.places.add(kf.id, kf.features.descriptors)
+        self.remember(kf.id, kf.features.descriptors)
         if candidates is None:
             return None
         return self.on_candidates(kf.id, candidates, query_s)
+
+    def remember(self, kf_id: int, descriptors: np.ndarray) -> None:
+        """Keyframe ``kf_id`` enters the database (after its own query), and the list of
+        what its worker is to be sent."""
+        self.backend.places.add(kf_id, descriptors)
+        cfg = self.backend.config.loop_closing
+        if self.mirror is not None and cfg.enabled and cfg.query_in_worker \
+                and not self.workers.broken:
+            self.mirror.added(kf_id, descriptors)
 
     def on_candidates(self, kf_id: int, candidates: list, query_s: float
                       ) -> np.ndarray | None:
@@ -143,6 +159,14 @@ class LoopCloser:
             return
         try:
             candidates, query_s = job.future.result()
+            if candidates is None and self.mirror is not None:
+                # The worker's copy of the database is missing or differs (only a worker
+                # answers None): the query goes again, with the database whole.
+                self.counts["reseeded"] += 1
+                self.mirror.reseed()
+                frozen, _, allowed = job.payload
+                self._submit(job.request, frozen, allowed)
+                return
         except BrokenProcessPool as exc:
             if self.workers is not None:
                 self.workers.fail(exc)
@@ -157,6 +181,7 @@ class LoopCloser:
             self.counts["stale"] += 1
         else:
             self.counts["answered"] += 1
+            self.search_seconds.append(query_s)
             self.jobs.landed(job)
             correction = self.on_candidates(job.request, candidates, query_s)
             if correction is not None:
@@ -172,18 +197,36 @@ class LoopCloser:
         self.jobs.settle(_query, self.poll, timeout_s)
 
     def _submit(self, kf_id: int, frozen: Any, allowed: np.ndarray) -> None:
+        # Kept with the job: what a flush queries here if the worker is late.
         query = (frozen, self.backend.map.keyframes[kf_id].features.descriptors, allowed)
         future = self.jobs.here_if_late(_query, query)
-        if future is None and self.workers is not None:
-            future = self.workers.submit_query(*query)
+        if future is None and self.workers is not None and self.mirror is not None:
+            future = self.workers.submit_query(self.mirror.request(*query))
         if future is None:
             self.counts["failed"] += 1
             return
         self.jobs.started(future, kf_id, query, self.backend.map.epoch)
 
+    def release(self) -> None:
+        """The session ended: its worker forgets its keyframe database."""
+        if self.workers is not None:
+            self.workers.close()
+
     def summary(self) -> dict[str, Any]:
+        sent = np.asarray(self.mirror.sent_bytes if self.mirror is not None else [])
         return {**self.counts,
-                "request_to_answered": duration_stats(self.jobs.lag_seconds)}
+                "request_to_answered": duration_stats(self.jobs.lag_seconds),
+                "database_query": duration_stats(self.search_seconds),
+                # Bytes sent to the worker per query (a delta; whole when "full").
+                "bytes_sent": {"n": len(sent),
+                               "median": float(np.median(sent)) if len(sent) else None,
+                               "max": int(sent.max()) if len(sent) else None,
+                               "last": int(sent[-1]) if len(sent) else None,
+                               "full": self.mirror.full_sends if self.mirror else 0},
+                # The database's arrays now: about what each query sent when the worker
+                # was sent the whole database.
+                "database_bytes": sum(a.nbytes for a in vars(self.backend.places).values()
+                                      if isinstance(a, np.ndarray))}
 
 
 def _query(query: tuple[Any, np.ndarray, np.ndarray]) -> tuple[list, float]:

@@ -83,6 +83,10 @@ class RobotSlam:
         """The last keyframes' loop queries and local BA belong in the final map."""
         self.back_end.finish()
 
+    def close(self) -> None:
+        """The session ends (finished or not): what the workers keep of it goes."""
+        self.back_end.close()
+
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         """Every keyframe's current pose, by frame index."""
         return {kf.frame_index: kf.T_world_camera for kf in self.state.map.keyframes}

@@ -265,10 +265,14 @@ def orb_slam_keyframe_reason(backend: BackEndState, state: PosedFrame,
 def count_views(backend: BackEndState, state: PosedFrame) -> None:
     """ORB-SLAM's visible/found counters for one tracked frame: landmarks predicted in view
     at the estimated pose (inside the image, within their scale-invariance distance range)
-    and the landmarks matched as pose inliers."""
+    and the landmarks matched as pose inliers. Visibility is tested on the local map's
+    newest landmarks only, those still on probation at the next keyframe: the counters are
+    read by their culling alone (``LocalMap.cull_recent``), so culling is as with every
+    landmark tested, and a frame's cost does not grow with the map."""
     cfg, lmap = backend.config.tracking, backend.map
+    probation = lmap.created_since(lmap.keyframes[-1].id + 1 - cfg.cull_probation_keyframes)
     ids, _, P = lmap.in_view(backend.camera, state.T_world_camera, cfg.min_depth_m,
-                             cfg.max_depth_m)
+                             cfg.max_depth_m, ids=probation)
     ids = ids[in_scale_range(backend, ids, P)]
     found = state.matched.landmark_ids[state.inliers]
     lmap.count_views(ids, found[found >= 0])

@@ -6,10 +6,13 @@ spinning beside ``optimize`` got 0.5 % of its normal rate) and so does faiss's s
 thread would stall tracking as much as running in-line does.
 
 ``LocalMappingPool`` is the pool a cloud's sessions share; ``SessionWorkers`` is one
-session's use of it. If a worker dies, that session's local BA and loop queries run in-line
-from then on, and it says so. What is sent, when, and what happens to an answer is the local
-mapper's and the loop closer's business (backend/local_mapping.py, backend/loop_closing.py,
-each with one latest-only job slot: backend/jobs.py).
+session's use of it, pinned to one of its processes: that process keeps the session's
+keyframe database, so each loop query sends only the keyframes added since the last one
+(backend/worker_places.py; the whole database when the process's copy is missing), and
+forgets it at the session's end. If a worker dies, the sessions pinned to it run local BA
+and loop queries in-line from then on, and say so. What is sent, when, and what happens to
+an answer is the local mapper's and the loop closer's business (backend/local_mapping.py,
+backend/loop_closing.py, each with one latest-only job slot: backend/jobs.py).
 
 The poses then depend on when each answer lands, so a run is not repeatable bit for bit;
 ``tracking.local_mapping = "inline"`` is the deterministic mode (the exactness tests, the
@@ -24,13 +27,16 @@ import os
 import signal
 import threading
 import time
+import uuid
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable
 
 import numpy as np
 
+from fleetslam.backend import worker_places
 from fleetslam.backend.local_ba import LocalBAProblem, solve_local_ba
+from fleetslam.config import LoopClosingConfig
 
 log = logging.getLogger(__name__)
 # How often a worker checks that the cloud process that started it is still there.
@@ -62,9 +68,17 @@ def _exit_with_parent(parent_pid: int) -> None:
 
 def query_places(database, descriptors: np.ndarray, allowed: np.ndarray
                  ) -> tuple[list, float]:
-    """In a worker: a keyframe database query (candidates, seconds)."""
+    """A keyframe database query (candidates, seconds): in-line, where the worker's answer
+    is taken back."""
     start = time.perf_counter()
     return database.query(descriptors, allowed), time.perf_counter() - start
+
+
+def start_worker(parent_pid: int, nice: int, databases: int) -> None:
+    """A local-mapping worker's initialiser: a background process that keeps at most
+    ``databases`` sessions' keyframe databases (backend/worker_places.py)."""
+    start_background(parent_pid, nice)
+    worker_places.keep_databases(databases)
 
 
 def _warm_up() -> bool:
@@ -75,39 +89,89 @@ def _warm_up() -> bool:
 
 
 class LocalMappingPool:
-    """The worker processes that solve local BA problems, shared by a cloud's sessions."""
+    """The worker processes that solve local BA problems and answer loop queries, shared by
+    a cloud's sessions. Each process is a lane of its own (a one-process executor) and each
+    session is pinned to one lane (``assign``): the lane keeps the session's keyframe
+    database between queries, which a pool that hands each task to any process could not
+    count on. A session's local BA goes to its lane too, so a session's jobs run in order."""
 
-    def __init__(self, workers: int, nice: int = 0) -> None:
+    def __init__(self, workers: int, nice: int = 0,
+                 databases: int = LoopClosingConfig.worker_databases) -> None:
         if workers < 1:
             raise ValueError(f"tracking.local_mapping_workers is {workers}: at least 1")
         if not 0 <= nice <= 19:
             raise ValueError(f"tracking.local_mapping_nice is {nice}: 0 to 19")
         # spawn, not fork: the cloud process has Zenoh's and the sessions' threads.
-        self._executor = ProcessPoolExecutor(
-            max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=start_background, initargs=(os.getpid(), nice))
-        self._executor.submit(_warm_up)
+        context = multiprocessing.get_context("spawn")
+        self._lanes = [ProcessPoolExecutor(max_workers=1, mp_context=context,
+                                           initializer=start_worker,
+                                           initargs=(os.getpid(), nice, databases))
+                       for _ in range(workers)]
+        self._lock = threading.Lock()
+        self._sessions = [0] * workers  # sessions pinned to each lane
+        self._broken = [False] * workers
+        for lane in self._lanes:
+            lane.submit(_warm_up)
 
-    def submit(self, problem: LocalBAProblem) -> Future:
-        return self._executor.submit(solve_local_ba, problem)
+    def assign(self) -> int:
+        """A lane for a new session: a live one with the fewest sessions."""
+        with self._lock:
+            lane = min(range(len(self._lanes)),
+                       key=lambda i: (self._broken[i], self._sessions[i], i))
+            self._sessions[lane] += 1
+            return lane
 
-    def submit_query(self, database, descriptors: np.ndarray, allowed: np.ndarray) -> Future:
-        return self._executor.submit(query_places, database, descriptors, allowed)
+    def release(self, lane: int) -> None:
+        with self._lock:
+            self._sessions[lane] -= 1
+
+    def broke(self, lane: int) -> None:
+        """A lane's process died: new sessions go to the others."""
+        with self._lock:
+            self._broken[lane] = True
+
+    def submit(self, problem: LocalBAProblem, lane: int = 0) -> Future:
+        return self._lanes[lane].submit(solve_local_ba, problem)
+
+    def submit_query(self, request: bytes, lane: int) -> Future:
+        return self._lanes[lane].submit(worker_places.answer, request)
+
+    def forget(self, session: str, lane: int) -> None:
+        """Drop a session's keyframe database from its lane (its session ended)."""
+        try:
+            self._lanes[lane].submit(worker_places.forget, session)
+        except (BrokenProcessPool, RuntimeError):
+            pass  # a dead or closed lane holds nothing
+
+    def call(self, lane: int, work: Callable[..., Any], *args: Any) -> Future:
+        """``work(*args)`` in a lane's process (tests look inside it)."""
+        return self._lanes[lane].submit(work, *args)
+
+    def pids(self) -> list[int]:
+        """The worker processes' ids (tests stop and kill them)."""
+        return [pid for lane in self._lanes for pid in lane._processes]
 
     def close(self) -> None:
         # Waits for the solve in flight (a fraction of a second): a pool left to shut down
         # at interpreter exit writes to closed pipes.
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        for lane in self._lanes:
+            lane.shutdown(wait=True, cancel_futures=True)
 
 
 class SessionWorkers:
-    """One session's use of the shared pool. ``submit`` returns None once the pool failed
-    (the caller then does the work in-line): a dead worker must not end a robot's session."""
+    """One session's use of the shared pool, on the lane it is pinned to. ``submit`` returns
+    None once the lane failed (the caller then does the work in-line): a dead worker must
+    not end a robot's session. ``close`` at the session's end frees the lane's copy of its
+    keyframe database."""
 
     def __init__(self, pool: LocalMappingPool) -> None:
         self.pool = pool
+        self.lane = pool.assign()
+        # Names the session's keyframe database in its worker.
+        self.session = uuid.uuid4().hex
         # Set when a worker died: the session's back-end runs in-line from then on.
         self.broken = False
+        self.closed = False
 
     def submit(self, send: Callable[..., Future], *args: Any) -> Future | None:
         if self.broken:
@@ -119,14 +183,24 @@ class SessionWorkers:
             return None
 
     def submit_local_ba(self, problem: LocalBAProblem) -> Future | None:
-        return self.submit(self.pool.submit, problem)
+        return self.submit(self.pool.submit, problem, self.lane)
 
-    def submit_query(self, database, descriptors: np.ndarray, allowed: np.ndarray
-                     ) -> Future | None:
-        return self.submit(self.pool.submit_query, database, descriptors, allowed)
+    def submit_query(self, request: bytes) -> Future | None:
+        return self.submit(self.pool.submit_query, request, self.lane)
 
     def fail(self, exc: BaseException) -> None:
         if not self.broken:
             log.error("the local mapping worker failed (%s): local BA runs in-line from now "
                       "on", exc)
+            if isinstance(exc, BrokenProcessPool):
+                self.pool.broke(self.lane)
         self.broken = True
+
+    def close(self) -> None:
+        """The session ended: its lane forgets it (once)."""
+        if self.closed:
+            return
+        self.closed = True
+        if not self.broken:
+            self.pool.forget(self.session, self.lane)
+        self.pool.release(self.lane)

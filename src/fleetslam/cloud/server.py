@@ -137,8 +137,9 @@ class CloudServer:
             raise ValueError(f"tracking.local_mapping is {tracking.local_mapping!r}: "
                              f"'async' or 'inline'")
         if tracking.local_mapping == "async" and tracking.local_ba:
-            self.local_mapping = LocalMappingPool(tracking.local_mapping_workers,
-                                                  tracking.local_mapping_nice)
+            self.local_mapping = LocalMappingPool(
+                tracking.local_mapping_workers, tracking.local_mapping_nice,
+                self.config.loop_closing.worker_databases)
             self.sessions.local_mapping = self.local_mapping
         try:
             z = self._zenoh = self._open_zenoh()

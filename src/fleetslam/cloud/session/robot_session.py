@@ -161,6 +161,7 @@ class RobotSession:
             self.checkpoints.capture()  # a keyframe's, waiting for its interval
         # Only now: the frame thread may still have queued a keyframe's checkpoint.
         self.checkpoints.close(timeout)
+        self.tracker.slam.close()  # its worker's copy of its keyframe database goes
 
     def drop(self) -> None:
         """Stop at once saying anything to the robot (another worker serves it now), and
