@@ -222,7 +222,7 @@ def test_asynchronous_local_mapping_tracks_real_frames_as_well_as_in_line(pool):
     it in the worker. Every keyframe's request is accounted for, most solutions land (none
     in-line), and late landing must not cost accuracy (ATE within +40 % of in-line: how late
     the answers land depends on the machine's load, and at load 5-10 the ratio reached
-    1.26, against about 1.1 on a quiet machine)."""
+    1.26)."""
     folder = require(TUM_RPY)
     ates = {}
     for mode in ("inline", "async"):
