@@ -35,16 +35,22 @@ class Worker:
     meter and the worker it serves for)."""
 
     def __init__(self, router: str, etcd: str, name: str, keys: Keys, busy: float = 0.0,
-                 cfg: PlacementConfig = CFG) -> None:
+                 cfg: PlacementConfig = CFG, robot_cost: float = 0.0) -> None:
+        """``busy``: cores its meter measures besides its robots; ``robot_cost``: what its
+        meter weighs each robot it serves (the CPU meter weighs robots too new to be
+        measured at placement.robot_cost_cores)."""
         self.z = open_connecting(router, 20.0)
         self.events: list[tuple[float, str, str]] = []
         self.lock = threading.Lock()
-        self.cores = busy
+        self.cores, self.robot_cost = busy, robot_cost
         ownership = Ownership(EtcdClient(etcd), name, cfg.lease_s, keys=keys)
         self.placement = FencedPlacement(name, cfg, self, ownership).start(self.z, self)
 
     def busy(self) -> float:
-        return self.cores
+        with self.lock:
+            won = sum(1 for _, what, _ in self.events if what == "won")
+            gave_up = sum(1 for _, what, _ in self.events if what == "gave up")
+        return self.cores + self.robot_cost * (won - gave_up)
 
     def take(self, robot: str) -> None:
         self._note("won", robot)
@@ -213,8 +219,10 @@ def test_robots_arriving_together_go_by_measured_load(etcd, request, busy):
     endpoint = free_endpoint()
     router = open_router(endpoint)
     cfg = PlacementConfig(settle_s=0.3)
-    a = Worker(endpoint, etcd.endpoint, "wa", keys, busy, cfg)
-    b = Worker(endpoint, etcd.endpoint, "wb", keys, 0.0, cfg)
+    # Each meter weighs its robots as the CPU meter weighs robots too new to be measured.
+    cost = cfg.robot_cost_cores
+    a = Worker(endpoint, etcd.endpoint, "wa", keys, busy, cfg, robot_cost=cost)
+    b = Worker(endpoint, etcd.endpoint, "wb", keys, 0.0, cfg, robot_cost=cost)
     robots = [f"r{i}" for i in range(8)]
     try:
         wait_for(lambda: all(o in w.placement.live_workers()
@@ -235,4 +243,41 @@ def test_robots_arriving_together_go_by_measured_load(etcd, request, busy):
     finally:
         a.close()
         b.close()
+        router.close()
+
+
+def test_robots_saying_hello_together_spread_when_one_worker_is_slow(etcd, request):
+    """Sixteen robots say hello at the same moment to two idle workers, one of them slow (its
+    requests to etcd take ~0.1 s, as on a loaded host): they spread within one of even.
+    The slow worker asks for each robot it ranks first well within ``settle_s``; the fast
+    one, ranked second, waits for it (before, it took every robot left once ``settle_s``
+    had passed since the hellos: 4 + 12), and the two never grant on the same
+    counts (each grant is conditioned on the owner table it was ranked on)."""
+    keys = Keys(f"test/{request.node.name}/")
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    link = LinkCutter(etcd.client_port)
+    cfg = PlacementConfig(settle_s=0.5)
+    cost = cfg.robot_cost_cores
+    slow = Worker(endpoint, link.endpoint, "wa", keys, 0.0, cfg, robot_cost=cost)
+    fast = Worker(endpoint, etcd.endpoint, "wb", keys, 0.0, cfg, robot_cost=cost)
+    robots = [f"r{i}" for i in range(16)]
+    try:
+        wait_for(lambda: all(o in w.placement.live_workers()
+                             and o in w.placement.directory.loads.reports
+                             for w, o in ((slow, "wb"), (fast, "wa"))), 10,
+                 "the workers to hear each other's load")
+        link.delay_s = 0.05  # each way
+        for robot in robots:
+            slow.placement.claim(robot)
+            fast.placement.claim(robot)
+        wait_for(lambda: all(slow.placement.serves(r) or fast.placement.serves(r)
+                             for r in robots), HANG_S, "every robot to be served")
+        assert not any(slow.placement.serves(r) and fast.placement.serves(r) for r in robots)
+        on_slow = sum(slow.placement.serves(r) for r in robots)
+        assert 7 <= on_slow <= 9, on_slow
+    finally:
+        slow.close()
+        fast.close()
+        link.close()
         router.close()

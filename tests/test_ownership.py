@@ -21,7 +21,7 @@ from fleetslam.cloud.coordination.coordination_service import (CoordinationServi
                                                                EtcdService, etcd_binary)
 from fleetslam.cloud.coordination.etcd_gateway import EtcdClient
 from fleetslam.cloud.coordination.fenced_store import FencedStore
-from fleetslam.cloud.coordination.ownership import MERGER, Keys, Ownership
+from fleetslam.cloud.coordination.ownership import MERGER, Keys, Ownership, StaleCounts
 from fleetslam.cloud.session.session_state import SessionState
 from fleetslam.cloud.session.store import NotOwner
 from fleetslam.config import Config, PlacementConfig
@@ -158,6 +158,33 @@ def test_two_workers_competing_get_one_owner_and_increasing_epochs(etcd, keys):
         epoch = a.grant("r9")
         a._mine.pop("r9")
         assert a.grant("r9") == epoch and b.grant("r9") is None
+    finally:
+        a.close()
+        b.close()
+
+
+def test_two_workers_deciding_on_the_same_owner_table_take_one_robot_between_them(etcd, keys):
+    """Both read the owner table, both rank themselves first for a different new robot: the
+    first grant is written, the second is refused as decided on stale counts (and is
+    written once decided again on the table that has the first), so no worker takes robots
+    on counts another's grant has changed."""
+    a, b = _worker(etcd.endpoint, "wa", keys), _worker(etcd.endpoint, "wb", keys)
+    try:
+        seen_a, seen_b = a.owners(), b.owners()
+        assert seen_a.workers == {} and seen_a.counts() == {}
+        assert a.grant("r1", basis=seen_a.revision) is not None
+        with pytest.raises(StaleCounts):
+            b.grant("r2", basis=seen_b.revision)
+        assert b.owner("r2") is None and "r2" not in b.robots()
+        again = b.owners()
+        assert again.counts() == {"wa": 1} and again.latest > seen_b.latest
+        assert b.grant("r2", basis=again.revision) is not None
+        # A release is no grant: counts decided before it still hold.
+        table = a.owners()
+        assert a.release("r1", a.robots()["r1"])
+        assert a.grant("r3", basis=table.revision) is not None
+        # The robot itself taken meanwhile: no owner for this worker, not stale counts.
+        assert a.grant("r2", basis=a.owners().revision) is None
     finally:
         a.close()
         b.close()

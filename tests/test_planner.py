@@ -1,18 +1,22 @@
 """The offloading planner: the paper's own numbers give the paper's choice and energies; the
-objectives choose what they say; a measured profile round-trips through JSON."""
+objectives choose what they say; a measured profile round-trips through JSON; the robot's
+side is measured with the base install and planned beside the cloud's profile."""
 
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import pytest
 
-from conftest import small_scene
+from conftest import HANG_S, PROJECT, small_scene
 from fleetslam.cli import main
 from fleetslam.config import Config, PlannerConfig
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.planner.model import Link, candidates, choose, offloading_ratios
-from fleetslam.planner.profile import Profile, paper_profile
+from fleetslam.planner.profile import Profile, RobotSideProfile, paper_profile
 from fleetslam.planner.profiling import measure_profile
 
 PAPER_ENERGY = [6.64, 6.79, 4.30, 3.43, 4.48, 4.81, 5.12]
@@ -99,3 +103,67 @@ def test_whole_system_energy_is_power_times_measured_time():
     assert "540.35" in whole_system_table({"run": w})  # the paper's row beside ours
     with pytest.raises(ValueError, match="no robot report"):
         whole_system({"wall_time_s": 1.0, "robots": [{"name": "r0"}]}, cfg)
+
+
+# A robot's install: what the cloud extra brings cannot be imported (a finder first on
+# sys.meta_path refuses it, as a missing package would be refused), then the command runs.
+ROBOT_INSTALL = """
+import sys
+from fleetslam.cli import CLOUD_EXTRA_MODULES
+
+
+class CloudExtraMissing:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in CLOUD_EXTRA_MODULES:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+
+
+sys.meta_path.insert(0, CloudExtraMissing())
+for name in CLOUD_EXTRA_MODULES:  # none of them loaded before the finder was in place
+    assert not any(m == name or m.startswith(name + ".") for m in sys.modules), name
+from fleetslam.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _on_a_robot(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(PROJECT / "src")}
+    return subprocess.run([sys.executable, "-c", ROBOT_INSTALL, "--quiet", *args],
+                          capture_output=True, text=True, env=env, timeout=HANG_S * 5)
+
+
+def test_the_robots_side_is_measured_with_the_base_install_and_planned_elsewhere(
+        tmp_path_factory, tmp_path):
+    """`fleetslam plan --robot-side` measures the robot's stages and payloads where none of
+    the cloud extra can be imported; the whole profile there says what is missing and what
+    to do; the decision takes the robot's file beside a profile measured where the cloud
+    runs (and writes plan.json, without the plots that need matplotlib)."""
+    folder = small_scene(tmp_path_factory, 8)[0]
+    robot_file = tmp_path / "robot.json"
+    measured = _on_a_robot("plan", "--robot-side", "--source", str(folder), "--frames", "6",
+                           "--save-profile", str(robot_file))
+    assert measured.returncode == 0, measured.stderr
+    robot = RobotSideProfile.load(robot_file)
+    assert robot.stages == ["extract", "describe", "associate_depth"] and robot.frames == 6
+    assert all(ms > 0 for ms in robot.stage_ms) and len(robot.frame_bytes) == 4
+    assert robot.frame_bytes[0] > robot.frame_bytes[3] > 0 and robot.keyframe_bytes > 0
+    assert f"--robot-profile {robot_file}" in measured.stdout
+
+    whole = _on_a_robot("plan", "--source", str(folder), "--frames", "6")
+    assert whole.returncode == 2
+    assert "pip install 'fleetslam[cloud]'" in whole.stderr and "--robot-side" in whole.stderr
+    assert "No module named" in whole.stderr  # which module it missed
+
+    cloud_file = tmp_path / "cloud.json"
+    measure_profile(RgbdSequence(folder), str(folder), Config(), 6).save(cloud_file)
+    with pytest.raises(ValueError, match="--robot-profile"):
+        Profile.load(robot_file)  # not a whole profile: said how to use it
+    planned = _on_a_robot("plan", "--profile", str(cloud_file), "--robot-profile",
+                          str(robot_file), "--out", str(tmp_path / "plan"))
+    assert planned.returncode == 0, planned.stderr
+    assert "plots not drawn: they need matplotlib" in planned.stdout
+    used = json.loads((tmp_path / "plan" / "plan.json").read_text())["profile"]
+    assert used["robot_stage_ms"] == [*robot.stage_ms, None, None, None]
+    assert used["frame_bytes"][:4] == robot.frame_bytes
+    assert used["keyframe_bytes"] == robot.keyframe_bytes

@@ -57,26 +57,24 @@ def test_robots_granted_since_a_report_weigh_the_configured_cost():
     assert firsts == {"w0", "w1"}
 
 
-def test_a_robot_counts_its_cost_until_held_through_a_whole_window(monkeypatch):
-    """A report between two grants used to forget the first (its CPU not measured yet):
-    robots arriving together then went 2 + 6. A report counts only the robots held all
-    through the measuring window."""
+def test_a_robot_weighs_the_same_before_and_after_its_workers_report(monkeypatch):
+    """A robot granted since a report counts the configured cost; the next report counts it
+    as its meter does (a new robot at work: the configured cost), never both. Reports that
+    left it out until held a whole window while the meter counted it weighed it twice: the
+    worker that had reported looked busier, and robots arriving together went 2 + 6."""
     import fleetslam.cloud.coordination.worker_load as worker_load
 
-    cfg = PlacementConfig(load_window_s=5.0)
-    held = Counts()
-    loads = WorkerLoads("w0", cfg, Counts(), held)
+    cfg = PlacementConfig(load_window_s=5.0, robot_cost_cores=0.4)
+    held, meter = Counts(), Counts()
+    loads = WorkerLoads("w0", cfg, meter, held)
     monkeypatch.setattr(worker_load, "put", lambda *a, **k: None)
-    clock = [100.0]
-    monkeypatch.setattr(worker_load.time, "monotonic", lambda: clock[0])
     loads.report()
-    held.robots_held = 2
-    clock[0] += 0.5
-    assert loads.report().owned == 0  # granted within the window: not measured yet
+    held.robots_held = 2  # granted since: not in the report yet
     assert loads.score("w0", 2) == pytest.approx(0.8)
-    clock[0] += 5.0
-    assert loads.report().owned == 2  # held a whole window: in the measurement
-    assert loads.score("w0", 2) == pytest.approx(0.0)
+    meter.cores = 0.8  # at work, as the CPU meter weighs robots too new to be measured
+    assert loads.report().owned == 2
+    assert loads.score("w0", 2) == pytest.approx(0.8)
+    assert loads.score("w0", 3) == pytest.approx(1.2)  # one more granted since
 
 
 def test_the_meter_sees_a_busy_process_and_robots_gone_quiet_at_once():

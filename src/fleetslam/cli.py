@@ -322,10 +322,18 @@ def _online_planner(args: argparse.Namespace, config: Config, sequence: Any) -> 
     if args.plan_profile:
         profile = Profile.load(Path(args.plan_profile))
     else:
-        # Measuring runs the back-end: the cloud extra (a robot without it plans from a
-        # saved profile, --plan-profile).
-        from fleetslam.planner.profiling import measure_profile
         from fleetslam.progress import Progress
+
+        try:  # measuring the whole pipeline runs the back-end: the cloud extra
+            from fleetslam.planner.profiling import measure_profile
+        except ImportError as exc:
+            raise ValueError(
+                f"--offload-at auto without --plan-profile measures the whole pipeline, "
+                f"which needs the cloud extra: pip install 'fleetslam[cloud]' ({exc}). "
+                f"Without it give --plan-profile: a profile measured where the cloud runs, "
+                f"with this robot's side in it (fleetslam plan --robot-side here, then "
+                f"fleetslam plan --profile CLOUD.json --robot-profile ROBOT.json "
+                f"--save-profile FILE)") from None
 
         frames = min(cfg.profile_frames, len(sequence))
         progress = Progress(f"profile {args.source} (for --offload-at auto)", frames,
@@ -647,20 +655,21 @@ def cmd_vocabulary(args: argparse.Namespace, config: Config) -> int:
 def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     from fleetslam.planner.model import Link
     from fleetslam.planner.plan import plan, report, write_plan
-    from fleetslam.planner.profile import Profile, paper_profile
-    from fleetslam.planner.profiling import measure_profile
-    from fleetslam.progress import Progress
+    from fleetslam.planner.profile import Profile, RobotSideProfile, paper_profile
     from fleetslam.pipeline.split import SUPPORTED_POINTS
 
     config = _with_flags(config, "planner", {name: getattr(args, name) for name in
                                              ("bandwidth_mbps", "latency_ms")})
     if args.frames is not None:
         config = config.with_values({"planner.profile_frames": args.frames}, flag="--frames")
+    if args.robot_side:
+        return _plan_robot_side(args, config)
     offered: tuple[int, ...] | None = SUPPORTED_POINTS
     measured = ""  # a profile measured here on part of a sequence: which part
     if args.paper:
-        if args.profile or args.source:
-            raise ValueError("--paper plans with the paper's numbers: no --profile / --source")
+        if args.profile or args.source or args.robot_profile:
+            raise ValueError("--paper plans with the paper's numbers: no --profile / --source "
+                             "/ --robot-profile")
         profile = paper_profile()
         # The paper's Table "Parameter values".
         config = config.with_values({"planner.c_total_g": 1.0})
@@ -668,32 +677,88 @@ def cmd_plan(args: argparse.Namespace, config: Config) -> int:
     elif args.profile:
         profile = Profile.load(Path(args.profile))
     else:
-        from fleetslam.datasets.recording import open_source
-
-        config = _apply_topics(args, config)
-        source = args.source or str(_synthetic_scene(_scene_dir(config), config,
-                                                     args.quiet)[0])
-        sequence = open_source(source, None, config.source)
-        frames = min(config.planner.profile_frames, len(sequence))
-        if not args.quiet:
-            print(f"profile: measuring the first {frames} of the {len(sequence)} frames of "
-                  f"{source} (--frames N, or [planner] profile_frames)", file=sys.stderr)
-        progress = Progress(f"profile {source}", frames, enabled=not args.quiet)
-        profile = measure_profile(sequence, source, config, frames, progress.update)
-        if frames < len(sequence):
-            measured = f"measured on the first {frames} of its {len(sequence)} frames: --frames"
-        if args.save_profile:
-            profile.save(Path(args.save_profile))
+        profile, measured = _measure_whole_profile(args, config)
+    if args.robot_profile:
+        profile = profile.with_robot_side(RobotSideProfile.load(Path(args.robot_profile)))
+    if args.save_profile and not args.paper:  # what a robot's --plan-profile reads
+        profile.save(Path(args.save_profile))
     cfg = config.planner
     bandwidths = SWEEP_MBPS if args.sweep else (cfg.bandwidth_mbps,)
     result = plan(profile, [Link(b, cfg.latency_ms) for b in bandwidths], cfg, offered,
                   args.objective)
     out = Path(args.out) if args.out else _default_out("plan")
-    paths = write_plan(result, out)
+    paths, not_drawn = write_plan(result, out)
     print(f"profile: {profile.source} ("
           + (measured or f"{profile.label}, {profile.frames} frames") + ")")
     print(report(result, cfg))
     print("\nwrote " + ", ".join(str(p) for p in paths))
+    if not_drawn:
+        print(not_drawn)
+    return 0
+
+
+def _measure_whole_profile(args: argparse.Namespace, config: Config) -> tuple[Any, str]:
+    """(the whole pipeline's profile measured here, which part of the source it saw); it
+    runs the back-end, so it needs the cloud extra: said, with what a robot does instead."""
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.progress import Progress
+
+    try:
+        from fleetslam.planner.profiling import measure_profile
+        source = args.source or str(_synthetic_scene(_scene_dir(config), config,
+                                                     args.quiet)[0])
+    except ImportError as exc:
+        raise ValueError(
+            f"measuring the whole pipeline runs the cloud's stages, which need the cloud "
+            f"extra: pip install 'fleetslam[cloud]' ({exc}). Without it, measure the "
+            f"robot's side here (fleetslam plan --robot-side --source SOURCE --save-profile "
+            f"robot.json) and plan with a profile measured where the cloud runs "
+            f"(--profile CLOUD.json --robot-profile robot.json)") from None
+    config = _apply_topics(args, config)
+    sequence = open_source(source, None, config.source)
+    frames = min(config.planner.profile_frames, len(sequence))
+    if not args.quiet:
+        print(f"profile: measuring the first {frames} of the {len(sequence)} frames of "
+              f"{source} (--frames N, or [planner] profile_frames)", file=sys.stderr)
+    progress = Progress(f"profile {source}", frames, enabled=not args.quiet)
+    profile = measure_profile(sequence, source, config, frames, progress.update)
+    measured = ""
+    if frames < len(sequence):
+        measured = f"measured on the first {frames} of its {len(sequence)} frames: --frames"
+    return profile, measured
+
+
+def _plan_robot_side(args: argparse.Namespace, config: Config) -> int:
+    """``fleetslam plan --robot-side``: the robot's own stage times and payloads, measured
+    here with the base install, written for a plan made with the cloud's profile."""
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.planner.robot_profiling import measure_robot_side
+    from fleetslam.progress import Progress
+    from fleetslam.tables import format_table
+
+    if args.paper or args.profile or args.robot_profile:
+        raise ValueError("--robot-side measures this machine as the robot: no --paper / "
+                         "--profile / --robot-profile")
+    if not args.source:
+        # The built-in scene is generated with the cloud extra; a robot has its own frames.
+        raise ValueError("--robot-side needs --source: a recording (or camera) of this robot")
+    config = _apply_topics(args, config)
+    sequence = open_source(args.source, None, config.source)
+    frames = min(config.planner.profile_frames, len(sequence))
+    progress = Progress(f"robot side {args.source}", frames, enabled=not args.quiet)
+    robot = measure_robot_side(sequence, args.source, config, frames, progress.update)
+    path = Path(args.save_profile) if args.save_profile else \
+        (Path(args.out) if args.out else _default_out("plan")) / "robot_profile.json"
+    robot.save(path)
+    print(f"robot side of {args.source} ({robot.frames} frames, {robot.host}):")
+    print(format_table(["stage", "median ms", "p95 ms"],
+                       [[n, m, p] for n, m, p in zip(robot.stages, robot.stage_ms,
+                                                     robot.stage_ms_p95)]))
+    print(format_table(["point", "kB per frame"],
+                       [[k, b / 1000] for k, b in enumerate(robot.frame_bytes)]))
+    print(f"keyframe upload: {robot.keyframe_bytes / 1000:.1f} kB")
+    print(f"wrote {path}; plan with it beside a profile measured where the cloud runs: "
+          f"fleetslam plan --profile CLOUD.json --robot-profile {path}")
     return 0
 
 
@@ -904,7 +969,15 @@ def _add_plan_command(sub: Any) -> None:
                          "(default: the built-in synthetic scene)")
     _add_topic_options(planner)
     planner.add_argument("--frames", type=int, help="frames to measure (default from config)")
-    planner.add_argument("--save-profile", help="write the measured profile here (JSON)")
+    planner.add_argument("--save-profile", help="write the profile planned with here (JSON: "
+                         "measured, or with --robot-profile's side in it)")
+    planner.add_argument("--robot-side", action="store_true",
+                         help="measure only the robot's side (its stages, the bytes it "
+                         "sends) on --source, with the base install; writes --save-profile "
+                         "(default OUT/robot_profile.json)")
+    planner.add_argument("--robot-profile", help="the robot's side measured on the robot "
+                         "(--robot-side): its stage times and payloads replace those of "
+                         "the profile planned with")
     planner.add_argument("--bandwidth-mbps", type=float,
                          help="link bandwidth (default from config: 10)")
     planner.add_argument("--latency-ms", type=float, help="one-way link latency")

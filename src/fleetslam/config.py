@@ -679,7 +679,8 @@ class PlacementConfig:
     # A worker's name in the liveliness tokens; empty: w-<host>-<pid>.
     worker_id: Annotated[str, WORKER_ID] = ""
     # Bids are compared this long after a worker bids (longer than the routers' round
-    # trip, so every worker sees the same bids).
+    # trip, so every worker sees the same bids). With etcd: a worker ranked after another
+    # for a new robot takes it once this long per worker before it passed with no grant.
     settle_s: Annotated[float, above(0.0)] = 0.3
     # A liveliness query of the routers gives up after this long.
     query_timeout_s: Annotated[float, above(0.0)] = 2.0
@@ -692,9 +693,8 @@ class PlacementConfig:
     load_window_s: Annotated[float, above(0.0)] = 5.0
     # A robot heard from within this many seconds is at work: its worker's load counts it.
     active_s: Annotated[float, above(0.0)] = 2.0
-    # What a robot counts until its cost is measured (cores): one granted within its worker's
-    # measuring window (load_window_s), or at work on a worker that has not had robots at
-    # work for a while.
+    # What a robot counts until its cost is measured (cores): one granted since its worker's
+    # last load report, or at work on a worker that has not had robots at work for a while.
     robot_cost_cores: Annotated[float, above(0.0)] = 0.4
     # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides which
     # worker owns which robot and the merger, with fencing (cloud/coordination/fenced_placement.py)

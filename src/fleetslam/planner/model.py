@@ -66,9 +66,12 @@ def offloading_ratios(profile: Profile) -> np.ndarray:
 
 
 def robot_stage_ms(profile: Profile, cfg: PlannerConfig) -> np.ndarray:
-    if profile.robot_stage_ms is not None:
-        return np.asarray(profile.robot_stage_ms, float)
-    return np.asarray(profile.stage_ms, float) * cfg.u_cloud_gps / cfg.u_local_gps
+    scaled = np.asarray(profile.stage_ms, float) * cfg.u_cloud_gps / cfg.u_local_gps
+    if profile.robot_stage_ms is None:
+        return scaled
+    # A stage the robot did not measure (None: beyond its front end) is scaled from the host's.
+    return np.array([s if m is None else m for m, s in zip(profile.robot_stage_ms, scaled)],
+                    float)
 
 
 def computation_g(profile: Profile, cfg: PlannerConfig) -> float:

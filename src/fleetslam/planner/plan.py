@@ -91,7 +91,14 @@ def report(result: dict[str, Any], cfg: PlannerConfig) -> str:
                             "latency ms", "fps"], rows))
 
 
-def write_plan(result: dict[str, Any], out_dir: Path) -> list[Path]:
+def write_plan(result: dict[str, Any], out_dir: Path) -> tuple[list[Path], str]:
+    """plan.json and the plots: (the files written, why the plots were not: "" if they
+    were). The plots need matplotlib, of the cloud extra; the plan does not."""
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "plan.json").write_text(json.dumps(result, indent=2))
-    return [out_dir / "plan.json", *write_plots(result, out_dir)]
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as exc:
+        return [out_dir / "plan.json"], (f"plots not drawn: they need matplotlib "
+                                         f"(pip install 'fleetslam[cloud]'; {exc})")
+    return [out_dir / "plan.json", *write_plots(result, out_dir)], ""

@@ -75,14 +75,19 @@ class KeyValue:
 
 # -- the pieces of a transaction (etcd's Compare and RequestOp, as the gateway spells them) --
 
-def compare(key: bytes | str, target: str, value: int | bytes, result: str = "EQUAL"
-            ) -> dict[str, Any]:
+def compare(key: bytes | str, target: str, value: int | bytes, result: str = "EQUAL",
+            range_end: bytes | None = None) -> dict[str, Any]:
     """``target``: VERSION, CREATE, MOD, VALUE or LEASE; ``result``: EQUAL, GREATER, LESS,
-    NOT_EQUAL. A missing key has version, create and mod revision and lease 0."""
+    NOT_EQUAL. A missing key has version, create and mod revision and lease 0.
+    ``range_end``: every key of [key, range_end) must pass (an empty range passes as a
+    missing key)."""
     field = {"VERSION": "version", "CREATE": "create_revision", "MOD": "mod_revision",
              "LEASE": "lease", "VALUE": "value"}[target]
     operand = b64(value) if target == "VALUE" else str(value)
-    return {"key": b64(key), "target": target, "result": result, field: operand}
+    request = {"key": b64(key), "target": target, "result": result, field: operand}
+    if range_end is not None:
+        request["range_end"] = b64(range_end)
+    return request
 
 
 def put_op(key: bytes | str, value: bytes | str, lease: int = 0) -> dict[str, Any]:
@@ -295,9 +300,14 @@ class EtcdClient:
         return KeyValue.from_json(kvs[0]) if kvs else None
 
     def get_prefix(self, prefix: bytes | str) -> list[KeyValue]:
+        return self.get_prefix_at(prefix)[0]
+
+    def get_prefix_at(self, prefix: bytes | str) -> tuple[list[KeyValue], int]:
+        """Every key under ``prefix`` and the revision they were read at (a snapshot)."""
         raw = prefix.encode() if isinstance(prefix, str) else prefix
         answer = self.call("kv/range", {"key": b64(raw), "range_end": b64(prefix_end(raw))})
-        return [KeyValue.from_json(kv) for kv in answer.get("kvs", [])]
+        return ([KeyValue.from_json(kv) for kv in answer.get("kvs", [])],
+                int(answer["header"]["revision"]))
 
     def delete(self, key: bytes | str) -> int:
         """How many keys were deleted."""

@@ -12,10 +12,17 @@ with two owners:
   (fenced_store.py) refuses any write of the old epoch that was still under way.
 - A claim is one transaction (the first asker wins). Every worker ranks the live workers
   for a new robot by their measured load (worker_load.py: cores busy, plus the robots
-  granted since each measured) and asks only after ``settle_s`` per worker ranked before
-  it, so the least loaded asks first and the others find the robot served. Robots that
-  arrive together are ranked one at a time as grants land, so they spread; a robot whose
-  owner went (a takeover) is asked for at once.
+  granted since each measured, counted on the owner table read from etcd) and asks at once
+  if it ranks first; one ranked later asks only once ``settle_s`` per worker before it has
+  passed with no grant (the wait starts again at every grant), so the least loaded asks and
+  a slow one is not waited for long. The grant of a new robot is conditioned on the owner
+  table it was ranked on (ownership.py: no grant since that revision), so two workers
+  never both take robots on the same counts: the second decides again on the new table.
+  Robots that arrive together are ranked one at a time as grants land, so they spread (a
+  worker ranked second used to take every robot left once ``settle_s`` had passed since
+  the hellos, the others' grants or not: 16 robots went 4 + 12 when one worker was slow to
+  reach etcd, tests/test_fenced_placement.py); a robot whose owner went (a takeover) is
+  asked for at once.
 - Every worker watches the owner keys: a key gone (its worker's lease expired, a release)
   is a robot to take over if the store has its checkpoint, and the merger's key gone is a
   merger to become. Zenoh liveliness still says which workers are up (the status; the
@@ -34,7 +41,7 @@ import zenoh
 
 from fleetslam.cloud.coordination.coordination_service import CoordinationServiceError
 from fleetslam.cloud.coordination.etcd_gateway import EtcdError, Event, Watch
-from fleetslam.cloud.coordination.ownership import MERGER, Ownership
+from fleetslam.cloud.coordination.ownership import MERGER, Owners, Ownership, StaleCounts
 from fleetslam.cloud.coordination.placement_protocol import Placement, Served
 from fleetslam.cloud.coordination.worker_directory import WorkerDirectory
 from fleetslam.cloud.coordination.worker_load import LoadMeter
@@ -77,6 +84,8 @@ class FencedPlacement(Placement):
         self._takeovers: set[str] = set()
         # robot -> (epoch, since): its owner in etcd is a worker nobody hears (below).
         self._unheard: dict[str, tuple[int, float]] = {}
+        # ((newest grant's revision, grants), when first seen so) of the owner table.
+        self._table_seen: tuple[tuple[int, int], float] = ((0, 0), time.monotonic())
 
     # -- lifecycle ------------------------------------------------------------------------
 
@@ -277,66 +286,135 @@ class FencedPlacement(Placement):
                 if robot is None:
                     return
                 asked.setdefault(robot, time.monotonic())
-            # Ranked one robot at a time, oldest first: each grant changes the next ranking.
-            for robot, since in sorted(asked.items(), key=lambda item: item[1]):
-                if self._closed.is_set():
-                    return
-                if robot != MERGER and self.owner(robot):
-                    del asked[robot]
-                    self._done(robot)
-                elif self._my_turn(robot, since):
-                    del asked[robot]
-                    self._elect(robot)
+            if asked:
+                self._place(asked)
 
-    def _my_turn(self, robot: str, since: float) -> bool:
-        """Whether this worker asks for ``robot`` now: the merger and a takeover at once, a
-        new robot after ``settle_s`` per live worker ranked before this one (the ranking is
-        taken again each time: grants and load reports change it)."""
-        with self._lock:
-            takeover = robot in self._takeovers
-        if robot == MERGER or takeover:
+    def _place(self, asked: dict[str, float]) -> None:
+        """Decide on the robots asked for, one at a time, oldest first (each grant changes
+        the next ranking): the merger and a takeover at once, a new robot by the owner
+        table as etcd has it now and the workers' measured loads. A grant finding the table
+        changed since it was read (another worker's grant) is decided again on a new one."""
+        table: Owners | None = None
+        for robot, since in sorted(asked.items(), key=lambda item: item[1]):
+            if self._closed.is_set():
+                return
+            if robot != MERGER and self.owner(robot):
+                del asked[robot]
+                self._done(robot)
+                continue
+            with self._lock:
+                takeover = robot in self._takeovers
+            if robot == MERGER or takeover:
+                del asked[robot]
+                self._elect(robot)
+                continue
+            for _ in range(self.cfg.max_rounds):
+                if table is None and (table := self._read_owners()) is None:
+                    return  # etcd does not answer: asked again at the next round
+                holder = table.workers.get(robot)
+                if holder is not None and self.directory.hears(holder):
+                    del asked[robot]  # granted meanwhile; the watch brings it to owner()
+                    self._done(robot)
+                    break
+                if not self._my_turn(robot, since, table):
+                    break
+                try:
+                    epoch = self._elect(robot, table.revision)
+                except StaleCounts:
+                    table = None  # read again and decide again
+                    continue
+                del asked[robot]
+                if epoch is not None:  # the table as it is now: this grant is its newest
+                    table = Owners(epoch, {**table.workers, robot: self.worker_id}, epoch)
+                    self._note_table(table)
+                break
+
+    def _read_owners(self) -> Owners | None:
+        """The owner table from etcd now (None, said, if etcd does not answer)."""
+        try:
+            table = self.ownership.owners()
+        except EtcdError as exc:
+            log.warning("robots waiting for a worker: etcd's owner table not read (%s); "
+                        "again in %g s", exc, self.cfg.settle_s / 4)
+            return None
+        self._note_table(table)
+        return table
+
+    def _note_table(self, table: Owners) -> None:
+        """When the owner table last changed by a grant (a worker ranked later waits from
+        then: it takes a robot only if those ranked before it let ``settle_s`` pass)."""
+        signature = (table.latest, len(table.workers))
+        if signature != self._table_seen[0]:
+            self._table_seen = (signature, time.monotonic())
+
+    def _my_turn(self, robot: str, since: float, table: Owners) -> bool:
+        """Whether this worker asks for the new robot ``robot`` now: at once if it ranks
+        first on ``table``'s grants and the measured loads, else after ``settle_s`` per live
+        worker ranked before it with no grant in between (each grant starts the wait
+        again: a worker ranked later takes robots only from a worker too slow to ask)."""
+        scores = self._scores_on(table)
+        place = self.directory.loads.ranking(robot, scores).index(self.worker_id)
+        if place == 0:
             return True
-        order = self.directory.loads.ranking(robot, self.load_scores(self.live_workers()))
-        return time.monotonic() - since >= self.cfg.settle_s * order.index(self.worker_id)
+        quiet = time.monotonic() - max(since, self._table_seen[1])
+        return quiet >= self.cfg.settle_s * place
+
+    def _scores_on(self, table: Owners) -> dict[str, float]:
+        """Each live worker's measured load plus its robots granted since it measured, as
+        ``table`` counts them."""
+        return self.directory.load_scores(self.live_workers(), table.counts())
 
     def _done(self, robot: str) -> None:
         with self._lock:
             self._electing.discard(robot)
             self._takeovers.discard(robot)
 
-    def _elect(self, robot: str) -> None:
+    def _elect(self, robot: str, basis: int | None = None) -> int | None:
+        """Ask etcd for ``robot``; ``basis``: the owner table's revision the decision was taken
+        on (a new robot). The epoch won, or None (another worker owns it; etcd not asked;
+        done either way). StaleCounts: the table changed since ``basis``, decide again."""
+        settled = True
         try:
-            _, served = self.directory.started()
-            for attempt in range(self.cfg.max_rounds):
-                with self._lock:
-                    held = self._owners.get(robot)
-                    unheard = held is not None and self._owner_unheard(robot, held)
-                if self._closed.is_set() or (robot != MERGER and held and not unheard):
-                    return
-                try:
-                    if unheard:
-                        self.ownership.evict(robot, held[1], f"its owner {held[0]!r} is a "
-                                             f"worker nobody hears: taken over")
-                    epoch = self.ownership.grant(robot)
-                except EtcdError as exc:
-                    log.warning("robot %s: etcd not asked (%s); again in %g s (round %d)",
-                                robot, exc, self.cfg.settle_s, attempt + 1)
-                    self._closed.wait(self.cfg.settle_s)
-                    continue
-                if epoch is None:
-                    self.directory.count("lost")
-                    return
-                if robot == MERGER:
-                    log.info("worker %s merges (epoch %d)", self.worker_id, epoch)
-                    return
-                self.directory.count("won")
-                log.info("worker %s serves robot %s (epoch %d)", self.worker_id, robot, epoch)
-                served.take(robot)
-                return
+            return self._ask(robot, basis)
+        except StaleCounts:
+            settled = False
+            raise
         except Exception:
             log.exception("robot %s: claim failed", robot)
+            return None
         finally:
-            self._done(robot)
+            if settled:
+                self._done(robot)
+
+    def _ask(self, robot: str, basis: int | None) -> int | None:
+        _, served = self.directory.started()
+        for attempt in range(self.cfg.max_rounds):
+            with self._lock:
+                held = self._owners.get(robot)
+                unheard = held is not None and self._owner_unheard(robot, held)
+            if self._closed.is_set() or (robot != MERGER and held and not unheard):
+                return None
+            try:
+                if unheard:
+                    self.ownership.evict(robot, held[1], f"its owner {held[0]!r} is a "
+                                         f"worker nobody hears: taken over")
+                epoch = self.ownership.grant(robot, basis=basis)
+            except EtcdError as exc:
+                log.warning("robot %s: etcd not asked (%s); again in %g s (round %d)",
+                            robot, exc, self.cfg.settle_s, attempt + 1)
+                self._closed.wait(self.cfg.settle_s)
+                continue
+            if epoch is None:
+                self.directory.count("lost")
+                return None
+            if robot == MERGER:
+                log.info("worker %s merges (epoch %d)", self.worker_id, epoch)
+                return epoch
+            self.directory.count("won")
+            log.info("worker %s serves robot %s (epoch %d)", self.worker_id, robot, epoch)
+            served.take(robot)
+            return epoch
+        return None
 
 
 def wait_for_etcd(ownership: Ownership, deadline_s: float) -> None:

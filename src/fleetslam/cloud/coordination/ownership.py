@@ -5,7 +5,10 @@ Each worker holds one etcd lease of ``placement.lease_s`` seconds, renewed by a 
 key ``<prefix>owner/<robot>`` = worker id, attached to that lease:
 
 - ``grant(robot)`` is one transaction: it succeeds only if the robot has no owner key (a dead
-  worker's key went with its lease), and writes the key. Its **epoch** (the fencing token) is
+  worker's key went with its lease), and writes the key. A new robot's grant also names the
+  revision of the owner table it was decided on (``owners()``, ``basis``): it fails
+  (``StaleCounts``) if any grant was written since, so no worker takes a robot on counts that
+  another's grant has made stale. Its **epoch** (the fencing token) is
   the key's create revision: etcd's revisions only grow, so every later grant of the robot,
   by any worker, has a larger epoch. Writes that matter (``fenced_store.py``) are
   transactions conditioned on the owner key still having this epoch and this lease.
@@ -31,7 +34,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from fleetslam.cloud.coordination.etcd_gateway import (EtcdClient, EtcdError, compare, delete_op,
-                                                       put_op, range_op)
+                                                       prefix_end, put_op, range_op)
 from fleetslam.cloud.coordination.lease_keeper import LeaseKeeper
 from fleetslam.config import PlacementConfig
 
@@ -76,6 +79,29 @@ class Owner:
     worker: str
     epoch: int
     lease: int
+
+
+@dataclass(frozen=True)
+class Owners:
+    """The owner table as etcd held it at one revision: each granted robot's worker (the
+    merger under MERGER; keys without a lease are no grants and left out)."""
+
+    revision: int
+    workers: dict[str, str]
+    # The newest grant's revision (0: none): it changes with every grant, not with a release.
+    latest: int
+
+    def counts(self) -> dict[str, int]:
+        """Robots granted to each worker (the merger not counted)."""
+        out: dict[str, int] = {}
+        for robot, worker in self.workers.items():
+            if robot != MERGER:
+                out[worker] = out.get(worker, 0) + 1
+        return out
+
+
+class StaleCounts(Exception):
+    """A grant decided on an owner table that another grant has changed since."""
 
 
 class Ownership:
@@ -186,9 +212,20 @@ class Ownership:
         kv = self.client.get(self.keys.owner(robot))
         return None if kv is None else Owner(kv.value.decode(), kv.create_revision, kv.lease)
 
-    def grant(self, robot: str, retry: bool = True) -> int | None:
+    def owners(self) -> Owners:
+        """The owner table now, read from etcd in one request (EtcdError if it cannot be)."""
+        prefix = self.keys.owner("")
+        kvs, revision = self.client.get_prefix_at(prefix)
+        granted = [kv for kv in kvs if kv.lease != 0]
+        return Owners(revision, {kv.key.decode()[len(prefix):]: kv.value.decode()
+                                 for kv in granted},
+                      max((kv.mod_revision for kv in granted), default=0))
+
+    def grant(self, robot: str, retry: bool = True, basis: int | None = None) -> int | None:
         """Own ``robot``: its new epoch, or None if another worker (or this one, under an
-        older lease) owns it or this worker is fenced. EtcdError if etcd cannot be asked."""
+        older lease) owns it or this worker is fenced. ``basis``: the revision of the owner
+        table the grant was decided on (``owners()``); StaleCounts if a grant was written
+        since. EtcdError if etcd cannot be asked."""
         with self._lock:
             lease = self._serving_lease()
             if not lease:
@@ -196,8 +233,14 @@ class Ownership:
             if robot in self._mine:
                 return self._mine[robot]
         key = self.keys.owner(robot)
+        compares = [compare(key, "CREATE", 0)]
+        if basis is not None:
+            # No owner key written after the table was read: etcd orders the grants, and
+            # of two decided on the same counts only the first is written.
+            prefix = self.keys.owner("").encode()
+            compares.append(compare(prefix, "MOD", basis + 1, "LESS", prefix_end(prefix)))
         try:
-            result = self.client.txn([compare(key, "CREATE", 0)],
+            result = self.client.txn(compares,
                                      [put_op(key, self.worker_id, lease), range_op(key)],
                                      [range_op(key)])
         except EtcdError as exc:
@@ -216,7 +259,10 @@ class Ownership:
                           "refused and deleted", robot, held[0].value.decode(errors="replace"))
                 self.client.txn([compare(key, "CREATE", held[0].create_revision),
                                  compare(key, "LEASE", 0)], [delete_op(key)])
-                return self.grant(robot, retry=False)
+                return self.grant(robot, retry=False, basis=basis)
+            if not held and basis is not None:
+                raise StaleCounts(f"robot {robot}: the owner table changed after revision "
+                                  f"{basis}")
             if not held or held[0].lease != lease:
                 if held:
                     log.debug("robot %s: owned by %s (epoch %d)", robot,

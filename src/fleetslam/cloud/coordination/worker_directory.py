@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter
-from typing import Any, Protocol
+from typing import Any, Mapping, Protocol
 
 import zenoh
 
@@ -98,9 +98,14 @@ class WorkerDirectory:
         with self._lock:
             return dict(self._elections)
 
-    def load_scores(self, workers: list[str]) -> dict[str, float]:
+    def load_scores(self, workers: list[str], owned: Mapping[str, int] | None = None
+                    ) -> dict[str, float]:
         """Cores each of ``workers`` has busy as measured, plus the robots granted to it
-        since (as the owner table says, read once; this worker's own as it holds them)."""
-        owned = Counter(self._placement.table().values())
-        owned[self.worker_id] = max(owned[self.worker_id], self._placement.held())
-        return {w: self.loads.score(w, owned[w]) for w in workers}
+        since: ``owned``, robots granted to each worker (as the coordination service had
+        them at one revision), or as the owner table says, read once (this worker's own as
+        it holds them)."""
+        if owned is None:
+            counted = Counter(self._placement.table().values())
+            counted[self.worker_id] = max(counted[self.worker_id], self._placement.held())
+            owned = counted
+        return {w: self.loads.score(w, owned.get(w, 0)) for w in workers}

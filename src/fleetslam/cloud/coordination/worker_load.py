@@ -6,10 +6,14 @@ keeps the others'; placement ranks the workers for a new robot by it, so robots 
 measured cost, not by count (the merging worker, a robot tracking itself at point 6, a robot
 gone quiet: each weighs what it costs).
 
-A robot granted within the window is not (all) in the measurement yet: it counts
-``placement.robot_cost_cores`` until the worker has held it through a whole window (robots
-arriving together would all go to the worker that measured least otherwise; counted only
-until the next report, 0.5 s, they did so whenever a report fell between two grants).
+A report counts every robot its worker held when it measured (the meter weighs a robot at
+work at ``placement.robot_cost_cores`` until its frames show in the average, then at its
+measured share; one gone quiet weighs nothing). A robot granted since the worker's last report
+is in no measurement: it counts ``placement.robot_cost_cores`` until the next report, so a
+robot weighs the same before and after the report that first counts it. (Reports that left
+robots out until held a whole window, 5 s, while the meter already counted them, weighed a
+robot twice once its worker reported and once before: the worker that had reported looked
+busier, and robots arriving together went to the other.)
 """
 
 from __future__ import annotations
@@ -21,7 +25,6 @@ import math
 import os
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -127,8 +130,8 @@ class CpuMeter:
 @dataclass(frozen=True)
 class LoadReport:
     busy: float  # cores
-    # Robots the worker held through the whole measuring window (their cost is in ``busy``;
-    # one granted since counts at placement.robot_cost_cores until it has been measured).
+    # Robots the worker held when it measured (their cost is in ``busy``; one granted since
+    # counts at placement.robot_cost_cores until the next report).
     owned: int
 
 
@@ -170,7 +173,6 @@ class WorkerLoads:
         self._lock = threading.Lock()
         self.reports: dict[str, LoadReport] = {}
         self._rejected: set[str] = set()  # workers whose bad report was logged
-        self._held: deque[tuple[float, int]] = deque()  # (when, robots held) over the window
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._run, name="worker-load", daemon=True)
         self._subscriber: Any = None
@@ -189,13 +191,10 @@ class WorkerLoads:
 
     def report(self) -> LoadReport:
         """Measure this worker now, keep it as its own report and publish it."""
-        now = time.monotonic()
-        with self._lock:
-            self._held.append((now, int(self._holdings.held())))
-            while self._held[0][0] < now - self.cfg.load_window_s:
-                self._held.popleft()
-            measured = min(n for _, n in self._held)
-        mine = LoadReport(round(float(self._meter.busy()), 3), measured)
+        # The robots held first: one granted between the two reads is in the meter (at its
+        # cost) and counted again until the next report, never left out.
+        held = int(self._holdings.held())
+        mine = LoadReport(round(float(self._meter.busy()), 3), held)
         with self._lock:
             self.reports[self.worker_id] = mine
         if self.z is not None:  # started
