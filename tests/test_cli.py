@@ -2,7 +2,7 @@
 
 def test_a_fleetslam_process_runs_one_blas_thread_unless_told_otherwise():
     """OpenBLAS's threads for small products wait on each other where robot and cloud share
-    cores (docs/decisions.md [process]): the package sets one before numpy is imported,
+    cores (docs/benchmarks.md): the package sets one before numpy is imported,
     and keeps a value the environment gives."""
     import os
     import subprocess
