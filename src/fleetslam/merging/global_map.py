@@ -284,18 +284,17 @@ def _fleet_frame(scans: list[tuple[np.ndarray, np.ndarray]], poses: np.ndarray,
                                                         @ T_graph_map).tolist()}
 
 
-def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, Any]:
-    """The merge as summary.json records it (the same schema in and out of the cloud)."""
-    status = merger.status()
-    placed = global_map.keyframe_poses if global_map is not None else {}
+def _constraint_entries(merger: MapMerger, placed: dict[str, np.ndarray]
+                        ) -> list[dict[str, Any]]:
+    """Each inter-robot constraint as summary.json has it; its keyframes' camera centres in
+    the global frame where they are members of the global map (``placed``)."""
 
     def position(robot: str, keyframe: int) -> list[float] | None:
-        """A keyframe's camera centre in the global frame (members of the global map)."""
         poses = placed.get(robot)
         return poses[keyframe][:3, 3].tolist() if poses is not None and \
             keyframe < len(poses) else None
 
-    constraints = [{
+    return [{
         "query_robot": c.match.query.robot, "query_frame": c.match.query.frame_index,
         "place_robot": c.match.place.robot, "place_frame": c.match.place.frame_index,
         "inliers": c.match.inliers, "ransac_inliers": c.match.ransac_inliers,
@@ -311,6 +310,13 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
         "query_position": position(c.match.query.robot, c.match.query.keyframe),
         "place_position": position(c.match.place.robot, c.match.place.keyframe),
     } for c in merger.constraints]
+
+
+def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, Any]:
+    """The merge as summary.json records it (the same schema in and out of the cloud)."""
+    status = merger.status()
+    placed = global_map.keyframe_poses if global_map is not None else {}
+    constraints = _constraint_entries(merger, placed)
 
     def ms(values: list[float], q: float = 50.0) -> float | None:
         return 1000.0 * float(np.percentile(values, q)) if values else None
