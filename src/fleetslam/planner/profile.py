@@ -80,10 +80,7 @@ class Profile:
             profile = Profile(**data)
         except TypeError as exc:
             raise ValueError(f"{path}: not a profile: {exc}") from exc
-        n = len(profile.stages)
-        if len(profile.stage_ms) != n or len(profile.frame_bytes) != n + 1:
-            raise ValueError(f"{path}: {n} stages need {n} stage times and {n + 1} payloads")
-        return profile
+        return _lengths_checked(path, profile)
 
     def with_robot_side(self, robot: "RobotSideProfile") -> "Profile":
         """This profile (measured where the cloud runs) with the robot's own measurement:
@@ -135,10 +132,15 @@ class RobotSideProfile:
             profile = RobotSideProfile(**data)
         except TypeError as exc:
             raise ValueError(f"{path}: not the robot's side of a profile: {exc}") from exc
-        n = len(profile.stages)
-        if len(profile.stage_ms) != n or len(profile.frame_bytes) != n + 1:
-            raise ValueError(f"{path}: {n} stages need {n} stage times and {n + 1} payloads")
-        return profile
+        return _lengths_checked(path, profile)
+
+
+def _lengths_checked(path: Path, profile: Any) -> Any:
+    """``profile`` (read from ``path``) if it has a time per stage and a payload per point."""
+    n = len(profile.stages)
+    if len(profile.stage_ms) != n or len(profile.frame_bytes) != n + 1:
+        raise ValueError(f"{path}: {n} stages need {n} stage times and {n + 1} payloads")
+    return profile
 
 
 def _read(path: Path) -> dict[str, Any]:

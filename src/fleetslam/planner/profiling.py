@@ -6,7 +6,6 @@ back-end, so it needs the cloud's libraries; a robot can plan from a saved profi
 from __future__ import annotations
 
 import platform
-import time
 from typing import Any, Callable
 
 import numpy as np
@@ -16,6 +15,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.planner.profile import Profile
+from fleetslam.planner.robot_profiling import run_timed
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 
@@ -37,12 +37,8 @@ def measure_profile(sequence: RecordedSource, source: str, config: Config, frame
         frame = sequence[i]
         state: Any = CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m)
         sizes[0].append(len(encode_frame_message(state, 0, "profile", i, camera, wire)))
-        for k, stage in enumerate(pipeline.stages):
-            start = time.perf_counter()
-            state = stage(state, pipeline.sides.part(stage.side))
-            stage_s[k].append(time.perf_counter() - start)
-            sizes[k + 1].append(len(encode_frame_message(state, k + 1, "profile", i, camera,
-                                                         wire)))
+        state = run_timed(pipeline.stages, pipeline.sides, state, stage_s, sizes, camera,
+                          wire, i)
         keypoints.append(len(state.posed.matched.features.keypoints))
         if state.is_keyframe:
             upload = KeyframeUpload.from_frame(frame.index, frame.timestamp, frame.rgb,

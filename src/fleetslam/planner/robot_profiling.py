@@ -14,7 +14,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fleetslam.config import Config
+from fleetslam.camera import Camera
+from fleetslam.config import Config, WireConfig
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.pipeline.front_end import FrontEndState, front_end_stages
 from fleetslam.pipeline.split import Sides
@@ -22,6 +23,19 @@ from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.planner.profile import RobotSideProfile
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
+
+
+def run_timed(stages: list, sides: Sides, state: Any, stage_s: list[list[float]],
+              sizes: list[list[int]], camera: Camera, wire: WireConfig, index: int) -> Any:
+    """Frame ``index`` through ``stages``: each stage's seconds appended to ``stage_s[k]``,
+    and the state after it, encoded as the wire would, to ``sizes[k + 1]``; the last state."""
+    for k, stage in enumerate(stages):
+        start = time.perf_counter()
+        state = stage(state, sides.part(stage.side))
+        stage_s[k].append(time.perf_counter() - start)
+        sizes[k + 1].append(len(encode_frame_message(state, k + 1, "profile", index, camera,
+                                                     wire)))
+    return state
 
 
 def measure_robot_side(sequence: RecordedSource, source: str, config: Config, frames: int,
@@ -42,12 +56,7 @@ def measure_robot_side(sequence: RecordedSource, source: str, config: Config, fr
         frame = sequence[i]
         state: Any = CapturedFrame(frame.index, frame.timestamp, frame.rgb, frame.depth_m)
         sizes[0].append(len(encode_frame_message(state, 0, "profile", i, camera, wire)))
-        for k, stage in enumerate(stages):
-            start = time.perf_counter()
-            state = stage(state, sides.part(stage.side))
-            stage_s[k].append(time.perf_counter() - start)
-            sizes[k + 1].append(len(encode_frame_message(state, k + 1, "profile", i, camera,
-                                                         wire)))
+        state = run_timed(stages, sides, state, stage_s, sizes, camera, wire, i)
         keypoints.append(len(state.keypoints))
         # Which frames become keyframes is the back-end's to say; an upload is coded the
         # same whichever frame it is, so every frame's counts.
