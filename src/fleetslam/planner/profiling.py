@@ -15,7 +15,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.source import RecordedSource
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.planner.profile import Profile
-from fleetslam.planner.robot_profiling import run_timed
+from fleetslam.planner.robot_profiling import run_timed, timed_summary
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 
@@ -46,13 +46,9 @@ def measure_profile(sequence: RecordedSource, source: str, config: Config, frame
             keyframe_sizes.append(len(encode_keyframe("profile", i, upload, wire)))
         if progress is not None:
             progress(i + 1)
-    # The first frame only builds the map: its times say nothing of tracking.
-    times = [np.array(s[1:]) * 1000 for s in stage_s]
     return Profile(
         source=source, label="measured", frames=n, stages=pipeline.stage_names,
-        stage_ms=[float(np.median(t)) for t in times],
-        stage_ms_p95=[float(np.percentile(t, 95)) for t in times],
-        frame_bytes=[float(np.mean(s)) for s in sizes],
+        **timed_summary(stage_s, sizes),
         keyframe_bytes=float(np.mean(keyframe_sizes)) if keyframe_sizes else 0.0,
         keyframe_fraction=len(keyframe_sizes) / n, keypoints_mean=float(np.mean(keypoints)),
         host=f"{platform.machine()} {platform.processor() or ''}".strip())

@@ -38,6 +38,15 @@ def run_timed(stages: list, sides: Sides, state: Any, stage_s: list[list[float]]
     return state
 
 
+def timed_summary(stage_s: list[list[float]], sizes: list[list[int]]) -> dict[str, list[float]]:
+    """Each stage's median and p95 ms and each point's mean bytes, as a profile has them;
+    the first frame's times are left out (it warms OpenCV up and only builds the map)."""
+    times = [np.array(s[1:]) * 1000 for s in stage_s]
+    return {"stage_ms": [float(np.median(t)) for t in times],
+            "stage_ms_p95": [float(np.percentile(t, 95)) for t in times],
+            "frame_bytes": [float(np.mean(s)) for s in sizes]}
+
+
 def measure_robot_side(sequence: RecordedSource, source: str, config: Config, frames: int,
                        progress: Callable[[int], None] | None = None) -> RobotSideProfile:
     """Run the robot's stages on the first ``frames`` frames, timing each, and encode the
@@ -65,12 +74,8 @@ def measure_robot_side(sequence: RecordedSource, source: str, config: Config, fr
         upload_sizes.append(len(encode_keyframe("profile", i, upload, wire)))
         if progress is not None:
             progress(i + 1)
-    # The first frame warms OpenCV up: its times say little of the rest.
-    times = [np.array(s[1:]) * 1000 for s in stage_s]
     return RobotSideProfile(
         source=source, frames=n, stages=[stage.name for stage in stages],
-        stage_ms=[float(np.median(t)) for t in times],
-        stage_ms_p95=[float(np.percentile(t, 95)) for t in times],
-        frame_bytes=[float(np.mean(s)) for s in sizes],
-        keyframe_bytes=float(np.mean(upload_sizes)), keypoints_mean=float(np.mean(keypoints)),
+        **timed_summary(stage_s, sizes), keyframe_bytes=float(np.mean(upload_sizes)),
+        keypoints_mean=float(np.mean(keypoints)),
         host=f"{platform.machine()} {platform.processor() or ''}".strip())
