@@ -308,8 +308,10 @@ class MapMerger:
 
     def refine_constraints(self, cloud_of: KeyframeCloud) -> int:
         """Refine every constraint not refined yet whose two keyframes' depth clouds are at
-        hand (merging/dense_constraint.py); how many were tried. A refused refinement
-        leaves the feature edge as it was, and GNC still judges every untrusted edge."""
+        hand (merging/dense_constraint.py), then add the depth edges between joined robots'
+        keyframes the refined graph puts near each other (merging/proximity.py; off with
+        dense_refine too); how many registrations were tried. A refused refinement leaves
+        the feature edge as it was, and GNC still judges every untrusted edge."""
         if not self.config.merge.dense_refine:
             return 0
         tried = 0
