@@ -80,21 +80,33 @@ def collect(folder: Path):
     return camera, pairs
 
 
+def colour_camera(camera, f: float):
+    """The colour camera of focal ``f`` whose depth image is the shipped (depth) camera's."""
+    return replace(camera, fx=f, fy=f,
+                   depth_intrinsics=(camera.fx, camera.fy, camera.cx, camera.cy))
+
+
+def first_frame_points(colour, p: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The matches' points in frame a's camera (N x 3) and their depths (0: none), each
+    depth read where the colour ray meets the depth image (Camera.depth_pixels)."""
+    at = np.rint(colour.depth_pixels(p["pa"], p["pa"])).astype(int)
+    h, w = p["depth"].shape
+    inside = (at[:, 0] >= 0) & (at[:, 0] < w) & (at[:, 1] >= 0) & (at[:, 1] < h)
+    z = np.zeros(len(at))
+    z[inside] = p["depth"][at[inside, 1], at[inside, 0]]
+    return colour.backproject(p["pa"], z), z
+
+
 def residuals(f: float, camera, pairs, reference: str) -> np.ndarray:
     """Per match: how far frame a's point lands from its match in colour image b (pixels),
     the colour camera's focal length ``f`` (its principal point the shipped one), through
     the ``reference`` relative pose; 0 where a point has no depth."""
     out = []
+    colour = colour_camera(camera, f)
     for p in pairs:
-        pa, T = p["pa"], p[reference]
-        ray = np.stack([(pa[:, 0] - camera.cx) / f, (pa[:, 1] - camera.cy) / f,
-                        np.ones(len(pa))], 1)
-        u = np.rint(camera.fx * ray[:, 0] + camera.cx).astype(int)
-        v = np.rint(camera.fy * ray[:, 1] + camera.cy).astype(int)
-        inside = (u >= 0) & (u < p["depth"].shape[1]) & (v >= 0) & (v < p["depth"].shape[0])
-        z = np.zeros(len(pa))
-        z[inside] = p["depth"][v[inside], u[inside]]
-        X = (ray * z[:, None]) @ T[:3, :3].T + T[:3, 3]
+        T = p[reference]
+        X, z = first_frame_points(colour, p)
+        X = X @ T[:3, :3].T + T[:3, 3]
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.hypot(f * X[:, 0] / X[:, 2] + camera.cx - p["pb"][:, 0],
                          f * X[:, 1] / X[:, 2] + camera.cy - p["pb"][:, 1])
@@ -118,16 +130,11 @@ def pnp_rotation_scale(f: float, camera, pairs) -> list[float]:
     """Per axis (x, y, z), PnP rotations against ground truth: sum(est * true) / sum(true^2)."""
     est, true = [], []
     K = np.array([[f, 0, camera.cx], [0, f, camera.cy], [0, 0, 1.0]])
+    colour = colour_camera(camera, f)
     for p in pairs:
-        ray = np.stack([(p["pa"][:, 0] - camera.cx) / f, (p["pa"][:, 1] - camera.cy) / f,
-                        np.ones(len(p["pa"]))], 1)
-        u = np.rint(camera.fx * ray[:, 0] + camera.cx).astype(int)
-        v = np.rint(camera.fy * ray[:, 1] + camera.cy).astype(int)
-        inside = (u >= 0) & (u < p["depth"].shape[1]) & (v >= 0) & (v < p["depth"].shape[0])
-        z = np.zeros(len(ray))
-        z[inside] = p["depth"][v[inside], u[inside]]
+        X, z = first_frame_points(colour, p)
         ok = z > 0
-        found, rvec, _, _ = cv2.solvePnPRansac(ray[ok] * z[ok, None], p["pb"][ok], K, None,
+        found, rvec, _, _ = cv2.solvePnPRansac(X[ok], p["pb"][ok], K, None,
                                                reprojectionError=3.0, iterationsCount=200)
         if found:
             est.append(rvec.ravel())
@@ -137,8 +144,7 @@ def pnp_rotation_scale(f: float, camera, pairs) -> list[float]:
 
 
 def tracking_ate_cm(folder: Path, camera, f: float) -> float:
-    colour = camera if f == camera.fx else replace(
-        camera, fx=f, fy=f, depth_intrinsics=(camera.fx, camera.fy, camera.cx, camera.cy))
+    colour = camera if f == camera.fx else colour_camera(camera, f)
     run = track_robot("rk", str(folder), RgbdSequence(folder, camera=colour), load_config(None),
                       show_progress=False)
     return run_ate(run)["rmse_m"] * 100
