@@ -59,9 +59,8 @@ def prepare(n: int, frames: int) -> list[tuple[list[bytes], dict, Path]]:
     out, made = [], {}
     for i in range(n):
         if i % 2 == 0 or frames > TUM_FRAMES:
-            start = (len(out) // (1 if frames > TUM_FRAMES else 2) * frames) \
-                % max(600 - frames + 1, 1)
-            piece = (SEVEN_SCENES, start, frames)
+            nth = i if frames > TUM_FRAMES else i // 2  # which 7-Scenes robot this is
+            piece = (SEVEN_SCENES, nth * frames % max(600 - frames + 1, 1), frames)
         else:
             piece = (TUM_RPY, 0, frames)
         if piece not in made:
