@@ -340,12 +340,20 @@ class MergeConfig:
     place_index_breadth: Annotated[int, between(8, 1024)] = 64
     # The cloud's merger searches places in a process of its own at this niceness (0-19):
     # the search then takes neither the GIL nor a core from the robots tracking in the same
-    # worker (merging/place_search.py); off: on the merger's thread. A search not answered
-    # within search_timeout_s turns the search in-line for good. Nothing but the merger's
-    # own queue waits for it (status and merges do not: cloud/merge/merger_service.py).
+    # worker (merging/place_search.py); off: on the merger's thread. A process that answers
+    # nothing for search_timeout_s while a search waits turns the search in-line for good.
+    # Nothing but the merger's own queue waits for it (status and merges do not:
+    # cloud/merge/merger_service.py).
     search_process: bool = True
     search_nice: Annotated[int, between(0, 19)] = 10
     search_timeout_s: Annotated[float, above(0.0)] = 60.0
+    # The cloud's merger solves its pose graphs in a process of its own at this niceness
+    # (merging/graph_solver.py): gtsam holds the GIL while it solves, and a fleet's graph
+    # held a worker's robots and its lease's beat for seconds. A solve not answered within
+    # solve_timeout_s is solved in-line (and the next in a fresh process); off: in-line.
+    solve_process: bool = True
+    solve_nice: Annotated[int, between(0, 19)] = 10
+    solve_timeout_s: Annotated[float, above(0.0)] = 300.0
     # A keyframe that waited longer than this for the cloud's merger is indexed at once and
     # its search put off until nothing newer waits (counted): an overloaded merger keeps up
     # with the robots first (local BA's latest-only rule, for the merger).

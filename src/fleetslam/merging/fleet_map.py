@@ -23,6 +23,7 @@ import numpy as np
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.global_map import GlobalMap, RobotTrack, build_global_map, merge_summary
+from fleetslam.merging.graph_solver import GraphSolver
 from fleetslam.merging.merger import MapMerger, Searcher
 from fleetslam.merging.saved_map import LoadedMap, load_into, write_map
 from fleetslam.wire.merger_keyframes import KeyframeSummary
@@ -31,9 +32,10 @@ from fleetslam.wire.merger_keyframes import KeyframeSummary
 class FleetMap:
     """``search``: where places are searched (None: in line; the cloud passes a process)."""
 
-    def __init__(self, config: Config, search: Searcher | None = None) -> None:
+    def __init__(self, config: Config, search: Searcher | None = None,
+                 solver: GraphSolver | None = None) -> None:
         self.config = config
-        self.merger = MapMerger(config, search)
+        self.merger = MapMerger(config, search, solver)
         self.loaded: LoadedMap | None = None  # the saved map this fleet started from
 
     def add_robot(self, name: str, camera: Camera, localising: bool = False) -> None:

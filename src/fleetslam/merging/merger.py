@@ -29,13 +29,14 @@ import numpy as np
 
 from fleetslam.camera import Camera
 from fleetslam.config import Config
+from fleetslam.merging.graph_solver import GraphSolver
 from fleetslam.merging.dense_constraint import DenseCloud, DenseRefinement, prepare, refine
 from fleetslam.merging.constraint import Constraint
 from fleetslam.merging.inter_robot import PlaceMatch
 from fleetslam.merging.place_search import PlaceSearch, Searched, Searcher, pair_key
 from fleetslam.merging.proximity import proximity_constraints
 from fleetslam.wire.merger_keyframes import KeyframeSummary
-from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
+from fleetslam.backend.pose_graph import PoseEdge
 from fleetslam.transforms import invert, transforms_agree
 
 log = logging.getLogger("fleetslam.merge")
@@ -66,9 +67,12 @@ def _node(record: RobotRecord, keyframe: int) -> int:
 
 
 class MapMerger:
-    def __init__(self, config: Config, search: Searcher | None = None) -> None:
+    def __init__(self, config: Config, search: Searcher | None = None,
+                 solver: GraphSolver | None = None) -> None:
         self.config = config
         self.robots: dict[str, RobotRecord] = {}
+        # Where the global pose graph is solved (in-line unless given).
+        self.solver = solver if solver is not None else GraphSolver()
         # The robots' place databases and the search in them (in-line unless given).
         self.search = search if search is not None else PlaceSearch(config)
         # Verified matches not (yet) part of a join, per unordered robot pair.
@@ -425,9 +429,7 @@ class MapMerger:
         # localising only and placed after, the first robot's).
         fixed = [_node(r, k) for r in records if r.name in held for k in range(len(r.poses))] \
             or [_node(self.robots[anchor] if anchor in names else records[0], 0)]
-        result = optimise_pose_graph(values, edges, fixed=fixed,
-                                     sigma_rotation_rad=odometry[0],
-                                     sigma_translation_m=odometry[1])
+        result = self.solver.solve(values, edges, fixed, odometry[0], odometry[1])
         for c, kept in zip(used, result.loop_inliers):
             c.kept = kept
         for r in records:

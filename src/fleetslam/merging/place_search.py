@@ -16,9 +16,12 @@ robots first, and with its backlog once they give it time (measured: 13-30 of rk
 keyframes waited that long with three robots and the cloud on two cores). Both give the
 same matches: a search is a function of the keyframes indexed before it.
 
-If the process dies or leaves a request unanswered beyond ``merge.search_timeout_s``, the
-search goes on in-line from the keyframes kept here, and the log says so: a failed helper
-must not end the merge.
+If the process dies, or answers nothing for ``merge.search_timeout_s`` while a request
+waits, the search goes on in-line from the keyframes kept here, and the log says so: a
+failed helper must not end the merge. Silence, not the oldest request's age, is what counts:
+with 20 robots on two saturated cores the process answered all along, niced, but its
+backlog's oldest request passed 60 s; the search then went in-line, into the very worker
+whose robots it was niced to spare (bench/worker_scaling.py, stop 54).
 
 A search finds only what is indexed when it runs, so a pair of keyframes is compared by the
 one that arrives second, against the other robot's map as it is then. Two things keep
@@ -297,6 +300,7 @@ class PlaceSearchProcess:
         self._late: dict[tuple[str, int], _Request] = {}  # answered, their search put off
         self._inline: PlaceSearch | None = None
         self._closed = False
+        self._answered_at = 0.0  # when the process last answered (monotonic)
 
     @property
     def inline(self) -> bool:
@@ -363,6 +367,7 @@ class PlaceSearchProcess:
             self._answer(answer)
 
     def _answer(self, answer: Any) -> None:
+        self._answered_at = time.monotonic()
         if not self._closed and self._inline is None:
             self._answers.append(answer)
             self._wake()
@@ -392,7 +397,7 @@ class PlaceSearchProcess:
 
     def take_results(self) -> list[Searched]:
         """The searches answered since the last call, in order; a failed process (dead, or
-        a request unanswered beyond timeout_s) turns the search in-line here."""
+        silent for timeout_s while a request waits) turns the search in-line here."""
         out: list[Searched] = []
         while self._answers and self._inline is None:
             answer = self._answers.popleft()
@@ -412,9 +417,9 @@ class PlaceSearchProcess:
                 for query, qk, place, pk, T, score, ransac, n in found], seconds, searched,
                 late))
         if self._requests and self._inline is None and not self._closed:
-            oldest = next(iter(self._requests.values()))
-            if time.monotonic() - oldest.sent > self.timeout_s:
-                self._fail(f"no answer within {self.timeout_s:.0f} s (merge.search_timeout_s)")
+            waiting = max(next(iter(self._requests.values())).sent, self._answered_at)
+            if time.monotonic() - waiting > self.timeout_s:
+                self._fail(f"no answer for {self.timeout_s:.0f} s (merge.search_timeout_s)")
         if self._inline is not None:
             out += self._inline.take_results()
         return out

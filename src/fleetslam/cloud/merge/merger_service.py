@@ -26,6 +26,7 @@ from fleetslam.config import Config
 from fleetslam.mapping.map_frame import live_map_frame
 from fleetslam.merging.fleet_map import FleetMap
 from fleetslam.merging.global_map import largest_group
+from fleetslam.merging.graph_solver import GraphSolver, GraphSolverProcess
 from fleetslam.merging.saved_map import LoadedMap
 from fleetslam.merging.merger import MapMerger
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess
@@ -38,6 +39,9 @@ log = logging.getLogger("fleetslam.merge")
 T = TypeVar("T")
 # How often a drain looks again while searches are still out.
 DRAIN_POLL_S = 0.05
+# At most this share of the time goes to solving the graph for placements (and for the view):
+# a fleet's graph grows with its robots, and placements every second re-solved it all the time.
+SOLVE_SHARE = 0.25
 
 
 # A robot's keyframes as the merger has them in the store: (camera, summaries, poses,
@@ -61,7 +65,9 @@ class MergerService:
         search.start()
         # The fleet's map; its merger taken apart here (a search is asked without holding
         # the lock, its matches taken when they land).
-        self.fleet = FleetMap(config, search)
+        solver = GraphSolverProcess(cfg.solve_nice, cfg.solve_timeout_s) \
+            if cfg.solve_process else GraphSolver()
+        self.fleet = FleetMap(config, search, solver)
         self.merger = self.fleet.merger
         # The loaded map's robots as the global outputs need them (none without a map).
         self.saved_tracks = self.fleet.load(loaded) if loaded is not None else []
@@ -202,7 +208,8 @@ class MergerService:
                 elif kind == "call":
                     payload()
                 self._take_results()
-                if self._view_due and time.monotonic() - self._view_at >= self._view_every_s:
+                if self._view_due and time.monotonic() - self._view_at >= self._every(
+                        self._view_every_s):
                     self.show()
                 self._place()
             except Exception:
@@ -247,6 +254,12 @@ class MergerService:
             out.update({r: invert(T_graph_map) for r in members})
         return out
 
+    def _every(self, every_s: float) -> float:
+        """The least time between two placements (or views): ``every_s``, or longer when
+        solving the graph for one took more than SOLVE_SHARE of it."""
+        solved = self.merger.graph_seconds
+        return max(every_s, solved[-1] / SOLVE_SHARE if solved else 0.0)
+
     def _structure(self) -> tuple[int, tuple[tuple[str, ...], ...]]:
         """What placements depend on: the inter-robot constraints and the groups."""
         m = self.merger
@@ -257,7 +270,8 @@ class MergerService:
         every merge.placement_every_s; every placement again now and then."""
         if self.frames is None:
             return
-        if self._placing_due and time.monotonic() - self._placed_at >= self._placing_every_s:
+        if self._placing_due and time.monotonic() - self._placed_at >= self._every(
+                self._placing_every_s):
             self._placing_due = False
             self._placed_at = time.monotonic()
             self.frames.update(self.placements())
@@ -316,3 +330,4 @@ class MergerService:
         self._queue.put(None)
         self._thread.join(timeout)
         self.merger.search.close()
+        self.merger.solver.close()
