@@ -80,6 +80,16 @@ def tree_rss_mb(pid: int) -> float:
     return total
 
 
+def checkpoint_kb(out: Path) -> float:
+    """The size of the robot's checkpoint as last written (kB; its chunks, written once
+    each, not counted): what every checkpoint write costs at that point of the run."""
+    path = out / "r0" / "session.ckpt"
+    try:
+        return path.stat().st_size / 1000
+    except OSError:
+        return 0.0
+
+
 @contextmanager
 def code_from(src: Path | None) -> Iterator[None]:
     """The processes started meanwhile import fleetslam from ``src`` (None: this code)."""
@@ -125,7 +135,8 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
         start = time.monotonic()
         next_block = block
         samples.append({"frames": 0, "t": 0.0, "cpu_s": tree_cpu_s(cloud.pid),
-                        "rss_mb": tree_rss_mb(cloud.pid), "keyframes": 0})
+                        "rss_mb": tree_rss_mb(cloud.pid), "keyframes": 0,
+                        "checkpoint_kb": checkpoint_kb(out)})
         while robot.poll() is None:
             time.sleep(every_s)
             if time.monotonic() - start > 3 * 3600:
@@ -142,7 +153,8 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
             if done >= next_block or robot.poll() is not None:
                 samples.append({"frames": done, "t": time.monotonic() - start,
                                 "cpu_s": tree_cpu_s(cloud.pid), "rss_mb": tree_rss_mb(cloud.pid),
-                                "keyframes": merger.get("keyframes", 0)})
+                                "keyframes": merger.get("keyframes", 0),
+                                "checkpoint_kb": checkpoint_kb(out)})
                 print(f"  {done} frames at {samples[-1]['t']:.0f} s, cloud RSS "
                       f"{samples[-1]['rss_mb']:.0f} MB", flush=True)
                 while next_block <= done:
@@ -162,7 +174,8 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
         blocks.append({"frames": f"{a['frames']}-{b['frames']}",
                        "wall_ms_per_frame": 1000 * (b["t"] - a["t"]) / n,
                        "cloud_cpu_ms_per_frame": 1000 * (b["cpu_s"] - a["cpu_s"]) / n,
-                       "rss_mb": b["rss_mb"], "keyframes": b["keyframes"]})
+                       "rss_mb": b["rss_mb"], "keyframes": b["keyframes"],
+                       "checkpoint_kb": b["checkpoint_kb"]})
     robot_summary = summary["robots"][0]
     report = json.loads((work / "r0_report.json").read_text())
     queries = ((robot_summary.get("loop_closing") or {}).get("local_mapping") or {}
@@ -253,10 +266,17 @@ def last_over_first(result: dict[str, Any]) -> tuple[float, float]:
 
 
 def report(result: dict[str, Any]) -> None:
+    blocks = result["blocks"]
     rows = [[b["frames"], b["wall_ms_per_frame"], b["cloud_cpu_ms_per_frame"], b["rss_mb"],
-             b["keyframes"]] for b in result["blocks"]]
+             b["keyframes"], b.get("checkpoint_kb")] for b in blocks]
     print(format_table(["frames", "wall ms/frame", "cloud CPU ms/frame", "cloud RSS MB",
-                        "keyframes (merger)"], rows))
+                        "keyframes (merger)", "checkpoint kB"], rows))
+    grown = blocks[-1]["keyframes"] - blocks[0]["keyframes"]
+    if grown > 0:
+        rss = (blocks[-1]["rss_mb"] - blocks[0]["rss_mb"]) / grown
+        ckpt = (blocks[-1]["checkpoint_kb"] - blocks[0]["checkpoint_kb"]) / grown
+        print(f"after the first block: {rss:.2f} MB of cloud RSS and {ckpt:.1f} kB of "
+              f"checkpoint per keyframe ({grown} keyframes)")
     cpu, wall = last_over_first(result)
     print(f"last block / first block: cloud CPU {cpu:.2f}x, wall {wall:.2f}x; ATE "
           f"{result['ate_cm']:.2f} cm; cloud ms median {result['cloud_ms_median']}, p95 "

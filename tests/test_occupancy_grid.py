@@ -13,6 +13,7 @@ from fleetslam.config import GridConfig
 from fleetslam.io.ply import read_ply
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.mapping.occupancy_grid import (
+    _unique_cells,
     FREE,
     OCCUPIED,
     UNKNOWN,
@@ -179,3 +180,13 @@ def test_up_from_the_floor_else_from_the_config(tmp_path):
     assert image.shape == grid.image.shape and meta["resolution"] == cfg.resolution_m
     with pytest.raises(ValueError, match=r"\[grid\] up = \[0.0, 0.0, 0.0\] is not a direction"):
         occupancy_grid([(wall, camera[:3, 3])], camera[None], GridConfig(up=(0.0, 0.0, 0.0)))
+
+
+def test_cells_are_made_unique_without_losing_any_sign_or_size():
+    rng = np.random.default_rng(3)
+    cells = np.concatenate([rng.integers(-70000, 70000, (5000, 2)),
+                            [[-(1 << 30), (1 << 30) - 1], [0, -1], [-1, 0], [0, 0]]])
+    cells = np.concatenate([cells, cells[::7]])  # some twice
+    expected = np.unique(cells, axis=0)
+    got = _unique_cells(cells)
+    np.testing.assert_array_equal(got[np.lexsort((got[:, 1], got[:, 0]))], expected)

@@ -171,6 +171,14 @@ def level_frame(up: np.ndarray, floor: float, camera_poses: np.ndarray) -> np.nd
     return T
 
 
+def _unique_cells(cells: np.ndarray) -> np.ndarray:
+    """The distinct rows of ``cells`` (N x 2 int64), packed into one int64 each for a 1-D
+    unique (np.unique over rows is several times slower)."""
+    packed = np.unique((cells[:, 0] << 32) + (cells[:, 1] + (1 << 31)))
+    return np.column_stack([packed >> 32,
+                            (packed & 0xFFFFFFFF) - (1 << 31)])
+
+
 def _ray_cells(origin: np.ndarray, ends: np.ndarray, cfg: GridConfig) -> np.ndarray:
     """The grid-frame xy of samples along each ray from ``origin`` to ``ends`` where the ray
     is within the height band's top and at most max_range_m long, every half cell, stopping
@@ -208,41 +216,44 @@ def occupancy_grid(scans: Sequence[tuple[np.ndarray, np.ndarray]], camera_poses:
     T_map_grid = level_frame(up, floor, camera_poses)
     T_grid_map = invert(T_map_grid)
     res = cfg.resolution_m
-    occupied_xy, free_xy = [], []
+    # Cells as integer (x, y) keys, the free ones made unique per scan: a scan's rays share
+    # most of their cells near the camera, and stacking every sample first took most of
+    # the grid's time (0.87 s for 38 keyframes of 7-Scenes).
+    occupied_cells, free_cells = [np.zeros((0, 2), np.int64)], [np.zeros((0, 2), np.int64)]
     for scan_points, centre in scans:
         if not len(scan_points):
             continue
         local = transform_points(T_grid_map, np.asarray(scan_points, np.float64))
         origin = transform_points(T_grid_map, np.asarray(centre, np.float64)[None])[0]
         band = (local[:, 2] >= cfg.min_height_m) & (local[:, 2] <= cfg.max_height_m)
-        occupied_xy.append(local[band, :2])
+        keys = np.floor(local[:, :2] / res).astype(np.int64)
+        occupied_cells.append(keys[band])
         # One ray per end cell and kind (an obstacle or not): from one camera, rays to one
         # cell cross the same cells; of the others, the lowest end's ray stays longest
         # within the band (one to the floor all the way, one to the ceiling leaves it).
-        keys = np.floor(local[:, :2] / res).astype(np.int64)
         order = np.lexsort((local[:, 2], band, keys[:, 1], keys[:, 0]))
         first = np.ones(len(order), bool)
         sorted_keys = np.column_stack([keys[order], band[order]])
         first[1:] = (sorted_keys[1:] != sorted_keys[:-1]).any(axis=1)
-        free_xy.append(_ray_cells(origin, local[order[first]], cfg))
-    occupied = np.vstack(occupied_xy) if occupied_xy else np.zeros((0, 2))
-    free = np.vstack(free_xy) if free_xy else np.zeros((0, 2))
-    both = np.vstack([occupied, free, np.zeros((1, 2))])  # the origin keeps a 1-cell grid
-    lo = np.floor(both.min(axis=0) / res) - cfg.margin_cells
-    hi = np.floor(both.max(axis=0) / res) + cfg.margin_cells
+        samples = np.floor(_ray_cells(origin, local[order[first]], cfg) / res).astype(np.int64)
+        free_cells.append(_unique_cells(samples))
+    occupied = np.vstack(occupied_cells)
+    free = np.vstack(free_cells)
+    both = np.vstack([occupied, free, np.zeros((1, 2), np.int64)])  # the origin: a 1-cell grid
+    lo = both.min(axis=0) - cfg.margin_cells
+    hi = both.max(axis=0) + cfg.margin_cells
     width, height = (hi - lo + 1).astype(int)
     image = np.full((height, width), UNKNOWN, np.uint8)
 
-    def cells(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        c = (np.floor(xy / res) - lo).astype(np.int64)
+    def cells(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c = keys - lo
         return height - 1 - c[:, 1], c[:, 0]
 
     image[cells(free)] = FREE
     if len(occupied):
         rows, cols = cells(occupied)
-        counts = np.zeros((height, width), np.int64)
-        np.add.at(counts, (rows, cols), 1)
-        image[counts >= cfg.occupied_min_points] = OCCUPIED
+        counts = np.bincount(rows * width + cols, minlength=height * width)
+        image[(counts >= cfg.occupied_min_points).reshape(height, width)] = OCCUPIED
     return OccupancyGrid(image, res, (float(lo[0] * res), float(lo[1] * res)), T_map_grid,
                          source)
 
