@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 from fleetslam.backend.pose_graph import PoseEdge
+from fleetslam.cloud.merge.merger_service import SOLVE_SHARE, MergerService
+from fleetslam.config import Config
 from fleetslam.merging.graph_solver import FAILURES_INLINE, GraphSolver, GraphSolverProcess
 from fleetslam.transforms import invert, make_T
 
@@ -105,3 +107,18 @@ def test_a_process_that_hangs_is_given_up_after_its_timeout(caplog):
         _same(expected, solver.solve(poses, edges, *ARGS))
     finally:
         solver.close()
+
+
+def test_placements_wait_longer_when_the_graph_takes_longer():
+    """The merger re-solves the graph for placements at most SOLVE_SHARE of the time."""
+    config = Config().with_values({"merge.search_process": False,
+                                   "merge.solve_process": False})
+    service = MergerService(config)
+    try:
+        assert service._every(1.0) == 1.0
+        service.merger.graph_seconds.append(2.0)
+        assert service._every(1.0) == pytest.approx(2.0 / SOLVE_SHARE)
+        service.merger.graph_seconds.append(0.01)
+        assert service._every(1.0) == 1.0
+    finally:
+        service.close()

@@ -129,6 +129,30 @@ def test_a_failed_search_process_hands_over_to_the_inline_search(keyframes, fail
         search.close()
 
 
+def test_a_search_process_that_answers_is_not_given_up_for_its_backlog(keyframes, caplog):
+    """Silence, not the age of the oldest request, fails the process: a niced search behind
+    20 robots answers all along while its backlog's oldest waits minutes."""
+    camera, kfs = keyframes
+    search = PlaceSearchProcess(Config(), nice=0, timeout_s=60.0)
+    try:
+        for name in kfs:
+            search.add_robot(name, camera)
+        for kf in kfs["a"][:3]:
+            search.submit(kf, ["b"], time.monotonic(), ["b"])
+        _results(search, 3)
+        os.kill(search._process.pid, signal.SIGSTOP)  # this request stays unanswered
+        search.submit(kfs["b"][0], ["a"], time.monotonic(), ["a"])
+        next(iter(search._requests.values())).sent -= 120.0  # asked two minutes ago ...
+        search._answered_at = time.monotonic()  # ... and the process answered just now
+        assert search.take_results() == [] and not search.inline
+        search._answered_at -= 120.0  # silent for two minutes
+        search.take_results()
+        assert search.inline
+        assert "no answer for 60 s (merge.search_timeout_s)" in caplog.text
+    finally:
+        search.close()
+
+
 @pytest.mark.parametrize("where", ["inline", "process"])
 def test_a_search_asked_too_long_ago_is_put_off(keyframes, where):
     """A starved search catches up: a keyframe that waited beyond merge.search_behind_s is
