@@ -594,6 +594,7 @@ def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(m
                                                                                tmp_path):
     from fleetslam.cloud.session.robot_session import RobotSession
     from fleetslam.cloud.session.store import CloudStore
+    from fleetslam.mapping.dense_map import KeyframeClouds
     from fleetslam.transport.protocol import Hello
     from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 
@@ -898,11 +899,13 @@ def test_keyframes_a_live_robot_no_longer_holds_are_mapped_without_images(cloud,
 
 def test_a_damaged_stored_keyframe_costs_its_images_not_the_robots_end(messages, tmp_path,
                                                                        caplog):
-    """A keyframe file damaged on disk after it was acknowledged: the session still ends
-    (the robot answered 'ended', trajectory and map written), that keyframe left out of the
-    dense map with one line naming it."""
+    """A keyframe file damaged on disk after it was acknowledged, read at the end by a
+    session without the clouds made as the keyframes came (as a restored one): the session
+    still ends (the robot answered 'ended', trajectory and map written), that keyframe left
+    out of the dense map with one line naming it."""
     from fleetslam.cloud.session.robot_session import RobotSession
     from fleetslam.cloud.session.store import CloudStore
+    from fleetslam.mapping.dense_map import KeyframeClouds
     from fleetslam.transport.protocol import Hello
     from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 
@@ -930,6 +933,10 @@ def test_a_damaged_stored_keyframe_costs_its_images_not_the_robots_end(messages,
         time.sleep(0.05)
     damaged = store.robot_dir("r0") / "keyframes" / f"{keyframes[0]:06d}.fskf"
     damaged.write_bytes(damaged.read_bytes()[:100])  # cut short on disk
+    assert all(session.outputs.clouds.get(i) is not None for i in keyframes)
+    # The keyframes' clouds made as they came are this process's: a session restored by
+    # another worker has none, and reads the store at its end.
+    session.outputs.clouds = KeyframeClouds(seq0.camera, exact_config().map)
     session.submit_control({"type": "end", "last_seq": N_FRAMES - 1}, time.monotonic())
     deadline = time.monotonic() + 60
     while not any(r["type"] == "ended" for r in replies):

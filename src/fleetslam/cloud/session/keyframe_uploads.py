@@ -12,6 +12,7 @@ from fleetslam.cloud.session.session_tracker import SessionTracker
 from fleetslam.cloud.session.session_state import SessionState
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
+from fleetslam.mapping.dense_map import KeyframeClouds
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import protocol
 from fleetslam.visualisation.live_view import NullView
@@ -22,10 +23,11 @@ from fleetslam.wire.messages import KeyframeUpload, decode_keyframe, encode_keyf
 class KeyframeUploads:
     def __init__(self, state: SessionState, config: Config, store: CloudStore,
                  checkpoints: CheckpointWriter, budget: SessionBudget, replies: Replies,
-                 keyframes: SessionTracker, view: NullView) -> None:
+                 keyframes: SessionTracker, view: NullView, clouds: KeyframeClouds) -> None:
+        """``clouds``: where each stored keyframe's cloud is made for the robot's map."""
         self.state, self.config, self.store = state, config, store
         self.checkpoints, self.budget, self.replies = checkpoints, budget, replies
-        self.keyframes, self.view = keyframes, view
+        self.keyframes, self.view, self.clouds = keyframes, view, clouds
         self.robot_id = state.robot_id
 
     def take(self, data: bytes) -> None:
@@ -69,6 +71,15 @@ class KeyframeUploads:
             self.replies.count("keyframes stored")
             self._show(upload)
         self.replies.reply(protocol.Ack(upload.frame_index))
+        self._prepare(upload)
+
+    def _prepare(self, upload: KeyframeUpload) -> None:
+        """The keyframe's cloud for the robot's map, after its acknowledgement (a resent
+        upload's is made once)."""
+        if self.clouds.get(upload.frame_index) is None:
+            self.clouds.add(upload.frame_index, upload.rgb,
+                            self.state.hello.camera.depth_to_metres(upload.depth_raw),
+                            upload.stride)
 
     def _wrong_size(self, upload: KeyframeUpload) -> str | None:
         """Why an upload's images are not the map's (decimation, size), or None."""
@@ -98,6 +109,7 @@ class KeyframeUploads:
         self.store.put_keyframe(self.robot_id, frame.index,
                                 encode_keyframe(self.robot_id, seq, upload, self.config.wire))
         self._show(upload)
+        self._prepare(upload)
 
     def _show(self, upload: KeyframeUpload) -> None:
         """A stored keyframe's points in the live view (nothing when it is off)."""

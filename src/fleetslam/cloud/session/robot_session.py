@@ -118,7 +118,8 @@ class RobotSession:
         self.decoder = frame_order.FrameDecoder(state, self.references, self.replies,
                                                 self.budget)
         self.uploads = KeyframeUploads(state, config, store, self.checkpoints, self.budget,
-                                       self.replies, self.keyframes, self.view)
+                                       self.replies, self.keyframes, self.view,
+                                       self.outputs.clouds)
         self._threads = [threading.Thread(target=work, name=f"cloud-{state.robot_id}{name}",
                                           daemon=True)
                          for work, name in ((self._receive, "-receive"),

@@ -16,7 +16,7 @@ from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.session.session_state import SessionState
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
-from fleetslam.mapping.dense_map import build_dense_map
+from fleetslam.mapping.dense_map import KeyframeClouds, fuse_clouds
 from fleetslam.mapping.map_frame import mounting_up
 from fleetslam.mapping.occupancy_grid import occupancy_grid
 from fleetslam.merging.global_map import RobotTrack
@@ -48,6 +48,9 @@ class SessionOutputs:
         self.store = store
         self.slam = slam
         self._transport = transport
+        # Each stored keyframe's cloud, made as it arrives (keyframe_uploads.py): the end
+        # only places and fuses them.
+        self.clouds = KeyframeClouds(state.hello.camera, config.map)
 
     @property
     def robot_id(self) -> str:
@@ -84,15 +87,19 @@ class SessionOutputs:
 
         def keyframes():
             for i in kf_index:
-                upload = self._stored_upload(i)
-                if upload is None:
-                    continue
+                cloud = self.clouds.get(i)
+                if cloud is None:  # not prepared as it came (a restored session's)
+                    upload = self._stored_upload(i)
+                    if upload is None:
+                        continue
+                    cloud = self.clouds.add(i, upload.rgb,
+                                            st.hello.camera.depth_to_metres(upload.depth_raw),
+                                            upload.stride)
                 mapped.append(kf_poses[i])
-                yield (upload.rgb, st.hello.camera.depth_to_metres(upload.depth_raw),
-                       kf_poses[i], upload.stride)
+                yield (*cloud, kf_poses[i])
 
         scans: list = []
-        points, colors = build_dense_map(st.hello.camera, keyframes(), self.config.map, scans)
+        points, colors = fuse_clouds(keyframes(), self.config.map, scans)
         grid = occupancy_grid(scans, np.array(mapped).reshape(-1, 4, 4), self.config.grid,
                               mounting_up(np.eye(4), st.hello.camera))
         write_robot_files(out_dir, self.robot_id, st.hello.source, timestamps, self.trajectory(),
