@@ -594,7 +594,6 @@ def test_keyframe_uploads_must_be_keyframes_of_the_session_at_the_cameras_size(m
                                                                                tmp_path):
     from fleetslam.cloud.session.robot_session import RobotSession
     from fleetslam.cloud.session.store import CloudStore
-    from fleetslam.mapping.dense_map import KeyframeClouds
     from fleetslam.transport.protocol import Hello
     from fleetslam.wire.messages import KeyframeUpload, encode_keyframe
 
