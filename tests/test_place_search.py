@@ -98,17 +98,23 @@ def test_the_search_process_finds_what_the_inline_search_finds(keyframes):
         search.close()
 
 
+def _answering(camera, kfs) -> PlaceSearchProcess:
+    """A search process that has answered robot a's first three keyframes."""
+    search = PlaceSearchProcess(Config(), nice=0, timeout_s=60.0)
+    for name in kfs:
+        search.add_robot(name, camera)
+    for kf in kfs["a"][:3]:
+        search.submit(kf, ["b"], time.monotonic(), ["b"])
+    _results(search, 3)
+    return search
+
+
 @pytest.mark.parametrize("failure", ["killed", "deadline"])
 def test_a_failed_search_process_hands_over_to_the_inline_search(keyframes, failure, caplog):
     camera, kfs = keyframes
     inline = _run(PlaceSearch(Config()), camera, kfs)
-    search = PlaceSearchProcess(Config(), nice=0, timeout_s=60.0)
+    search = _answering(camera, kfs)
     try:
-        for name in kfs:
-            search.add_robot(name, camera)
-        for kf in kfs["a"][:3]:
-            search.submit(kf, ["b"], time.monotonic(), ["b"])
-        _results(search, 3)
         assert not search.inline
         if failure == "killed":
             search._process.kill()
@@ -133,13 +139,8 @@ def test_a_search_process_that_answers_is_not_given_up_for_its_backlog(keyframes
     """Silence, not the age of the oldest request, fails the process: a niced search behind
     20 robots answers all along while its backlog's oldest waits minutes."""
     camera, kfs = keyframes
-    search = PlaceSearchProcess(Config(), nice=0, timeout_s=60.0)
+    search = _answering(camera, kfs)
     try:
-        for name in kfs:
-            search.add_robot(name, camera)
-        for kf in kfs["a"][:3]:
-            search.submit(kf, ["b"], time.monotonic(), ["b"])
-        _results(search, 3)
         os.kill(search._process.pid, signal.SIGSTOP)  # this request stays unanswered
         search.submit(kfs["b"][0], ["a"], time.monotonic(), ["a"])
         next(iter(search._requests.values())).sent -= 120.0  # asked two minutes ago ...

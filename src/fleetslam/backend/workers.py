@@ -55,6 +55,17 @@ def start_background(parent_pid: int, nice: int) -> None:
     _exit_with_parent(parent_pid)
 
 
+def end_process(process: Any, grace_s: float) -> bool:
+    """Wait up to ``grace_s`` for a background process told to end; kill it past that.
+    Whether it ended on its own."""
+    process.join(grace_s)
+    if not process.is_alive():
+        return True
+    process.kill()
+    process.join(2.0)
+    return False
+
+
 def _exit_with_parent(parent_pid: int) -> None:
     """In each worker: exit when the cloud process is gone (a SIGKILLed cloud cannot shut its
     pool down, and its workers would wait for work forever)."""

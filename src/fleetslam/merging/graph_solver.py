@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from fleetslam.backend.pose_graph import PoseEdge, PoseGraphResult, optimise_pose_graph
-from fleetslam.backend.workers import start_background
+from fleetslam.backend.workers import end_process, start_background
 
 log = logging.getLogger("fleetslam.merge")
 
@@ -142,10 +142,7 @@ class GraphSolverProcess(GraphSolver):
             except (OSError, ValueError):
                 pass
         if process is not None:
-            process.join(1.0)
-            if process.is_alive():
-                process.kill()
-                process.join(2.0)
+            end_process(process, 1.0)
         if conn is not None:
             conn.close()
 

@@ -53,7 +53,7 @@ import numpy as np
 
 from fleetslam.backend.place_recognition import ApproximateKeyframeDatabase, KeyframeDatabase
 from fleetslam.backend.places import make_database
-from fleetslam.backend.workers import start_background
+from fleetslam.backend.workers import end_process, start_background
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import PlaceMatch, verify_counting, verify_places
@@ -454,10 +454,7 @@ class PlaceSearchProcess:
         sender, self._sender = self._sender, None
         self._outbox.put(None)  # the sender's last message: the process's end
         if process is not None:
-            process.join(2.0)
-            if process.is_alive():
-                process.kill()
-                process.join(2.0)
+            end_process(process, 2.0)
         if sender is not None:  # a send blocked on a stopped process fails once it is gone
             sender.join(2.0)
         if conn is not None:

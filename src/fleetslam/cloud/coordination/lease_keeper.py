@@ -35,6 +35,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from fleetslam.backend.workers import end_process
 from fleetslam.cloud.coordination.etcd_gateway import EtcdClient, EtcdError, EtcdTls, LeaseExpired
 
 # Renewals sent per lease period, evenly (12 per 2 s lease: one every 0.17 s, ~500 bytes
@@ -147,11 +148,7 @@ class LeaseKeeper:
             return True
         with self._shared.get_lock():
             self._shared.closing = 1
-        self._process.join(deadline_s)
-        ended = not self._process.is_alive()
-        if not ended:
-            self._process.kill()
-            self._process.join(1.0)
+        ended = end_process(self._process, deadline_s)
         if self._conn is not None:
             self._conn.close()
         return ended
