@@ -12,7 +12,6 @@ format version is refused with a message that names the file.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import re
 from collections import Counter
@@ -21,6 +20,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from fleetslam.wire import npz_reader
+from fleetslam.wire.npz_writer import write_npz
 
 FORMAT = "fleetslam-session-checkpoint"
 VERSION = 1
@@ -86,10 +86,7 @@ class Capture:
     chunks: dict[str, "Capture"] = dataclasses.field(default_factory=dict)
 
     def to_bytes(self) -> bytes:
-        buffer = io.BytesIO()
-        np.savez(buffer, **{_TREE: np.frombuffer(self.tree.encode(), np.uint8)},
-                 **self.arrays)
-        return buffer.getvalue()
+        return write_npz({_TREE: np.frombuffer(self.tree.encode(), np.uint8), **self.arrays})
 
 
 def dumps(state: Any, classes: Classes) -> bytes:
