@@ -38,6 +38,7 @@ def test_what_np_load_and_our_reader_read_is_what_was_written():
     with np.load(io.BytesIO(blob)) as loaded:
         _same({name: loaded[name] for name in loaded.files}, ARRAYS)
     _same(npz_reader.read_npz(blob, 1 << 20, {}), ARRAYS)
+    assert npz_reader.layout_problem(io.BytesIO(blob), len(blob)) is None  # nothing unaccounted
     with zipfile.ZipFile(io.BytesIO(blob)) as z:
         assert z.testzip() is None  # every member's CRC is right
         assert [i.compress_type for i in z.infolist()] == [zipfile.ZIP_STORED] * len(ARRAYS)
