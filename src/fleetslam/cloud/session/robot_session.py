@@ -75,8 +75,7 @@ class RobotSession:
         self.store = store
         # Who tracks the robot (this cloud, or the robot itself at point 6), and its
         # keyframes as the merger and the view take them.
-        self.tracker = session_tracker(state, config, local_mapping)
-        self.keyframes = self.tracker
+        self.tracker = self.keyframes = session_tracker(state, config, local_mapping)
         self.outputs = SessionOutputs(state, config, store, self.tracker.slam,
                                       self.transport_counts)
         # Why the robot's earlier session could not be restored (None: nothing was lost).
