@@ -9,7 +9,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from fleetslam.wire import npz_reader
+from fleetslam.wire import npz_reader, npz_writer
 from fleetslam.wire.npz_writer import write_npz
 
 RNG = np.random.default_rng(5)
@@ -51,6 +51,15 @@ def test_the_members_are_np_saves_npy_files():
     with zipfile.ZipFile(io.BytesIO(blob)) as ours, zipfile.ZipFile(reference) as numpy_s:
         for name in ARRAYS:
             assert ours.read(f"{name}.npy") == numpy_s.read(f"{name}.npy"), name
+
+
+def test_more_members_than_a_plain_zip_counts_are_written_as_zip64(monkeypatch):
+    # A plain zip counts 65535 members; here the count is lowered to keep the test quick.
+    monkeypatch.setattr(npz_writer, "_ZIP32_MEMBERS", 3)
+    blob = write_npz(ARRAYS)
+    _same(npz_reader.read_npz(blob, 1 << 20, {}), ARRAYS)
+    assert blob[4:6] == (45).to_bytes(2, "little")  # "version 4.5 needed": zip64 members
+    assert write_npz(dict(list(ARRAYS.items())[:3]))[4:6] == (20).to_bytes(2, "little")
 
 
 def test_an_object_array_is_refused():

@@ -16,8 +16,10 @@ import zlib
 
 import numpy as np
 
-# A plain zip (no zip64): every offset and size must fit 32 bits; larger goes to np.savez.
+# A plain zip (no zip64): every offset and size must fit 32 bits, and the member count 16;
+# larger goes to np.savez (which writes zip64).
 _ZIP32_LIMIT = 0xFFFFFFFF
+_ZIP32_MEMBERS = 0xFFFF
 # DOS date and time of 1980-01-01 00:00 (the members' time carries no meaning here).
 _DOS_TIME, _DOS_DATE = 0, (0 << 9) | (1 << 5) | 1
 _VERSION = 20  # "2.0": stored members, no zip64
@@ -45,7 +47,7 @@ def write_npz(arrays: dict[str, np.ndarray]) -> bytes:
         data = memoryview(in_memory.reshape(-1).view(np.uint8))  # its bytes, not a copy
         members.append((f"{name}.npy".encode(), header, data))
         total += len(members[-1][0]) * 2 + len(members[-1][1]) + len(data) + 76
-    if total > _ZIP32_LIMIT:
+    if total > _ZIP32_LIMIT or len(members) > _ZIP32_MEMBERS:
         buffer = io.BytesIO()
         np.savez(buffer, **arrays)
         return buffer.getvalue()
