@@ -932,7 +932,10 @@ def test_a_damaged_stored_keyframe_costs_its_images_not_the_robots_end(messages,
         time.sleep(0.05)
     damaged = store.robot_dir("r0") / "keyframes" / f"{keyframes[0]:06d}.fskf"
     damaged.write_bytes(damaged.read_bytes()[:100])  # cut short on disk
-    assert all(session.outputs.clouds.get(i) is not None for i in keyframes)
+    # Each keyframe's cloud is made after its upload is stored and acknowledged.
+    while not all(session.outputs.clouds.get(i) is not None for i in keyframes):
+        assert time.monotonic() < deadline, "keyframe clouds not made"
+        time.sleep(0.05)
     # The keyframes' clouds made as they came are this process's: a session restored by
     # another worker has none, and reads the store at its end.
     session.outputs.clouds = KeyframeClouds(seq0.camera, exact_config().map)
