@@ -104,9 +104,11 @@ class KeyframeClouds:
         self._clouds: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._lock = threading.Lock()
 
-    def add(self, index: int, rgb: np.ndarray, depth_m: np.ndarray, decimated_by: int = 1
+    def add(self, index: int, rgb: np.ndarray, depth_raw: np.ndarray, decimated_by: int = 1
             ) -> tuple[np.ndarray, np.ndarray]:
-        cloud = keyframe_local_cloud(self.camera, rgb, depth_m, self.config, decimated_by)
+        """Keyframe ``index``'s cloud from its images as uploaded (depth in sensor units)."""
+        cloud = keyframe_local_cloud(self.camera, rgb, self.camera.depth_to_metres(depth_raw),
+                                     self.config, decimated_by)
         with self._lock:
             self._clouds[index] = cloud
         return cloud

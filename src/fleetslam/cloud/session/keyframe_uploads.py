@@ -77,9 +77,7 @@ class KeyframeUploads:
         """The keyframe's cloud for the robot's map, after its acknowledgement (a resent
         upload's is made once)."""
         if self.clouds.get(upload.frame_index) is None:
-            self.clouds.add(upload.frame_index, upload.rgb,
-                            self.state.hello.camera.depth_to_metres(upload.depth_raw),
-                            upload.stride)
+            self.clouds.add(upload.frame_index, upload.rgb, upload.depth_raw, upload.stride)
 
     def _wrong_size(self, upload: KeyframeUpload) -> str | None:
         """Why an upload's images are not the map's (decimation, size), or None."""

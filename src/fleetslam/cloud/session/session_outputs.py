@@ -92,9 +92,7 @@ class SessionOutputs:
                     upload = self._stored_upload(i)
                     if upload is None:
                         continue
-                    cloud = self.clouds.add(i, upload.rgb,
-                                            st.hello.camera.depth_to_metres(upload.depth_raw),
-                                            upload.stride)
+                    cloud = self.clouds.add(i, upload.rgb, upload.depth_raw, upload.stride)
                 mapped.append(kf_poses[i])
                 yield (*cloud, kf_poses[i])
 
