@@ -235,6 +235,8 @@ class FencedPlacement(Placement):
             return
         if robot == MERGER:
             self.claim(MERGER)
+        elif self.ownership.was_lost(robot):
+            pass  # this worker dropped it and told it to say hello again (_on_lost)
         elif served.worth_serving(robot):
             log.info("robot %s lost its owner: claiming it", robot)
             self.directory.count("failovers")

@@ -121,6 +121,9 @@ class Ownership:
         self._lock = threading.Lock()
         self._lease = 0  # the lease this worker's robots are granted under; 0: none yet
         self._mine: dict[str, int] = {}  # robot -> epoch
+        # Robots whose grant went from under this worker (``lost``) until it is granted one
+        # again: told to say hello again, not taken back by this worker as a failover.
+        self._lost: set[str] = set()
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
         self.fences = 0
@@ -207,6 +210,11 @@ class Ownership:
         with self._lock:
             return dict(self._mine)
 
+    def was_lost(self, robot: str) -> bool:
+        """Whether this worker's last grant of ``robot`` went from under it (``lost``)."""
+        with self._lock:
+            return robot in self._lost
+
     def owner(self, robot: str) -> Owner | None:
         """The robot's owner as etcd has it now (None: nobody)."""
         kv = self.client.get(self.keys.owner(robot))
@@ -275,6 +283,7 @@ class Ownership:
             if self._lease != lease:  # fenced while asking: it is not ours to serve
                 return None
             self._mine[robot] = epoch
+            self._lost.discard(robot)
         log.info("grant robot %s to worker %s epoch %d (lease %x)", robot, self.worker_id,
                  epoch, lease)
         return epoch
@@ -312,6 +321,7 @@ class Ownership:
             if self._mine.get(robot) != epoch:
                 return
             del self._mine[robot]
+            self._lost.add(robot)  # in the same hold: the key's deletion may be heard now
         log.error("robot %s: worker %s lost its grant epoch %d (%s): stops serving it",
                   robot, self.worker_id, epoch, why)
         try:
