@@ -19,6 +19,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from fleetslam.camera import Camera
+from fleetslam.datasets.source import RecordedSource
 
 FLAVOURS = ("ros1", "mcap", "sqlite3")
 RGB_TOPIC = "/camera/rgb/image_color"
@@ -135,6 +136,34 @@ def tum_messages(folder: Path, flavour: str, camera: Camera, colour: str = "rgb8
                                                     "depth")
             yield DEPTH_INFO_TOPIC, CAMERA_INFO, bag_ns, camera_info(
                 ts, ns, *depth_pinhole, raw.shape[1], raw.shape[0], (), "depth")
+
+
+def recording_messages(recording: RecordedSource, flavour: str, frames: int | None = None,
+                       depth: str = "16UC1") -> Iterator[tuple[str, str, int, Any]]:
+    """Any recording's first ``frames`` frames (all: None) as a camera driver's raw topics:
+    rgb8 colour, depth ``16UC1`` millimetres (as RealSense's and most ROS 2 drivers publish
+    it) or ``32FC1`` metres, a CameraInfo per image (as :func:`tum_messages`). For a
+    recording kept as compressed files (7-Scenes' JPEG and PNG), the bytes a driver would
+    have delivered. Frames are decoded one at a time."""
+    if depth not in ("16UC1", "32FC1"):
+        raise ValueError(f"depth encoding {depth!r}: 16UC1 or 32FC1")
+    ts = typestore_for(flavour)
+    camera = recording.camera
+    depth_pinhole = camera.depth_intrinsics or (camera.fx, camera.fy, camera.cx, camera.cy)
+    for i in range(len(recording) if frames is None else min(frames, len(recording))):
+        frame = recording[i]
+        ns = int(round(frame.timestamp * 1e9))
+        bag_ns = ns + RECEIVE_DELAY_NS
+        h, w = frame.depth_m.shape
+        yield RGB_TOPIC, IMAGE, bag_ns, image(ts, ns, "rgb8", frame.rgb, "rgb")
+        yield RGB_INFO_TOPIC, CAMERA_INFO, bag_ns, camera_info(
+            ts, ns, camera.fx, camera.fy, camera.cx, camera.cy, frame.rgb.shape[1],
+            frame.rgb.shape[0], camera.distortion, "rgb")
+        pixels = frame.depth_m if depth == "32FC1" else \
+            np.rint(frame.depth_m * 1000.0).astype(np.uint16)  # 0 stays 0: no measurement
+        yield DEPTH_TOPIC, IMAGE, bag_ns, image(ts, ns, depth, pixels, "depth")
+        yield DEPTH_INFO_TOPIC, CAMERA_INFO, bag_ns, camera_info(
+            ts, ns, *depth_pinhole, w, h, (), "depth")
 
 
 def write_tum_bag(folder: Path, out: Path, flavour: str, camera: Camera,

@@ -4,13 +4,18 @@ tracks), with the robot process pinned to one core of this machine and held to a
 of that core (a CPU cgroup's quota: a stand-in for a Raspberry-Pi-class CPU).
 
     PYTHONPATH=src .venv/bin/python bench/robot_cpu.py [--frames 300] [--rates 10]
-        [--settings one-core,quarter-core] [--repeat 3] [--core 1] [--cloud-core 0]
-        [--json bench/results/robot_cpu.json]
+        [--settings one-core,quarter-core] [--cameras files,bag] [--repeat 3] [--core 1]
+        [--cloud-core 0] [--json bench/results/robot_cpu.json]
 
 One cloud process (pinned to ``--cloud-core``) serves every run; each run is one robot
 process (a new id) playing 7-Scenes redkitchen ``0..frames-1`` as a live camera at
 ``--rates`` fps (``robot --live --rate N``: frames come on the camera's clock and the robot
-takes the newest, counting those it had no time for: ``camera_skipped``). The settings
+takes the newest, counting those it had no time for: ``camera_skipped``). The camera's
+frames come from (``--cameras``) ``files``: the recording's own JPEG and PNG files, decoded
+by the robot's camera thread as it plays them; ``bag``: the same frames written once, before
+the runs, as a ROS 2 bag of raw images (rgb8, 16UC1 millimetres: what a RealSense's or a
+Kinect's ROS 2 driver publishes, and near what pyrealsense2 hands over), so the robot pays
+what a real camera's frames cost it, not a file format's decoding. Settings and cameras
 alternate within each of ``--repeat`` rounds, so they see the same machine. Per run:
 - CPU ms per frame, median and p95: the robot report's ``frame_cpu_ms`` (the main thread's
   CPU time for the stages and the message's encoding, per frame sent);
@@ -31,23 +36,28 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import bag_writer
 import numpy as np
 from shared_data import SEVEN_SCENES
 
+from fleetslam.datasets.recording import open_source
 from fleetslam.launch import CloudClient, free_endpoint, start_cloud, start_robot, stop
 from fleetslam.tables import format_table
 
 CGROUP_ROOT = Path("/sys/fs/cgroup/cpu")
 PERIOD_US = 100_000
 SHARES = {"one-core": 1.0, "quarter-core": 0.25}
+CAMERAS = ("files", "bag")
 ROBOT_TIMEOUT_S = 900.0
 
 
@@ -117,12 +127,23 @@ def wait_reaped(proc: subprocess.Popen, timeout_s: float) -> tuple[int, float]:
         time.sleep(0.2)
 
 
-def run_robot(endpoint: str, robot_id: str, frames: int, rate: float, core: int,
+def camera_bag(frames: int, folder: Path) -> Path:
+    """redkitchen's frames 0..frames-1 as a bag of raw camera topics in ``folder``."""
+    path = folder / "redkitchen-raw"
+    start = time.perf_counter()
+    bag_writer.write_bag(path, "mcap", bag_writer.recording_messages(
+        open_source(str(SEVEN_SCENES)), "mcap", frames, depth="16UC1"))
+    print(f"wrote {path} ({frames} frames of raw images) in "
+          f"{time.perf_counter() - start:.1f} s", flush=True)
+    return path
+
+
+def run_robot(endpoint: str, robot_id: str, source: str, rate: float, core: int,
               group: CpuGroup | None, work: Path) -> dict[str, Any]:
     """One robot run; its measurements."""
     report_path = work / f"{robot_id}.json"
     before = group.throttled() if group is not None else None
-    proc = start_robot(endpoint, robot_id, f"{SEVEN_SCENES}:0-{frames - 1}", 3,
+    proc = start_robot(endpoint, robot_id, source, 3,
                        work / f"{robot_id}.log", report_path,
                        extra=["--live", "--rate", f"{rate:g}"], pre_exec=pre_exec(core, group))
     code, cpu_total_s = wait_reaped(proc, ROBOT_TIMEOUT_S)
@@ -162,9 +183,9 @@ def measure(r: dict[str, Any], cpu_total_s: float, before: dict[str, int] | None
     }
 
 
-def run_setting(name: str, rate: float, args: argparse.Namespace, endpoint: str, n: int,
-                work: Path) -> dict[str, Any] | str:
-    """One run of one setting, or why it cannot run here."""
+def run_setting(name: str, rate: float, camera: str, source: str, args: argparse.Namespace,
+                endpoint: str, n: int, work: Path) -> dict[str, Any] | str:
+    """One run of one setting with one camera (``source``), or why it cannot run here."""
     group = None
     if SHARES[name] < 1.0:
         group, why = make_group(SHARES[name])
@@ -172,14 +193,14 @@ def run_setting(name: str, rate: float, args: argparse.Namespace, endpoint: str,
             print(f"{name}: not measured: {why}", flush=True)
             return why
     try:
-        result = run_robot(endpoint, f"r{n}", args.frames, rate, args.core, group, work)
+        result = run_robot(endpoint, f"r{n}", source, rate, args.core, group, work)
     finally:
         if group is not None:
             group.remove()
-    result.update(setting=name, rate=rate, share=SHARES[name],
+    result.update(setting=name, camera=camera, rate=rate, share=SHARES[name],
                   budget_cpu_ms=1000.0 / rate * SHARES[name])
     result["keeps_up"] = result["skipped_streaming"] == 0 and result["camera_late"] == 0
-    print(f"  {name} at {rate:g} fps: {result['cpu_ms_median']:.1f} ms CPU/frame median, "
+    print(f"  {name}, {camera}, at {rate:g} fps: {result['cpu_ms_median']:.1f} ms CPU/frame median, "
           f"{result['skipped_streaming']} skipped streaming ({result['skipped_at_start']} at "
           f"start), {result['achieved_fps']:.2f} fps", flush=True)
     return result
@@ -193,14 +214,14 @@ def spread(values: list[float], fmt: str = "{:.1f}") -> str:
 
 def print_tables(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per run, then min-max per setting and rate (returned for the JSON)."""
-    cols = ["setting", "fps", "run", "sent", "skipped", "at start", "late", "achieved fps",
+    cols = ["setting", "camera", "fps", "run", "sent", "skipped", "at start", "late", "achieved fps",
             "CPU ms/frame median", "p95", "budget ms", "process CPU ms/frame",
             "process CPU s", "throttled s"]
     rows, groups = [], {}
     for r in runs:
-        key = f"{r['setting']} @ {r['rate']:g} fps"
+        key = f"{r['setting']}, {r['camera']} @ {r['rate']:g} fps"
         groups.setdefault(key, []).append(r)
-        rows.append([r["setting"], f"{r['rate']:g}", r["round"], r["frames_sent"],
+        rows.append([r["setting"], r["camera"], f"{r['rate']:g}", r["round"], r["frames_sent"],
                      r["skipped_streaming"], r["skipped_at_start"], r["camera_late"],
                      round(r["achieved_fps"], 2),
                      round(r["cpu_ms_median"], 1), round(r["cpu_ms_p95"], 1),
@@ -251,6 +272,8 @@ def main() -> None:
     parser.add_argument("--rates", default="10", help="camera rates, fps, comma-separated")
     parser.add_argument("--settings", default="one-core,quarter-core",
                         help=f"comma-separated, of {', '.join(SHARES)}")
+    parser.add_argument("--cameras", default=",".join(CAMERAS),
+                        help=f"comma-separated, of {', '.join(CAMERAS)} (module docstring)")
     parser.add_argument("--repeat", type=int, default=3, help="rounds of every setting")
     parser.add_argument("--core", type=int, default=1, help="the core the robot runs on")
     parser.add_argument("--cloud-core", type=int, default=0, help="the core of the cloud")
@@ -260,6 +283,9 @@ def main() -> None:
     settings = [s for s in args.settings.split(",") if s]
     if not settings or not set(settings) <= set(SHARES):
         sys.exit(f"--settings {args.settings}: give one or more of {', '.join(SHARES)}")
+    cameras = [c for c in args.cameras.split(",") if c]
+    if not cameras or not set(cameras) <= set(CAMERAS):
+        sys.exit(f"--cameras {args.cameras}: give one or more of {', '.join(CAMERAS)}")
     try:
         rates = [float(x) for x in args.rates.split(",") if x]
     except ValueError:
@@ -273,17 +299,29 @@ def main() -> None:
                  f"are {sorted(os.sched_getaffinity(0))}")
     if not SEVEN_SCENES.exists():
         sys.exit(f"{SEVEN_SCENES} missing: this benchmark needs ../shared/data")
-    results = measure_all(args, settings, rates)
+    results = measure_all(args, settings, rates, cameras)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2))
     print(f"wrote {out}")
 
 
-def measure_all(args: argparse.Namespace, settings: list[str],
-                rates: list[float]) -> dict[str, Any]:
-    """Every round of every setting and rate against one cloud; the JSON's content."""
+def measure_all(args: argparse.Namespace, settings: list[str], rates: list[float],
+                cameras: list[str]) -> dict[str, Any]:
+    """Every round of every setting, rate and camera against one cloud; the JSON's content."""
     work = Path(__file__).parent / "results" / "robot-cpu-runs" / time.strftime("%Y%m%d-%H%M%S")
+    bag_folder = Path(tempfile.mkdtemp(prefix="robot-cpu-bag-"))
+    try:
+        sources = {"files": f"{SEVEN_SCENES}:0-{args.frames - 1}"}
+        if "bag" in cameras:
+            sources["bag"] = str(camera_bag(args.frames, bag_folder))
+        return measure_with(args, settings, rates, cameras, sources, work)
+    finally:
+        shutil.rmtree(bag_folder, ignore_errors=True)
+
+
+def measure_with(args: argparse.Namespace, settings: list[str], rates: list[float],
+                 cameras: list[str], sources: dict[str, str], work: Path) -> dict[str, Any]:
     endpoint = free_endpoint()
     cloud = start_cloud(endpoint, work / "cloud", work / "cloud.log")
     os.sched_setaffinity(cloud.pid, {args.cloud_core})  # its threads inherit it
@@ -299,18 +337,20 @@ def measure_all(args: argparse.Namespace, settings: list[str],
         for round_ in range(1, args.repeat + 1):
             for rate in rates:
                 for name in settings:
-                    result = run_setting(name, rate, args, endpoint, n, work)
-                    n += 1
-                    if isinstance(result, str):
-                        not_run[name] = result
-                        continue
-                    runs.append({**result, "round": round_})
+                    for camera in cameras:
+                        result = run_setting(name, rate, camera, sources[camera], args,
+                                             endpoint, n, work)
+                        n += 1
+                        if isinstance(result, str):
+                            not_run[name] = result
+                            continue
+                        runs.append({**result, "round": round_})
     finally:
         stop(cloud)
     summary = print_tables(runs) if runs else {}
     for name, why in not_run.items():
         print(f"{name}: not measured: {why}")
-    return {"frames": args.frames, "rates": rates, "core": args.core,
+    return {"frames": args.frames, "rates": rates, "cameras": cameras, "core": args.core,
             "cloud_core": args.cloud_core, "cores": os.cpu_count(),
             "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"],
                                      capture_output=True, text=True).stdout.strip(),
