@@ -731,6 +731,19 @@ def test_the_octave_search_looks_only_near_a_keypoint_s_level_and_decodes_exactl
     assert (dist[::2] == full_dist[::2]).all() and (dist[1::2] > full_dist[1::2]).all()
     wide = nearest_by_octave(f.descriptors, octaves, noisy, ref_octaves, 100)
     assert wide[0].tolist() == full_rows.tolist() and wide[1].tolist() == full_dist.tolist()
+    # Against every distance worked out in numpy, on 300 rows with ties (rows repeated at
+    # other places, among them levels out of order) and levels the other side lacks.
+    query, q_oct = f.descriptors[:300], octaves[:300]
+    rows_300 = np.concatenate([noisy[:300], noisy[:40]])
+    r_oct = np.concatenate([ref_octaves[:300], ref_octaves[:40] + 1])
+    r_oct[r_oct == 0] = 9
+    for window in (0, 1, 2):
+        bits = np.unpackbits(query[:, None, :] ^ rows_300[None, :, :], axis=2).sum(axis=2)
+        bits = np.where(np.abs(q_oct[:, None] - r_oct[None, :]) <= window, bits, 256)
+        want_rows = np.where(bits.min(axis=1) < 256, bits.argmin(axis=1), 0)
+        got = nearest_by_octave(query, q_oct, rows_300, r_oct, window)
+        assert got[0].tolist() == want_rows.tolist(), window
+        assert got[1].tolist() == bits.min(axis=1).tolist(), window
     monkeypatch.setattr(wire_inter, "_faiss", lambda: None)  # a robot without faiss
     opencv = nearest_by_octave(f.descriptors, octaves, noisy, ref_octaves, 1)
     assert opencv[0].tolist() == rows.tolist() and opencv[1].tolist() == dist.tolist()

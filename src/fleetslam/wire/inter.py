@@ -185,12 +185,26 @@ def nearest_by_octave(descriptors: np.ndarray, octaves: np.ndarray, stacked: np.
     whichever matcher, so robots with and without faiss send the same bytes."""
     n = len(descriptors)
     row, distance = np.zeros(n, np.int64), np.full(n, 256, np.int64)
-    for level in np.unique(octaves):
-        query = np.flatnonzero(octaves == level)
-        allowed = np.flatnonzero(np.abs(stacked_octaves - level) <= window)
-        if len(allowed):
-            found, distance[query] = nearest(descriptors[query], stacked[allowed])
-            row[query] = allowed[found]
+    if not n or not len(stacked):
+        return row, distance
+    # Both sides grouped by level once (a stable sort: rows keep their order within a
+    # level), so a level's queries and its window's rows are slices, not a mask over all
+    # 8 references' rows per level (~0.4 ms a frame less).
+    q_order = np.argsort(octaves, kind="stable")
+    s_order = np.argsort(stacked_octaves, kind="stable")
+    q_levels, s_levels = octaves[q_order], stacked_octaves[s_order]
+    starts = np.flatnonzero(np.r_[True, q_levels[1:] != q_levels[:-1]])
+    ends = np.r_[starts[1:], n]
+    lo = np.searchsorted(s_levels, q_levels[starts] - window, "left")
+    hi = np.searchsorted(s_levels, q_levels[starts] + window, "right")
+    for a, b, first, last in zip(starts.tolist(), ends.tolist(), lo.tolist(), hi.tolist()):
+        if first == last:
+            continue
+        query, allowed = q_order[a:b], s_order[first:last]
+        if window:  # rows of several levels: back in row order, so the lowest wins ties
+            allowed = np.sort(allowed)
+        found, distance[query] = nearest(descriptors[query], stacked[allowed])
+        row[query] = allowed[found]
     return row, distance
 
 
