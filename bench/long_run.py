@@ -1,9 +1,10 @@
 """A long run through real processes: does the cloud's cost per frame stay flat as the map
 grows? One robot plays 7-Scenes redkitchen forwards and back (0-599, 598-1, 0-599, ...)
-for ``--frames`` frames at offloading point 3 to one cloud process over Zenoh on loopback.
+for ``--frames`` frames at offloading point 3 (``--offload-at``) to one cloud process over
+Zenoh on loopback.
 
     .venv/bin/python bench/long_run.py [--frames 5000] [--block 1000] [--rate max]
-        [--configs a.toml,b.toml] [--runs N] [--baseline REV]
+        [--offload-at 3] [--configs a.toml,b.toml] [--runs N] [--baseline REV]
 
 Sampled every ``--every`` seconds from outside (``status`` and /proc): per block of
 ``--block`` frames the cloud tracked, the wall time per frame, the cloud's CPU time per
@@ -16,7 +17,9 @@ the same machine. ``--baseline REV``: the cloud and the robot also run from the 
 revision REV (its src/ extracted to a temporary folder), alternated with this code within
 each round, so a before/after sees the same machine too. Per run also the loop closer's
 queries to the worker (summary.json's loop_queries: bytes sent per query, where the code
-counts them, and the time from a query's submission to its answer landing). Writes
+counts them, and the time from a query's submission to its answer landing), and what the
+robot sent: frame and keyframe-upload bytes, and at point 6 its keyframe pose tables (whole
+or as deltas: poses sent against those whole tables would carry). Writes
 bench/results/long_run.json.
 """
 
@@ -115,7 +118,8 @@ def extract_src(revision: str, into: Path) -> Path:
 
 
 def run(frames: int, block: int, rate: str, every_s: float, work: Path,
-        config_path: Path | None = None, src: Path | None = None) -> dict[str, Any]:
+        config_path: Path | None = None, src: Path | None = None, point: int = 3
+        ) -> dict[str, Any]:
     spec = f"{SEVEN_SCENES}:{forth_and_back(frames)}"
     load_start = os.getloadavg()[0]
     endpoint = free_endpoint()
@@ -129,7 +133,7 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
     try:
         client.status(timeout=60.0, gather_s=0.2)
         with code_from(src):
-            robot = start_robot(endpoint, "r0", spec, 3, work / "r0.log",
+            robot = start_robot(endpoint, "r0", spec, point, work / "r0.log",
                                 work / "r0_report.json", config_path=config,
                                 extra=["--rate", rate])
         start = time.monotonic()
@@ -180,7 +184,7 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
     report = json.loads((work / "r0_report.json").read_text())
     queries = ((robot_summary.get("loop_closing") or {}).get("local_mapping") or {}
                ).get("loop_queries", {})
-    return {"frames": frames, "rate": rate, "blocks": blocks,
+    return {"frames": frames, "rate": rate, "offload_at": point, "blocks": blocks,
             "settings": None if config_path is None else str(config_path),
             "code": "this" if src is None else "baseline",
             "loop_queries": queries,
@@ -190,7 +194,11 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
             "cloud_ms_median": robot_summary.get("cloud_ms_median"),
             "cloud_ms_p95": robot_summary.get("cloud_ms_p95"),
             "round_trip_ms_p95": report.get("round_trip_ms_p95"),
-            "keyframes": robot_summary.get("keyframes")}
+            "keyframes": robot_summary.get("keyframes"),
+            "robot_frame_bytes": report.get("frame_bytes"),
+            "robot_keyframe_bytes": report.get("keyframe_bytes"),
+            "robot_pose_tables": {k: v for k, v in (report.get("inter_coding") or {}).items()
+                                  if "pose" in k}}
 
 
 def main() -> None:
@@ -198,6 +206,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=5000)
     parser.add_argument("--block", type=int, default=1000)
     parser.add_argument("--rate", default="max", help="the robot's --rate")
+    parser.add_argument("--offload-at", type=int, default=3, help="the robot's offloading point")
     parser.add_argument("--every", type=float, default=1.0, help="seconds between samples")
     parser.add_argument("--out", default="bench/results/long_run.json")
     parser.add_argument("--configs", default="",
@@ -226,7 +235,7 @@ def main() -> None:
                 print(f"{name}, run {round_ + 1}: {args.frames} frames ...", flush=True)
                 work = Path(args.out).parent / "long-runs" / stamp / f"run{round_ + 1}-{name}"
                 results.append(run(args.frames, args.block, args.rate, args.every, work, path,
-                                   src))
+                                   src, args.offload_at))
                 report(results[-1])
     baseline_dir.cleanup()
     if len(results) > 1:
@@ -283,6 +292,16 @@ def report(result: dict[str, Any]) -> None:
           f"{result['cloud_ms_p95']}; round trip p95 {result['round_trip_ms_p95']} ms; "
           f"load average {result['load_average'][0]:.2f} at the start, "
           f"{result['load_average'][1]:.2f} at the end", flush=True)
+    sent_kb = (result["robot_frame_bytes"] or 0) / 1000
+    tables = result["robot_pose_tables"]
+    print(f"the robot sent {sent_kb:.0f} kB of frames "
+          f"({sent_kb / max(result['frames'], 1):.2f} kB a frame) and "
+          f"{(result['robot_keyframe_bytes'] or 0) / 1000:.0f} kB of keyframe uploads"
+          + (f"; keyframe pose tables: {tables.get('pose_tables_whole', 0)} whole, "
+             f"{tables.get('pose_tables_delta', 0)} as deltas, "
+             f"{tables.get('keyframe_poses_sent', 0)} poses sent of "
+             f"{tables.get('keyframe_poses_in_tables', 0)} in the tables" if tables else ""),
+          flush=True)
     queries = result["loop_queries"]
     if queries:
         lag = queries.get("request_to_answered") or {}

@@ -186,6 +186,13 @@ def test_robots_that_track_themselves_are_merged(tmp_path, points):
         merge = server.merge()["merge"]
     finally:
         server.close()
+    # Past its first, each keyframe's poses went as a delta (wire/pose_deltas.py), and the
+    # merge below holds them.
+    for robot, k in zip(robots, points):
+        if k == 6:
+            coded = robot.report.inter_coding
+            assert coded["pose_tables_delta"] >= 2, coded
+            assert coded["keyframe_poses_sent"] < coded["keyframe_poses_in_tables"], coded
     assert merge["members"] == ["r0", "r1"] and merge["not_merged"] == {}
     assert merge["robots"]["r0"]["keyframes"] >= 3 and merge["robots"]["r1"]["keyframes"] >= 3
 

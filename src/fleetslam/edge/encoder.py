@@ -13,11 +13,12 @@ from fleetslam.config import Config
 from fleetslam.datasets.source import Frame
 from fleetslam.edge.report import RobotReport
 from fleetslam.pipeline.split import INTER_POINTS, Sides, Stage, StageTimer, run_stages
-from fleetslam.pipeline.states import CapturedFrame
+from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
+from fleetslam.transport.protocol import Welcome
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.inter import InterEncoder, InterStats, reference_of, warm_up
-from fleetslam.transport.protocol import Welcome
 from fleetslam.wire.paper_yaml import write_paper_yaml
+from fleetslam.wire.pose_deltas import PoseDeltaEncoder
 
 
 def prepare(config: Config, offload_at: int | None) -> None:
@@ -44,6 +45,7 @@ class FrameEncoder:
         self.paper_yaml_dir = paper_yaml_dir
         self.timer = StageTimer()
         self.inter = InterEncoder(config.wire)
+        self.poses = PoseDeltaEncoder()  # a robot that tracks itself: its keyframes' poses
         self.next_seq = 0  # the seq of the next frame to encode
         self._encode_ms: list[float] = []
 
@@ -58,8 +60,13 @@ class FrameEncoder:
         self.next_seq = seq + 1
         refs = self.inter.choose(seq) if k in INTER_POINTS else []
         stats = InterStats()
+        table = np.asarray(state.keyframe_poses, np.float64) \
+            if isinstance(state, TrackedFrame) and state.sends_keyframe else None
+        delta = self.poses.choose(table) if table is not None else None
         data = encode_frame_message(state, k, self.robot_id, seq, self.camera,
-                                    self.config.wire, refs, stats)
+                                    self.config.wire, refs, stats, delta)
+        if table is not None:
+            self.poses.sent(seq, table, delta)
         if k in INTER_POINTS:
             self.inter.sent(seq, reference_of(state), len(refs))
             self.inter.record(stats)
@@ -89,15 +96,22 @@ class FrameEncoder:
         """The cloud holds frame ``seq`` (decoded it, or answered it): a reference from now on."""
         self.inter.acked(seq)
 
+    def tracked(self, seq: int) -> None:
+        """The cloud tracked frame ``seq`` (its feedback): a keyframe's poses are a base."""
+        self.poses.tracked(seq)
+
     def references_lost(self) -> None:
         """The cloud holds none of the frames sent so far (a missing reference, a takeover):
-        intra frames until a frame sent from now on is acknowledged."""
+        intra frames until a frame sent from now on is acknowledged, whole keyframe pose
+        tables until one is tracked."""
         self.inter.refused(self.next_seq)
+        self.poses.lost()
 
     def restart(self, welcome: Welcome) -> None:
         """A new or resumed session: no frame acknowledged before is a reference."""
         self.inter.set_cloud_ring(welcome.reference_frames)
         self.inter.restart(welcome.next_seq)
+        self.poses.restart(welcome.pose_deltas)
 
     def record(self, report: RobotReport) -> None:
         """The run's end: stage and encoding times, the inter-frame coding's counts."""
@@ -106,3 +120,5 @@ class FrameEncoder:
             report.encode_ms_mean = float(np.mean(self._encode_ms))
             report.encode_ms_p95 = float(np.percentile(self._encode_ms, 95))
         report.inter_coding = self.inter.counts.summary()
+        if self.poses.counts.whole_tables or self.poses.counts.delta_tables:
+            report.inter_coding.update(self.poses.counts.summary())

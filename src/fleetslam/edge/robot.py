@@ -182,6 +182,7 @@ class Robot:
         now = self.window.heard()
         self.report.feedback += 1
         self.encoder.held(header.seq)  # as "held", for a cloud that does not send it
+        self.encoder.tracked(header.seq)
         round_trip = self.window.answered(header.seq, now)
         if round_trip is not None and self.planner is not None:
             self.planner.meter.round_trip(round_trip)

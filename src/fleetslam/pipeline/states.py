@@ -8,6 +8,7 @@ as soon as no later stage needs them: that is what makes late split points cheap
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -154,3 +155,6 @@ class TrackedPose:
     # (K x 4 x 4 by keyframe id; this keyframe, ``reference_keyframe``, is the last).
     features: FeatureFrame | None = None
     keyframe_poses: np.ndarray | None = None
+    # Instead of keyframe_poses, those changed since a table the cloud applied
+    # (wire/pose_deltas.PoseDelta; the cloud's session makes the whole table of it).
+    pose_delta: Any = None

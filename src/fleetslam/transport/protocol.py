@@ -168,12 +168,15 @@ class Welcome:
     # The robot's stored session could not be restored (why, and where its checkpoint was
     # kept): this is a fresh session, the frames before are not in it.
     history_lost: str | None = None
+    # A robot that tracks itself may send its keyframes' poses as deltas
+    # (wire/pose_deltas.py); a cloud that says nothing (older) takes them whole.
+    pose_deltas: bool = False
 
     def message(self) -> dict[str, Any]:
         message = {"type": self.TYPE, "resumed": self.resumed, "next_index": self.next_index,
                    "next_seq": self.next_seq, "keyframes_stored": self.keyframes_stored,
                    "reference_frames": self.reference_frames,
-                   "last_timestamp": self.last_timestamp}
+                   "last_timestamp": self.last_timestamp, "pose_deltas": self.pose_deltas}
         if self.history_lost is not None:
             message["history_lost"] = self.history_lost
         return {**message, "taken_over": True} if self.taken_over else message
@@ -187,7 +190,8 @@ class Welcome:
         return Welcome(message.get("resumed") is True, _int(message, "next_index", 0),
                        _int(message, "next_seq"), _int(message, "keyframes_stored", 0),
                        _int(message, "reference_frames", 0), message.get("taken_over") is True,
-                       None if last is None else float(last), _str(message, "history_lost"))
+                       None if last is None else float(last), _str(message, "history_lost"),
+                       message.get("pose_deltas") is True)
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,9 @@ is reproduced bit for bit:
   reference keyframe and the pose relative to it); no stage runs after it. A keyframe also
   carries what the cloud's map merger needs: its features (coded as at k=3) and every
   keyframe's pose (K x 3 x 4 float64, the rigid last row implied), so a robot that tracks
-  itself joins the global map. The robot's TrackedFrame goes in, a TrackedPose comes out.
+  itself joins the global map; or, to a cloud that takes them, only the poses changed since a
+  table the cloud applied (the base message's seq, K, a bit per keyframe, those poses:
+  wire/pose_deltas.py). The robot's TrackedFrame goes in, a TrackedPose comes out.
 
 Quantised or dropped, as no stage after Describe reads them (k>=2 only):
 - ``angle``: uint8 steps of 360/256 degrees (1.4 deg);
@@ -85,6 +87,7 @@ from fleetslam.wire.inter import (
     quantised_angles,
     whole_octaves,
 )
+from fleetslam.wire.pose_deltas import PoseDelta
 
 State = Any
 STATE_TYPES: tuple[type, ...] = (CapturedFrame, DetectedFrame, DescribedFrame, FeatureFrame,
@@ -100,6 +103,11 @@ MAX_KEYPOINTS = 1 << 20
 _SCALE_SEARCH_ULPS = 4
 
 _KP_RAW, _KP_COMPACT = 0, 1
+# What a point-6 message carries after its result: nothing (not a keyframe), a keyframe's
+# features with all its keyframes' poses, or with those changed since a table the cloud
+# applied (wire/pose_deltas.py; a cloud that predates them rejects 2, and says nothing of
+# them in its welcome, so robots send it 1).
+POSES_NONE, POSES_WHOLE, POSES_DELTA = 0, 1, 2
 _KP_XY_RAW, _KP_SIZE_RAW, _KP_CLASS_RAW = 1, 2, 4
 _VALUES_PALETTE, _VALUES_F32 = 0, 1
 _DEPTH_IMAGE, _DEPTH_F32 = 0, 1  # 16-bit (an image codec's: PNG, or DEPTH_CODEC), or floats
@@ -121,6 +129,8 @@ class _Coding:
         # reference is searched (the robot's choice; nothing of it is sent).
         self.octaves: np.ndarray | None = None
         self.octave_window = octave_window
+        # Point 6: a keyframe's poses against a table the cloud applied (wire/pose_deltas.py).
+        self.poses: PoseDelta | None = None
 
 
 INTRA = _Coding()
@@ -581,15 +591,29 @@ def _put_tracked(w: Writer, s: TrackedFrame, camera: Camera, config: WireConfig,
     w.pack("i", int(s.reference_keyframe))
     if s.reference_keyframe >= 0:
         _put_pose(w, s.T_reference_camera, "pose relative to the reference keyframe")
-    # A keyframe: its features and every keyframe's pose, for the cloud's map merger.
-    w.pack("B", s.sends_keyframe)
+    # A keyframe: its features and its keyframes' poses (all, or those changed since a
+    # table the cloud applied), for the cloud's map merger.
+    delta = ctx.poses if s.sends_keyframe else None
+    w.pack("B", POSES_DELTA if delta is not None else
+           POSES_WHOLE if s.sends_keyframe else POSES_NONE)
     if s.sends_keyframe:
         poses = np.asarray(s.keyframe_poses, np.float64)
         _require(poses.ndim == 3 and poses.shape[1:] == (4, 4)
                  and len(poses) == s.reference_keyframe + 1,
                  f"keyframe poses {poses.shape}: keyframe {s.reference_keyframe} is the last")
-        w.pack("I", len(poses))
-        w.shuffled(poses[:, :3, :], "f8")  # rigid: the last row is implied
+        if delta is None:
+            w.pack("I", len(poses))
+            w.shuffled(poses[:, :3, :], "f8")  # rigid: the last row is implied
+        else:
+            _require(delta.count == len(poses) and 0 <= delta.base_seq < 2**63
+                     and len(delta.ids) and delta.ids[-1] == len(poses) - 1,
+                     f"a pose delta of {delta.count} keyframes for {len(poses)}, the newest "
+                     "not among its rows")
+            rows = np.zeros(len(poses), bool)
+            rows[delta.ids] = True
+            w.pack("qI", delta.base_seq, len(poses))
+            w.bits(rows)
+            w.shuffled(poses[delta.ids, :3, :], "f8")
         _put_features(w, s.posed.matched.features, camera, config)
 
 
@@ -622,10 +646,27 @@ def _get_keyframe_poses(r: Reader, reference: int) -> np.ndarray:
     (n,) = r.unpack("I", "keyframe pose count")
     if n != reference + 1:
         raise WireError(f"{n} keyframe poses, but keyframe {reference} is the newest")
+    return _poses_3x4(r, n, "keyframe poses")
+
+
+def _poses_3x4(r: Reader, n: int, what: str) -> np.ndarray:
     poses = np.zeros((n, 4, 4))
-    poses[:, :3, :] = r.shuffled("f8", 12 * n, "keyframe poses").reshape(n, 3, 4)
+    poses[:, :3, :] = r.shuffled("f8", 12 * n, what).reshape(n, 3, 4)
     poses[:, 3, 3] = 1.0
-    return _rigid_poses(poses, "keyframe poses")
+    return _rigid_poses(poses, what)
+
+
+def _get_pose_delta(r: Reader, reference: int) -> PoseDelta:
+    """The keyframe poses a keyframe message carries against a table the cloud applied."""
+    base_seq, n = r.unpack("qI", "keyframe pose delta")
+    if n != reference + 1:
+        raise WireError(f"{n} keyframe poses, but keyframe {reference} is the newest")
+    if base_seq < 0:
+        raise WireError(f"keyframe poses coded against message {base_seq}")
+    ids = np.flatnonzero(r.bits(n, "changed keyframe poses"))
+    if not len(ids) or ids[-1] != n - 1:
+        raise WireError(f"a pose delta without the newest keyframe's ({n - 1}) pose")
+    return PoseDelta(int(base_seq), int(n), ids, _poses_3x4(r, len(ids), "changed keyframe poses"))
 
 
 def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera,
@@ -639,15 +680,21 @@ def _get_tracked(r: Reader, index: int, timestamp: float, camera: Camera,
         raise WireError(f"reference keyframe {reference} < -1")
     T_reference = _rigid_pose(r, "pose relative to the reference keyframe") \
         if reference >= 0 else None
-    features = poses = None
-    if r.flag("keyframe features flag"):
+    features = poses = delta = None
+    (carried,) = r.unpack("B", "keyframe features flag")
+    if carried not in (POSES_NONE, POSES_WHOLE, POSES_DELTA):
+        raise WireError(f"keyframe features flag {carried}, expected 0, 1 or 2")
+    if carried != POSES_NONE:
         if not is_keyframe or reference < 0:
             raise WireError(f"keyframe features on a frame that is no keyframe (keyframe flag "
                             f"{is_keyframe}, reference keyframe {reference})")
-        poses = _get_keyframe_poses(r, reference)
+        if carried == POSES_WHOLE:
+            poses = _get_keyframe_poses(r, reference)
+        else:
+            delta = _get_pose_delta(r, reference)
         features = _get_features(r, index, timestamp, camera)
     return TrackedPose(index, timestamp, T, tracked, is_keyframe, int(n_inliers), reference,
-                       T_reference, features, poses)
+                       T_reference, features, poses, delta)
 
 
 _ENCODERS: tuple[Callable[[Writer, Any, Camera, WireConfig, _Coding], None], ...] = (
@@ -676,10 +723,11 @@ References = list[tuple[int, Reference]]
 
 
 def _write_state(state: State, split_point: int, camera: Camera, config: WireConfig,
-                 references: References | None = None, stats: InterStats | None = None
-                 ) -> tuple[Writer, bool]:
+                 references: References | None = None, stats: InterStats | None = None,
+                 pose_delta: PoseDelta | None = None) -> tuple[Writer, bool]:
     """The payload's columns, and whether it is inter-coded: against ``references`` (seq and
-    frame, at most MAX_REFERENCES) when given and the state carries descriptors."""
+    frame, at most MAX_REFERENCES) when given and the state carries descriptors. A point-6
+    keyframe's poses go as ``pose_delta`` when given (else whole)."""
     if not 0 <= split_point < N_SPLIT_POINTS:
         raise ValueError(f"split point {split_point} outside 0..{N_SPLIT_POINTS - 1}")
     expected = STATE_TYPES[split_point]
@@ -701,8 +749,12 @@ def _write_state(state: State, split_point: int, camera: Camera, config: WireCon
         ctx = _Coding([ref for _, ref in references], stats, config.inter_octaves)
     elif stats is not None and (features := features_of(state)) is not None:
         stats.descriptors += len(features[1])
+    inter = ctx is not INTRA
+    if pose_delta is not None:  # point 6, which has no descriptors to code (INTER_POINTS)
+        ctx = _Coding()
+        ctx.poses = pose_delta
     _ENCODERS[split_point](w, state, camera, config, ctx)
-    return w, ctx is not INTRA
+    return w, inter
 
 
 def encode_state(state: State, split_point: int, camera: Camera, config: WireConfig,
@@ -822,11 +874,14 @@ def decode_state(payload: bytes, split_point: int, camera: Camera,
 def encode_frame_message(state: State, split_point: int, robot_id: str, seq: int,
                          camera: Camera, config: WireConfig,
                          references: References | None = None,
-                         stats: InterStats | None = None) -> bytes:
+                         stats: InterStats | None = None,
+                         pose_delta: PoseDelta | None = None) -> bytes:
     """The whole frame message (envelope + payload); its timestamp is the frame's. With
     ``references`` (seq, frame) that the cloud holds, a state that carries descriptors is
-    inter-coded (Kind.FRAME_INTER, wire/inter.py); ``stats`` counts its descriptors."""
-    writer, inter = _write_state(state, split_point, camera, config, references, stats)
+    inter-coded (Kind.FRAME_INTER, wire/inter.py); ``stats`` counts its descriptors. A
+    point-6 keyframe's poses go as ``pose_delta`` (wire/pose_deltas.py) when given."""
+    writer, inter = _write_state(state, split_point, camera, config, references, stats,
+                                 pose_delta)
     _, timestamp = state_index_time(state)
     return seal(Kind.FRAME_INTER if inter else Kind.FRAME, robot_id, seq, timestamp,
                 split_point, writer.sections(), compress=config.compress,

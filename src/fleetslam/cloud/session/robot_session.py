@@ -355,10 +355,13 @@ class RobotSession:
         refusal = self.tracker.refusal(state)
         if refusal is not None:
             return self.replies.reject("frame", refusal)
+        missing = self.tracker.poses_missing(state)
+        if missing is not None:  # the robot sends its keyframe poses whole from now on
+            return self.replies.reject("frame", missing, protocol.Code.REFERENCE_MISSING)
         if st.last_seq >= 0 and header.seq > st.last_seq + 1:
             self.replies.count("frames lost in transit", header.seq - st.last_seq - 1)
         start = time.perf_counter()
-        out, to_merger = self.tracker.track(state, header.split_point)
+        out, to_merger = self.tracker.track(state, header.split_point, header.seq)
         cloud_ms = 1000.0 * (time.perf_counter() - start)
         self._record(header, out, cloud_ms)
         if out.is_keyframe:
@@ -410,7 +413,7 @@ class RobotSession:
                                             len(self.store.keyframe_indices(self.robot_id)),
                                             self.references.size, taken_over,
                                             st.rows[-1].timestamp if st.rows else None,
-                                            self.history_lost))
+                                            self.history_lost, pose_deltas=True))
 
     def _on_control(self, message: dict[str, Any], arrival: float) -> None:
         kind = message.get("type")

@@ -17,6 +17,7 @@ from fleetslam.merging.inter_robot import keyframe_summary
 from fleetslam.pipeline.split import CLOUD_TRACKS, StageTimer
 from fleetslam.pipeline.states import TrackedFrame, TrackedPose
 from fleetslam.wire.merger_keyframes import KeyframeSummary
+from fleetslam.wire.pose_deltas import PoseTable
 
 
 def _tracked_pose(state: SessionState, frame_index: int) -> np.ndarray:
@@ -39,7 +40,10 @@ class CloudTracks:
     def refusal(self, sent: object) -> str | None:
         return None
 
-    def track(self, sent: object, at: int) -> tuple[TrackedFrame, bool]:
+    def poses_missing(self, sent: object) -> str | None:
+        return None
+
+    def track(self, sent: object, at: int, seq: int) -> tuple[TrackedFrame, bool]:
         """The frame tracked from what the robot sent at point ``at`` (each stage's time
         added to the session's), and whether a keyframe of it goes to the merger (always:
         the cloud has its features)."""
@@ -89,6 +93,9 @@ class RobotTracks:
         self.state = state
         self.max_keyframes = config.transport.max_keyframes
         self.slam = RobotSlam(config, state.hello.camera, None, state.front_end, state.tracking)
+        # The robot's keyframe poses as applied (their deltas need it; not checkpointed: a
+        # restored session takes a whole table first).
+        self.pose_table = PoseTable()
 
     def refusal(self, sent: object) -> str | None:
         """Why a keyframe the robot sent cannot join its keyframes (its id not after the
@@ -104,10 +111,24 @@ class RobotTracks:
                     f"(transport.max_keyframes)")
         return None
 
-    def track(self, sent: TrackedPose, at: int) -> tuple[TrackedPose, bool]:
+    def poses_missing(self, sent: object) -> str | None:
+        """Why the keyframe poses ``sent`` carries as a delta cannot be applied (its base is
+        not a table this session applied), or None."""
+        if not isinstance(sent, TrackedPose) or sent.pose_delta is None:
+            return None
+        return self.pose_table.refusal(sent.pose_delta)
+
+    def track(self, sent: TrackedPose, at: int, seq: int) -> tuple[TrackedPose, bool]:
         """The robot's own result, recorded as sent; whether it carried a keyframe's
         features, kept (the checkpoint holds it) for the merger as the next of its
-        keyframes, with the robot's keyframe poses then."""
+        keyframes, with the robot's keyframe poses then (message ``seq``'s, whole or as a
+        delta that poses_missing() passed)."""
+        if isinstance(sent, TrackedPose) and sent.features is not None:
+            if sent.pose_delta is not None:
+                sent.keyframe_poses = self.pose_table.apply(seq, sent.pose_delta)
+                sent.pose_delta = None
+            elif sent.keyframe_poses is not None:
+                self.pose_table.whole(seq, sent.keyframe_poses)
         if not isinstance(sent, TrackedPose) or sent.features is None \
                 or sent.keyframe_poses is None:
             return sent, False
