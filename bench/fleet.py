@@ -39,7 +39,7 @@ from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.tables import format_table
-from fleetslam.transport import keys
+from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import PROTOCOL
 from fleetslam.transport.zenoh_session import open_connecting, put
 from fleetslam.wire.frames import encode_frame_message
@@ -165,6 +165,29 @@ class Fleet:
             if ate is not None:
                 out[rid] = 100 * ate["rmse_m"]
         return out
+
+    def end(self, timeout_s: float) -> int:
+        """Every robot ends its session as a robot does at its end (no keyframe images: this
+        fleet uploads none), so the next phase's robots find the cloud's sessions free
+        (transport.max_sessions counts ended sessions no more). Robots whose "ended" came
+        within ``timeout_s``."""
+        waiting = set(self.robots)
+        deadline = time.monotonic() + timeout_s
+        while waiting and time.monotonic() < deadline:
+            for rid in waiting:
+                last = len(self.robots[rid][0]) - 1
+                put(self.z, keys.control(rid), protocol.encode(protocol.End(
+                    last, unavailable=frozenset(range(last + 1)))))
+            resend = min(deadline, time.monotonic() + 10.0)
+            while waiting and time.monotonic() < resend:
+                try:
+                    rid, reply = self.replies.get(timeout=0.2)
+                except queue.Empty:
+                    continue
+                if reply.get("type") == "ended" or (reply.get("type") == "error"
+                                                    and reply.get("answer_to") == "end"):
+                    waiting.discard(rid)
+        return len(self.robots) - len(waiting)
 
     def close(self) -> None:
         for s in self.subs:

@@ -16,7 +16,9 @@ router and workers sharing one store folder:
      then one robot fewer at a time until the latency p95 is under 300 ms: the fleet that
      setting really sustains at 10 fps per robot.
 Online ATE: each robot's poses as the cloud answered them, against its ground truth (after
-the run); median / max over the phase's robots.
+the run); median / max over the phase's robots. After each phase its robots end their
+sessions as robots do (without keyframe images), outside the phase's clock: a worker holds
+at most transport.max_sessions sessions, and idle ones stay for transport.idle_session_s.
 CPU per worker: user + system seconds of the worker and its local-mapping and place-search
 processes over the phase, divided by the phase's wall time (1.0 = one core busy). The wall
 time, not the frames' span: when frames are dropped, the phase ends only after idle_s
@@ -126,6 +128,10 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             result.update(offered_fps_per_robot=fps, robots=len(robots), placement=per_worker,
                           cpu_cores_per_worker=cpu, online_ate_cm=ate)
             results[phase] = result
+            ended = fleet.end(timeout_s=120.0)
+            if ended < len(robots):
+                print(f"  {len(robots) - ended} of {len(robots)} robots' sessions did not end "
+                      "within 120 s", flush=True)
             fleet.close()
             # 10 fps per robot: fewer robots until that fleet is really sustained.
             if phase.startswith("10fps") and result["latency_ms_p95"] > SUSTAINED_P95_MS \

@@ -443,6 +443,40 @@ def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scen
         server.close()
 
 
+def test_a_finished_session_gives_its_slot_to_the_next_robot(tmp_path, messages):
+    """A worker holding transport.max_sessions (1) sessions: a robot that ended leaves its
+    slot to the next robot's hello (it stayed full for good before), yet it is merged from
+    the store, and a hello under its id is still refused as ended."""
+    seq0, msgs0, _ = messages["r0"]
+    config = exact_config().with_values({"transport.max_sessions": 1})
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    client = open_connecting(endpoint)
+    first, second = FakeRobot(client, "r0", seq0.camera), FakeRobot(client, "r1", seq0.camera)
+    try:
+        first.hello()
+        for m in msgs0:
+            first.send(m)
+        assert len(first.poses(len(msgs0))) == len(msgs0)
+        client.put(keys.control("r0"), json.dumps(
+            {"type": "end", "last_seq": len(msgs0) - 1,
+             "unavailable": list(range(len(msgs0)))}).encode())
+        first.reply("ended", timeout=60.0)
+        assert second.hello()["type"] == "welcome"
+        assert set(server.sessions) == {"r1"}
+        merged = server.merge()["merge"]
+        assert "r0" in merged["robots"], merged
+        client.put(keys.control("r0"), json.dumps(
+            {"type": "hello", "protocol": PROTOCOL, "offload_at": K,
+             "camera": seq0.camera.to_dict()}).encode())
+        assert first.reply("error")["code"] == Code.SESSION_ENDED.value
+    finally:
+        first.close()
+        second.close()
+        client.close()
+        server.close()
+
+
 def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(messages,
                                                                                 tmp_path):
     """A robot that goes quiet frees its session's threads and memory; nothing it sent is

@@ -143,10 +143,24 @@ class SessionTable(Mapping[str, RobotSession]):
             return session
 
     def _make_room(self, robot_id: str) -> bool:
-        """Close the oldest session that only said hello (no frame arrived, nothing tracked
-        or stored) for ``robot_id``'s hello; whether there was one. On plain TCP anyone may
-        say hello under any id: hellos alone must never keep a robot out. Its robot, if real,
-        is told no_session at its first frame and says hello again. Called with the lock."""
+        """Close a session for ``robot_id``'s hello; whether there was one to close. First
+        the finished session heard from longest ago: its end is on disk (its outputs, its
+        final checkpoint), a merge reads it from the store, and a hello under its id is
+        refused from that checkpoint as from the session (session_ended); without this, a
+        worker that had served max_sessions runs was full for good. Else the oldest that
+        only said hello (no frame arrived, nothing tracked or stored): on plain TCP anyone
+        may say hello under any id, and hellos alone must never keep a robot out; its robot,
+        if real, is told no_session at its first frame and says hello again. Called with
+        the lock."""
+        finished = [(s.last_heard, r, s) for r, s in self._live.items()
+                    if s.finished is not None]
+        if finished:
+            _, victim, session = min(finished)
+            del self._live[victim]
+            session.close()
+            log.info("robot %s: its finished session closed for robot %s's hello (the cloud "
+                     "holds transport.max_sessions)", victim, robot_id)
+            return True
         empty = [(s.opened, r, s) for r, s in self._live.items()
                  if not s.heard_frame and not s.state.rows and s.finished is None
                  and not self.store.has_checkpoint(r)]
