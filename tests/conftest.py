@@ -78,6 +78,23 @@ def exact_config():
     return config
 
 
+def tracked_by_itself(last: int, min_keyframes: int):
+    """(camera, tracked frames) of a robot tracking redkitchen 0..``last`` by itself (point
+    6's stages, exact_config), with at least ``min_keyframes`` keyframes."""
+    from fleetslam.backend.robot_slam import RobotSlam
+    from fleetslam.datasets.recording import open_source
+    from fleetslam.pipeline.split import run_stages
+    from fleetslam.pipeline.states import CapturedFrame
+
+    sequence = open_source(f"{require(SEVEN_SCENES)}:0-{last}")
+    pipeline = RobotSlam.new(exact_config(), sequence.camera)
+    frames = [run_stages(pipeline.stages, CapturedFrame(f.index, f.timestamp, f.rgb,
+                                                        f.depth_m), pipeline.sides)
+              for f in sequence]
+    assert sum(t.is_keyframe for t in frames) >= min_keyframes
+    return sequence.camera, frames
+
+
 def wait_for(predicate, timeout: float, what: str, interval: float = 0.1):
     """The predicate's first true value, polled; AssertionError naming ``what`` at the
     deadline."""

@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import SEVEN_SCENES, exact_config, require
+from conftest import SEVEN_SCENES, exact_config, require, tracked_by_itself
 
 from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.server import CloudServer
@@ -21,8 +21,7 @@ from fleetslam.config import Config
 from fleetslam.datasets.recording import open_source
 from fleetslam.edge.robot import Robot
 from fleetslam.launch import free_endpoint
-from fleetslam.pipeline.split import run_stages
-from fleetslam.pipeline.states import CapturedFrame, TrackedFrame
+from fleetslam.pipeline.states import TrackedFrame
 from fleetslam.transport.protocol import Hello
 from fleetslam.wire.envelope import Kind, WireError, seal
 from fleetslam.wire.frames import decode_frame_message, encode_frame_message, encode_state
@@ -34,13 +33,7 @@ ROBOT = "r0"
 @pytest.fixture(scope="module")
 def tracked():
     """The camera and the tracked frames of a robot tracking redkitchen 0-29 by itself."""
-    sequence = open_source(f"{require(SEVEN_SCENES)}:0-{N_FRAMES - 1}")
-    pipeline = RobotSlam.new(exact_config(), sequence.camera)
-    frames = [run_stages(pipeline.stages, CapturedFrame(f.index, f.timestamp, f.rgb,
-                                                        f.depth_m), pipeline.sides)
-              for f in sequence]
-    assert sum(t.is_keyframe for t in frames) >= 3
-    return sequence.camera, frames
+    return tracked_by_itself(N_FRAMES - 1, 3)
 
 
 def _message(camera, state: TrackedFrame, seq: int) -> bytes:

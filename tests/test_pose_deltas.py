@@ -10,15 +10,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import SEVEN_SCENES, exact_config, require
+from conftest import exact_config, tracked_by_itself
 from scipy.spatial.transform import Rotation
 
-from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.session.robot_session import RobotSession
 from fleetslam.cloud.session.store import CloudStore
-from fleetslam.datasets.recording import open_source
-from fleetslam.pipeline.split import run_stages
-from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport.protocol import Hello
 from fleetslam.wire.binary import Reader, Writer
 from fleetslam.wire.envelope import WireError
@@ -106,13 +102,7 @@ def test_a_delta_the_cloud_cannot_apply_is_refused_with_why():
 @pytest.fixture(scope="module")
 def tracked():
     """The camera and the tracked frames of a robot tracking redkitchen 0-59 by itself."""
-    sequence = open_source(f"{require(SEVEN_SCENES)}:0-59")
-    pipeline = RobotSlam.new(exact_config(), sequence.camera)
-    frames = [run_stages(pipeline.stages, CapturedFrame(f.index, f.timestamp, f.rgb,
-                                                        f.depth_m), pipeline.sides)
-              for f in sequence]
-    assert sum(t.is_keyframe for t in frames) >= 5
-    return sequence.camera, frames
+    return tracked_by_itself(59, 5)
 
 
 @pytest.mark.realdata
