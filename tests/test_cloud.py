@@ -443,12 +443,17 @@ def test_bad_hellos_and_too_many_robots_are_refused_with_a_reason(tmp_path, scen
         server.close()
 
 
-def test_a_finished_session_gives_its_slot_to_the_next_robot(tmp_path, messages):
+@pytest.mark.parametrize("freed_by", ["a hello", "idleness"])
+def test_a_finished_session_gives_its_slot_to_the_next_robot(tmp_path, messages, freed_by):
     """A worker holding transport.max_sessions (1) sessions: a robot that ended leaves its
-    slot to the next robot's hello (it stayed full for good before), yet it is merged from
-    the store, and a hello under its id is still refused as ended."""
+    slot to the next robot's hello (it stayed full for good before), or leaves the table
+    once idle for transport.idle_session_s, yet it is merged from the store, and a hello
+    under its id is still refused as ended."""
     seq0, msgs0, _ = messages["r0"]
-    config = exact_config().with_values({"transport.max_sessions": 1})
+    values = {"transport.max_sessions": 1}
+    if freed_by == "idleness":
+        values["transport.idle_session_s"] = 3.0
+    config = exact_config().with_values(values)
     endpoint = free_endpoint()
     server = CloudServer(config, tmp_path / "cloud", endpoint).start()
     client = open_connecting(endpoint)
@@ -462,6 +467,8 @@ def test_a_finished_session_gives_its_slot_to_the_next_robot(tmp_path, messages)
             {"type": "end", "last_seq": len(msgs0) - 1,
              "unavailable": list(range(len(msgs0)))}).encode())
         first.reply("ended", timeout=60.0)
+        if freed_by == "idleness":
+            wait_for(lambda: "r0" not in server.sessions, 30.0, "r0's finished session to go")
         assert second.hello()["type"] == "welcome"
         assert set(server.sessions) == {"r1"}
         merged = server.merge()["merge"]

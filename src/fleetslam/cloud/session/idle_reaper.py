@@ -3,8 +3,9 @@ nothing from its robot for ``transport.idle_session_s`` is checkpointed and clos
 threads and memory are freed; the robot's next message restores it from that checkpoint. A
 session that tracked no frame goes ``transport.idle_empty_session_s`` after it opened, with no
 checkpoint (it has nothing to keep; its robot's next hello opens a new one): hellos under
-made-up ids must not hold the cloud full. A finished session stays: its map waits for the
-merge.
+made-up ids must not hold the cloud full. A finished session goes after
+``transport.idle_session_s`` too, without a checkpoint: its end is on disk, and a merge reads
+it from the store as it reads another worker's robots.
 """
 
 from __future__ import annotations
@@ -49,9 +50,16 @@ class IdleReaper:
         # session or the checkpoint written here, never an older one.
         with self.sessions.lock:
             for robot_id, session in self.sessions.now():
-                if session.finished is not None:
-                    continue
                 quiet = now - session.last_heard
+                if session.finished is not None:
+                    if quiet > idle_s:
+                        # Its end is on disk; a merge reads it from the store, a hello under
+                        # its id is refused as ended from its checkpoint.
+                        self.sessions.remove(robot_id)
+                        session.close()
+                        log.info("robot %s: finished session closed after %.0f s without a "
+                                 "message", robot_id, quiet)
+                    continue
                 # From its opening, not its last message: hellos resent under a made-up id
                 # must not keep its slot.
                 if not session.state.rows and now - session.opened > empty_s \
