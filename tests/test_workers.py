@@ -42,7 +42,11 @@ class Worker:
         self.won: list[str] = []
         self.event = threading.Event()
         self.closed = False
-        self.placement = LivelinessPlacement(name, PlacementConfig(settle_s=0.3), self).start(
+        # A bid sees the others declared within the settle time: 1 s, not the default 0.3,
+        # as on a loaded 2-core machine one worker's election thread started over 0.3 s
+        # after the other's, which then saw no rival and won while busy (a fresh clone's
+        # suite caught it once).
+        self.placement = LivelinessPlacement(name, PlacementConfig(settle_s=1.0), self).start(
             self.z, self)
 
     def busy(self) -> float:
