@@ -9,9 +9,11 @@ Zenoh on loopback.
 Sampled every ``--every`` seconds from outside (``status`` and /proc): per block of
 ``--block`` frames the cloud tracked, the wall time per frame, the cloud's CPU time per
 frame (its process and its local-mapping processes), its resident memory at the block's
-end, and its keyframes. The last block against the first is the number that matters: the
-issue's target is "the last 1000 frames no slower than the first 1000". After the run,
-the robot's ATE against ground truth (read only then). ``--configs``: settings files (the
+end, its keyframes, the size of its checkpoint file, and the checkpoints it wrote in the
+block with their bytes per checkpoint (new chunks included: the map's log patches and
+bases). The last block against the first is the number that matters: the issue's target
+is "the last 1000 frames no slower than the first 1000". After the run, the robot's ATE
+against ground truth (read only then). ``--configs``: settings files (the
 robot and the cloud read them), alternated within each of ``--runs`` rounds, so an A/B sees
 the same machine. ``--baseline REV``: the cloud and the robot also run from the code at git
 revision REV (its src/ extracted to a temporary folder), alternated with this code within
@@ -83,6 +85,14 @@ def tree_rss_mb(pid: int) -> float:
     return total
 
 
+def checkpoint_writes(robot_status: dict[str, Any] | None) -> dict[str, int]:
+    """The checkpoints the cloud wrote for the robot so far and their bytes, new chunks
+    included (the status has them since the map's arrays became logs; 0 before)."""
+    robot_status = robot_status or {}
+    return {"checkpoints": robot_status.get("checkpoints", 0),
+            "checkpoint_bytes": robot_status.get("checkpoint_bytes", 0)}
+
+
 def checkpoint_kb(out: Path) -> float:
     """The size of the robot's checkpoint as last written (kB; its chunks, written once
     each, not counted): what every checkpoint write costs at that point of the run."""
@@ -140,7 +150,7 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
         next_block = block
         samples.append({"frames": 0, "t": 0.0, "cpu_s": tree_cpu_s(cloud.pid),
                         "rss_mb": tree_rss_mb(cloud.pid), "keyframes": 0,
-                        "checkpoint_kb": checkpoint_kb(out)})
+                        "checkpoint_kb": checkpoint_kb(out), **checkpoint_writes(None)})
         while robot.poll() is None:
             time.sleep(every_s)
             if time.monotonic() - start > 3 * 3600:
@@ -158,7 +168,8 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
                 samples.append({"frames": done, "t": time.monotonic() - start,
                                 "cpu_s": tree_cpu_s(cloud.pid), "rss_mb": tree_rss_mb(cloud.pid),
                                 "keyframes": merger.get("keyframes", 0),
-                                "checkpoint_kb": checkpoint_kb(out)})
+                                "checkpoint_kb": checkpoint_kb(out),
+                                **checkpoint_writes(robot_status)})
                 print(f"  {done} frames at {samples[-1]['t']:.0f} s, cloud RSS "
                       f"{samples[-1]['rss_mb']:.0f} MB", flush=True)
                 while next_block <= done:
@@ -179,7 +190,11 @@ def run(frames: int, block: int, rate: str, every_s: float, work: Path,
                        "wall_ms_per_frame": 1000 * (b["t"] - a["t"]) / n,
                        "cloud_cpu_ms_per_frame": 1000 * (b["cpu_s"] - a["cpu_s"]) / n,
                        "rss_mb": b["rss_mb"], "keyframes": b["keyframes"],
-                       "checkpoint_kb": b["checkpoint_kb"]})
+                       "checkpoint_kb": b["checkpoint_kb"],
+                       # What the block's checkpoints wrote, per checkpoint written.
+                       "checkpoints": b["checkpoints"] - a["checkpoints"],
+                       "written_kb_per_checkpoint": (b["checkpoint_bytes"] - a["checkpoint_bytes"])
+                       / 1000 / max(b["checkpoints"] - a["checkpoints"], 1)})
     robot_summary = summary["robots"][0]
     report = json.loads((work / "r0_report.json").read_text())
     queries = ((robot_summary.get("loop_closing") or {}).get("local_mapping") or {}
@@ -277,9 +292,11 @@ def last_over_first(result: dict[str, Any]) -> tuple[float, float]:
 def report(result: dict[str, Any]) -> None:
     blocks = result["blocks"]
     rows = [[b["frames"], b["wall_ms_per_frame"], b["cloud_cpu_ms_per_frame"], b["rss_mb"],
-             b["keyframes"], b.get("checkpoint_kb")] for b in blocks]
+             b["keyframes"], b.get("checkpoint_kb"), b.get("checkpoints"),
+             b.get("written_kb_per_checkpoint")] for b in blocks]
     print(format_table(["frames", "wall ms/frame", "cloud CPU ms/frame", "cloud RSS MB",
-                        "keyframes (merger)", "checkpoint kB"], rows))
+                        "keyframes (merger)", "checkpoint file kB", "checkpoints written",
+                        "kB written / checkpoint"], rows))
     grown = blocks[-1]["keyframes"] - blocks[0]["keyframes"]
     if grown > 0:
         rss = (blocks[-1]["rss_mb"] - blocks[0]["rss_mb"]) / grown

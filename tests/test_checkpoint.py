@@ -69,7 +69,7 @@ def test_what_is_not_a_checkpoint_of_this_version_is_refused_naming_the_file(tmp
     tree = _tree(data_tree.dumps(hello, CHECKPOINT_CLASSES))
     assert data_tree.loads(_with_tree(tree), "f", CHECKPOINT_CLASSES, 1 << 20) == hello
     cases = {
-        "checkpoint format version 3": {**tree, "version": 3},
+        "checkpoint format version 4": {**tree, "version": 4},
         "'Popen' is not part of a session": {**tree, "state": {"__obj__": "Popen",
                                                                "attributes": {}}},
         "not a fleetslam session checkpoint": {"format": "other"},

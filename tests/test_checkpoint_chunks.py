@@ -1,18 +1,21 @@
-"""A session checkpoint keeps what never changes (each keyframe's features, each full block of
-the trajectory) as chunks written once: a checkpoint after more tracking carries only the
-new ones; the restored session tracks on exactly as the original; a missing, swapped or
-oversized chunk, or a name that could leave the folder, is refused naming the file."""
+"""A session checkpoint keeps what never changes (each keyframe's features and landmark
+table, each full block of the trajectory) as chunks written once, and the map's and place
+database's arrays as logs (a base, then patches): a checkpoint after more tracking carries
+only the new chunks and a patch; the restored session tracks on exactly as the original; a
+missing, swapped or oversized chunk, or a name that could leave the folder, is refused
+naming the file."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import pytest
 
 from conftest import small_scene
 from fleetslam.backend.robot_slam import RobotSlam
-from fleetslam.cloud.session import session_state
+from fleetslam.cloud.session import array_log, session_state
 from fleetslam.cloud.session.session_state import Chunks, SessionState, TrajectoryRow, capture
 from fleetslam.cloud.session.store import CloudStore
 from fleetslam.config import Config
@@ -22,7 +25,6 @@ from fleetslam.transport.protocol import Hello
 from fleetslam.wire.data_tree import CheckpointError
 
 BLOCK = 4  # rows per block here (a run's is 256): the short scene fills a few
-ARRAY_BLOCK = 512  # place-database rows per block (a run's is 32768)
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +36,6 @@ def frames(tmp_path_factory):
 @pytest.fixture(autouse=True)
 def small_blocks(monkeypatch):
     monkeypatch.setattr(session_state, "ROW_BLOCK", BLOCK)
-    monkeypatch.setattr(session_state, "ARRAY_BLOCK", ARRAY_BLOCK)
 
 
 class Run:
@@ -70,11 +71,11 @@ def test_only_new_chunks_are_written_and_the_restored_session_tracks_on_exactly(
     first = _write(store, chunks, run.track(8))
     keyframes = len(run.pipeline.state.map.keyframes)
     assert sum(n.startswith("f") for n in first.chunks) == keyframes
+    assert sum(n.startswith("k") for n in first.chunks) == keyframes
     assert sum(n.startswith("r") for n in first.chunks) == 8 // BLOCK
-    places = run.pipeline.state.places
-    full = len(places.owner) // ARRAY_BLOCK
-    assert full >= 2 and sum(n.startswith("a") for n in first.chunks) == 2 * full
-    # Nothing new: nothing but the changing parts again.
+    # The map's and the place database's logs start with a base each.
+    assert sum(n.startswith("b") for n in first.chunks) == 2
+    # Nothing new: nothing but the changing parts again, and no patch.
     assert capture(run.track(8), chunks).chunks == {}
     state = run.track(10)
     second = _write(store, chunks, state)
@@ -82,8 +83,9 @@ def test_only_new_chunks_are_written_and_the_restored_session_tracks_on_exactly(
     new_keyframes = len(run.pipeline.state.map.keyframes) - keyframes
     assert sum(n.startswith("f") for n in second.chunks) == new_keyframes
     assert sum(n.startswith("r") for n in second.chunks) == 10 // BLOCK - 8 // BLOCK
-    full_now = len(run.pipeline.state.places.owner) // ARRAY_BLOCK
-    assert sum(n.startswith("a") for n in second.chunks) == 2 * (full_now - full)
+    # The map's log a patch or (its patches outweighing the base) a new base; the place
+    # database's too if a keyframe was added to it.
+    assert sum(n[0] in "bp" for n in second.chunks) == 1 + (new_keyframes > 0)
     assert len(second.tree) < len(capture(state).tree)  # the plain tree holds every row
 
     restored = store.load_checkpoint("r0")
@@ -92,6 +94,9 @@ def test_only_new_chunks_are_written_and_the_restored_session_tracks_on_exactly(
     for name in ("descriptors", "owner"):
         assert getattr(restored.tracking.places, name).tobytes() == \
             getattr(state.tracking.places, name).tobytes()
+    for name in session_state.LOGGED_ARRAYS[type(state.tracking.map)]:
+        assert getattr(restored.tracking.map, name).tobytes() == \
+            getattr(state.tracking.map, name).tobytes()
     again = RobotSlam(Config(), run.camera, front_end=restored.front_end,
                              state=restored.tracking)
     for frame in run.captured[10:]:
@@ -100,13 +105,41 @@ def test_only_new_chunks_are_written_and_the_restored_session_tracks_on_exactly(
         assert a.is_keyframe == b.is_keyframe
 
 
+def test_replaced_chains_are_deleted_and_the_checkpoint_before_still_loads(frames, tmp_path,
+                                                                          monkeypatch):
+    monkeypatch.setattr(array_log, "MAX_PATCHES", 2)  # a new base every third checkpoint
+    run = Run(frames)
+    store = CloudStore(tmp_path)
+    chunks = Chunks(lambda name: store.has_chunk("r0", name),
+                    lambda names: store.remove_chunks("r0", names))
+    folder = tmp_path / "r0"
+    bases, before = set(), None
+    for n in range(4, 17):
+        blob = _write(store, chunks, run.track(n))
+        named = set(re.findall(r'"__chunk__": "([a-z][0-9a-f-]+)"', blob.tree))
+        bases |= {name for name in named if name[0] == "b"}
+        on_disk = {f.stem for f in (folder / "chunks").iterdir()}
+        assert named <= on_disk
+        # Two logs, each with at most its current base and the one before on disk.
+        assert sum(name[0] == "b" for name in on_disk) <= 4
+        restored = store.load_checkpoint("r0")
+        assert restored.tracking.map.xyz.tobytes() == run.pipeline.state.map.xyz.tobytes()
+        if before is not None:  # a reader that opened the checkpoint before still finds all
+            (folder / "before.ckpt").write_bytes(before)
+            store.load_checkpoint_file(folder / "before.ckpt")
+        before = blob.to_bytes()
+    assert len(bases) > 4  # replaced bases were deleted
+
+
 def test_a_restored_session_names_the_chunks_it_already_has(frames, tmp_path):
     run = Run(frames)
     store = CloudStore(tmp_path)
     _write(store, Chunks(lambda name: store.has_chunk("r0", name)), run.track(8))
     restored = store.load_checkpoint("r0")
-    # A worker taking the session over writes none of them again.
-    assert capture(restored, Chunks(lambda name: store.has_chunk("r0", name))).chunks == {}
+    # A worker taking the session over writes none of them again; its logs start afresh,
+    # a base each (its own: a log deletes only the chunks it made).
+    again = capture(restored, Chunks(lambda name: store.has_chunk("r0", name))).chunks
+    assert sorted(name[0] for name in again) == ["b", "b"]
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +176,8 @@ def test_a_chunk_of_other_content_is_refused(written):
 def test_chunks_count_against_the_checkpoint_limit(written, tmp_path):
     _, _, blob = written
     head = (tmp_path / "r0" / "session.ckpt").stat().st_size
-    small = CloudStore(tmp_path, max_checkpoint_bytes=head + 1000)
+    parts = sum(f.stat().st_size for f in (tmp_path / "r0" / "chunks").iterdir())
+    small = CloudStore(tmp_path, max_checkpoint_bytes=head + parts // 2)
     with pytest.raises(CheckpointError, match="exceeds the limit of the checkpoint and its"):
         small.load_checkpoint("r0")
 

@@ -54,7 +54,10 @@ class OperatorRequests:
                       # Its memory budget: held now, and what it dropped unread.
                       "held_mb": round(s.budget.used / MB, 1),
                       "held_peak_mb": round(s.budget.peak / MB, 1),
-                      "dropped_over_budget": sum(s.counts()[c] for c in OVER_BUDGET.values())}
+                      "dropped_over_budget": sum(s.counts()[c] for c in OVER_BUDGET.values()),
+                      # Its checkpoints: how many written, and their bytes (new chunks too).
+                      "checkpoints": s.checkpoints.writes,
+                      "checkpoint_bytes": s.checkpoints.bytes_written}
                   for r, s in self.sessions.now()}
         placement = self.placement
         return protocol.StatusReply(

@@ -27,7 +27,10 @@ VERSION = 1
 # A tree that names chunks (immutable parts kept in files of their own, written once: a
 # session's keyframe features and full blocks of its trajectory) is version 2, so an older
 # fleetslam refuses it by its version, not as damaged.
-CHUNKED_VERSION = 2
+# Version 3: the map's and the place database's arrays as logs of chunks
+# (cloud/session/array_log.py). Versions 1 and 2 are still read.
+CHUNKED_VERSION = 3
+READABLE_VERSIONS = (VERSION, 2, CHUNKED_VERSION)
 # A chunk's name (it becomes a file name): nothing that could leave the chunks' folder.
 CHUNK_NAME = re.compile(r"[a-z]\d{7,12}-[0-9a-f]{16}")
 _TREE = "__tree__"
@@ -194,10 +197,10 @@ def loads(data: bytes, where: str, classes: Classes, max_bytes: int,
         raise CheckpointError(where, f"not a fleetslam session checkpoint ({exc})") from None
     if not isinstance(tree, dict) or tree.get("format") != FORMAT:
         raise CheckpointError(where, "not a fleetslam session checkpoint")
-    if tree.get("version") not in (VERSION, CHUNKED_VERSION):
+    if tree.get("version") not in READABLE_VERSIONS:
         raise CheckpointError(where, f"checkpoint format version {tree.get('version')!r}; "
-                                     f"this fleetslam reads versions {VERSION} and "
-                                     f"{CHUNKED_VERSION}: not restored")
+                                     f"this fleetslam reads versions "
+                                     f"{', '.join(map(str, READABLE_VERSIONS))}: not restored")
     return _Decoder(files, where, classes, load_chunk).value(tree.get("state"))
 
 

@@ -145,19 +145,20 @@ class FencedStore(CloudStore):
         self.write_checkpoint(robot_id, session_state.capture(state), ended=state.ended)
 
     def write_checkpoint(self, robot_id: str, blob: bytes | Capture, ended: bool = False
-                         ) -> None:
-        """Write the blob and make it the robot's current checkpoint; NotOwner if this worker
-        does not own the robot with a live lease (or the robot has ended and this one has
-        not), CoordinationUnavailable if etcd cannot be asked. Either way nothing changed."""
+                         ) -> int:
+        """Write the blob and make it the robot's current checkpoint (the bytes written);
+        NotOwner if this worker does not own the robot with a live lease (or the robot has
+        ended and this one has not), CoordinationUnavailable if etcd cannot be asked. Either
+        way nothing changed."""
         held = self.ownership.holding(robot_id)
         if held is None:
             self.refused += 1
             raise NotOwner(f"robot {robot_id}: worker {self.ownership.worker_id} does not own "
                            f"it (never granted, released or fenced): checkpoint refused")
-        self.write_as(robot_id, blob, *held, ended=ended)
+        return self.write_as(robot_id, blob, *held, ended=ended)
 
     def write_as(self, robot_id: str, blob: bytes | Capture, epoch: int, lease: int,
-                 ended: bool = False) -> None:
+                 ended: bool = False) -> int:
         """The write of a worker that was granted ``robot_id`` with ``epoch`` under ``lease``,
         whatever it believes now (a worker paused past its own fence still gets here): etcd
         decides, in one transaction. NotOwner / CoordinationUnavailable as write_checkpoint."""
@@ -172,8 +173,8 @@ class FencedStore(CloudStore):
             raise NotOwner(f"robot {robot_id}: {path} exists already (etcd's epoch {epoch} "
                            f"was used before): checkpoint refused")
         # Chunks are named by content: a stale writer's are the same files, never wrong.
-        self.write_chunks(robot_id, blob)
-        self.write_checkpoint_file(robot_id, path, blob)
+        written = self.write_chunks(robot_id, blob)
+        written += self.write_checkpoint_file(robot_id, path, blob)
         owner = self.keys.owner(robot_id)
         pointer = Pointer(epoch, seq, name, ended, self.ownership.worker_id)
         compares = [compare(owner, "CREATE", epoch), compare(owner, "LEASE", lease)]
@@ -206,6 +207,7 @@ class FencedStore(CloudStore):
                 self.ownership.lost(robot_id, epoch, why)
             raise NotOwner(f"robot {robot_id}: checkpoint of epoch {epoch} refused: {why}")
         self._keep_few(robot_id, path)
+        return written
 
     def _era(self) -> int:
         """This store's era of the etcd history the worker talks to now."""

@@ -62,6 +62,9 @@ class CheckpointWriter:
         self._durable = threading.Condition()
         self._interval_s = interval_s
         self._captured_at = -float("inf")
+        # Checkpoints written and their bytes (new chunks included): what the store costs.
+        self.writes = 0
+        self.bytes_written = 0
         # Requests not captured yet: the newest frame index and the keyframes for the merger.
         self._waiting: tuple[int, list[NewKeyframe]] | None = None
         self._thread = threading.Thread(target=self._write, name=f"cloud-{robot_id}-checkpoints",
@@ -149,7 +152,7 @@ class CheckpointWriter:
                 index, number, blob, ended, more = newer
                 keyframes = keyframes + more
             try:
-                self.store.write_checkpoint(self.robot_id, blob, ended=ended)
+                written = self.store.write_checkpoint(self.robot_id, blob, ended=ended)
             except NotOwner as exc:
                 # Fenced or taken over: the placement drops this session; nothing it holds
                 # is acknowledged or merged from here on.
@@ -164,6 +167,8 @@ class CheckpointWriter:
                 self._fail(number, f"not written: {exc}")
             else:
                 self._chunks_written(blob.chunks if isinstance(blob, Capture) else ())
+                self.writes += 1
+                self.bytes_written += written or 0
                 with self._durable:
                     self._durable_index = max(self._durable_index, index)
                     self._written = max(self._written, number)

@@ -106,7 +106,9 @@ class RobotSession:
         self._failure_log = Throttle(REJECTION_REPLY_INTERVAL_S)
         self._over_budget_told = Throttle(REJECTION_REPLY_INTERVAL_S)
         # The checkpoints' parts that never change are written once (session_state.Chunks).
-        self.chunks = session_state.Chunks(lambda name: store.has_chunk(state.robot_id, name))
+        self.chunks = session_state.Chunks(
+            lambda name: store.has_chunk(state.robot_id, name),
+            lambda names: store.remove_chunks(state.robot_id, names))
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
                                             state.last_index, keyframe_sink,
                                             ended=lambda: self.state.ended,

@@ -25,6 +25,8 @@ from fleetslam.camera import Camera
 from fleetslam.pipeline.front_end import FrontEndState
 from fleetslam.pipeline.states import FeatureFrame
 from fleetslam.transport.protocol import Hello
+from fleetslam.cloud.session import array_log
+from fleetslam.cloud.session.array_log import ArrayBase, ArrayPatch, Logged, LoggedArrays
 from fleetslam.wire import data_tree
 from fleetslam.wire.merger_keyframes import KeyframeSummary
 
@@ -88,8 +90,9 @@ ROW_BLOCK = 256
 
 @dataclass
 class ArrayBlock:
-    """Rows [start, start + len(rows)) of an array that only ever grows at its end (the
-    place database's descriptors and their owners): a chunk."""
+    """Rows [start, start + len(rows)) of an array that only grows at its end: a chunk of the
+    place database in checkpoints written before its arrays were logged (array_log.py); read
+    only."""
 
     start: int
     rows: np.ndarray
@@ -97,16 +100,22 @@ class ArrayBlock:
 
 @dataclass
 class AppendOnly:
-    """Such an array in a checkpoint: its full blocks (chunks) and the rows after them."""
+    """Such an array in those checkpoints: its full blocks (chunks) and the rows after them."""
 
     blocks: list[ArrayBlock]
     tail: np.ndarray
 
 
-# Rows per block of an append-only array (1 MB of descriptors).
-ARRAY_BLOCK = 32768
-# The place database's arrays that only grow at their end (KeyframeDatabase.add replaces
-# them by longer ones whose first rows are the old ones; each block is compared anyway).
+# The arrays of a session kept as logs (array_log.py) rather than whole in every checkpoint:
+# the map's landmarks and observations, and the place database's, by class.
+LOGGED_ARRAYS: dict[type, tuple[str, ...]] = {
+    LocalMap: ("xyz", "descriptors", "weight", "last_keyframe", "octave", "distance", "alive",
+               "first_keyframe", "n_visible", "n_found", "obs_keyframe", "obs_landmark",
+               "obs_uv", "obs_depth", "obs_octave"),
+    KeyframeDatabase: ("descriptors", "owner"),
+    BowDatabase: ("words", "weights", "owner"),
+}
+# Read from older checkpoints: the place database's arrays as blocks.
 _APPEND_ONLY = ("descriptors", "owner")
 
 
@@ -134,6 +143,11 @@ def _content_name(value: Any) -> str | None:
                            r.reference_keyframe) for r in rows], np.float64)
         return f"r{rows[0].index:07d}-" + _digest(table.tobytes(), poses.tobytes(),
                                                  refs.tobytes())
+    if type(value) is ArrayBase or type(value) is ArrayPatch:
+        return array_log.chunk_name(value)
+    if type(value) is np.ndarray:  # a keyframe's landmark table
+        return f"k{len(value):07d}-" + _digest(f"{value.dtype.str}{value.shape}".encode(),
+                                                np.ascontiguousarray(value).tobytes())
     if type(value) is ArrayBlock:
         rows = np.ascontiguousarray(value.rows)
         return f"a{value.start:07d}-" + _digest(f"{rows.dtype.str}{rows.shape}".encode(),
@@ -142,25 +156,36 @@ def _content_name(value: Any) -> str | None:
 
 
 class Chunks:
-    """A session's chunker (wire/data_tree.Chunker): each keyframe's features and each full
-    block of its trajectory are chunks, named once by their content and written once, so a
-    checkpoint's cost stays about that of what changed since the last (the map's landmark
-    arrays and keyframe poses, which do change, stay in every checkpoint)."""
+    """A session's chunker (wire/data_tree.Chunker): each keyframe's features and observed
+    landmarks and each full block of its trajectory are chunks, named once by their content
+    and written once; the map's and the place database's arrays are logs of chunks
+    (array_log.py). A checkpoint's cost stays about that of what changed since the last
+    (the keyframe poses, which do change, stay in every checkpoint)."""
 
-    def __init__(self, exists: Callable[[str], bool]) -> None:
-        """``exists``: whether the store holds a chunk (asked once per unknown name)."""
+    def __init__(self, exists: Callable[[str], bool],
+                 remove: Callable[[Iterable[str]], None] = lambda names: None) -> None:
+        """``exists``: whether the store holds a chunk (asked once per unknown name);
+        ``remove``: deletes chunks no checkpoint will name again (the writer's thread)."""
         self._exists = exists
+        self._remove = remove
         self._names: dict[int, tuple[Any, str]] = {}  # id(value) -> (value, its name)
         self._seen: dict[int, tuple[Any, str]] = {}
         self._written: set[str] = set()
         self._blocks: dict[int, RowBlock] = {}  # first row's position -> its block
-        self._keyframe_features: set[int] = set()  # ids of the keyframes' features now
-        self._array_blocks: dict[tuple[str, int], ArrayBlock] = {}  # (array, start) -> block
+        # Ids of the keyframes' features and landmark tables now (neither changes in place:
+        # a loop's landmark merge gives each keyframe a new table).
+        self._keyframe_parts: set[int] = set()
+        self._logs: dict[str, array_log.ArrayLog] = {}  # "map", "places" -> its log
         self._lock = threading.Lock()
 
     def name_of(self, value: Any) -> str | None:
-        if type(value) is not RowBlock and type(value) is not ArrayBlock \
-                and id(value) not in self._keyframe_features:
+        kind = type(value)
+        if kind is ArrayBase or kind is ArrayPatch:
+            for log in self._logs.values():
+                if (name := log.name_of(value)) is not None:
+                    return name
+            return _content_name(value)
+        if kind is not RowBlock and id(value) not in self._keyframe_parts:
             return None  # the last frame's features change with every frame
         known = self._names.get(id(value))
         name = known[1] if known is not None and known[0] is value else _content_name(value)
@@ -172,26 +197,31 @@ class Chunks:
             if name in self._written:
                 return True
         if self._exists(name):
-            self.confirm([name])
+            with self._lock:
+                self._written.add(name)
             return True
         return False
 
     def confirm(self, names: Iterable[str]) -> None:
-        """These chunks are durably written (a checkpoint naming them was)."""
+        """These chunks are durably written (a checkpoint naming them was): logs whose new
+        base is among them delete the chains it replaced."""
+        names = set(names)
+        retired = [n for log in list(self._logs.values()) for n in log.written(names)]
         with self._lock:
             self._written.update(names)
+            self._written.difference_update(retired)
+        if retired:
+            self._remove(retired)
 
     def capture(self, state: SessionState) -> data_tree.Capture:
-        view = copy.copy(state)  # shallow: only what is put in blocks is replaced
+        view = copy.copy(state)  # shallow: only what is put in blocks or logs is replaced
         view.rows = self._blocked(state.rows)
-        places = state.tracking.places
-        if type(places) is KeyframeDatabase:
-            view.tracking = copy.copy(state.tracking)
-            view.tracking.places = copy.copy(places)
-            for name in _APPEND_ONLY:
-                setattr(view.tracking.places, name,
-                        self._append_only(name, getattr(places, name)))
-        self._keyframe_features = {id(kf.features) for kf in state.tracking.map.keyframes} | \
+        view.tracking = copy.copy(state.tracking)
+        view.tracking.map = self._logged("map", state.tracking.map)
+        view.tracking.places = self._logged("places", state.tracking.places)
+        keyframes = state.tracking.map.keyframes
+        self._keyframe_parts = {id(kf.features) for kf in keyframes} | \
+            {id(kf.keypoint_landmark) for kf in keyframes} | \
             {id(kf.features) for kf in state.robot_keyframes}
         self._seen = {}
         try:
@@ -199,6 +229,15 @@ class Chunks:
         finally:
             # Names of values no longer in the session (culled keyframes) are forgotten.
             self._names, self._seen = self._seen, {}
+
+    def _logged(self, role: str, obj: Any) -> Any:
+        names = LOGGED_ARRAYS.get(type(obj))
+        if names is None:
+            return obj
+        log = self._logs.get(role)
+        if log is None or log.names != names:
+            log = self._logs[role] = array_log.ArrayLog(names)
+        return log.logged(obj)
 
     def _blocked(self, rows: list[TrajectoryRow]) -> list[Any]:
         full = len(rows) // ROW_BLOCK * ROW_BLOCK
@@ -211,17 +250,6 @@ class Chunks:
             out.append(block)
         return out + rows[full:]
 
-    def _append_only(self, name: str, array: np.ndarray) -> AppendOnly:
-        full = len(array) // ARRAY_BLOCK * ARRAY_BLOCK
-        blocks = []
-        for start in range(0, full, ARRAY_BLOCK):
-            rows = array[start:start + ARRAY_BLOCK]
-            block = self._array_blocks.get((name, start))
-            if block is None or not np.array_equal(block.rows, rows):
-                block = self._array_blocks[(name, start)] = ArrayBlock(start, rows.copy())
-            blocks.append(block)
-        return AppendOnly(blocks, array[full:])
-
 
 _CONFIGS = [c for c in vars(config).values()
             if isinstance(c, type) and dataclasses.is_dataclass(c)
@@ -231,7 +259,8 @@ _CONFIGS = [c for c in vars(config).values()
 CHECKPOINT_CLASSES = data_tree.classes_of(
     SessionState, TrajectoryRow, Hello, Camera, BackEndState, FrontEndState, LocalMap,
     Keyframe, FeatureFrame, KeyframeSummary, KeyframeDatabase, LoopClosingState,
-    LoopDetection, PoseEdge, BowDatabase, RowBlock, ArrayBlock, AppendOnly, *_CONFIGS,
+    LoopDetection, PoseEdge, BowDatabase, RowBlock, ArrayBlock, AppendOnly, ArrayBase,
+    ArrayPatch, LoggedArrays, Logged, *_CONFIGS,
     aliases={"CloudSession": BackEndState, "EdgeSession": FrontEndState})
 
 
@@ -246,7 +275,8 @@ def capture(state: SessionState, chunks: Chunks | None = None) -> data_tree.Capt
 
 # A chunk's bytes by name (where: the file it came from); CheckpointError if it is missing.
 ReadChunk = Callable[[str, int], tuple[bytes, str]]
-_CHUNK_TYPES = {"f": FeatureFrame, "r": RowBlock, "a": ArrayBlock}
+_CHUNK_TYPES = {"f": FeatureFrame, "r": RowBlock, "a": ArrayBlock, "b": ArrayBase,
+                "p": ArrayPatch, "k": np.ndarray}
 
 
 def load(data: bytes, where: str, max_bytes: int, read_chunk: ReadChunk | None = None
@@ -279,11 +309,29 @@ def load(data: bytes, where: str, max_bytes: int, read_chunk: ReadChunk | None =
         state.rows = [r for item in state.rows
                       for r in (item.rows if isinstance(item, RowBlock)
                                 and isinstance(item.rows, list) else [item])]
-    places = getattr(getattr(state, "tracking", None), "places", None)
+    tracking = getattr(state, "tracking", None)
+    for role in ("map", "places"):
+        if isinstance(logged := getattr(tracking, role, None), Logged):
+            setattr(tracking, role, _unlogged(logged, where, max_bytes))
+    places = getattr(tracking, "places", None)
     for name in _APPEND_ONLY:
         if isinstance(getattr(places, name, None), AppendOnly):
             setattr(places, name, _joined(getattr(places, name), where))
     return state
+
+
+def _unlogged(logged: Logged, where: str, max_bytes: int) -> Any:
+    """The object a Logged holds, its arrays restored from their log (CheckpointError if it
+    is not one of the logged classes with exactly its logged arrays)."""
+    obj = logged.rest
+    names = LOGGED_ARRAYS.get(type(obj))
+    arrays = array_log.restore(logged.arrays, where, max_bytes)
+    if names is None or set(arrays) != set(names):
+        raise data_tree.CheckpointError(where, f"damaged checkpoint (a logged "
+                                               f"{type(obj).__name__} with arrays "
+                                               f"{sorted(arrays)})")
+    obj.__dict__.update(arrays)
+    return obj
 
 
 def _joined(array: AppendOnly, where: str) -> np.ndarray:

@@ -6,7 +6,8 @@ Layout under the cloud's output folder:
     <robot>/session.ckpt                   checkpoint of the robot's cloud session (data:
                                            JSON + arrays, versioned; see session_state.py)
     <robot>/chunks/<name>.chunk            the parts of checkpoints that never change (a
-                                           keyframe's features, a block of the trajectory),
+                                           keyframe's features, a block of the trajectory,
+                                           the bases and patches of the map's array logs),
                                            named by their content, written once, before
                                            the first checkpoint that names them
     <robot>/session.ckpt.damaged-<time>    a checkpoint that could not be restored and its
@@ -25,6 +26,7 @@ import re
 import threading
 import time
 from pathlib import Path
+from typing import Iterable
 
 from fleetslam.cloud.session import checkpoint_shape, session_state
 from fleetslam.cloud.session.session_state import SessionState
@@ -117,14 +119,29 @@ class CloudStore:
     def has_chunk(self, robot_id: str, name: str) -> bool:
         return self._chunk_path(robot_id, name).exists()
 
-    def write_chunks(self, robot_id: str, blob: bytes | Capture) -> None:
+    def write_chunks(self, robot_id: str, blob: bytes | Capture) -> int:
         """The chunks a checkpoint names that it carries, each written once (the same name,
-        the same content: one already there is kept)."""
+        the same content: one already there is kept); the bytes written."""
+        written = 0
         if isinstance(blob, Capture):
             for name, chunk in blob.chunks.items():
                 path = self._chunk_path(robot_id, name)
                 if not path.exists():
-                    write_durably(path, chunk.to_bytes())
+                    data = chunk.to_bytes()
+                    write_durably(path, data)
+                    written += len(data)
+        return written
+
+    def remove_chunks(self, robot_id: str, names: Iterable[str]) -> None:
+        """Delete chunks no checkpoint names any more (a log's chain its new base replaced,
+        cloud/session/array_log.py); one already gone is no error."""
+        for name in names:
+            try:
+                self._chunk_path(robot_id, name).unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:  # disk space not given back, nothing lost
+                log.warning("robot %s: chunk %s not deleted: %s", robot_id, name, exc)
 
     def read_chunk(self, robot_id: str, name: str, limit: int) -> tuple[bytes, str]:
         """A chunk's bytes and its file's name; CheckpointError if it is missing or over
@@ -137,21 +154,24 @@ class CloudStore:
         self.write_checkpoint(robot_id, session_state.capture(state))
 
     def write_checkpoint(self, robot_id: str, blob: bytes | Capture, ended: bool = False
-                         ) -> None:
+                         ) -> int:
         """``ended``: the checkpoint is of a finished robot (this layout keeps it inside the
-        checkpoint only; fenced_store.py also tells etcd)."""
-        self.write_chunks(robot_id, blob)
-        self.write_checkpoint_file(robot_id, self.robot_dir(robot_id) / CHECKPOINT, blob)
+        checkpoint only; fenced_store.py also tells etcd). The bytes written, its new chunks
+        with it."""
+        chunks = self.write_chunks(robot_id, blob)
+        return chunks + self.write_checkpoint_file(robot_id,
+                                                   self.robot_dir(robot_id) / CHECKPOINT, blob)
 
-    def write_checkpoint_file(self, robot_id: str, path: Path, blob: bytes | Capture) -> None:
-        """The blob, durably, to ``path``; one over ``max_checkpoint_bytes`` is written all
-        the same (the newest state is safer on disk than not), but said."""
+    def write_checkpoint_file(self, robot_id: str, path: Path, blob: bytes | Capture) -> int:
+        """The blob, durably, to ``path`` (its bytes); one over ``max_checkpoint_bytes`` is
+        written all the same (the newest state is safer on disk than not), but said."""
         data = blob.to_bytes() if isinstance(blob, Capture) else blob
         if len(data) > self.max_checkpoint_bytes:
             log.error("robot %s: a checkpoint of %d bytes, over transport.max_checkpoint_bytes"
                       " (%d): a restart will not restore it", robot_id, len(data),
                       self.max_checkpoint_bytes)
         write_durably(path, data)
+        return len(data)
 
     def has_checkpoint(self, robot_id: str) -> bool:
         return (self.robot_dir(robot_id) / CHECKPOINT).exists()
