@@ -17,6 +17,7 @@ from fleetslam.backend.robot_slam import RobotSlam
 from fleetslam.cloud.merge.merger_service import MergerService
 from fleetslam.config import Config
 from fleetslam.datasets.tum import RgbdSequence
+from fleetslam.merging import place_search
 from fleetslam.merging.place_search import PlaceSearch, PlaceSearchProcess, Searched
 from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
@@ -149,7 +150,50 @@ def test_a_search_process_that_answers_is_not_given_up_for_its_backlog(keyframes
         search._answered_at -= 120.0  # silent for two minutes
         search.take_results()
         assert search.inline
-        assert "no answer for 60 s (merge.search_timeout_s)" in caplog.text
+        assert "no answer for 120 s (merge.search_timeout_s 60 s)" in caplog.text
+    finally:
+        search.close()
+
+
+def test_a_silent_search_process_that_works_is_starved_not_hung(keyframes, caplog,
+                                                                 monkeypatch):
+    """A niced search behind robots that fill the cores answers nothing for a while but
+    uses the CPU meanwhile: it is waited for, and given up only once it stops working, or
+    stays silent for BUSY_SILENCE_TIMEOUTS timeouts."""
+    camera, kfs = keyframes
+    search = _answering(camera, kfs)
+    cpu = [search._cpu_mark]  # the process's CPU seconds as /proc would say (here: set)
+    monkeypatch.setattr(place_search, "process_cpu_seconds", lambda pid: cpu[0])
+    try:
+        os.kill(search._process.pid, signal.SIGSTOP)  # silent from here on
+        search.submit(kfs["b"][0], ["a"], time.monotonic(), ["a"])
+        search._answered_at -= 120.0
+        next(iter(search._requests.values())).sent -= 120.0
+        cpu[0] += 3.0  # working meanwhile
+        assert search.take_results() == [] and not search.inline
+        assert "starved, waiting for it" in caplog.text
+        search._excused_at -= 61.0  # another timeout, no more CPU: hung after all
+        search.take_results()
+        assert search.inline and "searching in-line from now on" in caplog.text
+    finally:
+        search.close()
+
+
+def test_a_search_process_silent_for_too_long_is_given_up_however_busy(keyframes,
+                                                                        monkeypatch):
+    camera, kfs = keyframes
+    search = _answering(camera, kfs)
+    cpu = [search._cpu_mark]
+    monkeypatch.setattr(place_search, "process_cpu_seconds", lambda pid: cpu[0])
+    try:
+        os.kill(search._process.pid, signal.SIGSTOP)
+        search.submit(kfs["b"][0], ["a"], time.monotonic(), ["a"])
+        silent = (place_search.BUSY_SILENCE_TIMEOUTS + 1) * search.timeout_s
+        search._answered_at -= silent
+        next(iter(search._requests.values())).sent -= silent
+        cpu[0] += 30.0
+        search.take_results()
+        assert search.inline
     finally:
         search.close()
 

@@ -341,7 +341,9 @@ class MergeConfig:
     # The cloud's merger searches places in a process of its own at this niceness (0-19):
     # the search then takes neither the GIL nor a core from the robots tracking in the same
     # worker (merging/place_search.py); off: on the merger's thread. A process that answers
-    # nothing for search_timeout_s while a search waits turns the search in-line for good.
+    # nothing for search_timeout_s while a search waits, and used no CPU meanwhile (hung,
+    # not starved: waited for up to 5 timeouts while it works), turns the search in-line
+    # for good.
     # Nothing but the merger's own queue waits for it (status and merges do not:
     # cloud/merge/merger_service.py).
     search_process: bool = True

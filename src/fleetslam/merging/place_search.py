@@ -53,7 +53,7 @@ import numpy as np
 
 from fleetslam.backend.place_recognition import ApproximateKeyframeDatabase, KeyframeDatabase
 from fleetslam.backend.places import make_database
-from fleetslam.backend.workers import end_process, start_background
+from fleetslam.backend.workers import end_process, process_cpu_seconds, start_background
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import PlaceMatch, verify_counting, verify_places
@@ -64,6 +64,12 @@ if TYPE_CHECKING:
     from fleetslam.backend.vocabulary import BowDatabase
 
 log = logging.getLogger("fleetslam.merge")
+
+# A silent search process counts as working if it used this much CPU since it last answered
+# (a stopped or deadlocked one uses none; a tick is 10 ms).
+MIN_PROGRESS_S = 0.05
+# And it is given up all the same once silent this many merge.search_timeout_s.
+BUSY_SILENCE_TIMEOUTS = 5
 
 
 @dataclass
@@ -301,6 +307,10 @@ class PlaceSearchProcess:
         self._inline: PlaceSearch | None = None
         self._closed = False
         self._answered_at = 0.0  # when the process last answered (monotonic)
+        # The process's CPU seconds when it last answered or was last excused, and when it
+        # was: a silent process that kept working meanwhile is starved, not hung.
+        self._cpu_mark = 0.0
+        self._excused_at = 0.0
 
     @property
     def inline(self) -> bool:
@@ -368,6 +378,9 @@ class PlaceSearchProcess:
 
     def _answer(self, answer: Any) -> None:
         self._answered_at = time.monotonic()
+        process = self._process
+        if process is not None:
+            self._cpu_mark = process_cpu_seconds(process.pid) or self._cpu_mark
         if not self._closed and self._inline is None:
             self._answers.append(answer)
             self._wake()
@@ -417,12 +430,32 @@ class PlaceSearchProcess:
                 for query, qk, place, pk, T, score, ransac, n in found], seconds, searched,
                 late))
         if self._requests and self._inline is None and not self._closed:
-            waiting = max(next(iter(self._requests.values())).sent, self._answered_at)
-            if time.monotonic() - waiting > self.timeout_s:
-                self._fail(f"no answer for {self.timeout_s:.0f} s (merge.search_timeout_s)")
+            silent_since = max(next(iter(self._requests.values())).sent, self._answered_at)
+            now = time.monotonic()
+            if now - max(silent_since, self._excused_at) > self.timeout_s \
+                    and not self._working(now - silent_since):
+                self._fail(f"no answer for {now - silent_since:.0f} s "
+                           f"(merge.search_timeout_s {self.timeout_s:.0f} s)")
         if self._inline is not None:
             out += self._inline.take_results()
         return out
+
+    def _working(self, silent_s: float) -> bool:
+        """Whether a process silent for ``silent_s`` used the CPU since it last answered (or
+        was last excused): a niced search on cores the workers' tracking fills is starved,
+        not hung, and stays (measured: 60 s without an answer while 20 robots saturated 2
+        cores, bench/worker_scaling.py), up to BUSY_SILENCE_TIMEOUTS timeouts of silence."""
+        process = self._process
+        cpu = None if process is None else process_cpu_seconds(process.pid)
+        if cpu is None or cpu - self._cpu_mark < MIN_PROGRESS_S \
+                or silent_s > BUSY_SILENCE_TIMEOUTS * self.timeout_s:
+            return False
+        if self._excused_at <= self._answered_at:  # said once a silence
+            log.warning("the merger's place search process: no answer for %.0f s, working "
+                        "meanwhile (%.1f CPU s): starved, waiting for it", silent_s,
+                        cpu - self._cpu_mark)
+        self._cpu_mark, self._excused_at = cpu, time.monotonic()
+        return True
 
     def _fail(self, reason: str) -> None:
         """Search in-line from now on: rebuilt from the keyframes answered (the put-off
