@@ -106,9 +106,7 @@ class RobotSession:
         self._failure_log = Throttle(REJECTION_REPLY_INTERVAL_S)
         self._over_budget_told = Throttle(REJECTION_REPLY_INTERVAL_S)
         # The checkpoints' parts that never change are written once (session_state.Chunks).
-        self.chunks = session_state.Chunks(
-            lambda name: store.has_chunk(state.robot_id, name),
-            lambda names: store.remove_chunks(state.robot_id, names))
+        self.chunks = session_state.Chunks(*store.chunk_files(state.robot_id))
         self.checkpoints = CheckpointWriter(state.robot_id, store, self._snapshot,
                                             state.last_index, keyframe_sink,
                                             ended=lambda: self.state.ended,

@@ -26,7 +26,7 @@ import re
 import threading
 import time
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 from fleetslam.cloud.session import checkpoint_shape, session_state
 from fleetslam.cloud.session.session_state import SessionState
@@ -131,6 +131,13 @@ class CloudStore:
                     write_durably(path, data)
                     written += len(data)
         return written
+
+    def chunk_files(self, robot_id: str
+                    ) -> tuple[Callable[[str], bool], Callable[[Iterable[str]], None]]:
+        """What a session's checkpoint chunker (session_state.Chunks) asks of the robot's
+        chunk files: whether one exists, and to delete some."""
+        return (lambda name: self.has_chunk(robot_id, name),
+                lambda names: self.remove_chunks(robot_id, names))
 
     def remove_chunks(self, robot_id: str, names: Iterable[str]) -> None:
         """Delete chunks no checkpoint names any more (a log's chain its new base replaced,
