@@ -77,14 +77,16 @@ class Logged:
     arrays: LoggedArrays
 
 
-def _digest(*parts: bytes) -> str:
+def content_digest(*parts: bytes) -> str:
+    """A chunk name's digest of its content (8 bytes of BLAKE2b, hex)."""
     h = hashlib.blake2b(digest_size=8)
     for part in parts:
         h.update(part)
     return h.hexdigest()
 
 
-def _array_parts(a: np.ndarray) -> list[bytes]:
+def array_parts(a: np.ndarray) -> list[bytes]:
+    """An array's kind, shape and bytes, as a digest takes them."""
     return [f"{a.dtype.str}{a.shape}".encode(), np.ascontiguousarray(a).tobytes()]
 
 
@@ -94,12 +96,12 @@ def chunk_name(value: ArrayBase | ArrayPatch) -> str:
     parts = [value.token.encode()]
     if type(value) is ArrayBase:
         for name in sorted(value.arrays):
-            parts += [name.encode(), *_array_parts(value.arrays[name])]
-        return f"b{value.number:07d}-" + _digest(*parts)
+            parts += [name.encode(), *array_parts(value.arrays[name])]
+        return f"b{value.number:07d}-" + content_digest(*parts)
     for name in sorted(value.lengths):
         parts += [name.encode(), str(value.lengths[name]).encode(),
-                  *_array_parts(value.index[name]), *_array_parts(value.rows[name])]
-    return f"p{value.number:07d}-" + _digest(*parts)
+                  *array_parts(value.index[name]), *array_parts(value.rows[name])]
+    return f"p{value.number:07d}-" + content_digest(*parts)
 
 
 def _changed_rows(old: np.ndarray, new: np.ndarray) -> np.ndarray:

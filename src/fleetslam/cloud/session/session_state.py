@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import hashlib
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
@@ -119,11 +118,7 @@ LOGGED_ARRAYS: dict[type, tuple[str, ...]] = {
 _APPEND_ONLY = ("descriptors", "owner")
 
 
-def _digest(*parts: bytes) -> str:
-    h = hashlib.blake2b(digest_size=8)
-    for part in parts:
-        h.update(part)
-    return h.hexdigest()
+_digest = array_log.content_digest
 
 
 def _content_name(value: Any) -> str | None:
@@ -146,12 +141,10 @@ def _content_name(value: Any) -> str | None:
     if type(value) is ArrayBase or type(value) is ArrayPatch:
         return array_log.chunk_name(value)
     if type(value) is np.ndarray:  # a keyframe's landmark table
-        return f"k{len(value):07d}-" + _digest(f"{value.dtype.str}{value.shape}".encode(),
-                                                np.ascontiguousarray(value).tobytes())
+        return f"k{len(value):07d}-" + _digest(*array_log.array_parts(value))
     if type(value) is ArrayBlock:
         rows = np.ascontiguousarray(value.rows)
-        return f"a{value.start:07d}-" + _digest(f"{rows.dtype.str}{rows.shape}".encode(),
-                                                rows.tobytes())
+        return f"a{value.start:07d}-" + _digest(*array_log.array_parts(rows))
     return None
 
 
