@@ -524,6 +524,36 @@ def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(m
         server.close()
 
 
+def test_frames_without_a_keyframe_are_checkpointed_too(messages, tmp_path):
+    """transport.checkpoint_every_s: a robot making no keyframe (a place already mapped) is
+    still checkpointed, so a restarted cloud resumes it near where it was. Here every frame
+    is older than the setting, so each is checkpointed, keyframe or not."""
+    seq0, msgs0, _ = messages["r0"]
+    config = exact_config().with_values({"transport.checkpoint_every_s": 1e-6,
+                                         "transport.checkpoint_interval_s": 0.0})
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    client = open_connecting(endpoint)
+    robot = FakeRobot(client, "r0", seq0.camera)
+    try:
+        robot.hello()
+        for m in msgs0:
+            robot.send(m)
+        feedback = robot.poses(len(msgs0))
+        assert len(feedback) == len(msgs0)
+        session = server.sessions.get("r0")
+        assert session.checkpoints.wait_for_frame(len(msgs0) - 1, 10.0)
+        keyframes = sum(f.is_keyframe for f in feedback)
+        assert keyframes < len(msgs0)  # frames without a keyframe were there to checkpoint
+        wait_for(lambda: session.checkpoints.writes == len(msgs0), 10.0,
+                 "a checkpoint per frame")
+        assert server.store.load_checkpoint("r0").last_index == len(msgs0) - 1
+    finally:
+        robot.close()
+        client.close()
+        server.close()
+
+
 def test_a_robot_flooding_bad_frames_is_paused_and_then_heard_again(messages, tmp_path):
     """Hundreds of rejected frames in a second: the session stops reading the robot's frames
     for a while (cheap drops instead of decoding), says so once, and tracks its good frames

@@ -684,6 +684,10 @@ class TransportConfig:
     # still acknowledged and handed to the merger only once on disk), as each costs the
     # worker's GIL; 0: one per keyframe. A crash loses no acknowledged keyframe either way.
     checkpoint_interval_s: Annotated[float, at_least(0.0)] = 1.0
+    # Frames tracked since the last checkpoint are checkpointed at least this often, so a
+    # restarted cloud resumes a robot near where it was even when it made no keyframe for
+    # long (a robot in a place already mapped); 0: only at keyframes and at the end.
+    checkpoint_every_s: Annotated[float, at_least(0.0)] = 30.0
     # When a robot says it ended, frames it sent before may still be on their way (they
     # travel on another key): the cloud waits this long for them, then takes them as lost.
     end_grace_s: Annotated[float, at_least(0.0)] = 2.0

@@ -6,7 +6,9 @@ store never finds the merger ahead of the store.
 
 A checkpoint asked within ``interval_s`` of the last capture waits: the session's thread
 calls ``capture_due`` after each message and when ``due_in`` runs out, and that capture
-covers every request since (transport.checkpoint_interval_s).
+covers every request since (transport.checkpoint_interval_s). Frames without a keyframe
+are checkpointed too once the last checkpoint asked for is older than
+transport.checkpoint_every_s (the session asks, ``older_than``).
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ class CheckpointWriter:
         self._durable = threading.Condition()
         self._interval_s = interval_s
         self._captured_at = -float("inf")
+        self._asked_at = time.monotonic()  # the last checkpoint asked for
         # Checkpoints written and their bytes (new chunks included): what the store costs.
         self.writes = 0
         self.bytes_written = 0
@@ -88,11 +91,17 @@ class CheckpointWriter:
         with self._durable:
             self._queued += 1
             number = self._queued
+        self._asked_at = time.monotonic()
         index, keyframes = self._waiting or (frame_index, [])
         self._waiting = (max(index, frame_index), keyframes + ([keyframe] if keyframe else []))
         if now or self.due_in() == 0.0:
             self.capture()
         return number
+
+    def older_than(self, age_s: float) -> bool:
+        """No checkpoint asked for within ``age_s`` (> 0) and none waiting."""
+        return age_s > 0 and self._waiting is None \
+            and time.monotonic() - self._asked_at >= age_s
 
     def due_in(self) -> float | None:
         """Seconds until the waiting request is to be captured; None if none waits."""

@@ -366,6 +366,8 @@ class RobotSession:
         self._record(header, out, cloud_ms)
         if out.is_keyframe:
             self._on_new_keyframe(state, header.seq, out.index, to_merger)
+        elif self.checkpoints.older_than(self.config.transport.checkpoint_every_s):
+            self.checkpoints.checkpoint(out.index, now=False)
         feedback = Feedback(out.index, out.timestamp, out.tracked, out.is_keyframe,
                             out.n_inliers, out.T_world_camera, cloud_ms)
         self.replies.publish(keys.feedback(self.robot_id),
