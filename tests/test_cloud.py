@@ -27,7 +27,7 @@ from fleetslam.pipeline.split import run_stages
 from fleetslam.pipeline.states import CapturedFrame
 from fleetslam.transport import keys, protocol
 from fleetslam.transport.protocol import PROTOCOL, Code, Hello
-from fleetslam.transport.zenoh_session import open_connecting, put
+from fleetslam.transport.zenoh_session import open_connecting, open_router, put
 from fleetslam.wire.envelope import FORMAT_VERSION, Kind, open_message
 from fleetslam.wire.frames import encode_frame_message
 from fleetslam.wire.inter import InterEncoder, reference_of
@@ -482,6 +482,47 @@ def test_a_finished_session_gives_its_slot_to_the_next_robot(tmp_path, messages,
         second.close()
         client.close()
         server.close()
+
+
+def test_workers_full_of_finished_sessions_still_take_the_next_robot(tmp_path, messages):
+    """Two workers behind a router, each holding transport.max_sessions (1) finished session:
+    a new robot's hello is still placed and welcomed (a full worker did not bid, so with
+    every worker full of finished sessions nobody answered: 9 robots of
+    bench/worker_scaling.py heard nothing after 130 sessions)."""
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    servers = [CloudServer(exact_config().with_values({"transport.max_sessions": 1,
+                                                       "placement.worker_id": name}),
+                           tmp_path / "store", connect=endpoint).start() for name in ("wa", "wb")]
+    client = open_connecting(endpoint)
+    robots = []
+    try:
+        for name in ("r0", "r1"):
+            seq, msgs, _ = messages[name]
+            robot = FakeRobot(client, name, seq.camera)
+            robots.append(robot)
+            robot.hello()
+            for m in msgs:
+                robot.send(m)
+            assert len(robot.poses(len(msgs))) == len(msgs)
+            client.put(keys.control(name), json.dumps(
+                {"type": "end", "last_seq": len(msgs) - 1,
+                 "unavailable": list(range(len(msgs)))}).encode())
+            robot.reply("ended", timeout=60.0)
+        # Each worker holds one finished session: both are full.
+        assert sorted(r for s in servers for r in s.sessions) == ["r0", "r1"]
+        assert all(s.sessions.full() for s in servers)
+        third = FakeRobot(client, "r2", messages["r0"][0].camera)
+        robots.append(third)
+        assert third.hello()["type"] == "welcome"
+        assert sorted(r for s in servers for r in s.sessions) in (["r0", "r2"], ["r1", "r2"])
+    finally:
+        for robot in robots:
+            robot.close()
+        client.close()
+        for server in servers:
+            server.close()
+        router.close()
 
 
 def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(messages,

@@ -231,8 +231,9 @@ class Router:
                 self.unrouted += 1
                 return
             self._pending[robot_id] = (data, arrival)
-        full = self.sessions.full()
-        if not full:  # a full worker does not bid; a robot nobody can take hears it below
+        # A worker that would refuse the robot does not bid (one full of finished sessions
+        # would not: it closes one); a robot nobody can take hears it below.
+        if self.sessions.has_room():
             placement.claim(robot_id)
         elif len(placement.live_workers()) == 1:
             self._on_robot_control(robot_id, *self._pending.pop(robot_id))

@@ -152,27 +152,37 @@ class SessionTable(Mapping[str, RobotSession]):
         may say hello under any id, and hellos alone must never keep a robot out; its robot,
         if real, is told no_session at its first frame and says hello again. Called with
         the lock."""
-        finished = [(s.last_heard, r, s) for r, s in self._live.items()
-                    if s.finished is not None]
+        found = self._room()
+        if found is None:
+            return False
+        victim, finished = found
+        session = self._live.pop(victim)
+        session.close()
         if finished:
-            _, victim, session = min(finished)
-            del self._live[victim]
-            session.close()
             log.info("robot %s: its finished session closed for robot %s's hello (the cloud "
                      "holds transport.max_sessions)", victim, robot_id)
-            return True
-        empty = [(s.opened, r, s) for r, s in self._live.items()
+        else:
+            log.warning("robot %s: its session (a hello %.1f s ago, no frame since) closed "
+                        "for robot %s's hello: the cloud is full", victim,
+                        time.monotonic() - session.opened, robot_id)
+        return True
+
+    def _room(self) -> tuple[str, bool] | None:
+        """(the session ``_make_room`` would close, whether it is a finished one); None if
+        none may be. Called with the lock."""
+        finished = [(s.last_heard, r) for r, s in self._live.items() if s.finished is not None]
+        if finished:
+            return min(finished)[1], True
+        empty = [(s.opened, r) for r, s in self._live.items()
                  if not s.heard_frame and not s.state.rows and s.finished is None
                  and not self.store.has_checkpoint(r)]
-        if not empty:
-            return False
-        _, victim, session = min(empty)
-        del self._live[victim]
-        session.close()
-        log.warning("robot %s: its session (a hello %.1f s ago, no frame since) closed for "
-                    "robot %s's hello: the cloud is full", victim,
-                    time.monotonic() - session.opened, robot_id)
-        return True
+        return (min(empty)[1], False) if empty else None
+
+    def has_room(self) -> bool:
+        """Whether a new robot's hello would get a session here (``full``, or a session
+        ``_make_room`` may close): a worker that would refuse it does not bid for it."""
+        with self.lock:
+            return not self.full() or self._room() is not None
 
     def session(self, robot_id: str) -> RobotSession | None:
         """The live session, or the one restored from its checkpoint after a restart; None
