@@ -101,8 +101,7 @@ def run_case(name: str, specs: list[str], out: Path, config: Config, config_path
         "separately_aligned_bound_cm": ev["separately_aligned_bound_m"] * 100
         if ev.get("separately_aligned_bound_m") is not None else None,
         "map_to_map": ev.get("map_to_map", []),
-        "fshicp": merge.get("fshicp"), "fleet_ba": merge.get("fleet_ba"),
-        "octomap": merge.get("octomap"),
+        "fshicp": merge.get("fshicp"), "octomap": merge.get("octomap"),
         "global_map_points": merge.get("global_map_points"),
         "query_ms_median": merge.get("query_ms_median"),
         "query_ms_p95": merge.get("query_ms_p95"),

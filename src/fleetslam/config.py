@@ -395,23 +395,6 @@ class MergeConfig:
     proximity_constraints: bool = True
     proximity_distance_m: Annotated[float, above(0.0)] = 0.5
     proximity_angle_deg: Annotated[float, above(0.0)] = 30.0
-    # Fleet-wide bundle adjustment in the final merge (merging/fleet_ba.py): landmarks
-    # associated anew between each keyframe and its next fleet_ba_sequential keyframes and
-    # its fleet_ba_nearest neighbours in the graph (within proximity_distance_m and
-    # proximity_angle_deg, any robot of the group), descriptor matches within
-    # fleet_ba_max_hamming kept when a rigid fit of them (loop_closing's RANSAC bounds)
-    # is within fleet_ba_max_disagreement_* of where the graph puts the pair; then local
-    # BA's problem over all of them (robust pass, inlier pass iterations).
-    fleet_ba: bool = False
-    fleet_ba_sequential: Annotated[int, at_least(0)] = 2
-    fleet_ba_nearest: Annotated[int, at_least(0)] = 4
-    fleet_ba_max_hamming: Annotated[int, between(0, 256)] = 50
-    fleet_ba_max_disagreement_deg: Annotated[float, above(0.0)] = 5.0
-    fleet_ba_max_disagreement_m: Annotated[float, above(0.0)] = 0.15
-    fleet_ba_iterations: Annotated[tuple[int, int], at_least(1)] = (5, 10)
-    # Each robot's own keyframe-to-keyframe poses as priors, with the odometry_sigma_*
-    # above times this (0: none).
-    fleet_ba_prior_scale: Annotated[float, at_least(0.0)] = 1.0
     # FS-HICP refines each joined robot's dense map against the rest of its group.
     fshicp_refine: bool = True
     # The global OctoMap (.bt): leaf size, and how far rays from a keyframe are cast.

@@ -27,7 +27,7 @@ observations by (keyframe, landmark) so that rows the map gained meanwhile are u
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -69,10 +69,6 @@ class LocalBAProblem:
     # What the map was when copied (``LocalMap.epoch``): a result computed on an older map
     # (a loop correction moved it since) is not applied.
     epoch: int = 0
-    # Relative-pose priors between keyframes of the problem (the fleet's adjustment keeps
-    # each robot's own graph this way, merging/fleet_ba.py): (a, b, T_a_b, sigma rotation
-    # rad, sigma translation m).
-    between: list[tuple[int, int, np.ndarray, float, float]] = field(default_factory=list)
 
 
 @dataclass
@@ -216,10 +212,6 @@ def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
     anchor_noise = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
     anchors = [gtsam.PriorFactorPose3(k, gtsam.Pose3(p.T_old[np.searchsorted(kfs, k)]),
                                       anchor_noise) for k in p.fixed.tolist()]
-    kf_index = {k: i for i, k in enumerate(kfs.tolist())}
-    priors = [(a, b, gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([sr] * 3 + [st] * 3)))) for a, b, T, sr, st in p.between
-              if a in kf_index and b in kf_index]
     factors = []
     u_l, v_l = obs_uv[:, 0].tolist(), obs_uv[:, 1].tolist()
     u_r = (obs_uv[:, 0] - bf / np.where(stereo, obs_depth, 1.0)).tolist()
@@ -242,9 +234,6 @@ def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
                 graph.add(anchor)
         for i in np.flatnonzero(use).tolist():
             graph.add(factors[i])
-        for a, b, factor in priors:
-            if present[kf_index[a]] and present[kf_index[b]]:
-                graph.add(factor)
         return graph
 
     def chi2_of(poses: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

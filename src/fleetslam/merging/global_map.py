@@ -26,7 +26,6 @@ from fleetslam.mapping.dense_map import keyframe_local_cloud, voxel_downsample
 from fleetslam.mapping.map_frame import base_link_frame, mounting_up
 from fleetslam.mapping.occupancy_grid import OccupancyGrid, occupancy_grid, write_nav2_map
 from fleetslam.mapping.octomap_export import write_octomap
-from fleetslam.merging.fleet_ba import FleetRobot, fleet_bundle_adjustment
 from fleetslam.merging.merger import MapMerger
 from fleetslam.transforms import invert, poses_from_references, transform_points
 from fleetslam.registration.fshicp import fshicp
@@ -71,7 +70,6 @@ class GlobalMap:
     # How the level map frame was found, and where it lies in the anchor's own map.
     map_frame: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0  # building it: dense refinement, graph, FS-HICP, outputs
-    fleet_ba: dict[str, Any] | None = None  # what the fleet-wide adjustment did
     # Members: each keyframe's dense cloud in its camera frame (points, colours), for the
     # saved map (saved_map.py).
     keyframe_clouds: dict[str, list[tuple[np.ndarray, np.ndarray]]] = \
@@ -149,8 +147,6 @@ def build_global_map(merger: MapMerger, tracks: list[RobotTrack], config: Config
                        not_merged=_not_merged(merger, list(by_name), members),
                        keyframe_clouds={m: clouds[m] for m in members})
     kf_poses = {m: graph_poses[m].copy() for m in members}
-    if config.merge.fleet_ba and len(members) > 1:
-        result.fleet_ba = _adjust_fleet(merger, anchor, members, kf_poses, config)
     # Made level below.
     result.T_global_map_graph = {m: merger.solve_T_global_map(m) for m in members}
     correction = {m: np.eye(4) for m in members}
@@ -238,19 +234,6 @@ def _not_merged(merger: MapMerger, robots: list[str], members: list[str]) -> dic
         else:
             out[name] = "no robot shares a verified place with another"
     return out
-
-
-def _adjust_fleet(merger: MapMerger, anchor: str, members: list[str],
-                  kf_poses: dict[str, np.ndarray], config: Config) -> dict[str, Any]:
-    """The fleet-wide bundle adjustment of the members that make the map (the anchor's
-    first keyframe, and a loaded map's keyframes, stay): ``kf_poses`` updated in place."""
-    making = sorted((m for m in members if m not in merger.localising),
-                    key=lambda m: (m != anchor, m))
-    robots = [FleetRobot(m, merger.robots[m].camera, merger.robots[m].keyframes, kf_poses[m],
-                         merger.robots[m].poses, held=m in merger.saved) for m in making]
-    adjusted, report = fleet_bundle_adjustment(robots, config)
-    kf_poses.update(adjusted)
-    return report.to_json()
 
 
 def _refine_by_fshicp(members: list[str], clouds: dict[str, list[tuple[np.ndarray, np.ndarray]]],
@@ -363,7 +346,7 @@ def merge_summary(merger: MapMerger, global_map: GlobalMap | None) -> dict[str, 
             "T_global_map": {m: T.tolist() for m, T in global_map.T_global_map.items()},
             "T_global_map_graph": {m: T.tolist()
                                    for m, T in global_map.T_global_map_graph.items()},
-            "fshicp": global_map.fshicp, "fleet_ba": global_map.fleet_ba,
+            "fshicp": global_map.fshicp,
             "global_trajectories": {m: f"global/{m}.tum" for m in global_map.members},
             "global_map": "global_map.ply", "global_map_points": global_map.points,
             "octomap": global_map.octomap, "global_map_seconds": global_map.seconds,
