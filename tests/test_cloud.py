@@ -12,8 +12,10 @@ import socket
 import struct
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from types import SimpleNamespace
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
@@ -124,6 +126,21 @@ class FakeRobot:
     def close(self) -> None:
         for s in self.subs:
             s.undeclare()
+
+
+@contextmanager
+def one_robot_cloud(config, tmp_path, camera) -> Iterator[tuple[CloudServer, Any, FakeRobot]]:
+    """A lone cloud with ``config``, a client session and robot r0 on it; all closed after."""
+    endpoint = free_endpoint()
+    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
+    client = open_connecting(endpoint)
+    robot = FakeRobot(client, "r0", camera)
+    try:
+        yield server, client, robot
+    finally:
+        robot.close()
+        client.close()
+        server.close()
 
 
 @pytest.fixture()
@@ -532,11 +549,7 @@ def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(m
     the same poses as a session that never closed."""
     seq0, msgs0, poses0 = messages["r0"]
     config = exact_config().with_values({"transport.idle_session_s": 0.4})
-    endpoint = free_endpoint()
-    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
-    client = open_connecting(endpoint)
-    robot = FakeRobot(client, "r0", seq0.camera)
-    try:
+    with one_robot_cloud(config, tmp_path, seq0.camera) as (server, _, robot):
         robot.hello()
         half = len(msgs0) // 2
         for m in msgs0[:half]:
@@ -559,10 +572,6 @@ def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(m
             counts = live.counts() if live is not None else server.store.load_checkpoint(
                 "r0").counts
         assert counts["frames"] == len(msgs0)
-    finally:
-        robot.close()
-        client.close()
-        server.close()
 
 
 def test_frames_without_a_keyframe_are_checkpointed_too(messages, tmp_path):
@@ -572,11 +581,7 @@ def test_frames_without_a_keyframe_are_checkpointed_too(messages, tmp_path):
     seq0, msgs0, _ = messages["r0"]
     config = exact_config().with_values({"transport.checkpoint_every_s": 1e-6,
                                          "transport.checkpoint_interval_s": 0.0})
-    endpoint = free_endpoint()
-    server = CloudServer(config, tmp_path / "cloud", endpoint).start()
-    client = open_connecting(endpoint)
-    robot = FakeRobot(client, "r0", seq0.camera)
-    try:
+    with one_robot_cloud(config, tmp_path, seq0.camera) as (server, _, robot):
         robot.hello()
         for m in msgs0:
             robot.send(m)
@@ -589,10 +594,6 @@ def test_frames_without_a_keyframe_are_checkpointed_too(messages, tmp_path):
         wait_for(lambda: session.checkpoints.writes == len(msgs0), 10.0,
                  "a checkpoint per frame")
         assert server.store.load_checkpoint("r0").last_index == len(msgs0) - 1
-    finally:
-        robot.close()
-        client.close()
-        server.close()
 
 
 def test_a_robot_flooding_bad_frames_is_paused_and_then_heard_again(messages, tmp_path):

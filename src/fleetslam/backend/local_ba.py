@@ -69,6 +69,9 @@ class LocalBAProblem:
     # What the map was when copied (``LocalMap.epoch``): a result computed on an older map
     # (a loop correction moved it since) is not applied.
     epoch: int = 0
+    # A Levenberg-Marquardt iteration that lowers the error by less than this fraction ends
+    # a pass (gtsam's default 1e-5; tracking.local_ba_relative_tolerance).
+    relative_tolerance: float = 1e-5
 
 
 @dataclass
@@ -131,7 +134,8 @@ def _noise_models(n_levels: int, scale_factor: float) -> tuple[list, list]:
 
 
 def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_keys: list[int],
-              pose_keys: list[int], iterations: int) -> gtsam.Values | None:
+              pose_keys: list[int], iterations: int, relative_tolerance: float
+              ) -> gtsam.Values | None:
     # Eliminate landmarks first, then poses: the Schur-complement order of bundle adjustment
     # (every landmark block is independent given the poses), fixed rather than left to
     # COLAMD, so the fill-in is only the small dense pose block.
@@ -140,6 +144,7 @@ def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_
         ordering.push_back(key)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
+    params.setRelativeErrorTol(relative_tolerance)
     params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
     params.setOrdering(ordering)
     try:
@@ -150,8 +155,8 @@ def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_
 
 def local_ba_problem(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: float,
                      scale_factor: float, window_size: int = 10, min_shared: int = 15,
-                     iterations: tuple[int, int] = (5, 10), window: np.ndarray | None = None
-                     ) -> LocalBAProblem | None:
+                     iterations: tuple[int, int] = (5, 10), window: np.ndarray | None = None,
+                     relative_tolerance: float = 1e-5) -> LocalBAProblem | None:
     """Copy out of ``lmap`` the problem around keyframe ``kf_id`` (or the given ``window``
     of keyframe ids: all of them is a global bundle adjustment); None if nothing is free."""
     n_kf = len(lmap.keyframes)
@@ -184,7 +189,7 @@ def local_ba_problem(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: 
         kf_id, kfs, fixed, free, lmap.keyframe_poses(kfs), landmarks, lmap.xyz[landmarks].copy(),
         lmap.obs_keyframe[rows], lmap.obs_landmark[rows], lmap.obs_uv[rows],
         lmap.obs_depth[rows], lmap.obs_octave[rows], f_kf[moved], f_lm[moved], camera,
-        baseline_m, scale_factor, tuple(iterations), lmap.epoch)
+        baseline_m, scale_factor, tuple(iterations), lmap.epoch, relative_tolerance)
 
 
 def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
@@ -242,7 +247,8 @@ def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
 
     # --- pass 1: robust, from the current estimates ---
     result = _optimise(build(np.ones(len(obs_kf), bool)), values,
-                       (landmarks + LANDMARK_KEY).tolist(), kfs.tolist(), p.iterations[0])
+                       (landmarks + LANDMARK_KEY).tolist(), kfs.tolist(), p.iterations[0],
+                       p.relative_tolerance)
     if result is None:
         return None
     poses = np.array([result.atPose3(k).matrix() for k in kfs.tolist()])
@@ -264,7 +270,7 @@ def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
         for lm, xyz_lm in zip((used_lms + LANDMARK_KEY).tolist(), xyz[determined]):
             values2.insert(lm, xyz_lm)
         result2 = _optimise(build(use), values2, (used_lms + LANDMARK_KEY).tolist(),
-                            used_kfs.tolist(), p.iterations[1])
+                            used_kfs.tolist(), p.iterations[1], p.relative_tolerance)
         if result2 is not None:
             poses[np.searchsorted(kfs, used_kfs)] = [result2.atPose3(k).matrix()
                                                      for k in used_kfs.tolist()]

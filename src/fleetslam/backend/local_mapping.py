@@ -182,7 +182,8 @@ def build_problem(backend: BackEndState, kf_id: int) -> LocalBAProblem | None:
     return local_ba_problem(
         backend.map, backend.camera, kf_id, baseline_m=cfg.virtual_baseline_m,
         scale_factor=backend.config.orb.scale_factor, window_size=cfg.local_ba_window,
-        min_shared=cfg.covisibility_min_shared, iterations=tuple(cfg.local_ba_iterations))
+        min_shared=cfg.covisibility_min_shared, iterations=tuple(cfg.local_ba_iterations),
+        relative_tolerance=cfg.local_ba_relative_tolerance)
 
 
 def apply_solution(backend: BackEndState, problem: LocalBAProblem,
