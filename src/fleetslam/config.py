@@ -143,8 +143,8 @@ class TrackingConfig:
     # Levenberg-Marquardt iterations: robust pass, then inlier-only pass (ORB-SLAM: 5, 10).
     local_ba_iterations: Annotated[tuple[int, int], at_least(1)] = (5, 10)
     # ... each pass ending early once an iteration lowers the error by less than this
-    # fraction (gtsam's default: 1e-5).
-    local_ba_relative_tolerance: Annotated[float, above(0.0)] = 1e-5
+    # fraction (gtsam's default: 1e-5; docs/decisions.md).
+    local_ba_relative_tolerance: Annotated[float, above(0.0)] = 1e-3
     # Where a cloud runs local BA: "async" in worker processes, its result written into
     # the map at a later frame, so a keyframe does not hold up the frames behind it
     # (ORB-SLAM's LocalMapping thread); "inline" at the keyframe, deterministic (the
