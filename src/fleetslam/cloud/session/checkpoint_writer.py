@@ -98,6 +98,12 @@ class CheckpointWriter:
             self.capture()
         return number
 
+    @property
+    def asked(self) -> int:
+        """Checkpoints asked for so far (several asked together are written as one)."""
+        with self._durable:
+            return self._queued
+
     def older_than(self, age_s: float) -> bool:
         """No checkpoint asked for within ``age_s`` (> 0) and none waiting."""
         return age_s > 0 and self._waiting is None \
