@@ -3,7 +3,7 @@ workers sustain, per-frame latency and the CPU each worker used; then the same w
 worker pinned to its own core, to show throughput grows with the cores given.
 
     .venv/bin/python bench/worker_scaling.py [--robots 8] [--frames 150] [--workers 1,2,4]
-        [--pinned 1,2] [--load 0.8]
+        [--pinned 1,2] [--load 0.8] [--ten-fps-from N]
 
 Robots alternate between real sequences (7-Scenes redkitchen, 150-frame pieces, and TUM
 fr1_rpy 0-149; with --frames above 150, fr1_rpy's length, every robot plays 7-Scenes from
@@ -12,9 +12,9 @@ frame 0); their messages at offloading point 3 are made before the clock starts
 router and workers sharing one store folder:
   1. saturation: every robot sends all its frames at once; rate = frames / span;
   2. paced: fresh sessions at (load x sustained / robots) fps each; latency median, p95;
-  3. 10 fps: as many robots as the saturated rate allows at 10 fps each (at most --robots),
-     then one robot fewer at a time until the latency p95 is under 300 ms: the fleet that
-     setting really sustains at 10 fps per robot.
+  3. 10 fps: as many robots as the saturated rate allows at 10 fps each (at most --robots;
+     --ten-fps-from N: N robots), then one robot fewer at a time until the latency p95 is
+     under 300 ms: the fleet that setting really sustains at 10 fps per robot.
 Online ATE: each robot's poses as the cloud answered them, against its ground truth (after
 the run); median / max over the phase's robots. After each phase its robots end their
 sessions as robots do (without keyframe images), outside the phase's clock: a worker holds
@@ -72,7 +72,8 @@ def prepare(n: int, frames: int) -> list[tuple[list[bytes], dict, Path]]:
 
 
 def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work: Path,
-                placement: str = "etcd", config: str | None = None) -> dict:
+                placement: str = "etcd", config: str | None = None,
+                ten_fps_from: int | None = None) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     endpoint = free_endpoint()
     # With etcd (as `demo --workers` runs them), every worker is placed and fenced by it.
@@ -100,7 +101,8 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
                 fps, chosen = None, prepared
             elif phase == "paced":
                 fps, chosen = load * results["saturation"]["cloud_fps"] / len(prepared), prepared
-                n = int(min(len(prepared), results["saturation"]["cloud_fps"] // 10))
+                n = int(min(len(prepared), ten_fps_from if ten_fps_from is not None
+                            else results["saturation"]["cloud_fps"] // 10))
                 phases.append(f"10fps x{max(n, 1)}")
             else:
                 n = int(phase.split("x")[1])
@@ -169,6 +171,10 @@ def main() -> None:
                         "side, each a setting of its own; empty: the defaults")
     parser.add_argument("--runs", type=int, default=1,
                         help="runs of every setting, alternating (min-max reported)")
+    parser.add_argument("--ten-fps-from", type=int, default=None, metavar="N",
+                        help="start the 10 fps phases at N robots (at most --robots) instead "
+                        "of the saturated rate's estimate, which a noisy saturation phase "
+                        "can put below what the workers sustain")
     parser.add_argument("--out", default="bench/results/worker_scaling.json")
     args = parser.parse_args()
     for folder in (SEVEN_SCENES, TUM_RPY):
@@ -201,7 +207,8 @@ def main() -> None:
                             + (f", run {run + 1}" if args.runs > 1 else ""))
                     results[name] = run_setting(
                         n, pinned, prepared, args.load,
-                        work / name.replace(" ", "_").replace(",", ""), placement, config)
+                        work / name.replace(" ", "_").replace(",", ""), placement, config,
+                        args.ten_fps_from)
     rows = []
     for name, phases in results.items():
         for phase, r in phases.items():
