@@ -38,6 +38,10 @@ from fleetslam.backend.pose_optimizer import CHI2_MONO, CHI2_STEREO
 
 # gtsam keys: keyframe poses use their id, landmarks this offset + their id.
 LANDMARK_KEY = 1 << 40
+# A Levenberg-Marquardt pass ends once an iteration lowers the error by less than this
+# fraction, unless the problem says otherwise (gtsam's default; the global BA keeps it,
+# local BA takes tracking.local_ba_relative_tolerance).
+RELATIVE_TOLERANCE = 1e-5
 # A fixed keyframe is held by a prior this tight (gtsam's NonlinearEquality makes the
 # multifrontal Cholesky solve indeterminate); its pose is never written back anyway.
 FIXED_SIGMA = 1e-6
@@ -70,8 +74,8 @@ class LocalBAProblem:
     # (a loop correction moved it since) is not applied.
     epoch: int = 0
     # A Levenberg-Marquardt iteration that lowers the error by less than this fraction ends
-    # a pass (gtsam's default 1e-5; tracking.local_ba_relative_tolerance).
-    relative_tolerance: float = 1e-5
+    # a pass.
+    relative_tolerance: float = RELATIVE_TOLERANCE
 
 
 @dataclass
@@ -156,7 +160,7 @@ def _optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmark_
 def local_ba_problem(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: float,
                      scale_factor: float, window_size: int = 10, min_shared: int = 15,
                      iterations: tuple[int, int] = (5, 10), window: np.ndarray | None = None,
-                     relative_tolerance: float = 1e-5) -> LocalBAProblem | None:
+                     relative_tolerance: float = RELATIVE_TOLERANCE) -> LocalBAProblem | None:
     """Copy out of ``lmap`` the problem around keyframe ``kf_id`` (or the given ``window``
     of keyframe ids: all of them is a global bundle adjustment); None if nothing is free."""
     n_kf = len(lmap.keyframes)

@@ -30,7 +30,6 @@ import time
 import uuid
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -54,16 +53,6 @@ def start_background(parent_pid: int, nice: int) -> None:
     if nice > 0 and hasattr(os, "nice"):
         os.nice(nice)
     _exit_with_parent(parent_pid)
-
-
-def process_cpu_seconds(pid: int) -> float | None:
-    """User + system CPU seconds process ``pid`` has used (Linux /proc); None where that
-    cannot be read (another system, the process gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return None
 
 
 def end_process(process: Any, grace_s: float) -> bool:

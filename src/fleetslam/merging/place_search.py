@@ -53,7 +53,8 @@ import numpy as np
 
 from fleetslam.backend.place_recognition import ApproximateKeyframeDatabase, KeyframeDatabase
 from fleetslam.backend.places import make_database
-from fleetslam.backend.workers import end_process, process_cpu_seconds, start_background
+from fleetslam.backend.process_stats import process_cpu_seconds
+from fleetslam.backend.workers import end_process, start_background
 from fleetslam.camera import Camera
 from fleetslam.config import Config
 from fleetslam.merging.inter_robot import PlaceMatch, verify_counting, verify_places

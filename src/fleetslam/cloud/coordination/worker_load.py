@@ -22,7 +22,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import threading
 import time
 from dataclasses import dataclass
@@ -31,13 +30,13 @@ from typing import Any, Protocol
 
 import zenoh
 
+from fleetslam.backend.process_stats import proc_stat, stat_cpu_seconds
 from fleetslam.config import PlacementConfig
 from fleetslam.transport import keys
 from fleetslam.transport.zenoh_session import put
 
 log = logging.getLogger("fleetslam.placement")
 
-TICK = os.sysconf("SC_CLK_TCK")
 # Loads closer than this (cores) count as equal: the robot's hash decides between them.
 EQUAL_CORES = 0.05
 # A report is at most this large (bytes); anything else on the key is ignored.
@@ -73,12 +72,11 @@ def tree_cpu_seconds(pid: int, unniced_only: bool = False) -> float:
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
-        try:
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
+        fields = proc_stat(int(entry.name))
+        if fields is None:
             continue
         parent[int(entry.name)] = int(fields[1])
-        cpu[int(entry.name)] = (int(fields[11]) + int(fields[12])) / TICK
+        cpu[int(entry.name)] = stat_cpu_seconds(fields)
         nice[int(entry.name)] = int(fields[16])
     total, todo = 0.0, [pid]
     while todo:

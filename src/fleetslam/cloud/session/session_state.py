@@ -118,17 +118,15 @@ LOGGED_ARRAYS: dict[type, tuple[str, ...]] = {
 _APPEND_ONLY = ("descriptors", "owner")
 
 
-_digest = array_log.content_digest
-
-
 def _content_name(value: Any) -> str | None:
     """A chunk's name from its content (the same content, the same name: a chunk file any
     worker writes is the one every other would write)."""
     if type(value) is FeatureFrame:
         f = value
-        return f"f{f.index:07d}-" + _digest(
-            np.float64(f.timestamp).tobytes(), *(np.ascontiguousarray(a).tobytes() for a in
-                                                 (f.keypoints, f.descriptors, f.depth, f.uv)))
+        return f"f{f.index:07d}-" + array_log.content_digest(
+            np.float64(f.timestamp).tobytes(),
+            *(np.ascontiguousarray(a).tobytes() for a in (f.keypoints, f.descriptors, f.depth,
+                                                          f.uv)))
     if type(value) is RowBlock:
         rows = value.rows
         poses = np.stack([r.T_world_camera for r in rows])
@@ -136,15 +134,15 @@ def _content_name(value: Any) -> str | None:
                          else r.T_reference_camera for r in rows])
         table = np.array([(r.index, r.timestamp, r.tracked, r.is_keyframe,
                            r.reference_keyframe) for r in rows], np.float64)
-        return f"r{rows[0].index:07d}-" + _digest(table.tobytes(), poses.tobytes(),
-                                                 refs.tobytes())
+        return f"r{rows[0].index:07d}-" + array_log.content_digest(
+            table.tobytes(), poses.tobytes(), refs.tobytes())
     if type(value) is ArrayBase or type(value) is ArrayPatch:
         return array_log.chunk_name(value)
     if type(value) is np.ndarray:  # a keyframe's landmark table
-        return f"k{len(value):07d}-" + _digest(*array_log.array_parts(value))
+        return f"k{len(value):07d}-" + array_log.content_digest(*array_log.array_parts(value))
     if type(value) is ArrayBlock:
         rows = np.ascontiguousarray(value.rows)
-        return f"a{value.start:07d}-" + _digest(*array_log.array_parts(rows))
+        return f"a{value.start:07d}-" + array_log.content_digest(*array_log.array_parts(rows))
     return None
 
 
