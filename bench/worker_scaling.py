@@ -36,6 +36,7 @@ import sys
 import time
 from pathlib import Path
 
+from cpu_account import CpuAccount, speed_probe_ms
 from fleet import Fleet, robot_messages, robot_messages_for
 from shared_data import SEVEN_SCENES, TUM_RPY
 
@@ -48,6 +49,9 @@ from fleetslam.transport.zenoh_session import open_connecting
 # A fleet at 10 fps per robot counts as sustained when its latency p95 stays under this.
 SUSTAINED_P95_MS = 300.0
 
+
+# The kinds of phase a setting runs, in this order (see the docstring).
+PHASES = ("saturation", "paced", "10fps")
 
 # Frames of the shared TUM fr1_rpy piece: a robot asked for more plays 7-Scenes instead.
 TUM_FRAMES = 150
@@ -73,7 +77,8 @@ def prepare(n: int, frames: int) -> list[tuple[list[bytes], dict, Path]]:
 
 def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work: Path,
                 placement: str = "etcd", config: str | None = None,
-                ten_fps_from: int | None = None) -> dict:
+                ten_fps_from: int | None = None,
+                kinds: tuple[str, ...] = PHASES) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     endpoint = free_endpoint()
     # With etcd (as `demo --workers` runs them), every worker is placed and fenced by it.
@@ -87,6 +92,8 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
                for i in range(n_workers)}
     client = CloudClient(endpoint)
     z = open_connecting(endpoint)
+    account = CpuAccount([p.pid for p in workers.values()], router.pid,
+                         etcd.pid if etcd is not None else None)
     results: dict[str, dict] = {}
     try:
         deadline = time.monotonic() + 60
@@ -94,16 +101,15 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             if time.monotonic() > deadline:
                 raise RuntimeError("the workers did not all answer within 60 s")
             time.sleep(0.5)
-        phases = ["saturation", "paced"]
+        phases = [p for p in ("saturation", "paced") if p in kinds]
+        if "saturation" not in kinds:  # the 10 fps phases alone, from ten_fps_from robots
+            phases.append(f"10fps x{min(len(prepared), ten_fps_from or len(prepared))}")
         while phases:
             phase = phases.pop(0)
             if phase == "saturation":
                 fps, chosen = None, prepared
             elif phase == "paced":
                 fps, chosen = load * results["saturation"]["cloud_fps"] / len(prepared), prepared
-                n = int(min(len(prepared), ten_fps_from if ten_fps_from is not None
-                            else results["saturation"]["cloud_fps"] // 10))
-                phases.append(f"10fps x{max(n, 1)}")
             else:
                 n = int(phase.split("x")[1])
                 fps, chosen = 10.0, prepared[:n]
@@ -117,7 +123,9 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             per_worker = {w: sorted(r for r, v in status["robots"].items()
                                     if v.get("worker") == w and r in robots)
                           for w in workers}
+            probe_ms = speed_probe_ms()
             cpu0 = {w: tree_cpu_s(p.pid) for w, p in workers.items()}
+            before = account.snapshot()
             wall0 = time.monotonic()
             print(f"{n_workers} worker(s){' pinned' if pinned else ''}, {phase}: "
                   f"{len(robots)} robots {'all at once' if fps is None else f'at {fps:.1f} fps'}"
@@ -126,10 +134,16 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             result = fleet.result(idle_s=20.0)
             wall = time.monotonic() - wall0
             cpu = {w: (tree_cpu_s(p.pid) - cpu0[w]) / wall for w, p in workers.items()}
+            shares = CpuAccount.shares(before, account.snapshot())
             ate = fleet.online_ate_cm(sequences)
-            result.update(offered_fps_per_robot=fps, robots=len(robots), placement=per_worker,
-                          cpu_cores_per_worker=cpu, online_ate_cm=ate)
+            result.update(offered_fps_per_robot=fps, wall_s=wall, robots=len(robots), placement=per_worker,
+                          cpu_cores_per_worker=cpu, online_ate_cm=ate, machine_cores=shares,
+                          speed_probe_ms=probe_ms)
             results[phase] = result
+            if phase == "saturation" and "10fps" in kinds:
+                n = int(min(len(prepared), ten_fps_from if ten_fps_from is not None
+                            else result["cloud_fps"] // 10))
+                phases.append(f"10fps x{max(n, 1)}")
             ended = fleet.end(timeout_s=120.0)
             if ended < len(robots):
                 print(f"  {len(robots) - ended} of {len(robots)} robots' sessions did not end "
@@ -175,6 +189,10 @@ def main() -> None:
                         help="start the 10 fps phases at N robots (at most --robots) instead "
                         "of the saturated rate's estimate, which a noisy saturation phase "
                         "can put below what the workers sustain")
+    parser.add_argument("--phases", default=",".join(PHASES),
+                        help="comma list of the phases to run; without saturation, paced "
+                        "cannot run and the 10 fps phases start at --ten-fps-from (default "
+                        "--robots) on workers that served no robot before")
     parser.add_argument("--out", default="bench/results/worker_scaling.json")
     args = parser.parse_args()
     for folder in (SEVEN_SCENES, TUM_RPY):
@@ -190,6 +208,10 @@ def main() -> None:
         sys.exit(f"--placement {args.placement}: give liveliness, etcd or both")
     settings = [(int(n), False) for n in args.workers.split(",") if n] + \
         [(int(n), True) for n in args.pinned.split(",") if n]
+    kinds = tuple(p for p in args.phases.split(",") if p)
+    if not set(kinds) <= set(PHASES) or ("paced" in kinds and "saturation" not in kinds):
+        sys.exit(f"--phases {args.phases}: a comma list of {', '.join(PHASES)}; paced needs "
+                 "saturation")
     configs = [c or None for c in args.configs.split(",")]
     for c in configs:
         if c is not None and not Path(c).is_file():
@@ -208,7 +230,7 @@ def main() -> None:
                     results[name] = run_setting(
                         n, pinned, prepared, args.load,
                         work / name.replace(" ", "_").replace(",", ""), placement, config,
-                        args.ten_fps_from)
+                        args.ten_fps_from, kinds)
     rows = []
     for name, phases in results.items():
         for phase, r in phases.items():
@@ -223,15 +245,26 @@ def main() -> None:
     print(format_table(["setting", "run", "robots", "frames", "dropped", "offered fps",
                         "sustained fps", "latency ms median", "latency ms p95",
                         "cores used per worker", "online ATE cm", "robots per worker"], rows))
+    print("Where the machine's cores went in each phase (cores; bench/cpu_account.py), and the "
+          "speed probe timed just before it (ms; higher = a slower machine):")
+    parts = ["tracking", "background", "router", "etcd", "bench", "other", "steal", "idle"]
+    print(format_table(["setting", "run", "speed probe ms", *parts,
+                        "worker CPU ms a frame"],
+                       [[name, phase, r["speed_probe_ms"],
+                         *(r["machine_cores"][k] for k in parts),
+                         1000 * (r["machine_cores"]["tracking"] + r["machine_cores"]["background"])
+                         * r["wall_s"] / max(r["frames_tracked"], 1)]
+                        for name, phases in results.items() for phase, r in phases.items()]))
     summary: dict[str, list[tuple[float, int]]] = {}
     for name, phases in results.items():
         ok = [r["robots"] for p, r in phases.items() if p.startswith("10fps")
               and r["latency_ms_p95"] <= SUSTAINED_P95_MS]
-        print(f"{name}: saturated {phases['saturation']['cloud_fps']:.1f} fps; sustains "
+        saturated = phases.get("saturation", {}).get("cloud_fps", float("nan"))
+        print(f"{name}: saturated {saturated:.1f} fps; sustains "
               f"{max(ok) if ok else 'no'} robot(s) at 10 fps each with latency p95 <= "
               f"{SUSTAINED_P95_MS:.0f} ms")
         summary.setdefault(name.split(", run ")[0], []).append(
-            (phases["saturation"]["cloud_fps"], max(ok) if ok else 0))
+            (saturated, max(ok) if ok else 0))
     if args.runs > 1:
         for setting, runs in summary.items():
             fps, fleet = [r[0] for r in runs], [r[1] for r in runs]
