@@ -96,6 +96,7 @@ class CloudBackEnd:
             "culled_keyframes": state.culled_keyframes,
             "keyframe_reasons": dict(state.keyframe_reasons),
             "relocalisations": state.relocalisations, "loss_events": state.loss_events,
+            "pnp_fallbacks": state.pnp_fallbacks,
             "events": loops.events,
         }
 

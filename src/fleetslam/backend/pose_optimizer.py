@@ -138,7 +138,8 @@ def pnp_pose(camera: Camera, xyz_world: np.ndarray, uv: np.ndarray, depth: np.nd
              octave_scale: np.ndarray, virtual_baseline_m: float, T_guess: np.ndarray,
              ransac_iterations: int, ransac_reproj_px: float, ransac_confidence: float,
              min_inliers: int, refine_all: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
-    """A camera pose from 2D-3D matches: PnP with RANSAC (SQPnP), then the RGB-D motion-only
+    """A camera pose from 2D-3D matches: PnP with RANSAC (AP3P minimal samples, the cheapest
+    of OpenCV's solvers; docs/decisions.md [tracking]), then the RGB-D motion-only
     refinement, on all matches (tracking: few outliers) or, ``refine_all=False``, on the
     RANSAC inliers only (relocalisation, loops: many outliers, which could pull the
     refinement away). Returns (T_world_camera, inlier mask over the matches), or None when
@@ -151,7 +152,7 @@ def pnp_pose(camera: Camera, xyz_world: np.ndarray, uv: np.ndarray, depth: np.nd
         xyz_world, uv, camera.K, None, rvec=rvec, tvec=T_cw[:3, 3].copy(),
         useExtrinsicGuess=False, iterationsCount=ransac_iterations,
         reprojectionError=ransac_reproj_px, confidence=ransac_confidence,
-        flags=cv2.SOLVEPNP_SQPNP)
+        flags=cv2.SOLVEPNP_AP3P)
     if not ok or ransac_inliers is None or len(ransac_inliers) < min_inliers:
         return None
     R, _ = cv2.Rodrigues(rvec)

@@ -83,6 +83,9 @@ class BackEndState:
     # relocalisation against the keyframes.
     loss_events: int = 0
     relocalisations: int = 0
+    # Frames whose motion prediction left too few inliers (tracking.prediction_min_inlier_ratio):
+    # posed by PnP RANSAC instead, the tracker's dearest step.
+    pnp_fallbacks: int = 0
     resets: int = 0
     repeated_frames: int = 0
     # Inliers of the first frame tracked after the newest keyframe, once local mapping was

@@ -123,6 +123,7 @@ class EstimatePose:
             if good.sum() >= max(cfg.min_inliers, cfg.prediction_min_inlier_ratio * len(good)):
                 solved = T_wc, good
         if solved is None:
+            backend.pnp_fallbacks += 1
             solved = pnp_pose(backend.camera, xyz, uv, depth, scale, cfg.virtual_baseline_m,
                               state.T_world_camera_predicted, cfg.ransac_iterations,
                               cfg.ransac_reproj_px, cfg.ransac_confidence, cfg.min_inliers)
