@@ -36,6 +36,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from cpu_account import CpuAccount, speed_probe_ms
 from fleet import Fleet, robot_messages, robot_messages_for
 from shared_data import SEVEN_SCENES, TUM_RPY
@@ -135,6 +136,12 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             wall = time.monotonic() - wall0
             cpu = {w: (tree_cpu_s(p.pid) - cpu0[w]) / wall for w, p in workers.items()}
             shares = CpuAccount.shares(before, account.snapshot())
+            by_worker = {w: [1000 * (fleet.got[k] - fleet.sent[k]) for k in fleet.got
+                             if k[0] in mine and k in fleet.sent]
+                         for w, mine in per_worker.items()}
+            result["latency_ms_p95_per_worker"] = {
+                w: float(np.percentile(v, 95)) if v else None for w, v in by_worker.items()}
+            result["merger_worker"] = merger_worker(work, workers)
             ate = fleet.online_ate_cm(sequences)
             result.update(offered_fps_per_robot=fps, wall_s=wall, robots=len(robots), placement=per_worker,
                           cpu_cores_per_worker=cpu, online_ate_cm=ate, machine_cores=shares,
@@ -160,6 +167,17 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
         if etcd is not None:
             etcd.stop()
     return results
+
+
+def merger_worker(work: Path, workers: dict) -> str | None:
+    """The worker that merges (the last to say so in its log), or None."""
+    said: list[tuple[str, str]] = []
+    for w in workers:
+        log_path = work / f"{w}.log"
+        if log_path.exists():
+            said += [(line[:23], w) for line in log_path.read_text(errors="replace").splitlines()
+                     if f"worker {w} merges now" in line]
+    return max(said)[1] if said else None
 
 
 def _ate_range(ate: dict[str, float]) -> str:
@@ -240,11 +258,15 @@ def main() -> None:
                          else f"{r['offered_fps_per_robot'] * r['robots']:.1f}",
                          r["cloud_fps"], r["latency_ms_median"], r["latency_ms_p95"],
                          " ".join(f"{v:.2f}" for v in cpu.values()),
+                         " ".join("-" if v is None else f"{v:.0f}"
+                                  for v in r.get("latency_ms_p95_per_worker", {}).values()),
+                         r.get("merger_worker") or "-",
                          _ate_range(r["online_ate_cm"]),
                          " ".join(str(len(v)) for v in r["placement"].values())])
     print(format_table(["setting", "run", "robots", "frames", "dropped", "offered fps",
                         "sustained fps", "latency ms median", "latency ms p95",
-                        "cores used per worker", "online ATE cm", "robots per worker"], rows))
+                        "cores used per worker", "p95 ms per worker", "merger on",
+                        "online ATE cm", "robots per worker"], rows))
     print("Where the machine's cores went in each phase (cores; bench/cpu_account.py), and the "
           "speed probe timed just before it (ms; higher = a slower machine):")
     parts = ["tracking", "background", "router", "etcd", "bench", "other", "steal", "idle"]
