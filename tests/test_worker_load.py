@@ -93,6 +93,22 @@ def test_the_meter_sees_a_busy_process_and_robots_gone_quiet_at_once():
     assert meter.busy() < 0.2  # idle for six windows
 
 
+def test_robots_arriving_together_weigh_their_cost_until_the_average_takes_them_in():
+    """Ten robots granted at once to an idle worker: a fifth of a window later the averaged
+    robot count is about two, yet the ten have not cost anything measurable yet; they weigh
+    the configured cost each until the average has them (before: the idle CPU scaled to ten
+    robots, near nothing, and the next robots of the fleet all came here)."""
+    robots = Counts(at_work=0)
+    meter = CpuMeter(os.getpid(), window_s=0.5, robots=robots, robot_cost=0.4)
+    time.sleep(0.15)
+    meter.busy()  # idle, no robot
+    robots.robots_at_work = 10
+    time.sleep(0.1)
+    assert meter.busy() > 0.8 * 10 * 0.4  # 10 x 0.4, less the ~2 the average has taken in
+    time.sleep(2.5)  # five windows of an idle process: measured, nearly nothing
+    assert meter.busy() < 0.2
+
+
 def test_niced_background_work_is_not_a_robot_s_load():
     """A worker's niced children (local BA, the place search) yield the cores to tracking:
     placement's meter leaves them out; the process tree's total (the benchmarks') keeps
