@@ -104,9 +104,29 @@ def test_robots_arriving_together_weigh_their_cost_until_the_average_takes_them_
     meter.busy()  # idle, no robot
     robots.robots_at_work = 10
     time.sleep(0.1)
-    assert meter.busy() > 0.8 * 10 * 0.4  # 10 x 0.4, less the ~2 the average has taken in
+    # 10 x 0.4, less the 2 (5 if the sleep overran threefold) the average has taken in.
+    assert meter.busy() > 1.6
     time.sleep(2.5)  # five windows of an idle process: measured, nearly nothing
     assert meter.busy() < 0.2
+
+
+def test_a_fleet_that_follows_one_just_ended_weighs_as_new():
+    """Ten robots at work for three windows, all gone quiet, then ten others at once (a
+    shift ends, the next starts): the new ones weigh the configured cost each, not the
+    places of the quiet ones in an average that still held them (8 + 12 of 20 robots)."""
+    robots = Counts(at_work=10)
+    meter = CpuMeter(os.getpid(), window_s=2.0, robots=robots, robot_cost=0.4)
+    end = time.monotonic() + 1.5
+    while time.monotonic() < end:
+        sum(i * i for i in range(10_000))
+        meter.busy()
+    robots.robots_at_work = 0
+    assert meter.busy() < 0.05  # gone quiet
+    robots.robots_at_work = 10
+    time.sleep(0.1)
+    # 10 x 0.4 less the half robot (two if the sleep overran fivefold) the average took in;
+    # an average still holding the quiet ten gave about 2.3.
+    assert meter.busy() > 2.8
 
 
 def test_niced_background_work_is_not_a_robot_s_load():

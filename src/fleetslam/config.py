@@ -711,7 +711,8 @@ class PlacementConfig:
     # A robot heard from within this many seconds is at work: its worker's load counts it.
     active_s: Annotated[float, above(0.0)] = 2.0
     # What a robot counts until its cost is measured (cores): one granted since its worker's
-    # last load report, or at work on a worker that has not had robots at work for a while.
+    # last load report, or at work beyond the robots its worker's load average has taken in
+    # (it came within load_window_s).
     robot_cost_cores: Annotated[float, above(0.0)] = 0.4
     # Many workers with a coordination service: the etcd (http://HOST:PORT) that decides which
     # worker owns which robot and the merger, with fencing (cloud/coordination/fenced_placement.py)

@@ -102,7 +102,9 @@ class CpuMeter:
     reached half a robot was not enough: ten robots granted at once passed it within a
     fifth of a window, and were then weighed at the CPU their worker had used before they
     sent a frame; the next robots of the fleet all went to that worker (12 + 8 and 9 + 11
-    of 20 robots, bench/worker_scaling.py)."""
+    of 20 robots, bench/worker_scaling.py). Nor was an average still holding the robots of
+    a fleet that had just ended: the new fleet's first robots took their places in it
+    (8 + 12)."""
 
     def __init__(self, pid: int, window_s: float, robots: RobotsAtWork,
                  robot_cost: float) -> None:
@@ -124,8 +126,11 @@ class CpuMeter:
                 self._busy += weight * (rate - self._busy)
                 self._active_avg += weight * (active - self._active_avg)
                 self._last = (now, cpu)
-            if active < self._active_avg:  # robots gone quiet: their share goes at once
-                return self._busy * active / self._active_avg
+            if active < self._active_avg:
+                # Robots gone quiet: their share goes at once, from the averages too (robots
+                # that come next are new, not the quiet ones' places in a stale average).
+                self._busy *= active / self._active_avg
+                self._active_avg = float(active)
             # The robots the averages have taken in weigh what was measured; those they have
             # not yet (arrived within the window) the configured cost each.
             return self._busy + self.robot_cost * (active - self._active_avg)
