@@ -8,16 +8,13 @@ import numpy as np
 
 from fleetslam.backend.pose_optimizer import pnp_pose
 from fleetslam.camera import Camera
-from fleetslam.transforms import invert
+from fleetslam.transforms import invert, rotation_angle_deg, rotation_exp, transform_points
 
 CAMERA = Camera(fx=525.0, fy=525.0, cx=319.5, cy=239.5)
 
 
 def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = np.radians(degrees)
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    return rotation_exp(np.radians(degrees) * axis / np.linalg.norm(axis))[0]
 
 
 def _scene(seed: int, n: int = 300, wrong: float = 0.35):
@@ -28,9 +25,7 @@ def _scene(seed: int, n: int = 300, wrong: float = 0.35):
     # Points in front of the camera, 1-4 m away, inside the image.
     uv = rng.uniform([20, 20], [620, 460], (n, 2))
     depth = rng.uniform(1.0, 4.0, n)
-    P_cam = np.column_stack([(uv[:, 0] - CAMERA.cx) / CAMERA.fx * depth,
-                             (uv[:, 1] - CAMERA.cy) / CAMERA.fy * depth, depth])
-    xyz = P_cam @ T_wc[:3, :3].T + T_wc[:3, 3]
+    xyz = transform_points(T_wc, CAMERA.backproject(uv, depth))
     uv = uv + rng.normal(0, 0.5, uv.shape)
     bad = rng.random(n) < wrong  # wrong matches: another pixel, no depth
     uv[bad] = rng.uniform([20, 20], [620, 460], (int(bad.sum()), 2))
@@ -40,8 +35,7 @@ def _scene(seed: int, n: int = 300, wrong: float = 0.35):
 
 def _apart(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     d = invert(T_a) @ T_b
-    angle = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
-    return float(angle), float(np.linalg.norm(d[:3, 3]))
+    return rotation_angle_deg(d[:3, :3]), float(np.linalg.norm(d[:3, 3]))
 
 
 def test_pnp_finds_the_pose_from_a_bad_guess_among_wrong_matches() -> None:
