@@ -40,37 +40,45 @@ def _machine() -> tuple[float, float, float]:
 class Snapshot:
     wall: float
     machine: tuple[float, float, float]
-    tracking: float
-    workers: float
+    tracking: float  # the workers' processes at their own priority
+    workers: dict[str, float]  # each worker's whole process tree
     router: float
     etcd: float
     bench: float
 
 
 class CpuAccount:
-    """Snapshots of the CPU used by each part of a bench's cloud; ``shares`` turns two of
-    them into cores used over the wall time between them."""
+    """Snapshots of the CPU used by each part of a bench's cloud (``workers``: each
+    worker's pid by name); ``shares`` and ``worker_cores`` turn two of them into cores used
+    over the wall time between them."""
 
-    def __init__(self, workers: list[int], router: int, etcd: int | None) -> None:
+    def __init__(self, workers: dict[str, int], router: int, etcd: int | None) -> None:
         self.workers, self.router, self.etcd = workers, router, etcd
 
     def snapshot(self) -> Snapshot:
         own = os.times()
         return Snapshot(
             time.monotonic(), _machine(),
-            sum(tree_cpu_seconds(p, unniced_only=True) for p in self.workers),
-            sum(tree_cpu_seconds(p) for p in self.workers),
+            sum(tree_cpu_seconds(p, unniced_only=True) for p in self.workers.values()),
+            {w: tree_cpu_seconds(p) for w, p in self.workers.items()},
             process_cpu_seconds(self.router) or 0.0,
             (process_cpu_seconds(self.etcd) or 0.0) if self.etcd else 0.0,
             own.user + own.system)
+
+    @staticmethod
+    def worker_cores(a: Snapshot, b: Snapshot) -> dict[str, float]:
+        """Cores each worker's process tree used between snapshots ``a`` and ``b``."""
+        wall = max(b.wall - a.wall, 1e-9)
+        return {w: (b.workers[w] - a.workers[w]) / wall for w in b.workers}
 
     @staticmethod
     def shares(a: Snapshot, b: Snapshot) -> dict[str, float]:
         """Cores used between snapshots ``a`` and ``b`` by each part (1.0 = one core busy)."""
         wall = max(b.wall - a.wall, 1e-9)
         busy = b.machine[0] - a.machine[0]
+        workers = sum(b.workers.values()) - sum(a.workers.values())
         parts = {"tracking": b.tracking - a.tracking,
-                 "background": (b.workers - a.workers) - (b.tracking - a.tracking),
+                 "background": workers - (b.tracking - a.tracking),
                  "router": b.router - a.router, "etcd": b.etcd - a.etcd,
                  "bench": b.bench - a.bench}
         out = {k: v / wall for k, v in parts.items()}
@@ -81,8 +89,8 @@ class CpuAccount:
 
 
 def speed_probe_ms(repeats: int = 3) -> float:
-    """The least of ``repeats`` timings of a fixed piece of single-threaded work (about
-    24 ms on this project's 2-core machine when it is quiet)."""
+    """The least of ``repeats`` timings of a fixed piece of single-threaded work (15-24 ms
+    on this project's 2-core machine, between a fleet's phases)."""
     rng = np.random.default_rng(0)
     a = rng.standard_normal((20000, 3))
     best = float("inf")

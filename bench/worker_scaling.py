@@ -42,7 +42,6 @@ from fleet import Fleet, robot_messages, robot_messages_for
 from shared_data import SEVEN_SCENES, TUM_RPY
 
 from fleetslam.cloud.coordination.coordination_service import EtcdService
-from fleetslam.cloud.coordination.worker_load import tree_cpu_seconds as tree_cpu_s
 from fleetslam.launch import CloudClient, free_endpoint, start_router, start_worker, stop_all
 from fleetslam.tables import format_table
 from fleetslam.transport.zenoh_session import open_connecting
@@ -93,7 +92,7 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
                for i in range(n_workers)}
     client = CloudClient(endpoint)
     z = open_connecting(endpoint)
-    account = CpuAccount([p.pid for p in workers.values()], router.pid,
+    account = CpuAccount({w: p.pid for w, p in workers.items()}, router.pid,
                          etcd.pid if etcd is not None else None)
     results: dict[str, dict] = {}
     try:
@@ -120,22 +119,18 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             sequences = {f"{tag}{i}": sequence for i, (_, _, sequence) in enumerate(chosen)}
             fleet = Fleet(z, robots)
             fleet.hello()
-            status = client.status(timeout=30)
-            per_worker = {w: sorted(r for r, v in status["robots"].items()
-                                    if v.get("worker") == w and r in robots)
-                          for w in workers}
+            per_worker = placement_of(client, robots, workers)
             probe_ms = speed_probe_ms()
-            cpu0 = {w: tree_cpu_s(p.pid) for w, p in workers.items()}
             before = account.snapshot()
-            wall0 = time.monotonic()
             print(f"{n_workers} worker(s){' pinned' if pinned else ''}, {phase}: "
                   f"{len(robots)} robots {'all at once' if fps is None else f'at {fps:.1f} fps'}"
                   f"; placement {per_worker}", flush=True)
             fleet.send(fps)
             result = fleet.result(idle_s=20.0)
-            wall = time.monotonic() - wall0
-            cpu = {w: (tree_cpu_s(p.pid) - cpu0[w]) / wall for w, p in workers.items()}
-            shares = CpuAccount.shares(before, account.snapshot())
+            after = account.snapshot()
+            wall = after.wall - before.wall
+            cpu = CpuAccount.worker_cores(before, after)
+            shares = CpuAccount.shares(before, after)
             by_worker = {w: [1000 * (fleet.got[k] - fleet.sent[k]) for k in fleet.got
                              if k[0] in mine and k in fleet.sent]
                          for w, mine in per_worker.items()}
@@ -143,9 +138,9 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
                 w: float(np.percentile(v, 95)) if v else None for w, v in by_worker.items()}
             result["merger_worker"] = merger_worker(work, workers)
             ate = fleet.online_ate_cm(sequences)
-            result.update(offered_fps_per_robot=fps, wall_s=wall, robots=len(robots), placement=per_worker,
-                          cpu_cores_per_worker=cpu, online_ate_cm=ate, machine_cores=shares,
-                          speed_probe_ms=probe_ms)
+            result.update(offered_fps_per_robot=fps, wall_s=wall, robots=len(robots),
+                          placement=per_worker, cpu_cores_per_worker=cpu, online_ate_cm=ate,
+                          machine_cores=shares, speed_probe_ms=probe_ms)
             results[phase] = result
             if phase == "saturation" and "10fps" in kinds:
                 n = int(min(len(prepared), ten_fps_from if ten_fps_from is not None
@@ -167,6 +162,19 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
         if etcd is not None:
             etcd.stop()
     return results
+
+
+def placement_of(client: CloudClient, robots: dict, workers: dict) -> dict[str, list[str]]:
+    """Which worker serves each of ``robots``, from the cloud's status. A worker answers
+    status from a view at most 0.2 s old (cloud/operator_requests.py), so a status asked
+    right after the hellos may not list them yet: asked again, up to 10 s."""
+    deadline = time.monotonic() + 10.0
+    while True:
+        listed = client.status(timeout=30)["robots"]
+        if set(robots) <= set(listed) or time.monotonic() > deadline:
+            return {w: sorted(r for r, v in listed.items()
+                              if v.get("worker") == w and r in robots) for w in workers}
+        time.sleep(0.25)
 
 
 def merger_worker(work: Path, workers: dict) -> str | None:
