@@ -147,17 +147,11 @@ class MapperStatus(Protocol):
     def busy(self) -> bool:
         """A local BA is still in a worker."""
 
-    def settling(self) -> bool:
-        """The newest keyframe's local BA has not landed yet."""
-
 
 class InlineMapper:
     """A mapper that is done with each keyframe before the next frame (in-line)."""
 
     def busy(self) -> bool:
-        return False
-
-    def settling(self) -> bool:
         return False
 
 
@@ -187,8 +181,7 @@ class DecideKeyframe:
             # left it.
             state = replace(state, T_world_camera=self.new_keyframe(state))
         reference, T_reference_camera = backend.reference_pose(state.T_world_camera)
-        # The inlier test's reference waits for local mapping's.
-        backend.record(state, f, is_kf, not self.mapper.settling())
+        backend.record(state, f, is_kf)
         # A keyframe carries the map's keyframe poses as they are now: a robot that tracks
         # itself sends them to the cloud's merger with the keyframe's features.
         return TrackedFrame(state, is_kf, reference, T_reference_camera,
@@ -198,7 +191,7 @@ class DecideKeyframe:
 def keyframe_reason(backend: BackEndState, state: PosedFrame, mapper_busy: bool = False
                     ) -> str | None:
     """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
-    of the first frame after the newest keyframe, once its local BA landed: none before),
+    of the first frame tracked after the newest keyframe, its local BA landed or not),
     "motion" (far from every keyframe still observing landmarks), "reference" /
     "close" (ORB-SLAM's tests), "reset" (lost too long; counted as a map reset)."""
     cfg = backend.config.tracking
