@@ -112,16 +112,17 @@ def test_a_newer_keyframe_replaces_the_one_waiting(pool):
     assert mapping.counts["applied"] == 2
 
 
-def test_the_mapper_is_busy_while_a_ba_is_out(pool):
+def test_the_mapper_is_settling_while_the_newest_keyframes_ba_is_out(pool):
     session = scene_session(5)
     mapping = mapper(pool, session)
-    assert not mapping.busy()
-    mapping.request(NEWEST - 1)
+    assert not mapping.settling() and not mapping.busy()
+    mapping.request(NEWEST - 1)  # an older keyframe's: busy, but the newest is settled
+    assert mapping.busy() and not mapping.settling()
     mapping.request(NEWEST)  # waits behind it
-    assert mapping.busy()
+    assert mapping.settling()
     mapping.flush(timeout_s=60)
-    assert not mapping.busy()
-    assert not LocalMapper(session).busy()  # in-line: never
+    assert not mapping.settling() and not mapping.busy()
+    assert not LocalMapper(session).settling()  # in-line: never
 
 
 def test_a_flush_solves_here_what_a_starved_worker_holds():

@@ -125,44 +125,33 @@ def test_a_busy_mapper_takes_a_reference_keyframe_only_when_tracking_is_weak():
     assert reason(200, busy=True) == "reference"
 
 
-def test_the_inlier_test_takes_the_next_frame_while_the_keyframes_ba_is_out():
-    """The inlier test's reference is the first frame tracked after the newest keyframe,
-    also while that keyframe's local BA is still in a worker: a loaded cloud's BA lands
-    seconds later, and a reference taken then (a frame that has moved on) made keyframes
-    late and few."""
-    from fleetslam.backend.tracking import DecideKeyframe, keyframe_reason
+def test_the_inlier_test_waits_for_the_newest_keyframes_local_ba():
+    """Until local mapping is done with the newest keyframe the next frames take no
+    reference for the inlier test (they still match the keyframe's unjudged new landmarks);
+    the first frame after it does."""
+    from fleetslam.backend.tracking import keyframe_reason
     from fleetslam.pipeline.states import MatchedFrame, PosedFrame
-
-    class BusyMapper:  # a local BA in a worker, not landed
-        def busy(self) -> bool:
-            return True
 
     session = _tracked(10)
     features = session._last_features
     n = len(features.keypoints)
     assert n >= 400
-    # No depth: the close-point test stays out of it.
-    features = replace(features, depth=np.zeros(n, np.float32))
 
-    def frame(n_inliers: int, repeated: bool = False) -> PosedFrame:
+    def frame(n_inliers: int) -> PosedFrame:
         inliers = np.zeros(n, bool)
         inliers[:n_inliers] = True
-        matched = MatchedFrame(features, np.arange(n), np.zeros((n, 3)), np.eye(4), repeated)
+        matched = MatchedFrame(features, np.arange(n), np.zeros((n, 3)), np.eye(4), False)
         return PosedFrame(matched, session.map.keyframes[-1].T_world_camera, inliers, True)
 
-    def new_keyframe(state: PosedFrame) -> np.ndarray:
-        raise AssertionError("no keyframe expected")
-
-    decide = DecideKeyframe(new_keyframe, BusyMapper())
     session.record(frame(300), features, is_keyframe=True)
-    decide(frame(400, repeated=True), session)  # a repeated image is no reference
+    session.record(frame(400), features, is_keyframe=False, settled=False)
     assert session.inliers_after_keyframe == 0
-    decide(frame(400), session)
-    assert session.inliers_after_keyframe == 400
-    decide(frame(380), session)
-    assert session.inliers_after_keyframe == 400  # the first frame's, kept
-    assert keyframe_reason(session, frame(230)) is None  # 0.55 x 400 = 220
-    assert keyframe_reason(session, frame(200)) == "inliers"
+    assert keyframe_reason(session, frame(100)) != "inliers"
+    session.record(frame(300), features, is_keyframe=False, settled=True)
+    assert session.inliers_after_keyframe == 300
+    assert keyframe_reason(session, frame(100)) == "inliers"
+    session.record(frame(380), features, is_keyframe=False, settled=True)
+    assert session.inliers_after_keyframe == 300  # the first settled frame's, kept
 
 
 def test_motion_is_measured_from_every_keyframe_that_still_observes():

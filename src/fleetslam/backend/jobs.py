@@ -57,6 +57,11 @@ class LatestOnly:
     def idle(self) -> bool:
         return self.in_flight is None
 
+    def pending(self, request: Any) -> bool:
+        """Whether ``request`` is in flight or waiting (its answer has not landed)."""
+        job = self.in_flight
+        return self.waiting == request or (job is not None and job.request == request)
+
     def wait(self, request: Any) -> None:
         """Keep ``request`` until the job in flight is done (replacing an older one)."""
         if self.waiting is not None:

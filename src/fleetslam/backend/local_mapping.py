@@ -101,6 +101,11 @@ class LocalMapper:
         """A local BA is still in a worker (never in-line: it is done by then)."""
         return not self.jobs.idle
 
+    def settling(self) -> bool:
+        """The newest keyframe's local BA is in a worker or waits for one (never in-line)."""
+        keyframes = self.backend.map.keyframes
+        return bool(keyframes) and self.jobs.pending(keyframes[-1].id)
+
     # -- in the workers ------------------------------------------------------------------
 
     def request(self, kf_id: int) -> None:

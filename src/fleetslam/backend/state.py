@@ -88,8 +88,8 @@ class BackEndState:
     pnp_fallbacks: int = 0
     resets: int = 0
     repeated_frames: int = 0
-    # Inliers of the first frame tracked after the newest keyframe (keyframe decision; 0
-    # until then).
+    # Inliers of the first frame tracked after the newest keyframe, once local mapping was
+    # done with it (keyframe decision; 0 until then).
     inliers_after_keyframe: int = 0
     # Local mapping statistics: wall time of each local bundle adjustment, observations it
     # erased as outliers, landmarks culled, observations added by fusion at keyframes.
@@ -166,9 +166,11 @@ class BackEndState:
         return poses_from_references(self.map.keyframe_poses(), references, T_reference_camera,
                                      online)
 
-    def record(self, posed: PosedFrame, features: FeatureFrame, is_keyframe: bool) -> None:
+    def record(self, posed: PosedFrame, features: FeatureFrame, is_keyframe: bool,
+               settled: bool = True) -> None:
         """Bookkeeping after a frame: motion model, loss counters, repeat detection, and the
-        keyframe test's reference: the first frame tracked after the newest keyframe."""
+        keyframe test's reference: the first frame tracked after the newest keyframe once
+        local mapping is done with it (``settled``)."""
         if posed.matched.repeated:
             self.repeated_frames += 1
         if posed.tracked:
@@ -180,7 +182,7 @@ class BackEndState:
             self.lost_total += 1
             if is_keyframe:
                 self.lost_frames = 0
-        if self._keyframe_was_last and posed.tracked and not posed.matched.repeated:
+        if self._keyframe_was_last and settled and posed.tracked and not posed.matched.repeated:
             self.inliers_after_keyframe = int(posed.inliers.sum())
             self._keyframe_was_last = False
         if is_keyframe:

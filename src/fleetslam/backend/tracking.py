@@ -147,11 +147,17 @@ class MapperStatus(Protocol):
     def busy(self) -> bool:
         """A local BA is still in a worker."""
 
+    def settling(self) -> bool:
+        """The newest keyframe's local BA has not landed yet."""
+
 
 class InlineMapper:
     """A mapper that is done with each keyframe before the next frame (in-line)."""
 
     def busy(self) -> bool:
+        return False
+
+    def settling(self) -> bool:
         return False
 
 
@@ -181,7 +187,8 @@ class DecideKeyframe:
             # left it.
             state = replace(state, T_world_camera=self.new_keyframe(state))
         reference, T_reference_camera = backend.reference_pose(state.T_world_camera)
-        backend.record(state, f, is_kf)
+        # The inlier test's reference waits for local mapping's.
+        backend.record(state, f, is_kf, not self.mapper.settling())
         # A keyframe carries the map's keyframe poses as they are now: a robot that tracks
         # itself sends them to the cloud's merger with the keyframe's features.
         return TrackedFrame(state, is_kf, reference, T_reference_camera,
@@ -191,7 +198,7 @@ class DecideKeyframe:
 def keyframe_reason(backend: BackEndState, state: PosedFrame, mapper_busy: bool = False
                     ) -> str | None:
     """Why this frame becomes a keyframe, or None: "first", "inliers" (fewer than a fraction
-    of the first frame tracked after the newest keyframe, its local BA landed or not),
+    of the first frame after the newest keyframe, once its local BA landed: none before),
     "motion" (far from every keyframe still observing landmarks), "reference" /
     "close" (ORB-SLAM's tests), "reset" (lost too long; counted as a map reset)."""
     cfg = backend.config.tracking
