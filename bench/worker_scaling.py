@@ -24,6 +24,9 @@ processes over the phase, divided by the phase's wall time (1.0 = one core busy)
 time, not the frames' span: when frames are dropped, the phase ends only after idle_s
 without feedback, and the niced work that goes on meanwhile was divided by the span alone
 (up to 7.6 "cores" on a 2-core machine).
+Local BA per phase (each robot's robot.json, medians over the robots): keyframes, BAs applied
+and superseded, and a BA's request-to-applied split into its wait in its worker's queue and
+its solve there (wall and CPU seconds of the solving process).
 Writes bench/results/worker_scaling.json.
 """
 
@@ -150,6 +153,7 @@ def run_setting(n_workers: int, pinned: bool, prepared: list, load: float, work:
             if ended < len(robots):
                 print(f"  {len(robots) - ended} of {len(robots)} robots' sessions did not end "
                       "within 120 s", flush=True)
+            result["local_mapping"] = local_mapping_of(work / "store", robots)
             fleet.close()
             # 10 fps per robot: fewer robots until that fleet is really sustained.
             if phase.startswith("10fps") and result["latency_ms_p95"] > SUSTAINED_P95_MS \
@@ -175,6 +179,29 @@ def placement_of(client: CloudClient, robots: dict, workers: dict) -> dict[str, 
             return {w: sorted(r for r, v in listed.items()
                               if v.get("worker") == w and r in robots) for w in workers}
         time.sleep(0.25)
+
+
+def local_mapping_of(store: Path, robots: dict) -> dict[str, float]:
+    """Medians over a phase's robots (from each robot.json, written at its session's end):
+    keyframes, local BAs applied and superseded, and a BA's way from request to applied
+    (median ms per robot): its wait in the worker's queue, its solve there (wall, CPU)."""
+    rows = []
+    for rid in robots:
+        path = store / rid / "robot.json"
+        if not path.is_file():
+            continue
+        loops = json.loads(path.read_text())["loop_closing"]
+        mapping = loops.get("local_mapping", {})
+        if "request_to_applied" not in mapping:
+            continue  # in-line
+        rows.append({"keyframes": sum(loops["keyframe_reasons"].values()),
+                     "applied": mapping["applied"], "superseded": mapping["superseded"],
+                     "lag_ms": mapping["request_to_applied"]["median_ms"],
+                     "queued_ms": mapping["queued"]["median_ms"],
+                     "solve_ms": loops["local_ba"]["median_ms"],
+                     "solve_cpu_ms": mapping["solve_cpu"]["median_ms"]})
+    return {k: float(np.median([r[k] for r in rows if r[k] is not None]))
+            for k in rows[0]} if rows else {}
 
 
 def merger_worker(work: Path, workers: dict) -> str | None:
@@ -284,6 +311,14 @@ def main() -> None:
                          *(r["machine_cores"][k] for k in parts),
                          1000 * (r["machine_cores"]["tracking"] + r["machine_cores"]["background"])
                          * r["wall_s"] / max(r["frames_tracked"], 1)]
+                        for name, phases in results.items() for phase, r in phases.items()]))
+    print("Local BA per robot (medians over the phase's robots; ms: a BA's request to "
+          "applied, its wait in the worker's queue, its solve there, wall and CPU):")
+    mapping_keys = ["keyframes", "applied", "superseded", "lag_ms", "queued_ms", "solve_ms",
+                    "solve_cpu_ms"]
+    print(format_table(["setting", "run", *mapping_keys],
+                       [[name, phase, *(r.get("local_mapping", {}).get(k, "-")
+                                        for k in mapping_keys)]
                         for name, phases in results.items() for phase, r in phases.items()]))
     summary: dict[str, list[tuple[float, int]]] = {}
     for name, phases in results.items():

@@ -125,6 +125,22 @@ def test_the_mapper_is_settling_while_the_newest_keyframes_ba_is_out(pool):
     assert not LocalMapper(session).settling()  # in-line: never
 
 
+def test_the_summary_tells_a_bas_wait_in_the_queue_from_its_solve(pool):
+    """Each BA that landed from the worker: its wait in the worker's queue (request to the
+    solve's start) and the solve's CPU seconds there, beside request-to-applied."""
+    session = scene_session(4)
+    mapping = mapper(pool, session)
+    mapping.request(NEWEST - 1)
+    mapping.request(NEWEST)  # waits in the slot until the first has landed
+    mapping.flush(timeout_s=60)
+    summary = mapping.summary()
+    assert summary["applied"] == 2
+    assert summary["queued"]["n"] == summary["solve_cpu"]["n"] == 2
+    assert summary["solve_cpu"]["median_ms"] > 0
+    for queued, lag in zip(mapping.queued_seconds, mapping.jobs.lag_seconds):
+        assert 0 <= queued <= lag
+
+
 def test_a_flush_solves_here_what_a_starved_worker_holds():
     """A niced worker starved by the tracking that waits for it (here: stopped): a flush
     waits tracking.worker_wait_s, then solves the job in flight and the waiting one on

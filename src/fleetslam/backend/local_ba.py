@@ -84,6 +84,10 @@ class LocalBASolution:
     xyz: np.ndarray  # (len(landmarks), 3)
     outlier: np.ndarray  # bool per observation row of the problem
     seconds: float  # solve time (wherever it ran)
+    # The solving process's CPU seconds, and time.monotonic() when the solve began (the
+    # clock is the machine's, so the cloud can tell a BA's wait in its worker's queue).
+    cpu_seconds: float = 0.0
+    started: float = 0.0
 
 
 @dataclass
@@ -199,7 +203,7 @@ def local_ba_problem(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: 
 def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
     """Optimise the problem (two passes, see the module's docstring); None if the system is
     indeterminate (the map stays as it was)."""
-    start = time.perf_counter()
+    start, began, cpu_start = time.perf_counter(), time.monotonic(), time.process_time()
     camera, kfs, landmarks = p.camera, p.kfs, p.landmarks
     obs_kf, obs_lm, obs_uv, obs_depth, obs_oct = p.obs_kf, p.obs_lm, p.obs_uv, p.obs_depth, p.obs_oct
     stereo = obs_depth > 0
@@ -281,7 +285,8 @@ def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
             xyz[determined] = gtsam.utilities.extractPoint3(result2).reshape(-1, 3)
     chi2, z = chi2_of(poses, xyz)
     outlier = (chi2 > threshold) | (z <= 0)
-    return LocalBASolution(poses, xyz, outlier, time.perf_counter() - start)
+    return LocalBASolution(poses, xyz, outlier, time.perf_counter() - start,
+                           time.process_time() - cpu_start, began)
 
 
 def apply_local_ba(lmap: LocalMap, p: LocalBAProblem, s: LocalBASolution) -> LocalBAResult:

@@ -67,6 +67,10 @@ class LocalMapper:
         self.jobs = LatestOnly("local BA", backend.config.tracking.local_ba_timeout_s,
                                self.counts, overdue="abandoned",
                                wait_s=backend.config.tracking.worker_wait_s)
+        # Of each solve that landed from a worker: seconds from its request to its start (its
+        # wait in the worker's queue) and the CPU seconds it took there.
+        self.queued_seconds: list[float] = []
+        self.solve_cpu_seconds: list[float] = []
 
     def insert_keyframe(self, state: PosedFrame) -> InsertedKeyframe:
         """Add the frame as a keyframe: its inlier matches become observations (plus those
@@ -165,6 +169,9 @@ class LocalMapper:
         self.land(problem, solution)
         self.counts["applied"] += 1
         self.jobs.landed(job)
+        if solution is not None:
+            self.queued_seconds.append(max(solution.started - job.submitted, 0.0))
+            self.solve_cpu_seconds.append(solution.cpu_seconds)
 
     def land(self, problem: LocalBAProblem, solution: LocalBASolution | None) -> None:
         """Write a solution into the map. The frames tracked since moved with the map: so
@@ -173,7 +180,9 @@ class LocalMapper:
         update_reference(self.backend)
 
     def summary(self) -> dict[str, Any]:
-        return {**self.counts, "request_to_applied": duration_stats(self.jobs.lag_seconds)}
+        return {**self.counts, "request_to_applied": duration_stats(self.jobs.lag_seconds),
+                "queued": duration_stats(self.queued_seconds),
+                "solve_cpu": duration_stats(self.solve_cpu_seconds)}
 
 
 def build_problem(backend: BackEndState, kf_id: int) -> LocalBAProblem | None:
