@@ -8,7 +8,8 @@ import numpy as np
 
 from fleetslam.backend.pose_optimizer import pnp_pose
 from fleetslam.camera import Camera
-from fleetslam.transforms import invert, rotation_angle_deg, rotation_exp, transform_points
+from fleetslam.transforms import (invert, make_T, rotation_angle_deg, rotation_exp,
+                                  transform_points)
 
 CAMERA = Camera(fx=525.0, fy=525.0, cx=319.5, cy=239.5)
 
@@ -19,9 +20,7 @@ def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
 
 def _scene(seed: int, n: int = 300, wrong: float = 0.35):
     rng = np.random.default_rng(seed)
-    T_wc = np.eye(4)
-    T_wc[:3, :3] = _rotation(rng.standard_normal(3), 20.0)
-    T_wc[:3, 3] = rng.uniform(-0.5, 0.5, 3)
+    T_wc = make_T(_rotation(rng.standard_normal(3), 20.0), rng.uniform(-0.5, 0.5, 3))
     # Points in front of the camera, 1-4 m away, inside the image.
     uv = rng.uniform([20, 20], [620, 460], (n, 2))
     depth = rng.uniform(1.0, 4.0, n)

@@ -203,7 +203,7 @@ def local_ba_problem(lmap: LocalMap, camera: Camera, kf_id: int, *, baseline_m: 
 def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
     """Optimise the problem (two passes, see the module's docstring); None if the system is
     indeterminate (the map stays as it was)."""
-    start, began, cpu_start = time.perf_counter(), time.monotonic(), time.process_time()
+    began, cpu_start = time.monotonic(), time.process_time()
     camera, kfs, landmarks = p.camera, p.kfs, p.landmarks
     obs_kf, obs_lm, obs_uv, obs_depth, obs_oct = p.obs_kf, p.obs_lm, p.obs_uv, p.obs_depth, p.obs_oct
     stereo = obs_depth > 0
@@ -285,7 +285,7 @@ def solve_local_ba(p: LocalBAProblem) -> LocalBASolution | None:
             xyz[determined] = gtsam.utilities.extractPoint3(result2).reshape(-1, 3)
     chi2, z = chi2_of(poses, xyz)
     outlier = (chi2 > threshold) | (z <= 0)
-    return LocalBASolution(poses, xyz, outlier, time.perf_counter() - start,
+    return LocalBASolution(poses, xyz, outlier, time.monotonic() - began,
                            time.process_time() - cpu_start, began)
 
 
