@@ -1,0 +1,244 @@
+"""What a merge could reach with the robots it is given (issue 46): each robot of the shared
+merge cases tracked on its own, then joined to the others by *ideal* inter-robot
+constraints (ground truth's relative pose at every keyframe pair where the robots overlap),
+and the drift of the robots' own keyframe-to-keyframe poses, from the tracker and from a
+chain of dense (GICP) edges.
+
+    .venv/bin/python bench/merge_bounds.py [--only rk-2 ...] [--out bench/results/merge_bounds.json]
+
+Two tables:
+- **Odometry by span**: for keyframes i and i+N of a robot, the error against ground truth of
+  their relative pose as the tracker has it and as N consecutive-keyframe GICP edges
+  compose it (merging/dense_constraint.py's ``register`` on the keyframes' depth clouds,
+  each started from the tracker's; a refused edge keeps the tracker's), medians over i;
+  and each one's rotation scale about the camera's x, y, z axes (least squares of the
+  edges' rotation vectors against ground truth's).
+- **Ideal constraints**: each robot after the first placed in the frame of the robots
+  placed before it through ideal constraints at the keyframe pairs where they overlap
+  (camera centres within merge.proximity_distance_m, optical axes within
+  merge.proximity_angle_deg, by ground truth): through one pair (the median over the pairs
+  taken one at a time: a join at one place) and through all of them (the chordal mean of
+  the transforms they imply). Joint ATE (one SE(3) alignment for all robots, as
+  bench/merge_fleet.py scores), map-to-map error, and the separately aligned bound.
+  Ground truth makes the constraints, so these numbers are bounds for evaluation, never
+  something the system could run on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fleetslam.config import Config, load_config
+from fleetslam.datasets.recording import open_source
+from fleetslam.evaluation.fleet import ate_summary, map_to_map
+from fleetslam.merging.dense_constraint import prepare, register
+from fleetslam.system import track_robot
+from fleetslam.tables import format_table
+from fleetslam.transforms import rotation_angles_deg
+from shared_data import SEVEN_SCENES, TUM_RPY
+
+SPANS = (1, 2, 4, 8, 16)
+# Depth points for a keyframe's cloud: every second pixel up to this range (the merger's
+# uploads are decimated by 2 as well).
+CLOUD_STRIDE, CLOUD_RANGE_M = 2, 4.0
+
+
+def cases() -> dict[str, list[str]]:
+    rk, rpy = str(SEVEN_SCENES), str(TUM_RPY)
+    return {"rk-2": [f"{rk}:0-299", f"{rk}:400-599"],
+            "rpy-2": [f"{rpy}:0-59", f"{rpy}:90-149"],
+            "rk-3": [f"{rk}:0-199", f"{rk}:250-349", f"{rk}:480-599"]}
+
+
+class Robot:
+    """One robot tracked on its own: every frame's pose, its keyframes, ground truth."""
+
+    def __init__(self, spec: str, config: Config) -> None:
+        self.spec = spec
+        self.sequence = open_source(spec)
+        run = track_robot(spec, spec, self.sequence, config, show_progress=False)
+        self.poses = run.poses
+        self.keyframes = np.asarray(run.keyframe_indices)
+        gt = self.sequence.gt_poses
+        if gt is None:
+            raise SystemExit(f"{spec}: no ground truth, and this bench is scored against it")
+        self.gt = gt
+
+    def dense_edges(self, config: Config) -> tuple[list[np.ndarray], int]:
+        """Consecutive keyframes' relative poses from GICP (the tracker's where refused), and
+        how many were accepted."""
+        clouds = []
+        for i in self.keyframes:
+            frame = self.sequence[int(i)]
+            points, _ = self.sequence.camera.backproject_image(
+                frame.depth_m, stride=CLOUD_STRIDE, max_depth_m=CLOUD_RANGE_M)
+            clouds.append(prepare(points, config.merge))
+        T = self.poses[self.keyframes]
+        edges, accepted = [], 0
+        for k in range(len(T) - 1):
+            start = np.linalg.solve(T[k], T[k + 1])
+            found = register(clouds[k], clouds[k + 1], start, config.merge)
+            accepted += found.accepted
+            edges.append(found.T_dense if found.accepted else start)
+        return edges, accepted
+
+
+def rotation_scale(estimated: list[np.ndarray], truth: list[np.ndarray]) -> list[float]:
+    """Per camera axis, the least-squares scale of the estimated relative rotations'
+    rotation vectors against ground truth's."""
+    e = Rotation.from_matrix(np.array([T[:3, :3] for T in estimated])).as_rotvec()
+    g = Rotation.from_matrix(np.array([T[:3, :3] for T in truth])).as_rotvec()
+    return [float(np.sum(e[:, a] * g[:, a]) / np.sum(g[:, a] ** 2)) for a in range(3)]
+
+
+def odometry(robot: Robot, config: Config) -> dict[str, Any]:
+    T, G = robot.poses[robot.keyframes], robot.gt[robot.keyframes]
+    dense, accepted = robot.dense_edges(config)
+    truth = [np.linalg.solve(G[k], G[k + 1]) for k in range(len(G) - 1)]
+    tracker = [np.linalg.solve(T[k], T[k + 1]) for k in range(len(T) - 1)]
+    spans = []
+    for n in SPANS:
+        errors: dict[str, list[tuple[float, float]]] = {"tracker": [], "dense": []}
+        for k in range(len(T) - n):
+            g = np.linalg.solve(G[k], G[k + n])
+            chain = np.linalg.multi_dot([np.eye(4), *dense[k:k + n]])
+            for name, X in (("tracker", np.linalg.solve(T[k], T[k + n])), ("dense", chain)):
+                E = np.linalg.solve(g, X)
+                errors[name].append((rotation_angles_deg(E[None, :3, :3])[0],
+                                     float(np.linalg.norm(E[:3, 3]))))
+        if errors["tracker"]:
+            spans.append({"span": n, **{f"{name}_{q}": float(np.median([e[i] for e in v]))
+                                        for name, v in errors.items()
+                                        for i, q in enumerate(("rotation_deg", "translation_m"))}})
+    return {"robot": robot.spec, "keyframes": len(T), "dense_accepted": accepted,
+            "tracker_rotation_scale": rotation_scale(tracker, truth),
+            "dense_rotation_scale": rotation_scale(dense, truth), "spans": spans}
+
+
+def overlapping_pairs(a: Robot, b: Robot, config: Config) -> list[tuple[int, int]]:
+    """(keyframe of a, keyframe of b): each keyframe of b with a's nearest keyframe by
+    ground truth, where they overlap."""
+    pairs = []
+    ka = a.keyframes
+    for j in b.keyframes:
+        near = np.linalg.norm(a.gt[ka, :3, 3] - b.gt[j, :3, 3], axis=1)
+        turned = rotation_angles_deg(np.transpose(a.gt[ka, :3, :3], (0, 2, 1))
+                                     @ b.gt[j, :3, :3])
+        ok = (near <= config.merge.proximity_distance_m) \
+            & (turned <= config.merge.proximity_angle_deg)
+        if ok.any():
+            pairs.append((int(ka[np.flatnonzero(ok)[np.argmin(near[ok])]]), int(j)))
+    return pairs
+
+
+def mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_matrix(np.array([T[:3, :3] for T in transforms])).mean().as_matrix()
+    M[:3, 3] = np.mean([T[:3, 3] for T in transforms], axis=0)
+    return M
+
+
+def ideal_merge(robots: list[Robot], config: Config, how: str) -> dict[str, Any] | None:
+    """Place each robot in the first's frame through ideal constraints with the robots placed
+    before it ("one": each pair alone, the median pair by joint ATE; "all": their mean)."""
+    placed = {0: np.eye(4)}
+    per_robot: list[list[np.ndarray]] = []
+    for r in range(1, len(robots)):
+        implied = []
+        for p, M_p in placed.items():
+            a, b = robots[p], robots[r]
+            for i, j in overlapping_pairs(a, b, config):
+                ideal = np.linalg.solve(a.gt[i], b.gt[j])  # b's camera in a's, by truth
+                implied.append(M_p @ a.poses[i] @ ideal @ np.linalg.inv(b.poses[j]))
+        if not implied:
+            return None
+        per_robot.append(implied)
+        placed[r] = mean_transform(implied)
+    if how == "one":
+        # Each robot through one pair at a time (the others through their mean).
+        results = []
+        for r, implied in enumerate(per_robot, start=1):
+            for M in implied:
+                results.append(score({**placed, r: M}, robots))
+        results.sort(key=lambda s: s["joint_ate_m"])
+        middle = results[len(results) // 2]
+        return {**middle, "pairs": sum(len(v) for v in per_robot)}
+    return {**score(placed, robots), "pairs": sum(len(v) for v in per_robot)}
+
+
+def score(placed: dict[int, np.ndarray], robots: list[Robot]) -> dict[str, Any]:
+    est = [placed[r] @ robot.poses for r, robot in enumerate(robots)]
+    gt = [robot.gt for robot in robots]
+    joint = ate_summary(np.concatenate(est), np.concatenate(gt))
+    apart = map_to_map([robot.spec for robot in robots], est, gt)
+    return {"joint_ate_m": joint["rmse_m"] if joint else float("nan"),
+            "bound_m": apart.get("separately_aligned_bound_m"),
+            "map_to_map": apart.get("map_to_map", [])}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", nargs="*", help="cases to run (default: all)")
+    parser.add_argument("--config", help="a TOML file over the defaults")
+    parser.add_argument("--out", default="bench/results/merge_bounds.json")
+    args = parser.parse_args()
+    config = load_config(args.config)
+    chosen = cases()
+    unknown = set(args.only or []) - set(chosen)
+    if unknown:
+        raise SystemExit(f"--only: no case {sorted(unknown)}; known: {sorted(chosen)}")
+    results = []
+    odometry_rows, ideal_rows = [], []
+    for name, specs in chosen.items():
+        if args.only and name not in args.only:
+            continue
+        print(f"{name}: tracking {len(specs)} robots ...", flush=True)
+        robots = [Robot(spec, config) for spec in specs]
+        odo = [odometry(robot, config) for robot in robots]
+        ideal = {how: ideal_merge(robots, config, how) for how in ("one", "all")}
+        alone = [ate_summary(r.poses, r.gt)["rmse_m"] for r in robots]
+        results.append({"case": name, "alone_m": alone, "odometry": odo, "ideal": ideal})
+        for r, o in zip(robots, odo):
+            for s in o["spans"]:
+                odometry_rows.append([name, Path(r.spec).name.split(":")[-1], s["span"],
+                                      f"{s['tracker_rotation_deg']:.2f} / {s['dense_rotation_deg']:.2f}",
+                                      f"{100 * s['tracker_translation_m']:.2f} / "
+                                      f"{100 * s['dense_translation_m']:.2f}",
+                                      " ".join(f"{v:.2f}" for v in o["tracker_rotation_scale"])
+                                      + " / " + " ".join(f"{v:.2f}" for v in o["dense_rotation_scale"])
+                                      if s["span"] == 1 else "",
+                                      f"{o['dense_accepted']} of {o['keyframes'] - 1}"
+                                      if s["span"] == 1 else ""])
+        for how, res in ideal.items():
+            if res is None:
+                ideal_rows.append([name, how, "no overlap", "", "", "", ""])
+                continue
+            m2m = "; ".join(f"{m['rotation_deg']:.1f} deg / {100 * m['translation_m']:.1f} cm"
+                            for m in res["map_to_map"])
+            ideal_rows.append([name, "one pair (median)" if how == "one" else "all pairs",
+                               res["pairs"], " / ".join(f"{100 * a:.2f}" for a in alone),
+                               f"{100 * res['bound_m']:.2f}", f"{100 * res['joint_ate_m']:.2f}",
+                               m2m])
+    print("\nOdometry by span (medians over the keyframe pairs N apart; tracker / dense chain):")
+    print(format_table(["case", "robot", "N", "rotation err deg", "translation err cm",
+                        "rotation scale x y z", "dense edges accepted"], odometry_rows))
+    print("\nIdeal inter-robot constraints (ground truth's relative pose where robots overlap):")
+    print(format_table(["case", "through", "pairs", "alone cm", "bound cm", "joint ATE cm",
+                        "map-to-map"], ideal_rows))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M"), "cores": os.cpu_count(),
+                               "results": results}, indent=2, default=float))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
