@@ -536,6 +536,53 @@ def test_workers_full_of_sessions_they_may_close_still_take_the_next_robot(tmp_p
         router.close()
 
 
+def test_a_robot_hears_that_every_worker_is_full(tmp_path, messages):
+    """Two workers behind a router, each holding transport.max_sessions (1) robot at work
+    (its frames tracked: no session either may close): a new robot's hello is refused as
+    full, by one of them, saying every worker is full. Before, a full worker did not bid
+    and nobody answered: the robot gave up saying the cloud was silent."""
+    seq = messages["r0"][0]
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    servers = [CloudServer(exact_config().with_values({"transport.max_sessions": 1,
+                                                       "placement.worker_id": name}),
+                           tmp_path / "store", connect=endpoint).start() for name in ("wa", "wb")]
+    client = open_connecting(endpoint)
+    robots = []
+    try:
+        # One robot a worker: the first fills one worker, which then does not bid.
+        for name in ("r0", "r1"):
+            robots.append(FakeRobot(client, name, messages[name][0].camera))
+            assert robots[-1].hello()["type"] == "welcome"
+            robots[-1].send(messages[name][1][0])
+            assert len(robots[-1].poses(1)) == 1
+        assert not any(s.sessions.has_room() for s in servers), "not both workers busy"
+        late = FakeRobot(client, "late", seq.camera)
+        robots.append(late)
+        hello = json.dumps({"type": "hello", "protocol": PROTOCOL, "offload_at": K,
+                            "camera": seq.camera.to_dict(), "source": "test"}).encode()
+        refusal = None
+        deadline = time.monotonic() + 20.0  # the workers' load reports come every 0.5 s
+        while refusal is None and time.monotonic() < deadline:
+            client.put(keys.control("late"), hello)
+            try:
+                refusal = late.reply("error", timeout=1.0)
+            except AssertionError:
+                continue
+        assert refusal is not None, "nobody answered the hello of a robot no worker can take"
+        assert refusal["code"] == Code.REFUSED.value and refusal["full"], refusal
+        assert refusal["answer_to"] == "hello" and refusal["max_sessions"] == 1
+        assert "each of its 2 workers (wa, wb)" in refusal["reason"], refusal
+        assert "late" not in [r for s in servers for r in s.sessions]
+    finally:
+        for robot in robots:
+            robot.close()
+        client.close()
+        for server in servers:
+            server.close()
+        router.close()
+
+
 def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(messages,
                                                                                 tmp_path):
     """A robot that goes quiet frees its session's threads and memory; nothing it sent is

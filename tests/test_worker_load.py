@@ -16,12 +16,14 @@ from fleetslam.config import PlacementConfig
 
 def test_a_report_is_checked_before_it_is_used():
     assert parse_report(b'{"busy": 1.25, "owned": 3}') == LoadReport(1.25, 3)
+    assert parse_report(b'{"busy": 1.25, "owned": 3, "full": true}') == LoadReport(1.25, 3, True)
     for data, reason in [(b"x" * 300, "bytes"), (b"{", "not JSON"), (b"[1]", "object"),
                          (b'{"busy": -1, "owned": 0}', "busy"),
                          (json.dumps({"busy": float("nan"), "owned": 0}).encode(), "busy"),
                          (b'{"busy": 0.5, "owned": true}', "owned"),
                          (b'{"busy": true, "owned": 1}', "busy"),
-                         (b'{"busy": 0.5}', "owned")]:
+                         (b'{"busy": 0.5}', "owned"),
+                         (b'{"busy": 0.5, "owned": 1, "full": 1}', "full")]:
         with pytest.raises(ValueError, match=reason):
             parse_report(data)
 
@@ -31,9 +33,13 @@ class Counts:
 
     def __init__(self, busy: float = 0.0, held: int = 0, at_work: int = 0) -> None:
         self.cores, self.robots_held, self.robots_at_work = busy, held, at_work
+        self.room = True
 
     def busy(self) -> float:
         return self.cores
+
+    def has_room(self) -> bool:
+        return self.room
 
     def held(self) -> int:
         return self.robots_held
@@ -55,6 +61,20 @@ def test_robots_granted_since_a_report_weigh_the_configured_cost():
     assert loads.ranking("r0", {"w0": 1.0, "w1": 0.2}) == ["w1", "w0"]
     firsts = {loads.ranking(f"r{i}", {"w0": 0.31, "w1": 0.30})[0] for i in range(16)}
     assert firsts == {"w0", "w1"}
+
+
+def test_the_workers_are_all_full_only_when_every_report_says_so():
+    """This worker as it is now, the others as their last reports say; a worker never
+    heard from counts as having room (a robot is then not told the cloud is full)."""
+    meter = Counts()
+    loads = WorkerLoads("w0", PlacementConfig(), meter, Counts())
+    loads.reports = {"w1": LoadReport(1.0, 2, True), "w2": LoadReport(1.0, 2, False)}
+    meter.room = False
+    assert loads.all_full(["w0", "w1"])
+    assert not loads.all_full(["w0", "w1", "w2"])
+    assert not loads.all_full(["w0", "w1", "w9"])  # never heard
+    meter.room = True
+    assert not loads.all_full(["w0", "w1"])
 
 
 def test_a_robot_weighs_the_same_before_and_after_its_workers_report(monkeypatch):

@@ -49,6 +49,9 @@ class Worker:
         self.placement = LivelinessPlacement(name, PlacementConfig(settle_s=1.0), self).start(
             self.z, self)
 
+    def has_room(self) -> bool:
+        return True
+
     def busy(self) -> float:
         return self.load
 

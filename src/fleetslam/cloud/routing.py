@@ -235,8 +235,22 @@ class Router:
         # would not: it closes one); a robot nobody can take hears it below.
         if self.sessions.has_room():
             placement.claim(robot_id)
-        elif len(placement.live_workers()) == 1:
+            return
+        live = placement.live_workers()
+        if len(live) == 1:
             self._on_robot_control(robot_id, *self._pending.pop(robot_id))
+        elif _is_hello(data) and placement.says_full():
+            # Every worker full: one of them says so, or the robot would hear silence and
+            # blame the network. A worker that frees a slot reports it within
+            # placement.load_report_s; the robot's next hello is placed then.
+            with self._lock:
+                self._pending.pop(robot_id, None)
+            self.error(keys.reply(robot_id), protocol.Code.REFUSED,
+                       f"the cloud is full: each of its {len(live)} workers ({', '.join(live)}) "
+                       f"holds as many robots as it may, all at work (here "
+                       f"{self.sessions.allowed()}: transport.max_sessions and "
+                       f"transport.cloud_budget_mb)",
+                       answer_to="hello", full=True, max_sessions=self.sessions.allowed())
 
     def _on_robot_control(self, robot_id: str, data: bytes, arrival: float) -> None:
         """A robot's control message. Refusals of a hello or an end say which they answer

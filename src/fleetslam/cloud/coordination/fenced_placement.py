@@ -127,6 +127,9 @@ class FencedPlacement(Placement):
     def load_scores(self, workers: list[str]) -> dict[str, float]:
         return self.directory.load_scores(workers)
 
+    def says_full(self) -> bool:
+        return self.directory.says_full()
+
     def serves(self, robot: str) -> bool:
         # The local lease clock, not the table: a worker cut off stops serving on time.
         return self.ownership.epoch(robot) is not None

@@ -109,6 +109,9 @@ class LivelinessPlacement(Placement):
     def load_scores(self, workers: list[str]) -> dict[str, float]:
         return self.directory.load_scores(workers)
 
+    def says_full(self) -> bool:
+        return self.directory.says_full()
+
     def merges(self) -> bool:
         """Whether this worker runs the fleet's merger: the live worker whose id sorts first."""
         return self.live_workers()[0] == self.worker_id

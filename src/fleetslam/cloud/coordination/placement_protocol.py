@@ -70,6 +70,10 @@ class Placement(ABC):
         """Cores each of ``workers`` has busy, as placement weighs them."""
 
     @abstractmethod
+    def says_full(self) -> bool:
+        """Whether this worker is the one to tell a new robot that every worker is full."""
+
+    @abstractmethod
     def claim(self, robot: str) -> None:
         """Ask to serve ``robot`` unless it is served (returns at once)."""
 

@@ -98,6 +98,13 @@ class WorkerDirectory:
         with self._lock:
             return dict(self._elections)
 
+    def says_full(self) -> bool:
+        """Whether this worker tells a new robot that the cloud is full: no live worker has
+        room, as their load reports say, and this one's id sorts first among them (one
+        answer, not one a worker)."""
+        live = self.live_workers()
+        return live[0] == self.worker_id and self.loads.all_full(live)
+
     def load_scores(self, workers: list[str], owned: Mapping[str, int] | None = None
                     ) -> dict[str, float]:
         """Cores each of ``workers`` has busy as measured, plus the robots granted to it

@@ -48,11 +48,16 @@ class RobotsAtWork(Protocol):
 
     def at_work(self) -> int: ...
 
+    def has_room(self) -> bool:
+        """Whether a new robot's hello would get a session here."""
+
 
 class LoadMeter(Protocol):
-    """A worker's load now, in cores busy (CpuMeter)."""
+    """A worker's load now, in cores busy (CpuMeter), and whether it has room for a robot."""
 
     def busy(self) -> float: ...
+
+    def has_room(self) -> bool: ...
 
 
 class Holdings(Protocol):
@@ -135,6 +140,9 @@ class CpuMeter:
             # not yet (arrived within the window) the configured cost each.
             return self._busy + self.robot_cost * (active - self._active_avg)
 
+    def has_room(self) -> bool:
+        return self._robots.has_room()
+
 
 @dataclass(frozen=True)
 class LoadReport:
@@ -142,6 +150,8 @@ class LoadReport:
     # Robots the worker held when it measured (their cost is in ``busy``; one granted since
     # counts at placement.robot_cost_cores until the next report).
     owned: int
+    # No room for another robot: every session it may hold is live and working.
+    full: bool = False
 
 
 def parse_report(data: bytes) -> LoadReport:
@@ -160,7 +170,10 @@ def parse_report(data: bytes) -> LoadReport:
         raise ValueError(f"busy is {busy!r}: cores, a number from 0")
     if not isinstance(owned, int) or isinstance(owned, bool) or not 0 <= owned < 10**6:
         raise ValueError(f"owned is {owned!r}: a robot count")
-    return LoadReport(float(busy), owned)
+    full = message.get("full", False)  # absent from a worker older than the field
+    if not isinstance(full, bool):
+        raise ValueError(f"full is {full!r}: true or false")
+    return LoadReport(float(busy), owned, full)
 
 
 def spread(robot: str, worker: str) -> str:
@@ -203,13 +216,14 @@ class WorkerLoads:
         # The robots held first: one granted between the two reads is in the meter (at its
         # cost) and counted again until the next report, never left out.
         held = int(self._holdings.held())
-        mine = LoadReport(round(float(self._meter.busy()), 3), held)
+        mine = LoadReport(round(float(self._meter.busy()), 3), held, not self._meter.has_room())
         with self._lock:
             self.reports[self.worker_id] = mine
         if self.z is not None:  # started
             # Droppable: the next report replaces it; never waited for behind a full queue.
             put(self.z, keys.load(self.worker_id),
-                json.dumps({"busy": mine.busy, "owned": mine.owned}).encode(), droppable=True)
+                json.dumps({"busy": mine.busy, "owned": mine.owned, "full": mine.full}).encode(),
+                droppable=True)
         return mine
 
     def _run(self) -> None:
@@ -240,6 +254,13 @@ class WorkerLoads:
         with self._lock:
             report = self.reports.get(worker, LoadReport(0.0, 0))
         return report.busy + self.cfg.robot_cost_cores * max(owned_now - report.owned, 0)
+
+    def all_full(self, workers: list[str]) -> bool:
+        """Whether every one of ``workers`` has no room for a robot: this worker as it is
+        now, the others as their last reports say (a worker never heard from has room)."""
+        with self._lock:
+            others = [self.reports.get(w) for w in workers if w != self.worker_id]
+        return not self._meter.has_room() and all(r is not None and r.full for r in others)
 
     def ranking(self, robot: str, scores: dict[str, float]) -> list[str]:
         """The workers of ``scores`` (cores, as ``score`` gives), the best to serve
