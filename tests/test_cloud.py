@@ -501,6 +501,29 @@ def test_a_finished_session_gives_its_slot_to_the_next_robot(tmp_path, messages,
         server.close()
 
 
+@contextmanager
+def two_workers_of_one_robot_each(tmp_path):
+    """Two workers ("wa", "wb", transport.max_sessions 1 each) behind a router, and a client
+    session on it; yields (servers, client, robots): the FakeRobots put in ``robots`` are
+    closed at the end."""
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    servers = [CloudServer(exact_config().with_values({"transport.max_sessions": 1,
+                                                       "placement.worker_id": name}),
+                           tmp_path / "store", connect=endpoint).start() for name in ("wa", "wb")]
+    client = open_connecting(endpoint)
+    robots: list[FakeRobot] = []
+    try:
+        yield servers, client, robots
+    finally:
+        for robot in robots:
+            robot.close()
+        client.close()
+        for server in servers:
+            server.close()
+        router.close()
+
+
 def test_workers_full_of_sessions_they_may_close_still_take_the_next_robot(tmp_path,
                                                                            messages):
     """Two workers behind a router, each holding transport.max_sessions (1) session it would
@@ -509,14 +532,7 @@ def test_workers_full_of_sessions_they_may_close_still_take_the_next_robot(tmp_p
     worker full nobody answered (bench/worker_scaling.py: 9 robots heard nothing after 130
     sessions had filled both workers)."""
     camera = messages["r0"][0].camera
-    endpoint = free_endpoint()
-    router = open_router(endpoint)
-    servers = [CloudServer(exact_config().with_values({"transport.max_sessions": 1,
-                                                       "placement.worker_id": name}),
-                           tmp_path / "store", connect=endpoint).start() for name in ("wa", "wb")]
-    client = open_connecting(endpoint)
-    robots = []
-    try:
+    with two_workers_of_one_robot_each(tmp_path) as (servers, client, robots):
         # Hellos until both workers hold a session (where each goes is the placement's).
         for i in range(10):
             robots.append(FakeRobot(client, f"h{i}", camera))
@@ -527,13 +543,6 @@ def test_workers_full_of_sessions_they_may_close_still_take_the_next_robot(tmp_p
         robots.append(FakeRobot(client, "next", camera))
         assert robots[-1].hello()["type"] == "welcome"
         assert "next" in [r for s in servers for r in s.sessions]
-    finally:
-        for robot in robots:
-            robot.close()
-        client.close()
-        for server in servers:
-            server.close()
-        router.close()
 
 
 def test_a_robot_hears_that_every_worker_is_full(tmp_path, messages):
@@ -542,14 +551,7 @@ def test_a_robot_hears_that_every_worker_is_full(tmp_path, messages):
     full, by one of them, saying every worker is full. Before, a full worker did not bid
     and nobody answered: the robot gave up saying the cloud was silent."""
     seq = messages["r0"][0]
-    endpoint = free_endpoint()
-    router = open_router(endpoint)
-    servers = [CloudServer(exact_config().with_values({"transport.max_sessions": 1,
-                                                       "placement.worker_id": name}),
-                           tmp_path / "store", connect=endpoint).start() for name in ("wa", "wb")]
-    client = open_connecting(endpoint)
-    robots = []
-    try:
+    with two_workers_of_one_robot_each(tmp_path) as (servers, client, robots):
         # One robot a worker: the first fills one worker, which then does not bid.
         for name in ("r0", "r1"):
             robots.append(FakeRobot(client, name, messages[name][0].camera))
@@ -574,13 +576,6 @@ def test_a_robot_hears_that_every_worker_is_full(tmp_path, messages):
         assert refusal["answer_to"] == "hello" and refusal["max_sessions"] == 1
         assert "each of its 2 workers (wa, wb)" in refusal["reason"], refusal
         assert "late" not in [r for s in servers for r in s.sessions]
-    finally:
-        for robot in robots:
-            robot.close()
-        client.close()
-        for server in servers:
-            server.close()
-        router.close()
 
 
 def test_an_idle_session_is_checkpointed_closed_and_restored_by_its_next_frame(messages,
