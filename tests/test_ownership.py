@@ -313,6 +313,35 @@ def test_a_rolled_back_or_dangling_pointer_is_not_trusted(etcd, keys, tmp_path, 
         a.close()
 
 
+def test_a_pointer_read_just_before_its_writer_moved_it_is_read_again(etcd, keys, tmp_path,
+                                                                       caplog):
+    """A reader between the owner's blob and its pointer's move sees the pointer one blob
+    behind: it reads the pointer again and takes the checkpoint it names then, with no
+    claim of a rolled-back pointer (the merger said so as an ERROR when it raced a write)."""
+    import logging
+
+    a = _worker(etcd.endpoint, "wa", keys)
+    store = FencedStore(tmp_path, a)
+    try:
+        a.grant("r1")
+        store.save_checkpoint("r1", _state(5))
+        older = store.current("r1")
+        store.save_checkpoint("r1", _state(9))
+        reads = []
+
+        def current(robot_id):
+            reads.append(robot_id)
+            return older if len(reads) == 1 else FencedStore.current(store, robot_id)
+
+        store.current = current
+        with caplog.at_level(logging.WARNING, "fleetslam.cloud"):
+            assert store.load_checkpoint("r1").last_index == 9
+        assert len(reads) == 2
+        assert "behind the newest on disk" not in caplog.text
+    finally:
+        a.close()
+
+
 def test_an_owner_key_without_a_lease_is_no_owner(etcd, keys, tmp_path, caplog):
     """An owner key written without a lease (by hand, or with a worker's credentials) is
     refused and removed, and the robot granted: it was never served. An owner's key

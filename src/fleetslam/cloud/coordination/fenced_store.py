@@ -24,6 +24,7 @@ import logging
 import os
 import re
 import threading
+import time
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
@@ -45,8 +46,11 @@ log = logging.getLogger("fleetslam.cloud")
 # Blobs kept per robot by their writer: the current one and the one before (a reader that
 # read the pointer just before it moved still finds its file).
 KEPT_BLOBS = 2
-# Re-reads of the pointer when the blob it named is gone (it moved on meanwhile).
+# Re-reads of the pointer when the blob it named is gone (it moved on meanwhile), or when
+# the folder holds a newer blob (its writer puts the blob, then moves the pointer: a reader
+# between the two sees the pointer behind for a moment), this long apart.
 READ_ATTEMPTS = 3
+REREAD_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -250,7 +254,7 @@ class FencedStore(CloudStore):
         robot's folder (rolled back), or naming a file that is not there, is said and the
         newest blob restored instead, never a fresh session over acknowledged keyframes."""
         folder = self.robot_dir(robot_id)
-        for _ in range(READ_ATTEMPTS):
+        for attempt in range(READ_ATTEMPTS):
             pointer = self.current(robot_id)
             newest = newest_blob(folder)
             if pointer is None:
@@ -262,6 +266,9 @@ class FencedStore(CloudStore):
                 return self.load_checkpoint_file(folder / newest[3])
             named = blob_order(pointer.file)
             if newest is not None and named is not None and newest[:3] > named:
+                if attempt + 1 < READ_ATTEMPTS:
+                    time.sleep(REREAD_S)  # its writer may be about to move it
+                    continue
                 log.error("robot %s: etcd's current checkpoint (%s) is behind the newest on "
                           "disk (%s): a rolled-back pointer is not trusted; restoring the "
                           "newest", robot_id, pointer.file, newest[3])
