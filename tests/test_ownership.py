@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from contextlib import contextmanager
 
 import pytest
 from conftest import HANG_S, wait_for
@@ -287,12 +288,10 @@ def test_a_finished_robot_stays_finished(etcd, keys, tmp_path):
         b.close()
 
 
-def test_a_rolled_back_or_dangling_pointer_is_not_trusted(etcd, keys, tmp_path, caplog):
-    """Someone with etcd access moves r1's pointer back one checkpoint, then at a file that
-    is not there: the worker restores the newest checkpoint on disk (every keyframe it
-    acknowledged), says why, and never starts a fresh session over it."""
-    import json
-
+@contextmanager
+def _two_checkpoints(etcd, keys, tmp_path):
+    """Worker "wa" owning r1 with two checkpoints (last_index 5, then 9): yields its store
+    and the first checkpoint's pointer."""
     a = _worker(etcd.endpoint, "wa", keys)
     store = FencedStore(tmp_path, a)
     try:
@@ -300,6 +299,18 @@ def test_a_rolled_back_or_dangling_pointer_is_not_trusted(etcd, keys, tmp_path, 
         store.save_checkpoint("r1", _state(5))
         older = store.current("r1")
         store.save_checkpoint("r1", _state(9))
+        yield store, older
+    finally:
+        a.close()
+
+
+def test_a_rolled_back_or_dangling_pointer_is_not_trusted(etcd, keys, tmp_path, caplog):
+    """Someone with etcd access moves r1's pointer back one checkpoint, then at a file that
+    is not there: the worker restores the newest checkpoint on disk (every keyframe it
+    acknowledged), says why, and never starts a fresh session over it."""
+    import json
+
+    with _two_checkpoints(etcd, keys, tmp_path) as (store, older):
         raw = EtcdClient(etcd.endpoint)
         pointer = json.loads(raw.get(keys.current("r1")).value)
         raw.put(keys.current("r1"), json.dumps({**pointer, "seq": older.seq,
@@ -309,8 +320,6 @@ def test_a_rolled_back_or_dangling_pointer_is_not_trusted(etcd, keys, tmp_path, 
         raw.put(keys.current("r1"), json.dumps({**pointer, "file": "session.999999.000009.ckpt"}))
         assert store.load_checkpoint("r1").last_index == 9
         assert "names session.999999.000009.ckpt, which is not there: not trusted" in caplog.text
-    finally:
-        a.close()
 
 
 def test_a_pointer_read_just_before_its_writer_moved_it_is_read_again(etcd, keys, tmp_path,
@@ -318,15 +327,7 @@ def test_a_pointer_read_just_before_its_writer_moved_it_is_read_again(etcd, keys
     """A reader between the owner's blob and its pointer's move sees the pointer one blob
     behind: it reads the pointer again and takes the checkpoint it names then, with no
     claim of a rolled-back pointer (the merger said so as an ERROR when it raced a write)."""
-    import logging
-
-    a = _worker(etcd.endpoint, "wa", keys)
-    store = FencedStore(tmp_path, a)
-    try:
-        a.grant("r1")
-        store.save_checkpoint("r1", _state(5))
-        older = store.current("r1")
-        store.save_checkpoint("r1", _state(9))
+    with _two_checkpoints(etcd, keys, tmp_path) as (store, older):
         reads = []
 
         def current(robot_id):
@@ -338,8 +339,6 @@ def test_a_pointer_read_just_before_its_writer_moved_it_is_read_again(etcd, keys
             assert store.load_checkpoint("r1").last_index == 9
         assert len(reads) == 2
         assert "behind the newest on disk" not in caplog.text
-    finally:
-        a.close()
 
 
 def test_an_owner_key_without_a_lease_is_no_owner(etcd, keys, tmp_path, caplog):
