@@ -43,19 +43,12 @@ from fleetslam.merging.dense_constraint import prepare, register
 from fleetslam.system import track_robot
 from fleetslam.tables import format_table
 from fleetslam.transforms import rotation_angles_deg
-from shared_data import SEVEN_SCENES, TUM_RPY
+from merge_fleet import joined_cases
 
 SPANS = (1, 2, 4, 8, 16)
 # Depth points for a keyframe's cloud: every second pixel up to this range (the merger's
 # uploads are decimated by 2 as well).
 CLOUD_STRIDE, CLOUD_RANGE_M = 2, 4.0
-
-
-def cases() -> dict[str, list[str]]:
-    rk, rpy = str(SEVEN_SCENES), str(TUM_RPY)
-    return {"rk-2": [f"{rk}:0-299", f"{rk}:400-599"],
-            "rpy-2": [f"{rpy}:0-59", f"{rpy}:90-149"],
-            "rk-3": [f"{rk}:0-199", f"{rk}:250-349", f"{rk}:480-599"]}
 
 
 class Robot:
@@ -191,7 +184,7 @@ def main() -> None:
     parser.add_argument("--out", default="bench/results/merge_bounds.json")
     args = parser.parse_args()
     config = load_config(args.config)
-    chosen = cases()
+    chosen = joined_cases()
     unknown = set(args.only or []) - set(chosen)
     if unknown:
         raise SystemExit(f"--only: no case {sorted(unknown)}; known: {sorted(chosen)}")

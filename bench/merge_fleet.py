@@ -47,12 +47,20 @@ FALSE_ROTATION_DEG = 5.0
 FALSE_TRANSLATION_M = 0.20
 
 
-def cases(synthetic: Path) -> dict[str, list[str]]:
+def joined_cases() -> dict[str, list[str]]:
+    """The shared cases whose robots share places and must join (bench/merge_bounds.py too)."""
     rk, rpy = str(SEVEN_SCENES), str(TUM_RPY)
     return {
         "rk-2": [f"{rk}:0-299", f"{rk}:400-599"],
         "rpy-2": [f"{rpy}:0-59", f"{rpy}:90-149"],
         "rk-3": [f"{rk}:0-199", f"{rk}:250-349", f"{rk}:480-599"],
+    }
+
+
+def cases(synthetic: Path) -> dict[str, list[str]]:
+    rk, rpy = str(SEVEN_SCENES), str(TUM_RPY)
+    return {
+        **joined_cases(),
         "apart-rk-rpy": [f"{rk}:0-299", f"{rpy}:0-149"],
         "apart-rk-syn": [f"{rk}:0-299", str(synthetic)],
         "apart-rpy-syn": [f"{rpy}:0-149", str(synthetic)],
