@@ -22,6 +22,16 @@ Two tables:
   bench/merge_fleet.py scores), map-to-map error, and the separately aligned bound.
   Ground truth makes the constraints, so these numbers are bounds for evaluation, never
   something the system could run on.
+- **In the fleet's graph**: the same pairs as edges of a pose graph built as the merger
+  builds its own (each robot's keyframe-to-keyframe poses at merge.odometry_sigma_*, the
+  inter-robot edges at merge.inter_sigma_*), so the robots may bend as the merge bends them:
+  with ground truth's relative pose ("truth"), and with what depth says there ("depth":
+  GICP of the two keyframes' clouds started from ground truth's pose, as a perfect place
+  search followed by the merger's dense registration would measure it). Every frame follows
+  its reference keyframe, as the merge's global trajectories do.
+- **Depth against ground truth**: how far that GICP moves ground truth's relative pose, at
+  the overlapping pairs (keyframes far apart in time) and at each robot's consecutive
+  keyframes (near in time: the registration's own floor).
 """
 
 from __future__ import annotations
@@ -36,16 +46,20 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from fleetslam.backend.pose_graph import PoseEdge, optimise_pose_graph
 from fleetslam.config import Config, load_config
 from fleetslam.datasets.recording import open_source
 from fleetslam.evaluation.fleet import ate_summary, map_to_map
-from fleetslam.merging.dense_constraint import prepare, register
+from fleetslam.merging.dense_constraint import DenseCloud, prepare, register
 from fleetslam.system import track_robot
 from fleetslam.tables import format_table
-from fleetslam.transforms import rotation_angles_deg
+from fleetslam.transforms import poses_from_references, rotation_angles_deg
 from merge_fleet import joined_cases
 
 SPANS = (1, 2, 4, 8, 16)
+THROUGH = {"one": "one pair (median), rigid", "all": "all pairs, rigid",
+           "graph_truth": "all pairs in the fleet's graph", "graph_depth":
+           "all pairs in the fleet's graph, depth's edges"}
 # Depth points for a keyframe's cloud: every second pixel up to this range (the merger's
 # uploads are decimated by 2 as well).
 CLOUD_STRIDE, CLOUD_RANGE_M = 2, 4.0
@@ -60,20 +74,30 @@ class Robot:
         run = track_robot(spec, spec, self.sequence, config, show_progress=False)
         self.poses = run.poses
         self.keyframes = np.asarray(run.keyframe_indices)
+        self.references, self.T_reference_camera = run.references, run.T_reference_camera
         gt = self.sequence.gt_poses
         if gt is None:
             raise SystemExit(f"{spec}: no ground truth, and this bench is scored against it")
         self.gt = gt
+        self._clouds: dict[int, DenseCloud] = {}
+
+    def cloud(self, frame: int, config: Config) -> DenseCloud:
+        """A keyframe's depth cloud, prepared for GICP (once)."""
+        if frame not in self._clouds:
+            points, _ = self.sequence.camera.backproject_image(
+                self.sequence[frame].depth_m, stride=CLOUD_STRIDE, max_depth_m=CLOUD_RANGE_M)
+            self._clouds[frame] = prepare(points, config.merge)
+        return self._clouds[frame]
+
+    def follow(self, keyframe_poses: np.ndarray) -> np.ndarray:
+        """Every frame's pose with its keyframes at ``keyframe_poses`` (K x 4 x 4)."""
+        return poses_from_references(keyframe_poses, self.references, self.T_reference_camera,
+                                     self.poses)
 
     def dense_edges(self, config: Config) -> tuple[list[np.ndarray], int]:
         """Consecutive keyframes' relative poses from GICP (the tracker's where refused), and
         how many were accepted."""
-        clouds = []
-        for i in self.keyframes:
-            frame = self.sequence[int(i)]
-            points, _ = self.sequence.camera.backproject_image(
-                frame.depth_m, stride=CLOUD_STRIDE, max_depth_m=CLOUD_RANGE_M)
-            clouds.append(prepare(points, config.merge))
+        clouds = [self.cloud(int(i), config) for i in self.keyframes]
         T = self.poses[self.keyframes]
         edges, accepted = [], 0
         for k in range(len(T) - 1):
@@ -167,8 +191,85 @@ def ideal_merge(robots: list[Robot], config: Config, how: str) -> dict[str, Any]
     return {**score(placed, robots), "pairs": sum(len(v) for v in per_robot)}
 
 
+def depth_says(a: Robot, i: int, b: Robot, j: int, config: Config) -> np.ndarray | None:
+    """b's keyframe (frame j) in a's (frame i) as GICP of their depth finds it from ground
+    truth's relative pose; None when the registration is refused."""
+    found = register(a.cloud(i, config), b.cloud(j, config), np.linalg.solve(a.gt[i], b.gt[j]),
+                     config.merge)
+    return found.T_dense if found.accepted else None
+
+
+def graph_merge(robots: list[Robot], config: Config, edges_from: str) -> dict[str, Any] | None:
+    """The robots in one pose graph as the merger builds it (merging/merger.py ``_solve``:
+    odometry between consecutive keyframes, inter-robot edges trusted), the inter-robot edges
+    at every overlapping pair from ground truth ("truth") or from depth ("depth"), started
+    from the rigid placement through all pairs."""
+    cfg = config.merge
+    start = ideal_merge(robots, config, "all")
+    if start is None:
+        return None
+    odometry = (np.deg2rad(cfg.odometry_sigma_rotation_deg), cfg.odometry_sigma_translation_m)
+    inter = (np.deg2rad(cfg.inter_sigma_rotation_deg), cfg.inter_sigma_translation_m)
+    stride = 1_000_000
+    values: dict[int, np.ndarray] = {}
+    edges: list[PoseEdge] = []
+    for r, robot in enumerate(robots):
+        K = robot.poses[robot.keyframes]
+        for k in range(len(K)):
+            values[r * stride + k] = start["placed"][r] @ K[k]
+            if k:
+                edges.append(PoseEdge(r * stride + k - 1, r * stride + k,
+                                      np.linalg.solve(K[k - 1], K[k]), "odometry", odometry))
+    refused = 0
+    for b in range(1, len(robots)):
+        for a in range(b):
+            A, B = robots[a], robots[b]
+            for i, j in overlapping_pairs(A, B, config):
+                T = np.linalg.solve(A.gt[i], B.gt[j]) if edges_from == "truth" \
+                    else depth_says(A, i, B, j, config)
+                if T is None:
+                    refused += 1
+                    continue
+                edges.append(PoseEdge(a * stride + int(np.searchsorted(A.keyframes, i)),
+                                      b * stride + int(np.searchsorted(B.keyframes, j)),
+                                      T, "loop", inter, trusted=True))
+    result = optimise_pose_graph(values, edges, 0, *odometry)
+    est = [robot.follow(np.array([result.poses[r * stride + k]
+                                  for k in range(len(robot.keyframes))]))
+           for r, robot in enumerate(robots)]
+    return {**score_poses(est, robots), "pairs": sum(e.kind == "loop" for e in edges),
+            "refused": refused}
+
+
+def depth_against_truth(robots: list[Robot], config: Config) -> dict[str, Any]:
+    """How far GICP moves ground truth's relative pose: at the robots' overlapping pairs
+    (far apart in time) and at each robot's consecutive keyframes (near in time)."""
+    def moved(pairs: list[tuple[Robot, int, Robot, int]]) -> dict[str, Any]:
+        out = []
+        for a, i, b, j in pairs:
+            T = depth_says(a, i, b, j, config)
+            if T is not None:
+                E = np.linalg.solve(np.linalg.solve(a.gt[i], b.gt[j]), T)
+                out.append((rotation_angles_deg(E[None, :3, :3])[0],
+                            float(np.linalg.norm(E[:3, 3]))))
+        e = np.array(out).reshape(-1, 2)
+        return {"pairs": len(pairs), "accepted": len(e),
+                **({"rotation_deg_median": float(np.median(e[:, 0])),
+                    "translation_m_median": float(np.median(e[:, 1])),
+                    "translation_m_max": float(e[:, 1].max())} if len(e) else {})}
+
+    far = [(robots[a], i, robots[b], j) for b in range(1, len(robots)) for a in range(b)
+           for i, j in overlapping_pairs(robots[a], robots[b], config)]
+    near = [(r, int(i), r, int(j)) for r in robots for i, j in zip(r.keyframes, r.keyframes[1:])]
+    return {"far": moved(far), "near": moved(near)}
+
+
 def score(placed: dict[int, np.ndarray], robots: list[Robot]) -> dict[str, Any]:
-    est = [placed[r] @ robot.poses for r, robot in enumerate(robots)]
+    return {**score_poses([placed[r] @ robot.poses for r, robot in enumerate(robots)], robots),
+            "placed": placed}
+
+
+def score_poses(est: list[np.ndarray], robots: list[Robot]) -> dict[str, Any]:
     gt = [robot.gt for robot in robots]
     joint = ate_summary(np.concatenate(est), np.concatenate(gt))
     apart = map_to_map([robot.spec for robot in robots], est, gt)
@@ -189,7 +290,7 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"--only: no case {sorted(unknown)}; known: {sorted(chosen)}")
     results = []
-    odometry_rows, ideal_rows = [], []
+    odometry_rows, ideal_rows, depth_rows = [], [], []
     for name, specs in chosen.items():
         if args.only and name not in args.only:
             continue
@@ -197,8 +298,17 @@ def main() -> None:
         robots = [Robot(spec, config) for spec in specs]
         odo = [odometry(robot, config) for robot in robots]
         ideal = {how: ideal_merge(robots, config, how) for how in ("one", "all")}
+        ideal.update({f"graph_{edges}": graph_merge(robots, config, edges)
+                      for edges in ("truth", "depth")})
+        check = depth_against_truth(robots, config)
         alone = [ate_summary(r.poses, r.gt)["rmse_m"] for r in robots]
-        results.append({"case": name, "alone_m": alone, "odometry": odo, "ideal": ideal})
+        results.append({"case": name, "alone_m": alone, "odometry": odo, "depth_against_truth":
+                        check, "ideal": {how: {k: v for k, v in res.items() if k != "placed"}
+                                         if res else None for how, res in ideal.items()}})
+        depth_rows.append([name] + [
+            f"{c['accepted']} of {c['pairs']}: {c['rotation_deg_median']:.2f} / "
+            f"{100 * c['translation_m_median']:.2f} (max {100 * c['translation_m_max']:.2f})"
+            if c["accepted"] else f"0 of {c['pairs']}" for c in (check["far"], check["near"])])
         for r, o in zip(robots, odo):
             for s in o["spans"]:
                 odometry_rows.append([name, Path(r.spec).name.split(":")[-1], s["span"],
@@ -216,8 +326,7 @@ def main() -> None:
                 continue
             m2m = "; ".join(f"{m['rotation_deg']:.1f} deg / {100 * m['translation_m']:.1f} cm"
                             for m in res["map_to_map"])
-            ideal_rows.append([name, "one pair (median)" if how == "one" else "all pairs",
-                               res["pairs"], " / ".join(f"{100 * a:.2f}" for a in alone),
+            ideal_rows.append([name, THROUGH[how], res["pairs"], " / ".join(f"{100 * a:.2f}" for a in alone),
                                f"{100 * res['bound_m']:.2f}", f"{100 * res['joint_ate_m']:.2f}",
                                m2m])
     print("\nOdometry by span (medians over the keyframe pairs N apart; tracker / dense chain):")
@@ -226,6 +335,9 @@ def main() -> None:
     print("\nIdeal inter-robot constraints (ground truth's relative pose where robots overlap):")
     print(format_table(["case", "through", "pairs", "alone cm", "bound cm", "joint ATE cm",
                         "map-to-map"], ideal_rows))
+    print("\nDepth against ground truth (GICP from ground truth's relative pose; median deg / cm):")
+    print(format_table(["case", "overlapping pairs (far in time)",
+                        "consecutive keyframes (near in time)"], depth_rows))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M"), "cores": os.cpu_count(),
