@@ -4,7 +4,8 @@ constraints (ground truth's relative pose at every keyframe pair where the robot
 and the drift of the robots' own keyframe-to-keyframe poses, from the tracker and from a
 chain of dense (GICP) edges.
 
-    .venv/bin/python bench/merge_bounds.py [--only rk-2 ...] [--out bench/results/merge_bounds.json]
+    .venv/bin/python bench/merge_bounds.py [--only rk-2 ...] [--case NAME=SOURCE,SOURCE ...]
+                                           [--out bench/results/merge_bounds.json]
 
 Two tables:
 - **Odometry by span**: for keyframes i and i+N of a robot, the error against ground truth of
@@ -54,7 +55,7 @@ from fleetslam.merging.dense_constraint import DenseCloud, prepare, register
 from fleetslam.system import track_robot
 from fleetslam.tables import format_table
 from fleetslam.transforms import poses_from_references, rotation_angles_deg
-from merge_fleet import joined_cases
+from merge_fleet import joined_cases, parse_case
 
 SPANS = (1, 2, 4, 8, 16)
 THROUGH = {"one": "one pair (median), rigid", "all": "all pairs, rigid",
@@ -281,11 +282,14 @@ def score_poses(est: list[np.ndarray], robots: list[Robot]) -> dict[str, Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="*", help="cases to run (default: all)")
+    parser.add_argument("--case", action="append", default=[], metavar="NAME=SOURCE,SOURCE...",
+                        help="a case of these sources besides the shared ones (repeatable; "
+                             "as bench/merge_fleet.py's)")
     parser.add_argument("--config", help="a TOML file over the defaults")
     parser.add_argument("--out", default="bench/results/merge_bounds.json")
     args = parser.parse_args()
     config = load_config(args.config)
-    chosen = joined_cases()
+    chosen = {**joined_cases(), **dict(parse_case(text) for text in args.case)}
     unknown = set(args.only or []) - set(chosen)
     if unknown:
         raise SystemExit(f"--only: no case {sorted(unknown)}; known: {sorted(chosen)}")
