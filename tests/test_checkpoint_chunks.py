@@ -59,7 +59,7 @@ class Run:
 def _write(store: CloudStore, chunks: Chunks, state: SessionState):
     blob = capture(state, chunks)
     store.write_checkpoint("r0", blob)
-    chunks.confirm(blob.chunks)
+    chunks.confirm(blob)
     return blob
 
 
@@ -129,6 +129,35 @@ def test_replaced_chains_are_deleted_and_the_checkpoint_before_still_loads(frame
             store.load_checkpoint_file(folder / "before.ckpt")
         before = blob.to_bytes()
     assert len(bases) > 4  # replaced bases were deleted
+
+
+def test_a_finished_session_keeps_only_the_chunks_of_its_two_newest_checkpoints(
+        frames, tmp_path, monkeypatch):
+    monkeypatch.setattr(array_log, "MAX_PATCHES", 2)  # a new base every third checkpoint
+    run = Run(frames)
+    store = CloudStore(tmp_path)
+    chunks = Chunks(lambda name: store.has_chunk("r0", name),
+                    lambda names: store.remove_chunks("r0", names))
+    folder = tmp_path / "r0" / "chunks"
+    blobs = [_write(store, chunks, run.track(4))]
+    # While the robot runs, a replaced chain waits for the base after next: tracked on until
+    # the folder holds chunks neither of the two newest checkpoints names.
+    for n in range(5, 15):
+        blobs.append(_write(store, chunks, run.track(n)))
+        if {f.stem for f in folder.iterdir()} - blobs[-1].named - blobs[-2].named:
+            break
+    else:
+        pytest.fail("no replaced chain waited in the folder")
+    state = run.track(n + 1)
+    state.ended = True
+    last = capture(state, chunks)
+    store.write_checkpoint("r0", last, ended=True)
+    chunks.confirm(last, ended=True)
+    assert {f.stem for f in folder.iterdir()} == last.named | blobs[-1].named
+    # Both checkpoints a store may keep still load, the newest and the one before.
+    assert store.load_checkpoint("r0").ended
+    (folder.parent / "before.ckpt").write_bytes(blobs[-1].to_bytes())
+    store.load_checkpoint_file(folder.parent / "before.ckpt")
 
 
 def test_a_restored_session_names_the_chunks_it_already_has(frames, tmp_path):

@@ -82,11 +82,12 @@ class Capture:
     (:meth:`to_bytes`, most of the time: one zip member per array) can wait for another
     thread, since nothing here changes with the live state. ``chunks``: the chunks the tree
     names that are not known to be written yet, each captured on its own (write them, by
-    name, before the tree that names them)."""
+    name, before the tree that names them); ``named``: every chunk the tree names."""
 
     tree: str
     arrays: dict[str, np.ndarray]
     chunks: dict[str, "Capture"] = dataclasses.field(default_factory=dict)
+    named: frozenset[str] = frozenset()
 
     def to_bytes(self) -> bytes:
         return write_npz({_TREE: np.frombuffer(self.tree.encode(), np.uint8), **self.arrays})
@@ -102,6 +103,7 @@ def capture(state: Any, classes: Classes, chunker: Chunker | None = None) -> Cap
     those not yet written are captured in ``Capture.chunks``."""
     arrays: dict[str, np.ndarray] = {}
     chunks: dict[str, Capture] = {}
+    named: set[str] = set()
 
     def enc(v: Any) -> Any:
         if v is None or isinstance(v, (bool, str, int, float)):
@@ -111,6 +113,7 @@ def capture(state: Any, classes: Classes, chunker: Chunker | None = None) -> Cap
                 raise TypeError(f"chunk name {name!r} is not one")
             if name not in chunks and not chunker.written(name):
                 chunks[name] = capture(v, classes)
+            named.add(name)
             return {"__chunk__": name}
         if isinstance(v, bytes):
             return {"__bytes__": v.hex()}
@@ -140,7 +143,7 @@ def capture(state: Any, classes: Classes, chunker: Chunker | None = None) -> Cap
     encoded = enc(state)
     version = VERSION if chunker is None else CHUNKED_VERSION
     tree = json.dumps({"format": FORMAT, "version": version, "state": encoded})
-    return Capture(tree, arrays, chunks)
+    return Capture(tree, arrays, chunks, frozenset(named))
 
 
 class CheckpointError(ValueError):

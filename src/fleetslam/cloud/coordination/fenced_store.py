@@ -37,15 +37,13 @@ from fleetslam.cloud.coordination.etcd_gateway import (EtcdClient, EtcdError, co
 from fleetslam.cloud.coordination.ownership import Ownership
 from fleetslam.cloud.session import session_state
 from fleetslam.cloud.session.session_state import SessionState
+from fleetslam.cloud.session.session_state import KEPT_CHECKPOINTS
 from fleetslam.cloud.session.store import CloudStore, NotOwner
 from fleetslam.config import TransportConfig
 from fleetslam.wire.data_tree import Capture, CheckpointError
 
 log = logging.getLogger("fleetslam.cloud")
 
-# Blobs kept per robot by their writer: the current one and the one before (a reader that
-# read the pointer just before it moved still finds its file).
-KEPT_BLOBS = 2
 # Re-reads of the pointer when the blob it named is gone (it moved on meanwhile), or when
 # the folder holds a newer blob (its writer puts the blob, then moves the pointer: a reader
 # between the two sees the pointer behind for a moment), this long apart.
@@ -232,7 +230,7 @@ class FencedStore(CloudStore):
         with self._lock:
             written = self._written.setdefault(robot_id, deque())
             written.append(path)
-            old = [written.popleft() for _ in range(max(0, len(written) - KEPT_BLOBS))]
+            old = [written.popleft() for _ in range(max(0, len(written) - KEPT_CHECKPOINTS))]
         for p in old:
             self._drop(p)
 

@@ -17,7 +17,7 @@ import logging
 import queue
 import threading
 import time
-from typing import Callable, Iterable
+from typing import Callable
 
 import numpy as np
 
@@ -40,12 +40,13 @@ class CheckpointWriter:
     def __init__(self, robot_id: str, store: CloudStore, snapshot: Callable[[], Capture],
                  durable_index: int, keyframe_sink: KeyframeSink | None = None,
                  ended: Callable[[], bool] = lambda: False,
-                 written: Callable[[Iterable[str]], None] = lambda names: None,
+                 written: Callable[[Capture, bool], None] = lambda blob, ended: None,
                  interval_s: float = 0.0) -> None:
         """``snapshot``: the session's state as a checkpoint now; ``durable_index``: the
         newest frame index a checkpoint on disk covers already (a restored session: all);
         ``ended``: whether the robot has finished (taken with each snapshot); ``written``:
-        told the chunks of each checkpoint written (later snapshots leave them out)."""
+        told each checkpoint written and whether the robot had finished (its chunks: later
+        snapshots leave them out)."""
         self.robot_id = robot_id
         self.store = store
         self.keyframe_sink = keyframe_sink
@@ -181,7 +182,8 @@ class CheckpointWriter:
                 log.exception("robot %s: checkpoint not written", self.robot_id)
                 self._fail(number, f"not written: {exc}")
             else:
-                self._chunks_written(blob.chunks if isinstance(blob, Capture) else ())
+                if isinstance(blob, Capture):
+                    self._chunks_written(blob, ended)
                 self.writes += 1
                 self.bytes_written += written or 0
                 with self._durable:

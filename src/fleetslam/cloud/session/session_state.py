@@ -85,6 +85,10 @@ class RowBlock:
 # Rows per chunk of the trajectory: a long run's checkpoint names a few hundred chunks
 # instead of holding thousands of small arrays.
 ROW_BLOCK = 256
+# Checkpoints a robot's folder keeps at most: the current one and the one before
+# (cloud/coordination/fenced_store.py keeps both, for a reader that read the pointer just
+# before it moved; store.py's own layout keeps one). A chunk neither names can go.
+KEPT_CHECKPOINTS = 2
 
 
 @dataclass
@@ -167,6 +171,8 @@ class Chunks:
         # a loop's landmark merge gives each keyframe a new table).
         self._keyframe_parts: set[int] = set()
         self._logs: dict[str, array_log.ArrayLog] = {}  # "map", "places" -> its log
+        # What the newest checkpoints written name (the store's kept ones), newest last.
+        self._kept: list[frozenset[str]] = []
         self._lock = threading.Lock()
 
     def name_of(self, value: Any) -> str | None:
@@ -193,14 +199,22 @@ class Chunks:
             return True
         return False
 
-    def confirm(self, names: Iterable[str]) -> None:
-        """These chunks are durably written (a checkpoint naming them was): logs whose new
-        base is among them delete the chains it replaced."""
-        names = set(names)
+    def confirm(self, blob: data_tree.Capture, ended: bool = False) -> None:
+        """``blob`` is durably written with its chunks: logs whose new base is among them
+        delete the chains it replaced. ``ended`` (the robot has finished, no checkpoint but
+        this one may follow): every chunk neither this checkpoint nor the one before names
+        goes too (the chains a log would delete with its next base, culled keyframes'
+        parts), as the folder keeps no other checkpoint (KEPT_CHECKPOINTS)."""
+        names = set(blob.chunks)
         retired = [n for log in list(self._logs.values()) for n in log.written(names)]
+        self._kept = (self._kept + [blob.named])[-KEPT_CHECKPOINTS:]
         with self._lock:
             self._written.update(names)
             self._written.difference_update(retired)
+            if ended:
+                unnamed = self._written.difference(*self._kept)
+                self._written -= unnamed
+                retired += sorted(unnamed)
         if retired:
             self._remove(retired)
 
