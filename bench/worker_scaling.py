@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -247,6 +248,10 @@ def main() -> None:
                         "cannot run and the 10 fps phases start at --ten-fps-from (default "
                         "--robots) on workers that served no robot before")
     parser.add_argument("--out", default="bench/results/worker_scaling.json")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep each setting's store and logs (1.5-4 GB a setting of 20 "
+                             "robots x 600 frames) under worker-scaling-runs/ next to --out; "
+                             "default: deleted once the setting is measured")
     args = parser.parse_args()
     for folder in (SEVEN_SCENES, TUM_RPY):
         if not folder.exists():
@@ -280,10 +285,11 @@ def main() -> None:
                             + (f", {Path(config).stem if config else 'defaults'}"
                                if len(configs) > 1 else "")
                             + (f", run {run + 1}" if args.runs > 1 else ""))
-                    results[name] = run_setting(
-                        n, pinned, prepared, args.load,
-                        work / name.replace(" ", "_").replace(",", ""), placement, config,
-                        args.ten_fps_from, kinds)
+                    folder = work / name.replace(" ", "_").replace(",", "")
+                    results[name] = run_setting(n, pinned, prepared, args.load, folder,
+                                                placement, config, args.ten_fps_from, kinds)
+                    if not args.keep:
+                        shutil.rmtree(folder, ignore_errors=True)
     rows = []
     for name, phases in results.items():
         for phase, r in phases.items():
@@ -339,6 +345,10 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"robots": args.robots, "frames_per_robot": args.frames,
                                "cores": os.cpu_count(), "results": results}, indent=2))
+    if args.keep:
+        print(f"each setting's store and logs kept under {work}")
+    else:
+        shutil.rmtree(work, ignore_errors=True)
     print(f"wrote {out}")
 
 
