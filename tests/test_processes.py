@@ -20,7 +20,7 @@ from fleetslam.edge.report import EXIT_INCOMPLETE
 from fleetslam.io.trajectory import read_tum_trajectory
 from fleetslam.datasets.tum import RgbdSequence
 from fleetslam.wire.paper_yaml import read_paper_yaml
-from fleetslam.launch import CloudClient, start_cloud, start_robot, stop
+from fleetslam.launch import CloudClient, dump_stacks, start_cloud, start_robot, stop
 from fleetslam.transport.certs import make_lab
 
 N_FRAMES = 60
@@ -52,13 +52,18 @@ def _keyframe_files(out: Path, robot: str) -> set[int]:
     return {int(p.stem) for p in (out / robot / "keyframes").glob("*.fskf")}
 
 
-def _finish(robot, log: Path, timeout: float = 120.0, codes: tuple[int, ...] = (0,)) -> int:
+def _finish(robot, log: Path, timeout: float = 120.0, codes: tuple[int, ...] = (0,),
+            cloud: tuple[subprocess.Popen, Path] | None = None) -> int:
     try:
         code = robot.wait(timeout)
     except subprocess.TimeoutExpired:
+        # Where it waits (and the cloud, if given), into their logs.
+        for process in (robot, *([cloud[0]] if cloud else [])):
+            dump_stacks(process)
         stop(robot, 2.0)
-        raise AssertionError(f"the robot did not finish in {timeout:.0f} s; its log:\n"
-                             f"{_log(log)}") from None
+        cloud_log = f"\nthe cloud's log:\n{_log(cloud[1])}" if cloud else ""
+        raise AssertionError(f"the robot did not finish in {timeout:.0f} s; its log (its "
+                             f"threads' stacks at the end):\n{_log(log)}{cloud_log}") from None
     assert code in codes, _log(log)
     return code
 
@@ -78,7 +83,9 @@ def test_killed_robot_resumes_its_session(scene, lab, tmp_path, capsys):
         report = tmp_path / "r0-b.json"
         second = start_robot(endpoint, "r0", str(scene[0]), 3, tmp_path / "r0-b.log", report,
                              zenoh_config=lab["r0"])
-        _finish(second, tmp_path / "r0-b.log")
+        # Stop 56's rare hang was here: the second robot said nothing for 120 s and the
+        # cloud heard no hello; the stacks say where, next time.
+        _finish(second, tmp_path / "r0-b.log", cloud=(cloud, tmp_path / "cloud.log"))
         # The operator's commands against the running cloud.
         capsys.readouterr()
         operator = ["--quiet", "--zenoh-config", lab["client"]]
@@ -100,6 +107,20 @@ def test_killed_robot_resumes_its_session(scene, lab, tmp_path, capsys):
     assert summary["map_resets"] == 0 and summary["lost_frames"] == 0
     kf_times, _ = read_tum_trajectory(out / "r0" / "keyframes.tum")
     assert len(_keyframe_files(out, "r0")) == len(kf_times) >= 2
+
+
+def test_a_running_process_writes_its_threads_stacks_when_asked(scene, lab, tmp_path):
+    # A robot waiting for a cloud that is not there yet (it keeps trying for minutes).
+    log = tmp_path / "robot.log"
+    robot = start_robot(secure_endpoint(), "r0", str(scene[0]), 3, log, zenoh_config=lab["r0"])
+    try:
+        wait_for(lambda: "retrying" in _log(log), 60, "the robot waiting for its cloud")
+        dump_stacks(robot)
+        wait_for(lambda: "Current thread" in _log(log), 10, "its stacks in its log")
+        assert robot.poll() is None  # still running
+        assert "edge/robot.py" in _log(log) or "transport" in _log(log)
+    finally:
+        stop(robot, 5.0)
 
 
 def test_killed_cloud_restarts_with_every_acknowledged_keyframe(scene, lab, tmp_path):

@@ -4,8 +4,10 @@ export, view, generate, vocabulary."""
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import functools
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -1111,10 +1113,23 @@ def _check_endpoints(args: argparse.Namespace, config: Config) -> None:
                          "--listen" if args.listen else where)
 
 
+def _stacks_on_request() -> None:
+    """`kill -USR1 <pid>` writes every thread's stack to stderr and lets the process go on:
+    where a robot or cloud that seems stuck is waiting (launch.dump_stacks asks for it).
+    Not where stderr is no file (main called inside another program that captures it)."""
+    if not hasattr(signal, "SIGUSR1"):
+        return
+    try:
+        faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
+    except (AttributeError, ValueError, OSError):  # io.UnsupportedOperation is both
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     # small_gicp's OpenMP threads busy-wait by default, which slows everything else on a
     # 2-core robot or a shared server; they must sleep instead.
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+    _stacks_on_request()
     if os.environ.get("RUST_LOG"):  # Zenoh's own log (why a session did not open) on request
         import zenoh
 

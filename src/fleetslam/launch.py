@@ -93,6 +93,14 @@ def _env() -> dict[str, str]:
     return env
 
 
+def dump_stacks(process: subprocess.Popen, wait_s: float = 1.0) -> None:
+    """Ask a running fleetslam process for every thread's stack (SIGUSR1, cli.main: written
+    to its stderr, i.e. its log) and give it ``wait_s`` to write them; it goes on running."""
+    if process.poll() is None and hasattr(signal, "SIGUSR1"):
+        process.send_signal(signal.SIGUSR1)
+        time.sleep(wait_s)
+
+
 def stop(process: subprocess.Popen, timeout: float = 20.0) -> int:
     """SIGTERM (the cloud closes cleanly), then SIGKILL if it does not."""
     if process.poll() is None:
