@@ -36,8 +36,7 @@ from fleetslam.cloud.coordination.etcd_gateway import (EtcdClient, EtcdError, co
                                                        put_op, range_op)
 from fleetslam.cloud.coordination.ownership import Ownership
 from fleetslam.cloud.session import session_state
-from fleetslam.cloud.session.session_state import SessionState
-from fleetslam.cloud.session.session_state import KEPT_CHECKPOINTS
+from fleetslam.cloud.session.session_state import KEPT_CHECKPOINTS, SessionState
 from fleetslam.cloud.session.store import CloudStore, NotOwner
 from fleetslam.config import TransportConfig
 from fleetslam.wire.data_tree import Capture, CheckpointError
